@@ -1,0 +1,351 @@
+//! Commands, flight modes and the FINken's controllers: mode logic (outer loop, every control
+//! step), attitude PIDs, height hold and the X-frame mixer (inner loop, every physics step).
+
+use serde::{Deserialize, Serialize};
+
+use crate::airframe::{Airframe, PidGains, ROTOR_YAW_SIGN};
+use crate::math::{Real, Vec3, wrap_angle_rad};
+
+/// The FINken firmware's flight modes.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum FlightMode {
+    /// Direct pitch, roll, yaw and throttle (height hold only if a height is set).
+    Manual,
+    /// Height and yaw held by the copter; pitch and roll from commands.
+    #[default]
+    MixedManual,
+    /// Fully autonomous: repelled from whatever its sonars see closer than the safety distance.
+    WallAvoid,
+    /// Position PIDs towards a target point, from ground truth (a development aid).
+    Target,
+}
+
+impl FlightMode {
+    /// The scene and wire name.
+    pub fn as_str(self) -> &'static str {
+        match self {
+            FlightMode::Manual => "manual",
+            FlightMode::MixedManual => "mixed_manual",
+            FlightMode::WallAvoid => "wall_avoid",
+            FlightMode::Target => "target",
+        }
+    }
+}
+
+/// The commands of one copter. The step reads them and never writes them.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Command {
+    /// Flight mode.
+    pub mode: FlightMode,
+    /// Roll target, rad (> 0: right side down).
+    pub roll_rad: Real,
+    /// Pitch target, rad (> 0: nose down, flies forward).
+    pub pitch_rad: Real,
+    /// Yaw target, rad, counter-clockwise from +x, as the copter's AHRS sees it.
+    pub yaw_rad: Real,
+    /// Throttle in [0, 1] (0.5 = hover), used when no height is held.
+    pub throttle: Real,
+    /// Height to hold, m; `<= 0` disables height hold.
+    pub height_m: Real,
+    /// Target point for [`FlightMode::Target`], m.
+    pub target_m: Option<[Real; 3]>,
+    /// Velocity to follow when safe in [`FlightMode::WallAvoid`], body frame (forward, left), m/s.
+    pub velocity_m_s: Option<[Real; 2]>,
+    /// Externally supplied virtual sonar readings (front, right, back, left), m. Fused as
+    /// `min(physical, virtual)`: the original rule for real copters seeing virtual objects.
+    pub virtual_sonar_m: Option<[Real; 4]>,
+}
+
+impl Default for Command {
+    fn default() -> Self {
+        Self {
+            mode: FlightMode::MixedManual,
+            roll_rad: 0.0,
+            pitch_rad: 0.0,
+            yaw_rad: 0.0,
+            throttle: 0.0,
+            height_m: 0.0,
+            target_m: None,
+            velocity_m_s: None,
+            virtual_sonar_m: None,
+        }
+    }
+}
+
+/// Commands for every copter, indexed by copter id.
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct Inputs {
+    /// One command per copter, in id order.
+    pub commands: Vec<Command>,
+}
+
+/// What the outer loop asks of the inner loop for one control step.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct Setpoint {
+    /// Roll, rad.
+    pub roll_rad: Real,
+    /// Pitch, rad.
+    pub pitch_rad: Real,
+    /// Yaw, rad, in the copter's own (biased) heading estimate.
+    pub yaw_rad: Real,
+    /// Height to hold, m; `<= 0`: use `throttle`.
+    pub height_m: Real,
+    /// Throttle in [0, 1] when no height is held.
+    pub throttle: Real,
+}
+
+/// Integrator and memory of one PID axis.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct PidState {
+    /// Integral of the error, rad·s.
+    pub integral: Real,
+    /// Last error, rad.
+    pub last_error: Real,
+}
+
+impl PidState {
+    /// One PID update; returns the commanded angular acceleration, rad/s².
+    ///
+    /// The derivative acts on the measured rate (no kick on setpoint changes). Anti-windup as
+    /// in the report: the integral is reset when the error changes sign (the target was
+    /// reached), and bounded so that it alone cannot ask for more than `limit`.
+    #[inline]
+    pub fn update(&mut self, g: &PidGains, error: Real, rate: Real, dt: Real, limit: Real) -> Real {
+        if error.signum() != self.last_error.signum() {
+            self.integral = 0.0;
+        }
+        self.last_error = error;
+        self.integral += error * dt;
+        if g.ki > 0.0 {
+            let max_i = limit / g.ki;
+            self.integral = self.integral.clamp(-max_i, max_i);
+        }
+        g.kp * error + g.ki * self.integral - g.kd * rate
+    }
+}
+
+/// X-frame mixer with saturation handling. Given the wanted collective thrust (N) and body
+/// torques (N·m), returns per-rotor thrusts within `[0, max]`.
+///
+/// Priorities when rotors saturate: roll and pitch first (scaled down only if they alone do
+/// not fit), then the collective is shifted to make room, and yaw gets what is left.
+#[inline]
+pub fn mix(af: &Airframe, collective_n: Real, torque_n_m: Vec3) -> [Real; 4] {
+    let max = af.max_thrust_per_rotor_n;
+    let a2x4 = 4.0 * af.rotor_pos_in_body_m[0].x * af.rotor_pos_in_body_m[0].x;
+    let c = af.d_n_m_s2 / af.k_n_s2;
+    let mut att = [0.0; 4];
+    let mut yaw = [0.0; 4];
+    for (i, p) in af.rotor_pos_in_body_m.iter().enumerate() {
+        // τx = Σ y_i F_i, τy = −Σ x_i F_i, τz = Σ s_i c F_i.
+        att[i] = (torque_n_m.x * p.y - torque_n_m.y * p.x) / a2x4;
+        yaw[i] = torque_n_m.z * ROTOR_YAW_SIGN[i] / (4.0 * c);
+    }
+    let (lo, hi) = att.iter().fold((Real::MAX, Real::MIN), |(lo, hi), &v| (lo.min(v), hi.max(v)));
+    if hi - lo > max {
+        let s = max / (hi - lo);
+        att.iter_mut().for_each(|v| *v *= s);
+    }
+    let (lo, hi) = att.iter().fold((Real::MAX, Real::MIN), |(lo, hi), &v| (lo.min(v), hi.max(v)));
+    let base = (collective_n / 4.0).clamp(-lo, max - hi);
+    let mut yaw_scale: Real = 1.0;
+    for i in 0..4 {
+        let f = base + att[i];
+        let y = yaw[i];
+        if y > 0.0 && f + y > max {
+            yaw_scale = yaw_scale.min((max - f) / y);
+        } else if y < 0.0 && f + y < 0.0 {
+            yaw_scale = yaw_scale.min(f / -y);
+        }
+    }
+    let yaw_scale = yaw_scale.max(0.0);
+    let mut out = [0.0; 4];
+    for i in 0..4 {
+        out[i] = (base + att[i] + yaw_scale * yaw[i]).clamp(0.0, max);
+    }
+    out
+}
+
+/// Collective thrust for a setpoint: height hold (`hover + P e − D v_z`, eq. 3.5, divided by
+/// the cosine of the tilt) when a height is set, else the throttle curve.
+#[inline]
+pub fn collective_thrust_n(af: &Airframe, sp: &Setpoint, z_m: Real, vz_m_s: Real, cos_tilt: Real) -> Real {
+    if sp.height_m > 0.0 {
+        let hover = 4.0 * af.hover_thrust_per_rotor_n;
+        let t = hover + af.spec.height_kp_n_per_m * (sp.height_m - z_m) - af.spec.height_kd_n_s_per_m * vz_m_s;
+        t / cos_tilt.max(0.5)
+    } else {
+        af.throttle_to_thrust_n(sp.throttle)
+    }
+}
+
+/// Attitude controller: body torques from the setpoint and the attitude estimate.
+#[inline]
+pub fn attitude_torque(
+    af: &Airframe,
+    pids: &mut [PidState; 3],
+    sp: &Setpoint,
+    rpy_rad: [Real; 3],
+    rate_body_rad_s: Vec3,
+    dt: Real,
+) -> Vec3 {
+    let max_tilt = af.spec.max_tilt_deg.to_radians();
+    let roll_target = sp.roll_rad.clamp(-max_tilt, max_tilt);
+    let pitch_target = sp.pitch_rad.clamp(-max_tilt, max_tilt);
+    let e_roll = roll_target - rpy_rad[0];
+    let e_pitch = pitch_target - rpy_rad[1];
+    let e_yaw = wrap_angle_rad(sp.yaw_rad - rpy_rad[2]);
+    let g = &af.spec.roll_pitch_pid;
+    let limit_rp = 0.3 * g.kp;
+    let ax = pids[0].update(g, e_roll, rate_body_rad_s.x, dt, limit_rp);
+    let ay = pids[1].update(g, e_pitch, rate_body_rad_s.y, dt, limit_rp);
+    let gy = &af.spec.yaw_pid;
+    let az = pids[2].update(gy, e_yaw, rate_body_rad_s.z, dt, 0.3 * gy.kp);
+    let [ix, iy, iz] = af.inertia_kg_m2;
+    Vec3::new(ix * ax, iy * ay, iz * az)
+}
+
+/// Parameters of the Wall-Avoid behaviour.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct WallAvoidSpec {
+    /// Objects closer than this repel the copter, m.
+    pub safety_distance_m: Real,
+    /// Tilt per metre of intrusion into the safety distance, deg/m.
+    pub kp_deg_per_m: Real,
+    /// Tilt per m/s of approach speed (from the filtered sonar rate), deg/(m/s).
+    pub kd_deg_s_per_m: Real,
+    /// Largest tilt Wall-Avoid commands, deg.
+    pub max_tilt_deg: Real,
+    /// Time constant of the low-pass on sonar rates, s.
+    pub rate_filter_s: Real,
+}
+
+impl Default for WallAvoidSpec {
+    fn default() -> Self {
+        Self { safety_distance_m: 1.0, kp_deg_per_m: 10.0, kd_deg_s_per_m: 8.0, max_tilt_deg: 8.0, rate_filter_s: 0.25 }
+    }
+}
+
+/// Memory of the Wall-Avoid PD: the last fused readings and their filtered rates.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct WallAvoidState {
+    /// Last fused sonar readings (front, right, back, left), m; 0 before the first.
+    pub last_m: [Real; 4],
+    /// Low-passed rate of each reading, m/s.
+    pub rate_m_s: [Real; 4],
+    /// The PD outputs of the last step (pitch, roll), rad: the FINKEN_WALL_AVOID fields.
+    pub out_rad: [Real; 2],
+}
+
+/// Wall-Avoid: pitch from front/back, roll from left/right, a PD on how far each sonar
+/// reading intrudes into the safety distance. Uses only the copter's fused (noisy) sonar
+/// readings, never ground truth. Returns (pitch, roll) in rad, or `None` when all is safe.
+pub fn wall_avoid(spec: &WallAvoidSpec, st: &mut WallAvoidState, sonar_m: [Real; 4], dt: Real) -> Option<(Real, Real)> {
+    let alpha = dt / (spec.rate_filter_s + dt);
+    let first = st.last_m == [0.0; 4];
+    for i in 0..4 {
+        let rate = if first { 0.0 } else { (sonar_m[i] - st.last_m[i]) / dt };
+        st.rate_m_s[i] += alpha * (rate - st.rate_m_s[i]);
+        st.last_m[i] = sonar_m[i];
+    }
+    let intrusion = sonar_m.map(|d| (spec.safety_distance_m - d).max(0.0));
+    if intrusion.iter().all(|&e| e == 0.0) {
+        st.out_rad = [0.0, 0.0];
+        return None;
+    }
+    let kp = spec.kp_deg_per_m.to_radians();
+    let kd = spec.kd_deg_s_per_m.to_radians();
+    // Approach speed counts only for sonars inside the safety distance.
+    let approach = |i: usize| if intrusion[i] > 0.0 { -st.rate_m_s[i] } else { 0.0 };
+    let [front, right, back, left] = [0, 1, 2, 3];
+    // Obstacle ahead → pitch < 0 (back off); obstacle left → roll > 0 (move right).
+    let pitch = -kp * (intrusion[front] - intrusion[back]) - kd * (approach(front) - approach(back));
+    let roll = kp * (intrusion[left] - intrusion[right]) + kd * (approach(left) - approach(right));
+    let max = spec.max_tilt_deg.to_radians();
+    st.out_rad = [pitch.clamp(-max, max), roll.clamp(-max, max)];
+    Some((st.out_rad[0], st.out_rad[1]))
+}
+
+/// Target mode gains: horizontal position PD to tilt, from ground truth.
+const TARGET_KP_RAD_PER_M: Real = 0.25;
+const TARGET_KD_RAD_S_PER_M: Real = 0.35;
+const TARGET_MAX_TILT_RAD: Real = 0.2;
+
+/// Target mode: tilt towards a target point (world frame), rotated into the body's heading.
+pub fn target_tilt(target_m: [Real; 3], pos_m: Vec3, vel_m_s: Vec3, yaw_rad: Real) -> (Real, Real) {
+    let ex = target_m[0] - pos_m.x;
+    let ey = target_m[1] - pos_m.y;
+    let ax = TARGET_KP_RAD_PER_M * ex - TARGET_KD_RAD_S_PER_M * vel_m_s.x;
+    let ay = TARGET_KP_RAD_PER_M * ey - TARGET_KD_RAD_S_PER_M * vel_m_s.y;
+    let (s, c) = yaw_rad.sin_cos();
+    let fwd = c * ax + s * ay;
+    let left = -s * ax + c * ay;
+    // Pitch > 0 flies forward; roll > 0 flies right (towards −left).
+    (fwd.clamp(-TARGET_MAX_TILT_RAD, TARGET_MAX_TILT_RAD), (-left).clamp(-TARGET_MAX_TILT_RAD, TARGET_MAX_TILT_RAD))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::airframe::AirframeSpec;
+
+    fn af() -> Airframe {
+        Airframe::derive(&AirframeSpec::default()).unwrap()
+    }
+
+    fn torques(af: &Airframe, f: [Real; 4]) -> Vec3 {
+        let c = af.d_n_m_s2 / af.k_n_s2;
+        let mut t = Vec3::ZERO;
+        for i in 0..4 {
+            let p = af.rotor_pos_in_body_m[i];
+            t += Vec3::new(p.y * f[i], -p.x * f[i], ROTOR_YAW_SIGN[i] * c * f[i]);
+        }
+        t
+    }
+
+    #[test]
+    fn mixer_reproduces_torques_when_unsaturated() {
+        let af = af();
+        let want = Vec3::new(0.01, -0.02, 0.003);
+        let f = mix(&af, 4.0 * af.hover_thrust_per_rotor_n, want);
+        let got = torques(&af, f);
+        assert!((got - want).length() < 1e-5, "{got:?} vs {want:?}");
+        assert!((f.iter().sum::<Real>() - 4.0 * af.hover_thrust_per_rotor_n).abs() < 1e-4);
+    }
+
+    #[test]
+    fn mixer_keeps_attitude_over_collective_and_yaw_when_saturated() {
+        let af = af();
+        let want = Vec3::new(0.05, 0.0, 0.05);
+        let f = mix(&af, 8.0 * af.max_thrust_per_rotor_n, want);
+        assert!(f.iter().all(|&v| (0.0..=af.max_thrust_per_rotor_n).contains(&v)));
+        let got = torques(&af, f);
+        assert!((got.x - want.x).abs() < 1e-5, "roll torque kept: {got:?}");
+    }
+
+    #[test]
+    fn pid_integral_resets_when_error_changes_sign() {
+        let g = PidGains { kp: 1.0, ki: 1.0, kd: 0.0 };
+        let mut s = PidState::default();
+        for _ in 0..10 {
+            s.update(&g, 0.1, 0.0, 0.1, 10.0);
+        }
+        assert!(s.integral > 0.09);
+        s.update(&g, -0.1, 0.0, 0.1, 10.0);
+        assert!((s.integral + 0.01).abs() < 1e-6, "integral restarts from the new error: {}", s.integral);
+    }
+
+    #[test]
+    fn wall_avoid_backs_off_from_a_wall_ahead_and_moves_right_from_a_wall_left() {
+        let spec = WallAvoidSpec::default();
+        let mut st = WallAvoidState::default();
+        let (pitch, roll) = wall_avoid(&spec, &mut st, [0.5, 3.0, 3.0, 3.0], 0.05).unwrap();
+        assert!(pitch < 0.0 && roll == 0.0);
+        let mut st = WallAvoidState::default();
+        let (pitch, roll) = wall_avoid(&spec, &mut st, [3.0, 3.0, 3.0, 0.5], 0.05).unwrap();
+        assert!(pitch == 0.0 && roll > 0.0);
+        assert!(wall_avoid(&spec, &mut WallAvoidState::default(), [3.0; 4], 0.05).is_none());
+    }
+}

@@ -1,0 +1,85 @@
+//! Seeded random streams. Every copter has its own stream, derived from the scene seed and its
+//! id, so results never depend on the order other copters are processed in.
+
+use rand::Rng;
+use rand_pcg::Pcg32;
+use serde::{Deserialize, Serialize};
+
+use crate::math::Real;
+
+/// A PCG32 stream with the few draws the simulation needs.
+#[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub struct Rng32(Pcg32);
+
+impl Rng32 {
+    /// The stream of `stream_id` under `seed`.
+    pub fn new(seed: u64, stream_id: u64) -> Self {
+        // Decorrelate nearby seeds with a SplitMix64 finaliser.
+        let mut z = seed.wrapping_add(0x9E37_79B9_7F4A_7C15);
+        z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
+        z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
+        z ^= z >> 31;
+        Rng32(Pcg32::new(z, stream_id.wrapping_mul(2).wrapping_add(1)))
+    }
+
+    /// Uniform in [0, 1).
+    #[inline]
+    pub fn uniform(&mut self) -> Real {
+        (self.0.next_u32() >> 8) as Real * (1.0 / (1u32 << 24) as Real)
+    }
+
+    /// Standard normal (Box–Muller, one of the pair).
+    #[inline]
+    pub fn normal(&mut self) -> Real {
+        let u1 = 1.0 - self.uniform(); // (0, 1]
+        let u2 = self.uniform();
+        (-2.0 * u1.ln()).sqrt() * (std::f32::consts::TAU * u2).cos()
+    }
+
+    /// Poisson with mean `lambda` (Knuth's method; `lambda` here is a few particles).
+    #[inline]
+    pub fn poisson(&mut self, lambda: Real) -> u32 {
+        if lambda <= 0.0 {
+            return 0;
+        }
+        if lambda > 30.0 {
+            // Normal approximation for large means.
+            return (lambda + lambda.sqrt() * self.normal()).round().max(0.0) as u32;
+        }
+        let l = (-lambda).exp();
+        let mut k = 0;
+        let mut p = 1.0;
+        loop {
+            p *= self.uniform();
+            if p <= l {
+                return k;
+            }
+            k += 1;
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn normal_has_unit_variance_and_streams_differ() {
+        let mut r = Rng32::new(7, 0);
+        let n = 20_000;
+        let xs: Vec<Real> = (0..n).map(|_| r.normal()).collect();
+        let mean = xs.iter().sum::<Real>() / n as Real;
+        let var = xs.iter().map(|x| (x - mean).powi(2)).sum::<Real>() / n as Real;
+        assert!(mean.abs() < 0.03 && (var - 1.0).abs() < 0.05, "mean {mean} var {var}");
+        assert_ne!(Rng32::new(7, 0).uniform(), Rng32::new(7, 1).uniform());
+        assert_ne!(Rng32::new(7, 0).uniform(), Rng32::new(8, 0).uniform());
+    }
+
+    #[test]
+    fn poisson_mean_matches() {
+        let mut r = Rng32::new(1, 2);
+        let n = 20_000;
+        let mean = (0..n).map(|_| r.poisson(2.15) as f64).sum::<f64>() / n as f64;
+        assert!((mean - 2.15).abs() < 0.05, "{mean}");
+    }
+}

@@ -1,0 +1,675 @@
+//! The scene file: a TOML [`SceneSpec`] (serde, unknown fields rejected), its span-aware parsing,
+//! and its compilation into an immutable [`World`].
+//!
+//! Errors point at the file, the line, the column and the field:
+//! `scenes/lab.toml:14:9: copter[1].start.pos_m: copter "beta" starts outside the arena ...`.
+//! Parsing takes the text, never a path: reading files is the caller's business.
+
+use std::collections::BTreeMap;
+use std::fmt;
+use std::ops::Range;
+
+use serde::de::{self, MapAccess, Visitor};
+use serde::{Deserialize, Deserializer, Serialize};
+
+use crate::airframe::{self, Airframe, AirframeSpec};
+use crate::control::{Command, FlightMode};
+use crate::math::{Real, Vec3};
+use crate::sensors::SensorSpec;
+use crate::world::{Arena, CopterDef, CopterKind, SimParams, StaticBox, World};
+
+/// The embedded default scene: the original lab, a 4 m × 3 m arena with two FINkens.
+pub const DEFAULT_SCENE_TOML: &str = include_str!("../../../assets/scenes/finken_lab.toml");
+/// Name used in error messages for the embedded default scene.
+pub const DEFAULT_SCENE_ORIGIN: &str = "<embedded finken_lab.toml>";
+
+/// A whole scene as written in TOML.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct SceneSpec {
+    /// Name of the world; the bridge uses it in key expressions.
+    #[serde(default = "default_world_name")]
+    pub name: String,
+    /// Simulation parameters.
+    #[serde(default)]
+    pub sim: SimSpec,
+    /// The arena: floor, height, walls.
+    pub arena: ArenaSpec,
+    /// Static boxes standing in the arena.
+    #[serde(default, rename = "box")]
+    pub boxes: Vec<BoxSpec>,
+    /// Named airframes defined by this scene (FINken III defaults, overridden per field).
+    #[serde(default)]
+    pub airframes: BTreeMap<String, AirframeSpec>,
+    /// Sensor models, shared by all copters.
+    #[serde(default)]
+    pub sensors: SensorSpec,
+    /// The copters.
+    #[serde(default, rename = "copter")]
+    pub copters: Vec<CopterSpec>,
+}
+
+fn default_world_name() -> String {
+    "lab".into()
+}
+
+/// `[sim]`: stepping parameters.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct SimSpec {
+    /// Physics step, s.
+    pub physics_dt_s: f64,
+    /// Control step, s: a whole multiple of the physics step.
+    pub control_dt_s: f64,
+    /// Seed of every random draw in the run.
+    pub seed: u64,
+    /// Default run length, s.
+    pub duration_s: f64,
+}
+
+impl Default for SimSpec {
+    fn default() -> Self {
+        Self { physics_dt_s: 0.005, control_dt_s: 0.05, seed: 1, duration_s: 90.0 }
+    }
+}
+
+/// `[arena]`: the floor rectangle, centred on the origin, and its height.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ArenaSpec {
+    /// Floor size along x and y, m.
+    pub size_m: [Real; 2],
+    /// Height of the walls and of the ceiling, m.
+    pub height_m: Real,
+    /// Whether the four walls and the ceiling exist (the floor always does).
+    #[serde(default = "yes")]
+    pub walls: bool,
+    /// Thickness of walls, floor and ceiling, m.
+    #[serde(default = "default_wall_thickness")]
+    pub wall_thickness_m: Real,
+}
+
+fn yes() -> bool {
+    true
+}
+fn default_wall_thickness() -> Real {
+    0.1
+}
+
+/// `[[box]]`: a static box.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct BoxSpec {
+    /// Optional name, unique when given.
+    #[serde(default)]
+    pub name: Option<String>,
+    /// Centre of the footprint on the floor (x, y), m.
+    pub pos_m: [Real; 2],
+    /// Height of the box's bottom above the floor, m.
+    #[serde(default)]
+    pub z_m: Real,
+    /// Size along its own x, y, z, m.
+    pub size_m: [Real; 3],
+    /// Rotation about z, degrees counter-clockwise.
+    #[serde(default)]
+    pub yaw_deg: Real,
+    /// Whether only virtual copters and twins see it (it exists only in the simulation).
+    /// Every box of a scene is virtual from the point of view of real copters; this flag is
+    /// informational for tools.
+    #[serde(default)]
+    pub virtual_only: bool,
+}
+
+/// `[[copter]]`.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct CopterSpec {
+    /// Unique name.
+    pub name: String,
+    /// `virtual` (simulated only) or `real` (a virtual twin driven by a real copter).
+    #[serde(default)]
+    pub kind: CopterKind,
+    /// Paparazzi aircraft id, if it has one.
+    #[serde(default)]
+    pub ac_id: Option<u8>,
+    /// A preset name (`"finken3"` or a key of `[airframes]`), or an inline table of overrides.
+    #[serde(default)]
+    pub airframe: AirframeRef,
+    /// Start pose.
+    pub start: StartSpec,
+    /// Initial flight mode.
+    #[serde(default)]
+    pub mode: FlightMode,
+    /// Initial commands.
+    #[serde(default)]
+    pub command: CommandSpec,
+}
+
+/// A copter's airframe: a named preset or inline parameters.
+#[derive(Clone, Debug, PartialEq, Serialize)]
+#[serde(untagged)]
+pub enum AirframeRef {
+    /// A built-in preset or one of the scene's `[airframes]`.
+    Named(String),
+    /// Inline parameters; fields not given keep FINken III values.
+    Inline(Box<AirframeSpec>),
+}
+
+impl Default for AirframeRef {
+    fn default() -> Self {
+        AirframeRef::Named("finken3".into())
+    }
+}
+
+impl<'de> Deserialize<'de> for AirframeRef {
+    fn deserialize<D: Deserializer<'de>>(d: D) -> Result<Self, D::Error> {
+        struct V;
+        impl<'de> Visitor<'de> for V {
+            type Value = AirframeRef;
+            fn expecting(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+                f.write_str("a preset name or a table of airframe parameters")
+            }
+            fn visit_str<E: de::Error>(self, v: &str) -> Result<AirframeRef, E> {
+                Ok(AirframeRef::Named(v.to_owned()))
+            }
+            fn visit_map<A: MapAccess<'de>>(self, map: A) -> Result<AirframeRef, A::Error> {
+                let spec = AirframeSpec::deserialize(de::value::MapAccessDeserializer::new(map))?;
+                Ok(AirframeRef::Inline(Box::new(spec)))
+            }
+        }
+        d.deserialize_any(V)
+    }
+}
+
+/// A copter's start pose.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct StartSpec {
+    /// Position on the floor (x, y), m.
+    pub pos_m: [Real; 2],
+    /// Height of the centre of mass, m. Omitted: resting on the floor.
+    #[serde(default)]
+    pub z_m: Option<Real>,
+    /// Heading, degrees counter-clockwise from +x.
+    #[serde(default)]
+    pub yaw_deg: Real,
+}
+
+/// Initial commands, in user units (degrees, percent).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize, Default)]
+#[serde(default, deny_unknown_fields)]
+pub struct CommandSpec {
+    /// Roll target, deg (> 0: right side down).
+    pub roll_deg: Real,
+    /// Pitch target, deg (> 0: nose down, flies forward).
+    pub pitch_deg: Real,
+    /// Yaw target, deg counter-clockwise from +x. Omitted: the start heading.
+    pub yaw_deg: Option<Real>,
+    /// Throttle, percent (50 = hover), used when no height is held.
+    pub throttle_pct: Option<Real>,
+    /// Height to hold, m; 0 or omitted: no height hold.
+    pub height_m: Real,
+    /// Target point for `target` mode, m.
+    pub target_m: Option<[Real; 3]>,
+    /// Velocity to follow when safe in `wall_avoid` mode, body frame (forward, left), m/s.
+    pub velocity_m_s: Option<[Real; 2]>,
+}
+
+/// One step of a path to a field in the scene: a table key or an array index.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub enum PathSeg {
+    /// A table key.
+    Key(String),
+    /// An array index.
+    Index(usize),
+}
+
+/// A path to a field, printed as `copter[1].start.pos_m`.
+#[derive(Clone, Debug, Default, PartialEq, Eq)]
+pub struct FieldPath(pub Vec<PathSeg>);
+
+impl FieldPath {
+    fn key(mut self, k: &str) -> Self {
+        self.0.push(PathSeg::Key(k.into()));
+        self
+    }
+    fn index(mut self, i: usize) -> Self {
+        self.0.push(PathSeg::Index(i));
+        self
+    }
+}
+
+impl fmt::Display for FieldPath {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        if self.0.is_empty() {
+            return f.write_str("<document>");
+        }
+        for (i, seg) in self.0.iter().enumerate() {
+            match seg {
+                PathSeg::Key(k) if i == 0 => write!(f, "{k}")?,
+                PathSeg::Key(k) => write!(f, ".{k}")?,
+                PathSeg::Index(n) => write!(f, "[{n}]")?,
+            }
+        }
+        Ok(())
+    }
+}
+
+/// Where in a file something is: 1-based line and column.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct Location {
+    /// 1-based line.
+    pub line: usize,
+    /// 1-based column, in characters.
+    pub column: usize,
+}
+
+/// Why a scene was rejected.
+#[derive(Clone, Debug, PartialEq, thiserror::Error)]
+pub enum SceneError {
+    /// The text is not valid TOML or does not fit the scene format (wrong type, missing or
+    /// unknown field).
+    #[error("{origin}:{}: {path}: {message}", fmt_loc(.location))]
+    Syntax {
+        /// File name or other origin of the text.
+        origin: String,
+        /// Where, if known.
+        location: Option<Location>,
+        /// The field (or the enclosing table) at fault.
+        path: FieldPath,
+        /// What is wrong.
+        message: String,
+    },
+    /// The scene parsed but is not a valid world (a copter outside the arena, a duplicate
+    /// name, a non-finite value, ...).
+    #[error("{origin}:{}: {path}: {message}", fmt_loc(.location))]
+    Invalid {
+        /// File name or other origin of the text.
+        origin: String,
+        /// Where, if known.
+        location: Option<Location>,
+        /// The field at fault.
+        path: FieldPath,
+        /// What is wrong.
+        message: String,
+    },
+}
+
+fn fmt_loc(loc: &Option<Location>) -> String {
+    match loc {
+        Some(l) => format!("{}:{}", l.line, l.column),
+        None => "?:?".into(),
+    }
+}
+
+impl SceneError {
+    /// The field path the error names.
+    pub fn path(&self) -> &FieldPath {
+        match self {
+            SceneError::Syntax { path, .. } | SceneError::Invalid { path, .. } => path,
+        }
+    }
+    /// The bare message, without origin and location.
+    pub fn message(&self) -> &str {
+        match self {
+            SceneError::Syntax { message, .. } | SceneError::Invalid { message, .. } => message,
+        }
+    }
+    /// The location, if known.
+    pub fn location(&self) -> Option<Location> {
+        match self {
+            SceneError::Syntax { location, .. } | SceneError::Invalid { location, .. } => *location,
+        }
+    }
+    fn invalid(path: FieldPath, message: impl Into<String>) -> Self {
+        SceneError::Invalid { origin: String::new(), location: None, path, message: message.into() }
+    }
+}
+
+impl SceneSpec {
+    /// Parses a scene from TOML text. `origin` names the text in errors (usually its path).
+    pub fn from_toml(origin: &str, text: &str) -> Result<Self, SceneError> {
+        toml::from_str::<SceneSpec>(text).map_err(|e| {
+            let span = e.span();
+            let (path, location) = match &span {
+                Some(span) => (path_at(text, span), Some(line_col(text, span.start))),
+                None => (FieldPath::default(), None),
+            };
+            SceneError::Syntax { origin: origin.into(), location, path, message: e.message().trim().to_owned() }
+        })
+    }
+
+    /// Serialises the scene back to TOML.
+    pub fn to_toml(&self) -> String {
+        toml::to_string_pretty(self).unwrap_or_else(|e| format!("# scene not serialisable: {e}"))
+    }
+}
+
+/// Parses and compiles a scene, locating compile errors in `text`.
+pub fn load(origin: &str, text: &str) -> Result<(SceneSpec, World), SceneError> {
+    let spec = SceneSpec::from_toml(origin, text)?;
+    match compile(&spec) {
+        Ok(world) => Ok((spec, world)),
+        Err(SceneError::Invalid { path, message, .. }) => {
+            let location = span_of(text, &path).map(|s| line_col(text, s.start));
+            Err(SceneError::Invalid { origin: origin.into(), location, path, message })
+        }
+        Err(e) => Err(e),
+    }
+}
+
+/// Loads the embedded default scene.
+pub fn load_default() -> (SceneSpec, World) {
+    match load(DEFAULT_SCENE_ORIGIN, DEFAULT_SCENE_TOML) {
+        Ok(v) => v,
+        // The embedded scene is checked by a test; reaching this is a build defect.
+        Err(e) => panic!("the embedded default scene is invalid: {e}"),
+    }
+}
+
+fn finite(path: &FieldPath, values: &[Real]) -> Result<(), SceneError> {
+    if let Some(v) = values.iter().find(|v| !v.is_finite()) {
+        return Err(SceneError::invalid(path.clone(), format!("must be finite, got {v}")));
+    }
+    Ok(())
+}
+
+fn positive(path: &FieldPath, values: &[Real]) -> Result<(), SceneError> {
+    finite(path, values)?;
+    if let Some(v) = values.iter().find(|v| **v <= 0.0) {
+        return Err(SceneError::invalid(path.clone(), format!("must be positive, got {v}")));
+    }
+    Ok(())
+}
+
+/// Compiles a scene into an immutable [`World`], checking that it makes sense.
+pub fn compile(spec: &SceneSpec) -> Result<World, SceneError> {
+    let root = FieldPath::default();
+    // [sim]
+    let sim = &spec.sim;
+    let p = root.clone().key("sim");
+    for (name, v) in [("physics_dt_s", sim.physics_dt_s), ("control_dt_s", sim.control_dt_s), ("duration_s", sim.duration_s)] {
+        if !v.is_finite() || v <= 0.0 {
+            return Err(SceneError::invalid(p.clone().key(name), format!("must be positive and finite, got {v}")));
+        }
+    }
+    let ratio = sim.control_dt_s / sim.physics_dt_s;
+    let substeps = ratio.round();
+    if (ratio - substeps).abs() > 1e-6 || substeps < 1.0 || substeps > 10_000.0 {
+        return Err(SceneError::invalid(
+            p.clone().key("control_dt_s"),
+            format!("must be a whole multiple (1 to 10000) of physics_dt_s = {}, got {}", sim.physics_dt_s, sim.control_dt_s),
+        ));
+    }
+    let params = SimParams {
+        physics_dt_s: sim.physics_dt_s,
+        control_dt_s: sim.control_dt_s,
+        substeps: substeps as u32,
+        seed: sim.seed,
+        duration_s: sim.duration_s,
+    };
+
+    // [arena]
+    let a = &spec.arena;
+    let p = root.clone().key("arena");
+    positive(&p.clone().key("size_m"), &a.size_m)?;
+    positive(&p.clone().key("height_m"), &[a.height_m])?;
+    positive(&p.clone().key("wall_thickness_m"), &[a.wall_thickness_m])?;
+    let arena = Arena { size_m: a.size_m, height_m: a.height_m, walls: a.walls, wall_thickness_m: a.wall_thickness_m };
+
+    // [[box]]
+    let mut boxes = Vec::with_capacity(spec.boxes.len());
+    let mut box_names = BTreeMap::new();
+    for (i, b) in spec.boxes.iter().enumerate() {
+        let p = root.clone().key("box").index(i);
+        finite(&p.clone().key("pos_m"), &b.pos_m)?;
+        finite(&p.clone().key("z_m"), &[b.z_m])?;
+        finite(&p.clone().key("yaw_deg"), &[b.yaw_deg])?;
+        positive(&p.clone().key("size_m"), &b.size_m)?;
+        if let Some(name) = &b.name
+            && let Some(prev) = box_names.insert(name.clone(), i)
+        {
+            return Err(SceneError::invalid(p.key("name"), format!("box name {name:?} is already used by box[{prev}]")));
+        }
+        let half = Vec3::new(b.size_m[0], b.size_m[1], b.size_m[2]) / 2.0;
+        boxes.push(StaticBox {
+            name: b.name.clone().unwrap_or_else(|| format!("box{i}")),
+            center_m: Vec3::new(b.pos_m[0], b.pos_m[1], b.z_m + half.z),
+            half_extents_m: half,
+            yaw_rad: b.yaw_deg.to_radians(),
+        });
+    }
+
+    // [airframes]
+    let mut airframes: Vec<Airframe> = Vec::new();
+    let mut airframe_index: BTreeMap<String, usize> = BTreeMap::new();
+    for (name, af) in &spec.airframes {
+        let p = root.clone().key("airframes").key(name);
+        let derived = Airframe::derive(af).map_err(|e| SceneError::invalid(p.key(e.field), e.message))?;
+        airframe_index.insert(name.clone(), airframes.len());
+        airframes.push(derived);
+    }
+
+    // [[copter]]
+    let mut copters: Vec<CopterDef> = Vec::with_capacity(spec.copters.len());
+    let mut names = BTreeMap::new();
+    let mut ac_ids = BTreeMap::new();
+    for (i, c) in spec.copters.iter().enumerate() {
+        let p = root.clone().key("copter").index(i);
+        if c.name.is_empty() || !c.name.chars().all(|ch| ch.is_ascii_alphanumeric() || ch == '_' || ch == '-') {
+            return Err(SceneError::invalid(
+                p.key("name"),
+                format!("copter name {:?} must be non-empty ASCII letters, digits, '_' or '-' (it becomes a key expression)", c.name),
+            ));
+        }
+        if let Some(prev) = names.insert(c.name.clone(), i) {
+            return Err(SceneError::invalid(p.key("name"), format!("copter name {:?} is already used by copter[{prev}]", c.name)));
+        }
+        if let Some(ac) = c.ac_id
+            && let Some(prev) = ac_ids.insert(ac, i)
+        {
+            return Err(SceneError::invalid(p.key("ac_id"), format!("ac_id {ac} is already used by copter[{prev}]")));
+        }
+        let af_idx = match &c.airframe {
+            AirframeRef::Named(name) => match airframe_index.get(name) {
+                Some(idx) => *idx,
+                None => {
+                    let Some(preset) = airframe::preset(name) else {
+                        let mut known: Vec<&str> = airframe::PRESETS.to_vec();
+                        known.extend(airframe_index.keys().map(String::as_str));
+                        return Err(SceneError::invalid(
+                            p.key("airframe"),
+                            format!("unknown airframe {name:?}; known: {}", known.join(", ")),
+                        ));
+                    };
+                    let derived = Airframe::derive(&preset).map_err(|e| SceneError::invalid(p.clone().key("airframe"), e.to_string()))?;
+                    airframe_index.insert(name.clone(), airframes.len());
+                    airframes.push(derived);
+                    airframes.len() - 1
+                }
+            },
+            AirframeRef::Inline(af) => {
+                let derived = Airframe::derive(af).map_err(|e| SceneError::invalid(p.clone().key("airframe").key(e.field), e.message))?;
+                airframes.push(derived);
+                airframes.len() - 1
+            }
+        };
+        let af = &airframes[af_idx];
+        let sp = p.clone().key("start");
+        finite(&sp.clone().key("pos_m"), &c.start.pos_m)?;
+        finite(&sp.clone().key("yaw_deg"), &[c.start.yaw_deg])?;
+        let z = match c.start.z_m {
+            Some(z) => {
+                finite(&sp.clone().key("z_m"), &[z])?;
+                if z < af.rest_height_m - 1e-6 {
+                    return Err(SceneError::invalid(
+                        sp.key("z_m"),
+                        format!("copter {:?} starts below the floor: z_m = {z} < rest height {:.3} m", c.name, af.rest_height_m),
+                    ));
+                }
+                z
+            }
+            None => af.rest_height_m,
+        };
+        let pos = Vec3::new(c.start.pos_m[0], c.start.pos_m[1], z);
+        let r = af.radius_m;
+        let (hx, hy) = (arena.size_m[0] / 2.0, arena.size_m[1] / 2.0);
+        if pos.x.abs() + r > hx || pos.y.abs() + r > hy || z + af.rest_height_m > arena.height_m {
+            return Err(SceneError::invalid(
+                sp.key("pos_m"),
+                format!(
+                    "copter {:?} starts outside the arena: its {:.3} m footprint at ({}, {}, {z}) must fit in x ∈ [{}, {}], y ∈ [{}, {}], z ≤ {}",
+                    c.name, r, pos.x, pos.y, -hx, hx, -hy, hy, arena.height_m
+                ),
+            ));
+        }
+        for b in &boxes {
+            if b.distance_to_point(pos) < r {
+                return Err(SceneError::invalid(
+                    sp.key("pos_m"),
+                    format!("copter {:?} starts inside or touching box {:?}", c.name, b.name),
+                ));
+            }
+        }
+        for other in &copters {
+            let r_other = airframes[other.airframe].radius_m;
+            if other.start_pos_m.distance(pos) < r + r_other {
+                return Err(SceneError::invalid(
+                    sp.key("pos_m"),
+                    format!(
+                        "copter {:?} overlaps copter {:?}: centres {:.3} m apart, need at least {:.3} m",
+                        c.name,
+                        other.name,
+                        other.start_pos_m.distance(pos),
+                        r + r_other
+                    ),
+                ));
+            }
+        }
+        let command = compile_command(&p.clone().key("command"), c.mode, &c.command, c.start.yaw_deg.to_radians())?;
+        copters.push(CopterDef {
+            name: c.name.clone(),
+            kind: c.kind,
+            ac_id: c.ac_id,
+            airframe: af_idx,
+            start_pos_m: pos,
+            start_yaw_rad: c.start.yaw_deg.to_radians(),
+            initial_command: command,
+        });
+    }
+    let sensors = spec.sensors.compile(&root.clone().key("sensors"))?;
+    Ok(World { name: spec.name.clone(), params, arena, boxes, airframes, copters, sensors, spec: spec.clone() })
+}
+
+fn compile_command(p: &FieldPath, mode: FlightMode, c: &CommandSpec, start_yaw_rad: Real) -> Result<Command, SceneError> {
+    finite(&p.clone().key("roll_deg"), &[c.roll_deg])?;
+    finite(&p.clone().key("pitch_deg"), &[c.pitch_deg])?;
+    finite(&p.clone().key("height_m"), &[c.height_m])?;
+    if let Some(y) = c.yaw_deg {
+        finite(&p.clone().key("yaw_deg"), &[y])?;
+    }
+    if let Some(t) = c.throttle_pct {
+        finite(&p.clone().key("throttle_pct"), &[t])?;
+        if !(0.0..=100.0).contains(&t) {
+            return Err(SceneError::invalid(p.clone().key("throttle_pct"), format!("must be in [0, 100], got {t}")));
+        }
+    }
+    if c.height_m < 0.0 {
+        return Err(SceneError::invalid(p.clone().key("height_m"), format!("must not be negative, got {}", c.height_m)));
+    }
+    if let Some(t) = c.target_m {
+        finite(&p.clone().key("target_m"), &t)?;
+    }
+    if let Some(v) = c.velocity_m_s {
+        finite(&p.clone().key("velocity_m_s"), &v)?;
+    }
+    if mode == FlightMode::Target && c.target_m.is_none() {
+        return Err(SceneError::invalid(p.clone().key("target_m"), "mode \"target\" needs command.target_m"));
+    }
+    Ok(Command {
+        mode,
+        roll_rad: c.roll_deg.to_radians(),
+        pitch_rad: c.pitch_deg.to_radians(),
+        yaw_rad: c.yaw_deg.map_or(start_yaw_rad, Real::to_radians),
+        throttle: c.throttle_pct.map_or(0.0, |t| t / 100.0),
+        height_m: c.height_m,
+        target_m: c.target_m,
+        velocity_m_s: c.velocity_m_s,
+        virtual_sonar_m: None,
+    })
+}
+
+/// Converts a byte offset into a 1-based line and column (in characters).
+pub fn line_col(text: &str, offset: usize) -> Location {
+    let offset = offset.min(text.len());
+    let before = &text[..text.floor_char_boundary(offset)];
+    let line = before.matches('\n').count() + 1;
+    let line_start = before.rfind('\n').map_or(0, |i| i + 1);
+    Location { line, column: before[line_start..].chars().count() + 1 }
+}
+
+/// The span of the value at `path`, or of its deepest existing ancestor.
+pub fn span_of(text: &str, path: &FieldPath) -> Option<Range<usize>> {
+    let doc = toml::de::DeTable::parse(text).ok()?;
+    let mut span = doc.span();
+    let mut cur: Option<&toml::de::DeValue<'_>> = None;
+    let mut table: Option<&toml::de::DeTable<'_>> = Some(doc.get_ref());
+    for seg in &path.0 {
+        let next = match (seg, table, cur) {
+            (PathSeg::Key(k), Some(t), _) => t.iter().find(|(key, _)| key.get_ref() == k).map(|(key, v)| (key.span(), v)),
+            (PathSeg::Index(i), _, Some(toml::de::DeValue::Array(arr))) => arr.get(*i).map(|v| (v.span(), v)),
+            _ => None,
+        };
+        let Some((key_span, value)) = next else { break };
+        // Point at the key for tables and arrays of tables, at the value otherwise.
+        span = match value.get_ref() {
+            toml::de::DeValue::Table(_) | toml::de::DeValue::Array(_) => key_span,
+            _ => value.span(),
+        };
+        if let PathSeg::Index(_) = seg {
+            span = value.span();
+        }
+        cur = Some(value.get_ref());
+        table = match value.get_ref() {
+            toml::de::DeValue::Table(t) => Some(t),
+            _ => None,
+        };
+    }
+    Some(span)
+}
+
+/// The path of the innermost field whose value contains `span`.
+pub fn path_at(text: &str, span: &Range<usize>) -> FieldPath {
+    fn walk(v: &toml::de::DeValue<'_>, span: &Range<usize>, path: &mut FieldPath) {
+        match v {
+            toml::de::DeValue::Table(t) => {
+                for (k, v) in t.iter() {
+                    let vs = v.span();
+                    let ks = k.span();
+                    let inside = |s: &Range<usize>| s.start <= span.start && span.end <= s.end.max(s.start + 1);
+                    if inside(&vs) || inside(&ks) {
+                        path.0.push(PathSeg::Key(k.get_ref().to_string()));
+                        walk(v.get_ref(), span, path);
+                        return;
+                    }
+                }
+            }
+            toml::de::DeValue::Array(arr) => {
+                for (i, v) in arr.iter().enumerate() {
+                    let vs = v.span();
+                    if vs.start <= span.start && span.end <= vs.end.max(vs.start + 1) {
+                        path.0.push(PathSeg::Index(i));
+                        walk(v.get_ref(), span, path);
+                        return;
+                    }
+                }
+            }
+            _ => {}
+        }
+    }
+    let mut path = FieldPath::default();
+    if let Ok(doc) = toml::de::DeTable::parse(text) {
+        walk(&toml::de::DeValue::Table(doc.into_inner()), span, &mut path);
+    }
+    path
+}

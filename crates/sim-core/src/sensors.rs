@@ -1,0 +1,470 @@
+//! Sensor models: four MB1232 sonars (exact cone geometry, Gaussian noise, centimetre
+//! quantisation, cross-talk between copters), the Sharp GP2Y0A60SZLF IR height sensor and the
+//! IMU/AHRS with a drifting yaw bias.
+//!
+//! **Sonar order** is `[front, right, back, left]` (body +x, −y, −x, +y), the order of
+//! Paparazzi's `SONAR_ARRAY`. The original V-REP `sensor_dist` signal used front, left, back,
+//! right; [`SONAR_NAMES`] keeps the mapping explicit.
+
+use serde::{Deserialize, Serialize};
+
+use crate::control::WallAvoidSpec;
+use crate::geometry::{Cone, OrientedBox, cone_box_distance, ray_box};
+use crate::math::{Quat, Real, Vec3};
+use crate::rng::Rng32;
+use crate::scene::{FieldPath, PathSeg, SceneError};
+
+/// Sonar names in reading order.
+pub const SONAR_NAMES: [&str; 4] = ["front", "right", "back", "left"];
+/// Sonar axes in the body frame (FLU), in reading order.
+pub const SONAR_AXES_IN_BODY: [Vec3; 4] = [Vec3::X, Vec3::NEG_Y, Vec3::NEG_X, Vec3::Y];
+
+/// How a ping heard by another copter's sonar shortens its reading.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum CrosstalkPhase {
+    /// Both sonars ping together: B reads half the distance between them, `d_AB / 2`.
+    Synchronous,
+    /// Sonars ping at unrelated times: B reads a uniform draw in `[min range, d_AB]`.
+    #[default]
+    FreeRunning,
+}
+
+/// `[sensors.sonar]`.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct SonarSpec {
+    /// Full opening angle of the cone, deg.
+    pub opening_deg: Real,
+    /// Shortest distance the sonar reports, m.
+    pub min_range_m: Real,
+    /// Longest distance it detects, m.
+    pub max_range_m: Real,
+    /// Readings are capped here, m; also the no-echo value.
+    pub cap_m: Real,
+    /// Standard deviation of the zero-mean Gaussian noise, m.
+    pub noise_sigma_m: Real,
+    /// Readings are rounded to multiples of this, m (Paparazzi's `SONAR_ARRAY` is in cm).
+    pub quantum_m: Real,
+    /// Distance of each sonar from the centre of the body, m.
+    pub mount_offset_m: Real,
+    /// A new reading every this many control steps.
+    pub period_steps: u32,
+}
+
+impl Default for SonarSpec {
+    fn default() -> Self {
+        Self {
+            opening_deg: 30.0,
+            min_range_m: 0.20,
+            max_range_m: 7.65,
+            cap_m: 7.65,
+            noise_sigma_m: 0.05,
+            quantum_m: 0.01,
+            mount_offset_m: 0.05,
+            period_steps: 1,
+        }
+    }
+}
+
+/// `[sensors.ir]`: the downward IR distance sensor.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct IrSpec {
+    /// Shortest valid distance, m.
+    pub min_range_m: Real,
+    /// Longest valid distance, m.
+    pub max_range_m: Real,
+    /// Constant part of the noise standard deviation, m.
+    pub noise_sigma_m: Real,
+    /// Part of the noise standard deviation proportional to the distance.
+    pub noise_sigma_rel: Real,
+}
+
+impl Default for IrSpec {
+    fn default() -> Self {
+        Self { min_range_m: 0.10, max_range_m: 1.50, noise_sigma_m: 0.005, noise_sigma_rel: 0.01 }
+    }
+}
+
+/// `[sensors.imu]`: the AHRS estimate and raw IMU noise.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct ImuSpec {
+    /// Roll and pitch estimate noise, deg.
+    pub attitude_noise_deg: Real,
+    /// Yaw estimate noise, deg.
+    pub yaw_noise_deg: Real,
+    /// Random walk of the yaw bias, deg per √s.
+    pub yaw_bias_walk_deg_per_sqrt_s: Real,
+    /// Gyro noise, deg/s.
+    pub rate_noise_deg_s: Real,
+    /// Accelerometer noise, m/s².
+    pub accel_noise_m_s2: Real,
+}
+
+impl Default for ImuSpec {
+    fn default() -> Self {
+        Self {
+            attitude_noise_deg: 0.5,
+            yaw_noise_deg: 2.0,
+            yaw_bias_walk_deg_per_sqrt_s: 0.5,
+            rate_noise_deg_s: 0.5,
+            accel_noise_m_s2: 0.05,
+        }
+    }
+}
+
+/// `[sensors.crosstalk]`.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct CrosstalkSpec {
+    /// Whether pings of one copter can be heard by another's sonars.
+    pub enabled: bool,
+    /// Probability that an eligible ping pair disturbs the reading, per sonar update.
+    pub probability: Real,
+    /// How the disturbed reading is drawn.
+    pub phase: CrosstalkPhase,
+}
+
+impl Default for CrosstalkSpec {
+    fn default() -> Self {
+        Self { enabled: false, probability: 0.5, phase: CrosstalkPhase::FreeRunning }
+    }
+}
+
+/// `[sensors]`: all sensor models.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize, Default)]
+#[serde(default, deny_unknown_fields)]
+pub struct SensorSpec {
+    /// Whether sensors are simulated at all (off: readings stay at their initial values;
+    /// Wall-Avoid then sees nothing).
+    #[serde(default = "yes")]
+    pub enabled: bool,
+    /// Whether noise is applied (off: readings are the noise-free truth, still quantised).
+    #[serde(default = "yes")]
+    pub noise: bool,
+    /// Sonars.
+    pub sonar: SonarSpec,
+    /// IR height sensor.
+    pub ir: IrSpec,
+    /// IMU/AHRS.
+    pub imu: ImuSpec,
+    /// Sonar cross-talk.
+    pub crosstalk: CrosstalkSpec,
+    /// Wall-Avoid behaviour (it runs on these sensors).
+    pub wall_avoid: WallAvoidSpec,
+}
+
+fn yes() -> bool {
+    true
+}
+
+/// Compiled sensor parameters (radians, cosines, SI).
+#[derive(Clone, Debug, PartialEq, Serialize)]
+pub struct SensorParams {
+    /// The spec compiled from.
+    pub spec: SensorSpec,
+    /// Sonar half-angle, rad.
+    pub sonar_half_angle_rad: Real,
+    /// cos of the sonar half-angle.
+    pub sonar_cos_half: Real,
+}
+
+impl SensorSpec {
+    pub(crate) fn compile(&self, path: &FieldPath) -> Result<SensorParams, SceneError> {
+        let err = |sub: &str, field: &str, message: String| {
+            let mut p = path.clone();
+            p.0.push(PathSeg::Key(sub.into()));
+            p.0.push(PathSeg::Key(field.into()));
+            SceneError::Invalid { origin: String::new(), location: None, path: p, message }
+        };
+        let s = &self.sonar;
+        for (field, v) in [
+            ("opening_deg", s.opening_deg),
+            ("min_range_m", s.min_range_m),
+            ("max_range_m", s.max_range_m),
+            ("cap_m", s.cap_m),
+            ("quantum_m", s.quantum_m),
+        ] {
+            if !v.is_finite() || v <= 0.0 {
+                return Err(err("sonar", field, format!("must be positive and finite, got {v}")));
+            }
+        }
+        for (field, v) in [("noise_sigma_m", s.noise_sigma_m), ("mount_offset_m", s.mount_offset_m)] {
+            if !v.is_finite() || v < 0.0 {
+                return Err(err("sonar", field, format!("must be finite and not negative, got {v}")));
+            }
+        }
+        if s.opening_deg >= 180.0 {
+            return Err(err("sonar", "opening_deg", format!("must be below 180, got {}", s.opening_deg)));
+        }
+        if s.min_range_m >= s.max_range_m {
+            return Err(err("sonar", "min_range_m", format!("must be below max_range_m = {}, got {}", s.max_range_m, s.min_range_m)));
+        }
+        if s.period_steps == 0 {
+            return Err(err("sonar", "period_steps", "must be at least 1".into()));
+        }
+        let ir = &self.ir;
+        for (field, v) in [("min_range_m", ir.min_range_m), ("max_range_m", ir.max_range_m)] {
+            if !v.is_finite() || v <= 0.0 {
+                return Err(err("ir", field, format!("must be positive and finite, got {v}")));
+            }
+        }
+        if ir.min_range_m >= ir.max_range_m {
+            return Err(err("ir", "min_range_m", format!("must be below max_range_m = {}", ir.max_range_m)));
+        }
+        for (field, v) in [("noise_sigma_m", ir.noise_sigma_m), ("noise_sigma_rel", ir.noise_sigma_rel)] {
+            if !v.is_finite() || v < 0.0 {
+                return Err(err("ir", field, format!("must be finite and not negative, got {v}")));
+            }
+        }
+        let imu = &self.imu;
+        for (field, v) in [
+            ("attitude_noise_deg", imu.attitude_noise_deg),
+            ("yaw_noise_deg", imu.yaw_noise_deg),
+            ("yaw_bias_walk_deg_per_sqrt_s", imu.yaw_bias_walk_deg_per_sqrt_s),
+            ("rate_noise_deg_s", imu.rate_noise_deg_s),
+            ("accel_noise_m_s2", imu.accel_noise_m_s2),
+        ] {
+            if !v.is_finite() || v < 0.0 {
+                return Err(err("imu", field, format!("must be finite and not negative, got {v}")));
+            }
+        }
+        let p = self.crosstalk.probability;
+        if !(0.0..=1.0).contains(&p) {
+            return Err(err("crosstalk", "probability", format!("must be in [0, 1], got {p}")));
+        }
+        let w = &self.wall_avoid;
+        for (field, v) in [
+            ("safety_distance_m", w.safety_distance_m),
+            ("kp_deg_per_m", w.kp_deg_per_m),
+            ("kd_deg_s_per_m", w.kd_deg_s_per_m),
+            ("max_tilt_deg", w.max_tilt_deg),
+            ("rate_filter_s", w.rate_filter_s),
+        ] {
+            if !v.is_finite() || v < 0.0 {
+                return Err(err("wall_avoid", field, format!("must be finite and not negative, got {v}")));
+            }
+        }
+        let half = (s.opening_deg / 2.0).to_radians();
+        Ok(SensorParams { spec: self.clone(), sonar_half_angle_rad: half, sonar_cos_half: half.cos() })
+    }
+}
+
+/// One copter's latest sensor readings.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct SensorReadings {
+    /// Tick of the last sonar update.
+    pub sonar_tick: u64,
+    /// Noise-free distance to the nearest object in each cone, capped, m (front, right, back, left).
+    pub sonar_truth_m: [Real; 4],
+    /// Physical reading: truth + noise (+ cross-talk), clamped, quantised, m.
+    pub sonar_m: [Real; 4],
+    /// Whether cross-talk shortened each reading in the last update.
+    pub sonar_crosstalk: [bool; 4],
+    /// What the copter's behaviour uses: `min(physical, virtual)` when a virtual reading is
+    /// supplied, else the physical reading, m.
+    pub sonar_fused_m: [Real; 4],
+    /// IR distance along the body's −z axis, m; `None` when out of range (flagged, not faked).
+    pub ir_m: Option<Real>,
+    /// Noise-free IR distance, m (may be out of range).
+    pub ir_truth_m: Real,
+    /// AHRS attitude estimate: roll, pitch, yaw (yaw includes the drifting bias), rad.
+    pub attitude_rad: [Real; 3],
+    /// Current yaw bias, rad.
+    pub yaw_bias_rad: Real,
+    /// Gyro: body rates, rad/s.
+    pub rate_body_rad_s: [Real; 3],
+    /// Accelerometer: specific force in the body frame, m/s².
+    pub accel_body_m_s2: [Real; 3],
+}
+
+/// What a sonar can see, gathered once per control step for all copters.
+#[derive(Clone, Debug, Default)]
+pub struct SonarScene {
+    /// Inward unit normals and offsets of the arena walls (`n·x = c`).
+    pub walls: Vec<(Vec3, Real)>,
+    /// Static boxes.
+    pub boxes: Vec<OrientedBox>,
+    /// Copter bodies, by id (crashed ones included: they are still there).
+    pub copters: Vec<OrientedBox>,
+}
+
+impl SonarScene {
+    /// Distance from a sonar to the nearest object in its cone, ignoring copter `self_id`.
+    /// `f32::INFINITY` if nothing is inside the cone within `max_range_m`.
+    pub fn cone_distance(&self, cone: &Cone, self_id: usize, max_range_m: Real) -> Real {
+        let mut best = max_range_m;
+        let mut hit = false;
+        for &(n, c) in &self.walls {
+            if let Some(d) = cone.distance_to_plane(n, c)
+                && d < best
+            {
+                best = d;
+                hit = true;
+            }
+        }
+        let consider = |b: &OrientedBox, best: &mut Real, hit: &mut bool| {
+            // Cheap rejection on the bounding sphere.
+            let to = b.center - cone.apex;
+            let dist = to.length();
+            let r = b.bounding_radius();
+            if dist - r >= *best {
+                return;
+            }
+            if dist > r {
+                let cos_to = to.dot(cone.axis) / dist;
+                let sin_r = r / dist;
+                // Outside the cone widened by the sphere's angular radius.
+                let ang = cos_to.clamp(-1.0, 1.0).acos() - sin_r.asin();
+                if ang > cone.sin_h.atan2(cone.cos_h) {
+                    return;
+                }
+            }
+            if let Some(d) = cone_box_distance(cone, b)
+                && d < *best
+            {
+                *best = d;
+                *hit = true;
+            }
+        };
+        for b in &self.boxes {
+            consider(b, &mut best, &mut hit);
+        }
+        for (id, b) in self.copters.iter().enumerate() {
+            if id != self_id {
+                consider(b, &mut best, &mut hit);
+            }
+        }
+        if hit { best } else { Real::INFINITY }
+    }
+
+    /// IR ray cast down the body's −z axis against the floor and the boxes (other copters
+    /// below are seen too). Returns the distance, m.
+    pub fn ir_distance(&self, origin: Vec3, dir: Vec3, self_id: usize) -> Real {
+        let mut best = if dir.z < -1e-6 { origin.z / -dir.z } else { Real::INFINITY };
+        for b in &self.boxes {
+            if let Some(t) = ray_box(origin, dir, b) {
+                best = best.min(t);
+            }
+        }
+        for (id, b) in self.copters.iter().enumerate() {
+            if id != self_id
+                && (b.center - origin).length() - b.bounding_radius() < best
+                && let Some(t) = ray_box(origin, dir, b)
+            {
+                best = best.min(t);
+            }
+        }
+        best
+    }
+}
+
+/// The sonar cones of a copter at a pose.
+pub fn sonar_cones(params: &SensorParams, pos: Vec3, rot: Quat) -> [Cone; 4] {
+    let off = params.spec.sonar.mount_offset_m;
+    SONAR_AXES_IN_BODY.map(|axis_b| {
+        let axis = rot * axis_b;
+        Cone { apex: pos + axis * off, axis, cos_h: params.sonar_cos_half, sin_h: params.sonar_half_angle_rad.sin() }
+    })
+}
+
+/// Turns a true distance into a reading: noise, min/cap clamping, quantisation. `INFINITY`
+/// (no echo) reads the cap.
+#[inline]
+pub fn sonar_reading(spec: &SonarSpec, truth_m: Real, noise_m: Real) -> Real {
+    if !truth_m.is_finite() || truth_m > spec.max_range_m {
+        return spec.cap_m;
+    }
+    let v = (truth_m + noise_m).clamp(spec.min_range_m, spec.cap_m);
+    quantise(v, spec.quantum_m).min(spec.cap_m)
+}
+
+/// Rounds to the nearest multiple of `quantum`.
+#[inline]
+pub fn quantise(v: Real, quantum: Real) -> Real {
+    (v / quantum).round() * quantum
+}
+
+/// Fuses a physical sonar reading with an externally supplied virtual one: `min(physical,
+/// virtual)`, the original system's rule for real copters seeing virtual objects. A
+/// non-finite or non-positive virtual reading is ignored.
+#[inline]
+pub fn fuse_min(physical_m: [Real; 4], virtual_m: Option<[Real; 4]>) -> [Real; 4] {
+    match virtual_m {
+        None => physical_m,
+        Some(v) => {
+            let mut out = physical_m;
+            for i in 0..4 {
+                if v[i].is_finite() && v[i] > 0.0 {
+                    out[i] = out[i].min(v[i]);
+                }
+            }
+            out
+        }
+    }
+}
+
+/// Whether copter A's sonar `a` can be heard by copter B's sonar `b`: B's receiver is inside
+/// A's emitting cone within range, and A's emitter is inside B's receiving cone. Returns the
+/// distance between them when it can.
+#[inline]
+pub fn crosstalk_eligible(a: &Cone, b: &Cone, max_range_m: Real) -> Option<Real> {
+    let d = b.apex - a.apex;
+    let dist = d.length();
+    if dist > max_range_m || dist < 1e-6 {
+        return None;
+    }
+    let u = d / dist;
+    (u.dot(a.axis) >= a.cos_h && (-u).dot(b.axis) >= b.cos_h).then_some(dist)
+}
+
+/// Draws the shortened reading of a cross-talk event.
+#[inline]
+pub fn crosstalk_reading(spec: &SonarSpec, phase: CrosstalkPhase, dist_m: Real, rng: &mut Rng32) -> Real {
+    match phase {
+        CrosstalkPhase::Synchronous => dist_m / 2.0,
+        CrosstalkPhase::FreeRunning => {
+            let lo = spec.min_range_m.min(dist_m);
+            lo + rng.uniform() * (dist_m - lo)
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn fusion_takes_the_minimum_and_ignores_garbage() {
+        let phys = [1.0, 2.0, 3.0, 4.0];
+        assert_eq!(fuse_min(phys, None), phys);
+        assert_eq!(fuse_min(phys, Some([0.5, 5.0, Real::NAN, -1.0])), [0.5, 2.0, 3.0, 4.0]);
+    }
+
+    #[test]
+    fn readings_are_quantised_capped_and_no_echo_reads_the_cap() {
+        let s = SonarSpec::default();
+        assert_eq!(sonar_reading(&s, Real::INFINITY, 0.0), s.cap_m);
+        assert!((sonar_reading(&s, 1.234_56, 0.0) - 1.23).abs() < 1e-6);
+        assert!((sonar_reading(&s, 0.05, 0.0) - 0.20).abs() < 1e-6);
+        assert_eq!(sonar_reading(&s, 7.6, 0.5), s.cap_m);
+    }
+
+    #[test]
+    fn crosstalk_needs_both_cones_to_face_each_other() {
+        let h = 15f32.to_radians();
+        let a = Cone::new(Vec3::ZERO, Vec3::X, h);
+        let facing = Cone::new(Vec3::new(1.0, 0.0, 0.0), Vec3::NEG_X, h);
+        let away = Cone::new(Vec3::new(1.0, 0.0, 0.0), Vec3::X, h);
+        let side = Cone::new(Vec3::new(1.0, 0.0, 0.0), Vec3::Y, h);
+        assert!(crosstalk_eligible(&a, &facing, 7.65).is_some());
+        assert!(crosstalk_eligible(&a, &away, 7.65).is_none());
+        assert!(crosstalk_eligible(&a, &side, 7.65).is_none());
+        // Rotating the receiver: eligible only within the half-angle.
+        let rot = |deg: Real| Cone::new(Vec3::new(1.0, 0.0, 0.0), Quat::from_rotation_z(deg.to_radians()) * Vec3::NEG_X, h);
+        assert!(crosstalk_eligible(&a, &rot(10.0), 7.65).is_some());
+        assert!(crosstalk_eligible(&a, &rot(20.0), 7.65).is_none());
+    }
+}

@@ -1,0 +1,213 @@
+//! Everything that changes during a run: the [`State`].
+
+use std::sync::Mutex;
+
+use rapier3d::prelude::{
+    ColliderHandle, ColliderSet, CollisionEvent, ContactPair, EventHandler, PhysicsWorld, RigidBodyHandle,
+    RigidBodySet, SoftBodySet, SoftBodyTearEvent,
+};
+use serde::{Deserialize, Serialize};
+
+use crate::control::{PidState, Setpoint, WallAvoidState};
+use crate::math::{Real, Vec3, euler_from_quat};
+use crate::rng::Rng32;
+use crate::sensors::{SensorReadings, SonarScene};
+use crate::world::World;
+
+/// The mutable state of a run: physics sets, controller integrators, rotor states, sensor
+/// memory, random streams and the tick.
+///
+/// **Invariant:** a `State` serialised and restored, then stepped, gives the same bytes as the
+/// uninterrupted run. Only [`Scratch`] (work buffers) is left out of snapshots.
+#[derive(Serialize, Deserialize)]
+pub struct State {
+    /// Completed control steps. Simulated time is `tick × control_dt`.
+    pub tick: u64,
+    /// Rapier's sets, islands, broad and narrow phase.
+    pub physics: PhysicsWorld,
+    /// Per-copter state, indexed by copter id.
+    pub copters: Vec<CopterState>,
+    /// Work buffers, rebuilt as needed; not part of snapshots.
+    #[serde(skip)]
+    pub(crate) scratch: Scratch,
+}
+
+impl std::fmt::Debug for State {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("State")
+            .field("tick", &self.tick)
+            .field("bodies", &self.physics.bodies.len())
+            .field("colliders", &self.physics.colliders.len())
+            .field("copters", &self.copters)
+            .finish_non_exhaustive()
+    }
+}
+
+/// Why a copter crashed.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(tag = "kind", rename_all = "snake_case")]
+pub enum CrashCause {
+    /// It touched a wall.
+    Wall,
+    /// It touched the ceiling.
+    Ceiling,
+    /// It touched a static box.
+    Box {
+        /// Index of the box.
+        index: usize,
+    },
+    /// It hit the floor too fast.
+    Floor {
+        /// Impact speed, m/s.
+        speed_m_s: Real,
+    },
+    /// It hit another copter too fast.
+    Copter {
+        /// The other copter's id.
+        other: usize,
+        /// Relative speed, m/s.
+        speed_m_s: Real,
+    },
+    /// It tilted beyond the crash tilt.
+    Tilt {
+        /// Tilt, deg.
+        tilt_deg: Real,
+    },
+}
+
+/// Runtime state of one copter.
+#[derive(Clone, Debug, Serialize, Deserialize)]
+pub struct CopterState {
+    /// Its rigid body.
+    pub body: RigidBodyHandle,
+    /// Its main (body box) collider.
+    pub collider: ColliderHandle,
+    /// Seeded manufacturing tolerance of each rotor's thrust (1 = nominal).
+    pub rotor_tolerance: [Real; 4],
+    /// Rotor speeds, rad/s.
+    pub rotor_speed_rad_s: [Real; 4],
+    /// Rotor thrusts applied in the last physics step, N.
+    pub rotor_thrust_n: [Real; 4],
+    /// Attitude PIDs: roll, pitch, yaw.
+    pub pids: [PidState; 3],
+    /// The outer loop's output for the current control step.
+    pub setpoint: Setpoint,
+    /// Wall-Avoid memory.
+    pub wall_avoid: WallAvoidState,
+    /// Latest sensor readings.
+    pub sensors: SensorReadings,
+    /// The AHRS yaw bias, a random walk, rad.
+    pub yaw_bias_rad: Real,
+    /// Velocity at the previous control step (for the accelerometer), m/s.
+    pub prev_vel_m_s: Vec3,
+    /// Set once it has crashed; its motors stay off.
+    pub crash: Option<CrashCause>,
+    /// Tick it first left the floor.
+    pub took_off_tick: Option<u64>,
+    /// Its random stream.
+    pub rng: Rng32,
+}
+
+impl CopterState {
+    pub(crate) fn new(world: &World, id: usize, body: RigidBodyHandle, collider: ColliderHandle) -> Self {
+        let af = &world.airframes[world.copters[id].airframe];
+        let mut rng = Rng32::new(world.params.seed, id as u64);
+        let sigma = af.spec.rotor_tolerance_sigma;
+        let rotor_tolerance = std::array::from_fn(|_| (1.0 + sigma * rng.normal()).max(0.5));
+        let cmd = &world.copters[id].initial_command;
+        Self {
+            body,
+            collider,
+            rotor_tolerance,
+            rotor_speed_rad_s: [0.0; 4],
+            rotor_thrust_n: [0.0; 4],
+            pids: [PidState::default(); 3],
+            setpoint: Setpoint { yaw_rad: cmd.yaw_rad, ..Setpoint::default() },
+            wall_avoid: WallAvoidState::default(),
+            sensors: SensorReadings::default(),
+            yaw_bias_rad: 0.0,
+            prev_vel_m_s: Vec3::ZERO,
+            crash: None,
+            took_off_tick: None,
+            rng,
+        }
+    }
+}
+
+/// A copter's pose and motion, read from the physics.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize)]
+pub struct CopterPose {
+    /// Position of the centre of mass, world frame, m.
+    pub pos_m: Vec3,
+    /// Velocity, world frame, m/s.
+    pub vel_m_s: Vec3,
+    /// Roll, pitch, yaw (true), rad.
+    pub rpy_rad: [Real; 3],
+    /// Angular velocity, world frame, rad/s.
+    pub angvel_rad_s: Vec3,
+    /// World-from-body rotation (x, y, z, w).
+    pub quat_xyzw: [Real; 4],
+}
+
+impl State {
+    /// Pose of copter `id`.
+    pub fn pose(&self, id: usize) -> CopterPose {
+        let b = &self.physics.bodies[self.copters[id].body];
+        let q = *b.rotation();
+        CopterPose {
+            pos_m: b.translation(),
+            vel_m_s: b.linvel(),
+            rpy_rad: euler_from_quat(q),
+            angvel_rad_s: b.angvel(),
+            quat_xyzw: [q.x, q.y, q.z, q.w],
+        }
+    }
+
+    /// Simulated time, s.
+    pub fn time_s(&self, world: &World) -> f64 {
+        world.time_at(self.tick)
+    }
+}
+
+/// Collects collision starts during a physics step.
+#[derive(Debug, Default)]
+pub(crate) struct CollisionCollector {
+    pub(crate) started: Mutex<Vec<(ColliderHandle, ColliderHandle)>>,
+}
+
+impl EventHandler for CollisionCollector {
+    fn handle_collision_event(
+        &self,
+        _bodies: &RigidBodySet,
+        _colliders: &ColliderSet,
+        event: CollisionEvent,
+        _contact_pair: Option<&ContactPair>,
+    ) {
+        if let CollisionEvent::Started(a, b, _) = event
+            && let Ok(mut v) = self.started.lock()
+        {
+            v.push((a, b));
+        }
+    }
+
+    fn handle_contact_force_event(
+        &self,
+        _dt: Real,
+        _bodies: &RigidBodySet,
+        _colliders: &ColliderSet,
+        _contact_pair: &ContactPair,
+        _total_force_magnitude: Real,
+    ) {
+    }
+
+    fn handle_soft_body_tear_event(&self, _soft_bodies: &SoftBodySet, _event: &SoftBodyTearEvent) {}
+}
+
+/// Work buffers reused from step to step, so a warm step does not allocate.
+#[derive(Debug, Default)]
+pub(crate) struct Scratch {
+    pub(crate) collisions: CollisionCollector,
+    pub(crate) started: Vec<(ColliderHandle, ColliderHandle)>,
+    pub(crate) vel_before: Vec<Vec3>,
+    pub(crate) sonar_scene: SonarScene,
+}

@@ -1,0 +1,266 @@
+//! The immutable compiled model ([`World`]) and the construction of a fresh [`State`] from it.
+
+use rapier3d::prelude::{
+    ActiveEvents, ColliderBuilder, MassProperties, PhysicsWorld, RigidBodyBuilder,
+};
+use serde::{Deserialize, Serialize};
+
+use crate::airframe::Airframe;
+use crate::control::{Command, Inputs};
+use crate::math::{GRAVITY_M_S2, Quat, Real, Vec3, Vector};
+use crate::scene::SceneSpec;
+use crate::sensors::SensorParams;
+use crate::state::{CopterState, Scratch, State};
+
+/// Whether a copter exists only in the simulation or twins a real one.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum CopterKind {
+    /// Simulated only.
+    #[default]
+    Virtual,
+    /// The virtual twin of a real copter, driven by its telemetry.
+    Real,
+}
+
+/// Stepping parameters.
+#[derive(Clone, Debug, PartialEq, Serialize)]
+pub struct SimParams {
+    /// Physics step, s.
+    pub physics_dt_s: f64,
+    /// Control step, s.
+    pub control_dt_s: f64,
+    /// Physics substeps per control step.
+    pub substeps: u32,
+    /// Seed of all random draws.
+    pub seed: u64,
+    /// Default run length, s.
+    pub duration_s: f64,
+}
+
+/// The arena: a floor rectangle centred on the origin, walls and a ceiling.
+#[derive(Clone, Debug, PartialEq, Serialize)]
+pub struct Arena {
+    /// Floor size along x and y, m.
+    pub size_m: [Real; 2],
+    /// Wall and ceiling height, m.
+    pub height_m: Real,
+    /// Whether walls and ceiling exist.
+    pub walls: bool,
+    /// Thickness of walls, floor and ceiling, m.
+    pub wall_thickness_m: Real,
+}
+
+/// A static box, yawed about z.
+#[derive(Clone, Debug, PartialEq, Serialize)]
+pub struct StaticBox {
+    /// Name (given, or `box<i>`).
+    pub name: String,
+    /// Centre, m.
+    pub center_m: Vec3,
+    /// Half sizes along its own axes, m.
+    pub half_extents_m: Vec3,
+    /// Rotation about z, rad.
+    pub yaw_rad: Real,
+}
+
+impl StaticBox {
+    /// Euclidean distance from a point to the box (0 inside).
+    pub fn distance_to_point(&self, p: Vec3) -> Real {
+        let local = Quat::from_rotation_z(-self.yaw_rad) * (p - self.center_m);
+        let d = local.abs() - self.half_extents_m;
+        d.max(Vec3::ZERO).length()
+    }
+}
+
+/// One copter of the scene, compiled.
+#[derive(Clone, Debug, PartialEq, Serialize)]
+pub struct CopterDef {
+    /// Unique name.
+    pub name: String,
+    /// Virtual or twin of a real copter.
+    pub kind: CopterKind,
+    /// Paparazzi aircraft id.
+    pub ac_id: Option<u8>,
+    /// Index into [`World::airframes`].
+    pub airframe: usize,
+    /// Start position of the centre of mass, m.
+    pub start_pos_m: Vec3,
+    /// Start heading, rad.
+    pub start_yaw_rad: Real,
+    /// Commands in force at tick 0.
+    pub initial_command: Command,
+}
+
+/// The immutable compiled model: arena, obstacles, airframes, copters, parameters.
+///
+/// **Invariant:** nothing in a `World` changes during a run; everything that does lives in
+/// [`State`]. Copter ids are indices into [`World::copters`] and never change.
+#[derive(Clone, Debug, Serialize)]
+pub struct World {
+    /// World name (key-expression segment).
+    pub name: String,
+    /// Stepping parameters.
+    pub params: SimParams,
+    /// The arena.
+    pub arena: Arena,
+    /// Static boxes.
+    pub boxes: Vec<StaticBox>,
+    /// Derived airframe models.
+    pub airframes: Vec<Airframe>,
+    /// Copters, in id order.
+    pub copters: Vec<CopterDef>,
+    /// Sensor models.
+    pub sensors: SensorParams,
+    /// The scene this was compiled from.
+    #[serde(skip)]
+    pub spec: SceneSpec,
+}
+
+/// What a static collider is, stored in its `user_data`.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum ColliderTag {
+    /// A copter, by id.
+    Copter(usize),
+    /// The floor.
+    Floor,
+    /// One of the four walls.
+    Wall,
+    /// The ceiling.
+    Ceiling,
+    /// A static box, by index.
+    Box(usize),
+}
+
+impl ColliderTag {
+    const SHIFT: u32 = 64;
+    /// Encodes into rapier's `user_data`.
+    pub fn encode(self) -> u128 {
+        let (tag, idx) = match self {
+            ColliderTag::Copter(i) => (1u128, i as u128),
+            ColliderTag::Floor => (2, 0),
+            ColliderTag::Wall => (3, 0),
+            ColliderTag::Ceiling => (4, 0),
+            ColliderTag::Box(i) => (5, i as u128),
+        };
+        (tag << Self::SHIFT) | idx
+    }
+    /// Decodes rapier's `user_data`.
+    pub fn decode(v: u128) -> Option<Self> {
+        let idx = (v & u64::MAX as u128) as usize;
+        match v >> Self::SHIFT {
+            1 => Some(ColliderTag::Copter(idx)),
+            2 => Some(ColliderTag::Floor),
+            3 => Some(ColliderTag::Wall),
+            4 => Some(ColliderTag::Ceiling),
+            5 => Some(ColliderTag::Box(idx)),
+            _ => None,
+        }
+    }
+}
+
+impl World {
+    /// Physics step, s, as the physics engine's scalar.
+    pub fn physics_dt(&self) -> Real {
+        self.params.physics_dt_s as Real
+    }
+
+    /// Simulated time at a tick, s.
+    pub fn time_at(&self, tick: u64) -> f64 {
+        tick as f64 * self.params.control_dt_s
+    }
+
+    /// Number of control steps in the scene's default duration.
+    pub fn default_ticks(&self) -> u64 {
+        (self.params.duration_s / self.params.control_dt_s).round() as u64
+    }
+
+    /// The copter id with this name.
+    pub fn copter_id(&self, name: &str) -> Option<usize> {
+        self.copters.iter().position(|c| c.name == name)
+    }
+
+    /// The commands in force at tick 0.
+    pub fn initial_inputs(&self) -> Inputs {
+        Inputs { commands: self.copters.iter().map(|c| c.initial_command.clone()).collect() }
+    }
+
+    /// A fresh state at tick 0: static geometry, copters at their start poses, seeded RNGs.
+    pub fn initial_state(&self) -> State {
+        let mut physics = PhysicsWorld::new();
+        physics.gravity = Vector::new(0.0, 0.0, -GRAVITY_M_S2);
+        physics.integration_parameters.dt = self.physics_dt();
+        self.insert_static_geometry(&mut physics);
+        let mut state = State { tick: 0, physics, copters: Vec::new(), scratch: Scratch::default() };
+        for id in 0..self.copters.len() {
+            let copter = self.make_copter(&mut state.physics, id);
+            state.copters.push(copter);
+        }
+        state
+    }
+
+    fn insert_static_geometry(&self, physics: &mut PhysicsWorld) {
+        let t = self.arena.wall_thickness_m;
+        let [sx, sy] = self.arena.size_m;
+        let h = self.arena.height_m;
+        let ground = physics.insert_body(RigidBodyBuilder::fixed());
+        let add = |physics: &mut PhysicsWorld, half: Vec3, center: Vec3, yaw: Real, tag: ColliderTag| {
+            let collider = ColliderBuilder::cuboid(half.x, half.y, half.z)
+                .translation(center)
+                .rotation(Vec3::new(0.0, 0.0, yaw))
+                .friction(0.8)
+                .user_data(tag.encode());
+            physics.insert_collider(collider, Some(ground));
+        };
+        add(physics, Vec3::new(sx / 2.0 + t, sy / 2.0 + t, t / 2.0), Vec3::new(0.0, 0.0, -t / 2.0), 0.0, ColliderTag::Floor);
+        if self.arena.walls {
+            let hz = h / 2.0;
+            add(physics, Vec3::new(t / 2.0, sy / 2.0 + t, hz), Vec3::new(sx / 2.0 + t / 2.0, 0.0, hz), 0.0, ColliderTag::Wall);
+            add(physics, Vec3::new(t / 2.0, sy / 2.0 + t, hz), Vec3::new(-sx / 2.0 - t / 2.0, 0.0, hz), 0.0, ColliderTag::Wall);
+            add(physics, Vec3::new(sx / 2.0 + t, t / 2.0, hz), Vec3::new(0.0, sy / 2.0 + t / 2.0, hz), 0.0, ColliderTag::Wall);
+            add(physics, Vec3::new(sx / 2.0 + t, t / 2.0, hz), Vec3::new(0.0, -sy / 2.0 - t / 2.0, hz), 0.0, ColliderTag::Wall);
+            add(physics, Vec3::new(sx / 2.0 + t, sy / 2.0 + t, t / 2.0), Vec3::new(0.0, 0.0, h + t / 2.0), 0.0, ColliderTag::Ceiling);
+        }
+        for (i, b) in self.boxes.iter().enumerate() {
+            add(physics, b.half_extents_m, b.center_m, b.yaw_rad, ColliderTag::Box(i));
+        }
+    }
+
+    /// Creates copter `id`'s rigid body and colliders and its initial runtime state.
+    pub(crate) fn make_copter(&self, physics: &mut PhysicsWorld, id: usize) -> CopterState {
+        let def = &self.copters[id];
+        let af = &self.airframes[def.airframe];
+        let [ix, iy, iz] = af.inertia_kg_m2;
+        let body = RigidBodyBuilder::dynamic()
+            .translation(def.start_pos_m)
+            .rotation(Vec3::new(0.0, 0.0, def.start_yaw_rad))
+            .linear_damping(af.spec.linear_damping)
+            .angular_damping(af.spec.angular_damping)
+            .additional_mass_properties(MassProperties::new(Vec3::ZERO, af.mass_kg, Vec3::new(ix, iy, iz)))
+            .can_sleep(false)
+            .user_data(id as u128);
+        let handle = physics.insert_body(body);
+        let [bx, by, bz] = af.spec.body_size_m;
+        let tag = ColliderTag::Copter(id).encode();
+        // A few primitives: the body box and the four rotor discs. Mass comes from the
+        // airframe (set above), not from the shapes.
+        let main = ColliderBuilder::cuboid(bx / 2.0, by / 2.0, bz / 2.0)
+            .density(0.0)
+            .friction(0.6)
+            .active_events(ActiveEvents::COLLISION_EVENTS)
+            .user_data(tag);
+        let collider = physics.insert_collider(main, Some(handle));
+        let rotor_radius = af.spec.rotor_diameter_m / 2.0;
+        for p in af.rotor_pos_in_body_m {
+            let disc = ColliderBuilder::cylinder(0.005, rotor_radius)
+                .rotation(Vec3::new(std::f32::consts::FRAC_PI_2, 0.0, 0.0))
+                .translation(p)
+                .density(0.0)
+                .friction(0.6)
+                .active_events(ActiveEvents::COLLISION_EVENTS)
+                .user_data(tag);
+            physics.insert_collider(disc, Some(handle));
+        }
+        CopterState::new(self, id, handle, collider)
+    }
+}
