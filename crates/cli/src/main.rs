@@ -1,1 +1,269 @@
-fn main(){}
+//! `twinswarm`: the command-line front end. Thin glue: parse arguments into validated values,
+//! load the scene, drive `sim-core`, report. Errors are printed with their whole chain and
+//! mapped to exit codes: 0 ok, 2 bad input (usage or scene), 1 runtime failure.
+
+mod report;
+
+use std::io::IsTerminal;
+use std::path::PathBuf;
+use std::process::ExitCode;
+use std::time::Instant;
+
+use anyhow::Context;
+use clap::{Parser, Subcommand};
+use sim_core::scene::{self, SceneSpec};
+use sim_core::{World, step};
+
+/// Twinswarm: a deterministic simulator for swarms of FINken indoor quadcopters, with virtual
+/// twins of real copters (mixed reality).
+#[derive(Debug, Parser)]
+#[command(name = "twinswarm", version, about, long_about = None)]
+struct Cli {
+    #[command(subcommand)]
+    command: Option<Command>,
+}
+
+#[derive(Debug, Subcommand)]
+enum Command {
+    /// Fly a scene (default: the embedded FINken lab) and print a summary.
+    Run(RunArgs),
+    /// Validate a scene file and explain what it contains.
+    Check {
+        /// The scene file (TOML).
+        scene: PathBuf,
+    },
+    /// Print each copter's derived model: mass, inertia, rotor and particle numbers.
+    Inspect {
+        /// The scene file (TOML); default: the embedded FINken lab.
+        scene: Option<PathBuf>,
+        /// Print JSON instead of text.
+        #[arg(long)]
+        json: bool,
+    },
+}
+
+#[derive(Debug, clap::Args, Default)]
+struct RunArgs {
+    /// The scene file (TOML); default: the embedded FINken lab.
+    scene: Option<PathBuf>,
+    /// Simulated duration, s (default: the scene's `sim.duration_s`).
+    #[arg(long, value_name = "S")]
+    duration: Option<f64>,
+    /// Seed of all random draws (default: the scene's `sim.seed`).
+    #[arg(long, value_name = "N")]
+    seed: Option<u64>,
+    /// Pace control steps against the wall clock (1 simulated second per second).
+    #[arg(long)]
+    realtime: bool,
+    /// Print the summary as JSON on stdout.
+    #[arg(long)]
+    json: bool,
+}
+
+/// An error that is the user's input's fault (exit code 2).
+#[derive(Debug)]
+struct BadInput(anyhow::Error);
+
+impl std::fmt::Display for BadInput {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(f, "{:#}", self.0)
+    }
+}
+impl std::error::Error for BadInput {}
+
+fn main() -> ExitCode {
+    let cli = match Cli::try_parse() {
+        Ok(cli) => cli,
+        Err(e) => {
+            let code = if e.use_stderr() { 2 } else { 0 };
+            let _ = e.print();
+            return ExitCode::from(code);
+        }
+    };
+    tracing_subscriber::fmt()
+        .with_env_filter(tracing_subscriber::EnvFilter::try_from_env("TWINSWARM_LOG").unwrap_or_else(|_| "warn".into()))
+        .with_writer(std::io::stderr)
+        .init();
+    let result = match cli.command.unwrap_or(Command::Run(RunArgs::default())) {
+        Command::Run(args) => run(args),
+        Command::Check { scene } => check(&scene),
+        Command::Inspect { scene, json } => inspect(scene.as_deref(), json),
+    };
+    match result {
+        Ok(()) => ExitCode::SUCCESS,
+        Err(e) => {
+            if let Some(bad) = e.downcast_ref::<BadInput>() {
+                eprintln!("error: {bad}");
+                ExitCode::from(2)
+            } else {
+                eprintln!("error: {e:#}");
+                ExitCode::from(1)
+            }
+        }
+    }
+}
+
+/// Loads a scene file, or the embedded default.
+fn load_scene(path: Option<&std::path::Path>) -> anyhow::Result<(String, SceneSpec, World)> {
+    match path {
+        None => {
+            let (spec, world) = scene::load_default();
+            Ok((scene::DEFAULT_SCENE_ORIGIN.to_owned(), spec, world))
+        }
+        Some(path) => {
+            let text = std::fs::read_to_string(path)
+                .with_context(|| format!("cannot read scene file {}", path.display()))
+                .map_err(|e| anyhow::Error::new(BadInput(e)))?;
+            let origin = path.display().to_string();
+            let (spec, world) = scene::load(&origin, &text).map_err(|e| anyhow::Error::new(BadInput(e.into())))?;
+            Ok((origin, spec, world))
+        }
+    }
+}
+
+fn run(args: RunArgs) -> anyhow::Result<()> {
+    let (origin, mut spec, _) = load_scene(args.scene.as_deref())?;
+    if let Some(seed) = args.seed {
+        spec.sim.seed = seed;
+    }
+    if let Some(d) = args.duration {
+        if !d.is_finite() || d <= 0.0 {
+            return Err(BadInput(anyhow::anyhow!("--duration must be a positive number of seconds, got {d}")).into());
+        }
+        spec.sim.duration_s = d;
+    }
+    let world = scene::compile(&spec).map_err(|e| anyhow::Error::new(BadInput(e.into())))?;
+    let ticks = world.default_ticks();
+    let mut state = world.initial_state();
+    let inputs = world.initial_inputs();
+    let mut tracker = report::Tracker::new(&world);
+
+    let progress = (!args.json && !args.realtime && std::io::stderr().is_terminal()).then(|| {
+        let bar = indicatif::ProgressBar::new(ticks);
+        bar.set_style(
+            indicatif::ProgressStyle::with_template("{spinner} [{bar:40}] {pos}/{len} steps  {per_sec}  eta {eta}")
+                .unwrap_or_else(|_| indicatif::ProgressStyle::default_bar())
+                .progress_chars("=> "),
+        );
+        bar
+    });
+    let started = Instant::now();
+    let control_dt = std::time::Duration::from_secs_f64(world.params.control_dt_s);
+    let mut overruns = 0u64;
+    for k in 0..ticks {
+        let step_report = step(&world, &mut state, &inputs);
+        tracker.observe(&world, &state, &step_report);
+        if let Some(bar) = &progress
+            && k % 20 == 0
+        {
+            bar.set_position(k);
+        }
+        if args.realtime {
+            // Absolute deadlines: no drift, overruns counted.
+            let deadline = started + control_dt * (k as u32 + 1);
+            let now = Instant::now();
+            if now < deadline {
+                std::thread::sleep(deadline - now);
+            } else if now > deadline + control_dt {
+                overruns += 1;
+            }
+        }
+    }
+    if let Some(bar) = progress {
+        bar.finish_and_clear();
+    }
+    let wall_s = started.elapsed().as_secs_f64();
+    let summary = tracker.summary(&world, &state, &origin, wall_s, overruns);
+    if args.json {
+        println!("{}", serde_json::to_string_pretty(&summary)?);
+    } else {
+        print!("{}", summary.to_text());
+    }
+    Ok(())
+}
+
+fn check(path: &std::path::Path) -> anyhow::Result<()> {
+    let (origin, spec, world) = load_scene(Some(path))?;
+    println!("{origin}: OK");
+    println!(
+        "  world {:?}: arena {} m x {} m x {} m high, walls {}",
+        world.name,
+        world.arena.size_m[0],
+        world.arena.size_m[1],
+        world.arena.height_m,
+        if world.arena.walls { "on" } else { "off" }
+    );
+    println!(
+        "  stepping: physics {} ms x {} substeps = control {} ms; seed {}; duration {} s ({} control steps)",
+        world.params.physics_dt_s * 1e3,
+        world.params.substeps,
+        world.params.control_dt_s * 1e3,
+        world.params.seed,
+        world.params.duration_s,
+        world.default_ticks()
+    );
+    println!("  {} static box(es):", world.boxes.len());
+    for b in &world.boxes {
+        println!(
+            "    {:<10} centre ({:.2}, {:.2}, {:.2}) m, size {:.2} x {:.2} x {:.2} m, yaw {:.1}°",
+            b.name,
+            b.center_m.x,
+            b.center_m.y,
+            b.center_m.z,
+            2.0 * b.half_extents_m.x,
+            2.0 * b.half_extents_m.y,
+            2.0 * b.half_extents_m.z,
+            b.yaw_rad.to_degrees()
+        );
+    }
+    println!("  {} copter(s):", world.copters.len());
+    for (c, cs) in world.copters.iter().zip(&spec.copters) {
+        let af = &world.airframes[c.airframe];
+        let cmd = &c.initial_command;
+        let vertical = if cmd.height_m > 0.0 {
+            format!("holds {:.2} m", cmd.height_m)
+        } else {
+            format!("throttle {:.0} %", cmd.throttle * 100.0)
+        };
+        println!(
+            "    {:<10} {:?}{} at ({:.2}, {:.2}, {:.2}) m, yaw {:.1}°, {:.3} kg, mode {}, {}",
+            c.name,
+            c.kind,
+            c.ac_id.map(|a| format!(" ac_id {a}")).unwrap_or_default(),
+            c.start_pos_m.x,
+            c.start_pos_m.y,
+            c.start_pos_m.z,
+            c.start_yaw_rad.to_degrees(),
+            af.mass_kg,
+            cmd.mode.as_str(),
+            vertical
+        );
+        if let scene::AirframeRef::Named(name) = &cs.airframe {
+            println!("               airframe preset {name:?}");
+        }
+    }
+    let s = &world.sensors.spec;
+    println!(
+        "  sensors {}: sonar {}° cone, {}-{} m, sigma {} m; cross-talk {}",
+        if s.enabled { "on" } else { "off" },
+        s.sonar.opening_deg,
+        s.sonar.min_range_m,
+        s.sonar.max_range_m,
+        if s.noise { s.sonar.noise_sigma_m } else { 0.0 },
+        if s.crosstalk.enabled { format!("on (p = {}, {:?})", s.crosstalk.probability, s.crosstalk.phase) } else { "off".into() }
+    );
+    Ok(())
+}
+
+fn inspect(path: Option<&std::path::Path>, json: bool) -> anyhow::Result<()> {
+    let (_, _, world) = load_scene(path)?;
+    let models: Vec<report::CopterModel> = world.copters.iter().map(|c| report::CopterModel::new(&world, c)).collect();
+    if json {
+        println!("{}", serde_json::to_string_pretty(&models)?);
+    } else {
+        for m in &models {
+            print!("{}", m.to_text());
+        }
+    }
+    Ok(())
+}

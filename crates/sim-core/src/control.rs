@@ -148,7 +148,9 @@ pub fn mix(af: &Airframe, collective_n: Real, torque_n_m: Vec3) -> [Real; 4] {
         att.iter_mut().for_each(|v| *v *= s);
     }
     let (lo, hi) = att.iter().fold((Real::MAX, Real::MIN), |(lo, hi), &v| (lo.min(v), hi.max(v)));
-    let base = (collective_n / 4.0).clamp(-lo, max - hi);
+    // After scaling, `max - hi >= -lo` up to rounding; never hand `clamp` an empty range.
+    let (floor, ceil) = (-lo, (max - hi).max(-lo));
+    let base = (collective_n / 4.0).max(floor).min(ceil);
     let mut yaw_scale: Real = 1.0;
     for i in 0..4 {
         let f = base + att[i];

@@ -476,7 +476,7 @@ pub fn compile(spec: &SceneSpec) -> Result<World, SceneError> {
                 None => {
                     let Some(preset) = airframe::preset(name) else {
                         let mut known: Vec<&str> = airframe::PRESETS.to_vec();
-                        known.extend(airframe_index.keys().map(String::as_str));
+                        known.extend(spec.airframes.keys().map(String::as_str));
                         return Err(SceneError::invalid(
                             p.key("airframe"),
                             format!("unknown airframe {name:?}; known: {}", known.join(", ")),
@@ -608,68 +608,68 @@ pub fn line_col(text: &str, offset: usize) -> Location {
     Location { line, column: before[line_start..].chars().count() + 1 }
 }
 
-/// The span of the value at `path`, or of its deepest existing ancestor.
+/// The span of the value at `path` (of its key, for tables), or of its deepest existing
+/// ancestor.
 pub fn span_of(text: &str, path: &FieldPath) -> Option<Range<usize>> {
+    use toml::de::DeValue;
     let doc = toml::de::DeTable::parse(text).ok()?;
     let mut span = doc.span();
-    let mut cur: Option<&toml::de::DeValue<'_>> = None;
-    let mut table: Option<&toml::de::DeTable<'_>> = Some(doc.get_ref());
+    let mut cur: &DeValue<'_> = &DeValue::Table(doc.into_inner());
     for seg in &path.0 {
-        let next = match (seg, table, cur) {
-            (PathSeg::Key(k), Some(t), _) => t.iter().find(|(key, _)| key.get_ref() == k).map(|(key, v)| (key.span(), v)),
-            (PathSeg::Index(i), _, Some(toml::de::DeValue::Array(arr))) => arr.get(*i).map(|v| (v.span(), v)),
+        let next = match (seg, cur) {
+            (PathSeg::Key(k), DeValue::Table(t)) => t.iter().find(|(key, _)| key.get_ref() == k).map(|(key, v)| (key.span(), v)),
+            (PathSeg::Index(i), DeValue::Array(arr)) => arr.get(*i).map(|v| (v.span(), v)),
             _ => None,
         };
         let Some((key_span, value)) = next else { break };
-        // Point at the key for tables and arrays of tables, at the value otherwise.
-        span = match value.get_ref() {
-            toml::de::DeValue::Table(_) | toml::de::DeValue::Array(_) => key_span,
-            _ => value.span(),
-        };
-        if let PathSeg::Index(_) = seg {
-            span = value.span();
-        }
-        cur = Some(value.get_ref());
-        table = match value.get_ref() {
-            toml::de::DeValue::Table(t) => Some(t),
-            _ => None,
-        };
+        let is_container = matches!(value.get_ref(), DeValue::Table(_))
+            || matches!(value.get_ref(), DeValue::Array(a) if a.iter().any(|v| matches!(v.get_ref(), DeValue::Table(_))));
+        span = if is_container && matches!(seg, PathSeg::Key(_)) { key_span } else { value.span() };
+        cur = value.get_ref();
     }
     Some(span)
 }
 
-/// The path of the innermost field whose value contains `span`.
+/// The path of the innermost field whose key or value contains `span`.
 pub fn path_at(text: &str, span: &Range<usize>) -> FieldPath {
-    fn walk(v: &toml::de::DeValue<'_>, span: &Range<usize>, path: &mut FieldPath) {
-        match v {
-            toml::de::DeValue::Table(t) => {
-                for (k, v) in t.iter() {
-                    let vs = v.span();
-                    let ks = k.span();
-                    let inside = |s: &Range<usize>| s.start <= span.start && span.end <= s.end.max(s.start + 1);
-                    if inside(&vs) || inside(&ks) {
-                        path.0.push(PathSeg::Key(k.get_ref().to_string()));
-                        walk(v.get_ref(), span, path);
-                        return;
-                    }
-                }
+    use toml::de::DeValue;
+    type Child<'a, 'i> = (PathSeg, Option<Range<usize>>, Range<usize>, &'a DeValue<'i>);
+    fn contains(s: &Range<usize>, span: &Range<usize>) -> bool {
+        s.start <= span.start && span.end <= s.end.max(s.start + 1)
+    }
+    fn walk(v: &DeValue<'_>, span: &Range<usize>, path: &mut Vec<PathSeg>) -> bool {
+        let children: Vec<Child<'_, '_>> = match v {
+            DeValue::Table(t) => t.iter().map(|(k, v)| (PathSeg::Key(k.get_ref().to_string()), Some(k.span()), v.span(), v.get_ref())).collect(),
+            DeValue::Array(a) => a.iter().enumerate().map(|(i, v)| (PathSeg::Index(i), None, v.span(), v.get_ref())).collect(),
+            _ => return false,
+        };
+        // Depth first: a descendant containing the span wins over its container.
+        for (seg, _, _, child) in &children {
+            path.push(seg.clone());
+            if walk(child, span, path) {
+                return true;
             }
-            toml::de::DeValue::Array(arr) => {
-                for (i, v) in arr.iter().enumerate() {
-                    let vs = v.span();
-                    if vs.start <= span.start && span.end <= vs.end.max(vs.start + 1) {
-                        path.0.push(PathSeg::Index(i));
-                        walk(v.get_ref(), span, path);
-                        return;
-                    }
-                }
-            }
-            _ => {}
+            path.pop();
         }
+        for (seg, key_span, value_span, child) in &children {
+            let table = matches!(child, DeValue::Table(_));
+            if key_span.as_ref().is_some_and(|k| contains(k, span)) || (!table && contains(value_span, span)) {
+                path.push(seg.clone());
+                return true;
+            }
+        }
+        // Last resort: a whole table (e.g. a missing field reported on its header).
+        for (seg, _, value_span, _) in children {
+            if contains(&value_span, span) || value_span.start == span.start {
+                path.push(seg);
+                return true;
+            }
+        }
+        false
     }
-    let mut path = FieldPath::default();
+    let mut path = Vec::new();
     if let Ok(doc) = toml::de::DeTable::parse(text) {
-        walk(&toml::de::DeValue::Table(doc.into_inner()), span, &mut path);
+        walk(&DeValue::Table(doc.into_inner()), span, &mut path);
     }
-    path
+    FieldPath(path)
 }

@@ -134,7 +134,7 @@ impl Default for CrosstalkSpec {
 }
 
 /// `[sensors]`: all sensor models.
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize, Default)]
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
 pub struct SensorSpec {
     /// Whether sensors are simulated at all (off: readings stay at their initial values;
@@ -154,6 +154,20 @@ pub struct SensorSpec {
     pub crosstalk: CrosstalkSpec,
     /// Wall-Avoid behaviour (it runs on these sensors).
     pub wall_avoid: WallAvoidSpec,
+}
+
+impl Default for SensorSpec {
+    fn default() -> Self {
+        Self {
+            enabled: true,
+            noise: true,
+            sonar: SonarSpec::default(),
+            ir: IrSpec::default(),
+            imu: ImuSpec::default(),
+            crosstalk: CrosstalkSpec::default(),
+            wall_avoid: WallAvoidSpec::default(),
+        }
+    }
 }
 
 fn yes() -> bool {

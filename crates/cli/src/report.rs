@@ -1,0 +1,225 @@
+//! Run summaries and derived-model reports, as text and JSON.
+
+use std::fmt::Write as _;
+
+use serde::Serialize;
+use sim_core::world::CopterDef;
+use sim_core::{Event, State, StepReport, World};
+
+/// After take-off, height errors count from this many seconds on (the climb is not an error).
+const HEIGHT_SETTLE_S: f64 = 5.0;
+
+/// Follows a run to build its summary.
+#[derive(Debug)]
+pub struct Tracker {
+    worst_height_error_m: Vec<f32>,
+    crashes: Vec<CrashLine>,
+}
+
+#[derive(Clone, Debug, Serialize)]
+pub struct CrashLine {
+    copter: String,
+    time_s: f64,
+    cause: sim_core::CrashCause,
+}
+
+impl Tracker {
+    pub fn new(world: &World) -> Self {
+        Self { worst_height_error_m: vec![0.0; world.copters.len()], crashes: Vec::new() }
+    }
+
+    pub fn observe(&mut self, world: &World, state: &State, report: &StepReport) {
+        for e in &report.events {
+            if let Event::Crashed { copter, cause } = e {
+                self.crashes.push(CrashLine { copter: world.copters[*copter].name.clone(), time_s: state.time_s(world), cause: *cause });
+            }
+        }
+        let t = state.time_s(world);
+        for (i, c) in state.copters.iter().enumerate() {
+            let Some(took_off) = c.took_off_tick else { continue };
+            if c.crash.is_some() || c.setpoint.height_m <= 0.0 || t < world.time_at(took_off) + HEIGHT_SETTLE_S {
+                continue;
+            }
+            let err = (state.pose(i).pos_m.z - c.setpoint.height_m).abs();
+            self.worst_height_error_m[i] = self.worst_height_error_m[i].max(err);
+        }
+    }
+
+    pub fn summary(&self, world: &World, state: &State, scene: &str, wall_s: f64, overruns: u64) -> Summary {
+        let sim_s = state.time_s(world);
+        let copters = world
+            .copters
+            .iter()
+            .enumerate()
+            .map(|(i, c)| {
+                let p = state.pose(i);
+                CopterLine {
+                    name: c.name.clone(),
+                    kind: c.kind,
+                    final_pos_m: [p.pos_m.x, p.pos_m.y, p.pos_m.z],
+                    final_yaw_deg: p.rpy_rad[2].to_degrees(),
+                    crashed: state.copters[i].crash.is_some(),
+                    worst_height_error_m: (state.copters[i].took_off_tick.is_some()).then_some(self.worst_height_error_m[i]),
+                }
+            })
+            .collect();
+        Summary {
+            scene: scene.to_owned(),
+            world: world.name.clone(),
+            seed: world.params.seed,
+            copters_count: world.copters.len(),
+            sim_time_s: sim_s,
+            wall_time_s: wall_s,
+            real_time_factor: if wall_s > 0.0 { sim_s / wall_s } else { f64::INFINITY },
+            control_steps: state.tick,
+            realtime_overruns: overruns,
+            crashes: self.crashes.clone(),
+            copters,
+        }
+    }
+}
+
+#[derive(Debug, Serialize)]
+pub struct CopterLine {
+    name: String,
+    kind: sim_core::CopterKind,
+    final_pos_m: [f32; 3],
+    final_yaw_deg: f32,
+    crashed: bool,
+    /// Largest |z − height target| from 5 s after take-off on; `None` if it never flew.
+    worst_height_error_m: Option<f32>,
+}
+
+/// What `twinswarm run` prints.
+#[derive(Debug, Serialize)]
+pub struct Summary {
+    scene: String,
+    world: String,
+    seed: u64,
+    copters_count: usize,
+    sim_time_s: f64,
+    wall_time_s: f64,
+    real_time_factor: f64,
+    control_steps: u64,
+    realtime_overruns: u64,
+    crashes: Vec<CrashLine>,
+    copters: Vec<CopterLine>,
+}
+
+impl Summary {
+    pub fn to_text(&self) -> String {
+        let mut s = String::new();
+        let _ = writeln!(s, "twinswarm run: {} (world {:?}, seed {})", self.scene, self.world, self.seed);
+        let _ = writeln!(
+            s,
+            "  {} copters, {:.1} s simulated in {:.3} s wall ({:.0}x real time, {} control steps{})",
+            self.copters_count,
+            self.sim_time_s,
+            self.wall_time_s,
+            self.real_time_factor,
+            self.control_steps,
+            if self.realtime_overruns > 0 { format!(", {} real-time overruns", self.realtime_overruns) } else { String::new() }
+        );
+        if self.crashes.is_empty() {
+            let _ = writeln!(s, "  crashes: none");
+        } else {
+            let _ = writeln!(s, "  crashes: {}", self.crashes.len());
+            for c in &self.crashes {
+                let _ = writeln!(s, "    {} at {:.2} s: {:?}", c.copter, c.time_s, c.cause);
+            }
+        }
+        let _ = writeln!(s, "  {:<12} {:<8} {:>24} {:>9} {:>18}", "copter", "kind", "final position (m)", "yaw (°)", "worst |dz| (cm)");
+        for c in &self.copters {
+            let _ = writeln!(
+                s,
+                "  {:<12} {:<8} {:>24} {:>9.1} {:>18}{}",
+                c.name,
+                format!("{:?}", c.kind).to_lowercase(),
+                format!("({:.2}, {:.2}, {:.2})", c.final_pos_m[0], c.final_pos_m[1], c.final_pos_m[2]),
+                c.final_yaw_deg,
+                c.worst_height_error_m.map_or("-".into(), |e| format!("{:.2}", e * 100.0)),
+                if c.crashed { "  CRASHED" } else { "" }
+            );
+        }
+        s
+    }
+}
+
+/// `twinswarm inspect`: the derived model of one copter.
+#[derive(Debug, Serialize)]
+pub struct CopterModel {
+    copter: String,
+    mass_kg: f32,
+    inertia_kg_m2: [f32; 3],
+    hover_thrust_per_rotor_n: f32,
+    disc_area_m2: f32,
+    v_rotor_m_s: f32,
+    v_final_m_s: f32,
+    mass_flow_kg_s: f32,
+    particle_mass_kg: f32,
+    particle_density_kg_m3: f32,
+    particle_rate_per_v_final_per_m: f32,
+    particle_rate_hover_hz: f32,
+    particles_per_physics_step: f32,
+    k_n_s2: f32,
+    d_n_m_s2: f32,
+    omega_hover_rad_s: f32,
+    max_thrust_per_rotor_n: f32,
+}
+
+impl CopterModel {
+    pub fn new(world: &World, c: &CopterDef) -> Self {
+        let af = &world.airframes[c.airframe];
+        Self {
+            copter: c.name.clone(),
+            mass_kg: af.mass_kg,
+            inertia_kg_m2: af.inertia_kg_m2,
+            hover_thrust_per_rotor_n: af.hover_thrust_per_rotor_n,
+            disc_area_m2: af.disc_area_m2,
+            v_rotor_m_s: af.v_rotor_m_s,
+            v_final_m_s: af.v_final_m_s,
+            mass_flow_kg_s: af.mass_flow_kg_s,
+            particle_mass_kg: af.particle_mass_kg,
+            particle_density_kg_m3: af.particle_density_kg_m3,
+            particle_rate_per_v_final_per_m: af.particle_rate_per_v_final_per_m,
+            particle_rate_hover_hz: af.spec.particle_rate_hover_hz,
+            particles_per_physics_step: af.spec.particle_rate_hover_hz * world.params.physics_dt_s as f32,
+            k_n_s2: af.k_n_s2,
+            d_n_m_s2: af.d_n_m_s2,
+            omega_hover_rad_s: af.omega_hover_rad_s,
+            max_thrust_per_rotor_n: af.max_thrust_per_rotor_n,
+        }
+    }
+
+    pub fn to_text(&self) -> String {
+        let mut s = String::new();
+        let _ = writeln!(s, "copter {}", self.copter);
+        let rows: [(&str, String, &str); 17] = [
+            ("mass", format!("{:.4}", self.mass_kg), "kg"),
+            (
+                "inertia (xx, yy, zz)",
+                format!("{:.3e}, {:.3e}, {:.3e}", self.inertia_kg_m2[0], self.inertia_kg_m2[1], self.inertia_kg_m2[2]),
+                "kg m²",
+            ),
+            ("hover thrust per rotor F = m g / 4", format!("{:.5}", self.hover_thrust_per_rotor_n), "N"),
+            ("rotor disc area A", format!("{:.6}", self.disc_area_m2), "m²"),
+            ("v_rotor = sqrt(F / (2 rho A))", format!("{:.4}", self.v_rotor_m_s), "m/s"),
+            ("v_final = 2 v_rotor", format!("{:.4}", self.v_final_m_s), "m/s"),
+            ("mass flow m' = F / v_final", format!("{:.5}", self.mass_flow_kg_s), "kg/s"),
+            ("particle mass m_px = m' / n'", format!("{:.5e}", self.particle_mass_kg), "kg"),
+            ("particle density rho_px", format!("{:.2}", self.particle_density_kg_m3), "kg/m³"),
+            ("n' / v_final = rho A / (2 m_px)", format!("{:.4}", self.particle_rate_per_v_final_per_m), "1/m"),
+            ("particle rate at hover n'", format!("{:.1}", self.particle_rate_hover_hz), "1/s"),
+            ("particles per physics step at hover", format!("{:.3}", self.particles_per_physics_step), ""),
+            ("thrust coefficient k", format!("{:.4e}", self.k_n_s2), "N s²"),
+            ("drag-torque coefficient d", format!("{:.4e}", self.d_n_m_s2), "N m s²"),
+            ("rotor speed at hover", format!("{:.1}", self.omega_hover_rad_s), "rad/s"),
+            ("max thrust per rotor", format!("{:.4}", self.max_thrust_per_rotor_n), "N"),
+            ("", String::new(), ""),
+        ];
+        for (name, v, unit) in rows.iter().filter(|r| !r.0.is_empty()) {
+            let _ = writeln!(s, "  {name:<38} {v:>30} {unit}");
+        }
+        s
+    }
+}
