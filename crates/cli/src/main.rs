@@ -2,6 +2,9 @@
 //! load the scene, drive `sim-core`, report. Errors are printed with their whole chain and
 //! mapped to exit codes: 0 ok, 2 bad input (usage or scene), 1 runtime failure.
 
+mod localize;
+mod logcmd;
+mod plot;
 mod report;
 
 use std::io::IsTerminal;
@@ -40,6 +43,44 @@ enum Command {
         #[arg(long)]
         json: bool,
     },
+    /// MEDUSA sonar localization: `--eval` measures it on a simulated Wall-Avoid flight.
+    Localize(localize::LocalizeArgs),
+    /// Inspect or repair MCAP run logs.
+    #[command(subcommand)]
+    Log(LogCommand),
+    /// Plot a run log: position heat-map, pitch and roll, sonars and y position (PNG).
+    Plot {
+        /// The MCAP log.
+        file: PathBuf,
+        /// Per-copter position heat-map over the arena.
+        #[arg(long, value_name = "OUT.png")]
+        heatmap: Option<PathBuf>,
+        /// Pitch and roll over time (twins: with the commanded attitude).
+        #[arg(long, value_name = "OUT.png")]
+        attitude: Option<PathBuf>,
+        /// The four sonar distances and the y position over time.
+        #[arg(long, value_name = "OUT.png")]
+        sonar: Option<PathBuf>,
+        /// The copter of the sonar plot (default: the first).
+        #[arg(long, value_name = "NAME")]
+        copter: Option<String>,
+    },
+}
+
+#[derive(Debug, Subcommand)]
+enum LogCommand {
+    /// Channels, message counts, duration, copters and scene of a log.
+    Info {
+        /// The MCAP log.
+        file: PathBuf,
+    },
+    /// Rescue every complete chunk of a truncated log (e.g. after kill -9) into a new file.
+    Recover {
+        /// The truncated log.
+        broken: PathBuf,
+        /// The complete file to write.
+        fixed: PathBuf,
+    },
 }
 
 #[derive(Debug, clap::Args, Default)]
@@ -58,6 +99,12 @@ struct RunArgs {
     /// Print the summary as JSON on stdout.
     #[arg(long)]
     json: bool,
+    /// Log to this MCAP file (default: runs/<scene name>-<UTC timestamp>.mcap).
+    #[arg(long, value_name = "FILE", conflicts_with = "no_log")]
+    log: Option<PathBuf>,
+    /// Do not write a log.
+    #[arg(long)]
+    no_log: bool,
 }
 
 /// An error that is the user's input's fault (exit code 2).
@@ -88,6 +135,18 @@ fn main() -> ExitCode {
         Command::Run(args) => run(args),
         Command::Check { scene } => check(&scene),
         Command::Inspect { scene, json } => inspect(scene.as_deref(), json),
+        Command::Localize(args) => localize::run(args),
+        Command::Log(LogCommand::Info { file }) => logcmd::info(&file),
+        Command::Log(LogCommand::Recover { broken, fixed }) => logcmd::recover(&broken, &fixed),
+        Command::Plot { file, heatmap, attitude, sonar, copter } => plot::plot(
+            &file,
+            &plot::PlotRequest {
+                heatmap: heatmap.as_deref(),
+                attitude: attitude.as_deref(),
+                sonar: sonar.as_deref(),
+                copter: copter.as_deref(),
+            },
+        ),
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,
@@ -137,6 +196,9 @@ fn run(args: RunArgs) -> anyhow::Result<()> {
     let mut state = world.initial_state();
     let inputs = world.initial_inputs();
     let mut tracker = report::Tracker::new(&world);
+    let mut log = logcmd::start_run_log(args.log.as_deref(), args.no_log, &world, args.scene.as_deref(), &origin)?;
+    let stop = logcmd::install_stop_flag()?;
+    let mut interrupted = None;
 
     let progress = (!args.json && !args.realtime && std::io::stderr().is_terminal()).then(|| {
         let bar = indicatif::ProgressBar::new(ticks);
@@ -151,8 +213,15 @@ fn run(args: RunArgs) -> anyhow::Result<()> {
     let control_dt = std::time::Duration::from_secs_f64(world.params.control_dt_s);
     let mut overruns = 0u64;
     for k in 0..ticks {
+        if logcmd::stopped(&stop) {
+            interrupted = Some(state.tick);
+            break;
+        }
         let step_report = step(&world, &mut state, &inputs);
         tracker.observe(&world, &state, &step_report);
+        if let Some(log) = &mut log {
+            log.log_step(&world, &state, &inputs, &step_report)?;
+        }
         if let Some(bar) = &progress
             && k % 20 == 0
         {
@@ -166,6 +235,7 @@ fn run(args: RunArgs) -> anyhow::Result<()> {
                 std::thread::sleep(deadline - now);
             } else if now > deadline + control_dt {
                 overruns += 1;
+                logcmd::log_overrun(&mut log, state.tick, (now - deadline).as_secs_f64())?;
             }
         }
     }
@@ -174,10 +244,21 @@ fn run(args: RunArgs) -> anyhow::Result<()> {
     }
     let wall_s = started.elapsed().as_secs_f64();
     let summary = tracker.summary(&world, &state, &origin, wall_s, overruns);
+    let log_stats = logcmd::finish_run_log(log, interrupted)?;
     if args.json {
-        println!("{}", serde_json::to_string_pretty(&summary)?);
+        let mut json = serde_json::to_value(&summary)?;
+        json["log"] = log_stats.as_ref().map_or(serde_json::Value::Null, |l| l.path.display().to_string().into());
+        json["interrupted"] = interrupted.is_some().into();
+        println!("{}", serde_json::to_string_pretty(&json)?);
     } else {
         print!("{}", summary.to_text());
+        println!("  log: {}", log_stats.as_ref().map_or("off (--no-log)".into(), logcmd::describe));
+        if interrupted.is_some() {
+            println!(
+                "  interrupted by a signal after {:.2} s simulated; the log was finished cleanly",
+                state.time_s(&world)
+            );
+        }
     }
     Ok(())
 }
@@ -250,7 +331,11 @@ fn check(path: &std::path::Path) -> anyhow::Result<()> {
         s.sonar.min_range_m,
         s.sonar.max_range_m,
         if s.noise { s.sonar.noise_sigma_m } else { 0.0 },
-        if s.crosstalk.enabled { format!("on (p = {}, {:?})", s.crosstalk.probability, s.crosstalk.phase) } else { "off".into() }
+        if s.crosstalk.enabled {
+            format!("on (p = {}, {:?})", s.crosstalk.probability, s.crosstalk.phase)
+        } else {
+            "off".into()
+        }
     );
     Ok(())
 }

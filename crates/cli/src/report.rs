@@ -31,7 +31,11 @@ impl Tracker {
     pub fn observe(&mut self, world: &World, state: &State, report: &StepReport) {
         for e in &report.events {
             if let Event::Crashed { copter, cause } = e {
-                self.crashes.push(CrashLine { copter: world.copters[*copter].name.clone(), time_s: state.time_s(world), cause: *cause });
+                self.crashes.push(CrashLine {
+                    copter: world.copters[*copter].name.clone(),
+                    time_s: state.time_s(world),
+                    cause: *cause,
+                });
             }
         }
         let t = state.time_s(world);
@@ -59,7 +63,8 @@ impl Tracker {
                     final_pos_m: [p.pos_m.x, p.pos_m.y, p.pos_m.z],
                     final_yaw_deg: p.rpy_rad[2].to_degrees(),
                     crashed: state.copters[i].crash.is_some(),
-                    worst_height_error_m: (state.copters[i].took_off_tick.is_some()).then_some(self.worst_height_error_m[i]),
+                    worst_height_error_m: (state.copters[i].took_off_tick.is_some())
+                        .then_some(self.worst_height_error_m[i]),
                 }
             })
             .collect();
@@ -118,7 +123,11 @@ impl Summary {
             self.wall_time_s,
             self.real_time_factor,
             self.control_steps,
-            if self.realtime_overruns > 0 { format!(", {} real-time overruns", self.realtime_overruns) } else { String::new() }
+            if self.realtime_overruns > 0 {
+                format!(", {} real-time overruns", self.realtime_overruns)
+            } else {
+                String::new()
+            }
         );
         if self.crashes.is_empty() {
             let _ = writeln!(s, "  crashes: none");
@@ -128,7 +137,11 @@ impl Summary {
                 let _ = writeln!(s, "    {} at {:.2} s: {:?}", c.copter, c.time_s, c.cause);
             }
         }
-        let _ = writeln!(s, "  {:<12} {:<8} {:>24} {:>9} {:>18}", "copter", "kind", "final position (m)", "yaw (°)", "worst |dz| (cm)");
+        let _ = writeln!(
+            s,
+            "  {:<12} {:<8} {:>24} {:>9} {:>18}",
+            "copter", "kind", "final position (m)", "yaw (°)", "worst |dz| (cm)"
+        );
         for c in &self.copters {
             let _ = writeln!(
                 s,

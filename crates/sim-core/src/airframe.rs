@@ -222,8 +222,7 @@ impl Airframe {
         let a2 = s.arm_length_m * s.arm_length_m / 2.0;
         let ixx = s.body_mass_kg / 12.0 * (by * by + bz * bz) + 4.0 * s.motor_mass_kg * a2;
         let iyy = s.body_mass_kg / 12.0 * (bx * bx + bz * bz) + 4.0 * s.motor_mass_kg * a2;
-        let izz = s.body_mass_kg / 12.0 * (bx * bx + by * by)
-            + 4.0 * s.motor_mass_kg * s.arm_length_m * s.arm_length_m;
+        let izz = s.body_mass_kg / 12.0 * (bx * bx + by * by) + 4.0 * s.motor_mass_kg * s.arm_length_m * s.arm_length_m;
 
         let hover = mass_kg * GRAVITY_M_S2 / 4.0;
         let disc_area = std::f32::consts::PI / 4.0 * s.rotor_diameter_m * s.rotor_diameter_m;

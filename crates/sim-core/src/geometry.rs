@@ -219,7 +219,7 @@ pub fn ray_box(origin: Vec3, dir: Vec3, b: &OrientedBox) -> Option<Real> {
     let inv = b.rotation.inverse();
     let o = inv * (origin - b.center);
     let d = inv * dir;
-    let (mut t0, mut t1) = (0.0 as Real, Real::INFINITY);
+    let (mut t0, mut t1) = (0.0_f32, Real::INFINITY);
     for i in 0..3 {
         if d[i].abs() < 1e-12 {
             if o[i].abs() > b.half[i] {

@@ -9,8 +9,8 @@
 //!
 //! Paparazzi uses NED/FRD: the bridge converts at the edge, never here.
 
-pub use rapier3d::math::{Real, Vector};
 pub use rapier3d::glamx::{Quat, Vec2, Vec3};
+pub use rapier3d::math::{Real, Vector};
 
 /// Standard gravity, m/s².
 pub const GRAVITY_M_S2: Real = 9.81;

@@ -388,17 +388,22 @@ pub fn compile(spec: &SceneSpec) -> Result<World, SceneError> {
     // [sim]
     let sim = &spec.sim;
     let p = root.clone().key("sim");
-    for (name, v) in [("physics_dt_s", sim.physics_dt_s), ("control_dt_s", sim.control_dt_s), ("duration_s", sim.duration_s)] {
+    for (name, v) in
+        [("physics_dt_s", sim.physics_dt_s), ("control_dt_s", sim.control_dt_s), ("duration_s", sim.duration_s)]
+    {
         if !v.is_finite() || v <= 0.0 {
             return Err(SceneError::invalid(p.clone().key(name), format!("must be positive and finite, got {v}")));
         }
     }
     let ratio = sim.control_dt_s / sim.physics_dt_s;
     let substeps = ratio.round();
-    if (ratio - substeps).abs() > 1e-6 || substeps < 1.0 || substeps > 10_000.0 {
+    if (ratio - substeps).abs() > 1e-6 || !(1.0..=10_000.0).contains(&substeps) {
         return Err(SceneError::invalid(
             p.clone().key("control_dt_s"),
-            format!("must be a whole multiple (1 to 10000) of physics_dt_s = {}, got {}", sim.physics_dt_s, sim.control_dt_s),
+            format!(
+                "must be a whole multiple (1 to 10000) of physics_dt_s = {}, got {}",
+                sim.physics_dt_s, sim.control_dt_s
+            ),
         ));
     }
     let params = SimParams {
@@ -429,7 +434,10 @@ pub fn compile(spec: &SceneSpec) -> Result<World, SceneError> {
         if let Some(name) = &b.name
             && let Some(prev) = box_names.insert(name.clone(), i)
         {
-            return Err(SceneError::invalid(p.key("name"), format!("box name {name:?} is already used by box[{prev}]")));
+            return Err(SceneError::invalid(
+                p.key("name"),
+                format!("box name {name:?} is already used by box[{prev}]"),
+            ));
         }
         let half = Vec3::new(b.size_m[0], b.size_m[1], b.size_m[2]) / 2.0;
         boxes.push(StaticBox {
@@ -451,50 +459,81 @@ pub fn compile(spec: &SceneSpec) -> Result<World, SceneError> {
     }
 
     // [[copter]]
+    let mut cc = CopterCompiler { spec_airframes: &spec.airframes, arena: &arena, boxes: &boxes, airframes, airframe_index, names: BTreeMap::new(), ac_ids: BTreeMap::new() };
     let mut copters: Vec<CopterDef> = Vec::with_capacity(spec.copters.len());
-    let mut names = BTreeMap::new();
-    let mut ac_ids = BTreeMap::new();
     for (i, c) in spec.copters.iter().enumerate() {
-        let p = root.clone().key("copter").index(i);
+        let occupied: Vec<(String, Vec3, Real)> =
+            copters.iter().map(|o| (o.name.clone(), o.start_pos_m, cc.airframes[o.airframe].radius_m)).collect();
+        let def = cc.compile(i, c, &occupied)?;
+        copters.push(def);
+    }
+    let airframes = cc.airframes;
+    let sensors = spec.sensors.compile(&root.clone().key("sensors"))?;
+    Ok(World { name: spec.name.clone(), params, arena, boxes, airframes, copters, sensors, spec: spec.clone() })
+}
+
+/// Compiles `[[copter]]` tables one by one, tracking names, ac_ids and airframes.
+struct CopterCompiler<'a> {
+    spec_airframes: &'a BTreeMap<String, AirframeSpec>,
+    arena: &'a Arena,
+    boxes: &'a [StaticBox],
+    airframes: Vec<Airframe>,
+    airframe_index: BTreeMap<String, usize>,
+    names: BTreeMap<String, usize>,
+    ac_ids: BTreeMap<u8, usize>,
+}
+
+impl CopterCompiler<'_> {
+    /// Compiles copter `i`; `occupied` lists where other copters are (name, centre, radius).
+    fn compile(&mut self, i: usize, c: &CopterSpec, occupied: &[(String, Vec3, Real)]) -> Result<CopterDef, SceneError> {
+        let p = FieldPath::default().key("copter").index(i);
         if c.name.is_empty() || !c.name.chars().all(|ch| ch.is_ascii_alphanumeric() || ch == '_' || ch == '-') {
             return Err(SceneError::invalid(
                 p.key("name"),
-                format!("copter name {:?} must be non-empty ASCII letters, digits, '_' or '-' (it becomes a key expression)", c.name),
+                format!(
+                    "copter name {:?} must be non-empty ASCII letters, digits, '_' or '-' (it becomes a key expression)",
+                    c.name
+                ),
             ));
         }
-        if let Some(prev) = names.insert(c.name.clone(), i) {
-            return Err(SceneError::invalid(p.key("name"), format!("copter name {:?} is already used by copter[{prev}]", c.name)));
+        if let Some(prev) = self.names.insert(c.name.clone(), i) {
+            return Err(SceneError::invalid(
+                p.key("name"),
+                format!("copter name {:?} is already used by copter[{prev}]", c.name),
+            ));
         }
         if let Some(ac) = c.ac_id
-            && let Some(prev) = ac_ids.insert(ac, i)
+            && let Some(prev) = self.ac_ids.insert(ac, i)
         {
             return Err(SceneError::invalid(p.key("ac_id"), format!("ac_id {ac} is already used by copter[{prev}]")));
         }
         let af_idx = match &c.airframe {
-            AirframeRef::Named(name) => match airframe_index.get(name) {
+            AirframeRef::Named(name) => match self.airframe_index.get(name) {
                 Some(idx) => *idx,
                 None => {
                     let Some(preset) = airframe::preset(name) else {
                         let mut known: Vec<&str> = airframe::PRESETS.to_vec();
-                        known.extend(spec.airframes.keys().map(String::as_str));
+                        known.extend(self.spec_airframes.keys().map(String::as_str));
                         return Err(SceneError::invalid(
                             p.key("airframe"),
                             format!("unknown airframe {name:?}; known: {}", known.join(", ")),
                         ));
                     };
-                    let derived = Airframe::derive(&preset).map_err(|e| SceneError::invalid(p.clone().key("airframe"), e.to_string()))?;
-                    airframe_index.insert(name.clone(), airframes.len());
-                    airframes.push(derived);
-                    airframes.len() - 1
+                    let derived = Airframe::derive(&preset)
+                        .map_err(|e| SceneError::invalid(p.clone().key("airframe"), e.to_string()))?;
+                    self.airframe_index.insert(name.clone(), self.airframes.len());
+                    self.airframes.push(derived);
+                    self.airframes.len() - 1
                 }
             },
             AirframeRef::Inline(af) => {
-                let derived = Airframe::derive(af).map_err(|e| SceneError::invalid(p.clone().key("airframe").key(e.field), e.message))?;
-                airframes.push(derived);
-                airframes.len() - 1
+                let derived = Airframe::derive(af)
+                    .map_err(|e| SceneError::invalid(p.clone().key("airframe").key(e.field), e.message))?;
+                self.airframes.push(derived);
+                self.airframes.len() - 1
             }
         };
-        let af = &airframes[af_idx];
+        let af = &self.airframes[af_idx];
         let sp = p.clone().key("start");
         finite(&sp.clone().key("pos_m"), &c.start.pos_m)?;
         finite(&sp.clone().key("yaw_deg"), &[c.start.yaw_deg])?;
@@ -504,7 +543,10 @@ pub fn compile(spec: &SceneSpec) -> Result<World, SceneError> {
                 if z < af.rest_height_m - 1e-6 {
                     return Err(SceneError::invalid(
                         sp.key("z_m"),
-                        format!("copter {:?} starts below the floor: z_m = {z} < rest height {:.3} m", c.name, af.rest_height_m),
+                        format!(
+                            "copter {:?} starts below the floor: z_m = {z} < rest height {:.3} m",
+                            c.name, af.rest_height_m
+                        ),
                     ));
                 }
                 z
@@ -513,17 +555,17 @@ pub fn compile(spec: &SceneSpec) -> Result<World, SceneError> {
         };
         let pos = Vec3::new(c.start.pos_m[0], c.start.pos_m[1], z);
         let r = af.radius_m;
-        let (hx, hy) = (arena.size_m[0] / 2.0, arena.size_m[1] / 2.0);
-        if pos.x.abs() + r > hx || pos.y.abs() + r > hy || z + af.rest_height_m > arena.height_m {
+        let (hx, hy) = (self.arena.size_m[0] / 2.0, self.arena.size_m[1] / 2.0);
+        if pos.x.abs() + r > hx || pos.y.abs() + r > hy || z + af.rest_height_m > self.arena.height_m {
             return Err(SceneError::invalid(
                 sp.key("pos_m"),
                 format!(
                     "copter {:?} starts outside the arena: its {:.3} m footprint at ({}, {}, {z}) must fit in x ∈ [{}, {}], y ∈ [{}, {}], z ≤ {}",
-                    c.name, r, pos.x, pos.y, -hx, hx, -hy, hy, arena.height_m
+                    c.name, r, pos.x, pos.y, -hx, hx, -hy, hy, self.arena.height_m
                 ),
             ));
         }
-        for b in &boxes {
+        for b in self.boxes {
             if b.distance_to_point(pos) < r {
                 return Err(SceneError::invalid(
                     sp.key("pos_m"),
@@ -531,23 +573,22 @@ pub fn compile(spec: &SceneSpec) -> Result<World, SceneError> {
                 ));
             }
         }
-        for other in &copters {
-            let r_other = airframes[other.airframe].radius_m;
-            if other.start_pos_m.distance(pos) < r + r_other {
+        for (other_name, other_pos, r_other) in occupied {
+            if other_pos.distance(pos) < r + r_other {
                 return Err(SceneError::invalid(
                     sp.key("pos_m"),
                     format!(
                         "copter {:?} overlaps copter {:?}: centres {:.3} m apart, need at least {:.3} m",
                         c.name,
-                        other.name,
-                        other.start_pos_m.distance(pos),
+                        other_name,
+                        other_pos.distance(pos),
                         r + r_other
                     ),
                 ));
             }
         }
         let command = compile_command(&p.clone().key("command"), c.mode, &c.command, c.start.yaw_deg.to_radians())?;
-        copters.push(CopterDef {
+        Ok(CopterDef {
             name: c.name.clone(),
             kind: c.kind,
             ac_id: c.ac_id,
@@ -555,13 +596,50 @@ pub fn compile(spec: &SceneSpec) -> Result<World, SceneError> {
             start_pos_m: pos,
             start_yaw_rad: c.start.yaw_deg.to_radians(),
             initial_command: command,
-        });
+        })
     }
-    let sensors = spec.sensors.compile(&root.clone().key("sensors"))?;
-    Ok(World { name: spec.name.clone(), params, arena, boxes, airframes, copters, sensors, spec: spec.clone() })
 }
 
-fn compile_command(p: &FieldPath, mode: FlightMode, c: &CommandSpec, start_yaw_rad: Real) -> Result<Command, SceneError> {
+impl World {
+    /// A new world with one more copter, spawned at runtime. The new copter must fit the arena,
+    /// miss the boxes and keep clear of where the other copters are *now* (`state`).
+    /// Its id is the new last one. Add its body with [`State::add_copter`](crate::State::add_copter).
+    pub fn with_spawned(&self, state: &crate::State, spec: &CopterSpec) -> Result<World, SceneError> {
+        let mut cc = CopterCompiler {
+            spec_airframes: &self.spec.airframes,
+            arena: &self.arena,
+            boxes: &self.boxes,
+            airframes: self.airframes.clone(),
+            airframe_index: BTreeMap::new(),
+            names: self.copters.iter().enumerate().map(|(i, c)| (c.name.clone(), i)).collect(),
+            ac_ids: self.copters.iter().enumerate().filter_map(|(i, c)| c.ac_id.map(|a| (a, i))).collect(),
+        };
+        for name in self.spec.airframes.keys() {
+            if let Some(idx) = self.copters.iter().zip(&self.spec.copters).find_map(|(d, s)| {
+                matches!(&s.airframe, AirframeRef::Named(n) if n == name).then_some(d.airframe)
+            }) {
+                cc.airframe_index.insert(name.clone(), idx);
+            }
+        }
+        let occupied: Vec<(String, Vec3, Real)> = (0..self.copters.len())
+            .map(|i| (self.copters[i].name.clone(), state.pose(i).pos_m, self.airframes[self.copters[i].airframe].radius_m))
+            .collect();
+        let id = self.copters.len();
+        let def = cc.compile(id, spec, &occupied)?;
+        let mut world = self.clone();
+        world.airframes = cc.airframes;
+        world.copters.push(def);
+        world.spec.copters.push(spec.clone());
+        Ok(world)
+    }
+}
+
+fn compile_command(
+    p: &FieldPath,
+    mode: FlightMode,
+    c: &CommandSpec,
+    start_yaw_rad: Real,
+) -> Result<Command, SceneError> {
     finite(&p.clone().key("roll_deg"), &[c.roll_deg])?;
     finite(&p.clone().key("pitch_deg"), &[c.pitch_deg])?;
     finite(&p.clone().key("height_m"), &[c.height_m])?;
@@ -575,7 +653,10 @@ fn compile_command(p: &FieldPath, mode: FlightMode, c: &CommandSpec, start_yaw_r
         }
     }
     if c.height_m < 0.0 {
-        return Err(SceneError::invalid(p.clone().key("height_m"), format!("must not be negative, got {}", c.height_m)));
+        return Err(SceneError::invalid(
+            p.clone().key("height_m"),
+            format!("must not be negative, got {}", c.height_m),
+        ));
     }
     if let Some(t) = c.target_m {
         finite(&p.clone().key("target_m"), &t)?;
@@ -617,7 +698,9 @@ pub fn span_of(text: &str, path: &FieldPath) -> Option<Range<usize>> {
     let mut cur: &DeValue<'_> = &DeValue::Table(doc.into_inner());
     for seg in &path.0 {
         let next = match (seg, cur) {
-            (PathSeg::Key(k), DeValue::Table(t)) => t.iter().find(|(key, _)| key.get_ref() == k).map(|(key, v)| (key.span(), v)),
+            (PathSeg::Key(k), DeValue::Table(t)) => {
+                t.iter().find(|(key, _)| key.get_ref() == k).map(|(key, v)| (key.span(), v))
+            }
             (PathSeg::Index(i), DeValue::Array(arr)) => arr.get(*i).map(|v| (v.span(), v)),
             _ => None,
         };
@@ -639,8 +722,13 @@ pub fn path_at(text: &str, span: &Range<usize>) -> FieldPath {
     }
     fn walk(v: &DeValue<'_>, span: &Range<usize>, path: &mut Vec<PathSeg>) -> bool {
         let children: Vec<Child<'_, '_>> = match v {
-            DeValue::Table(t) => t.iter().map(|(k, v)| (PathSeg::Key(k.get_ref().to_string()), Some(k.span()), v.span(), v.get_ref())).collect(),
-            DeValue::Array(a) => a.iter().enumerate().map(|(i, v)| (PathSeg::Index(i), None, v.span(), v.get_ref())).collect(),
+            DeValue::Table(t) => t
+                .iter()
+                .map(|(k, v)| (PathSeg::Key(k.get_ref().to_string()), Some(k.span()), v.span(), v.get_ref()))
+                .collect(),
+            DeValue::Array(a) => {
+                a.iter().enumerate().map(|(i, v)| (PathSeg::Index(i), None, v.span(), v.get_ref())).collect()
+            }
             _ => return false,
         };
         // Depth first: a descendant containing the span wins over its container.
@@ -672,4 +760,38 @@ pub fn path_at(text: &str, span: &Range<usize>) -> FieldPath {
         walk(&DeValue::Table(doc.into_inner()), span, &mut path);
     }
     FieldPath(path)
+}
+
+/// A benchmark swarm: `n` FINkens on a square grid `spacing_m` apart, each holding its own
+/// start point at `height_m` in [`FlightMode::Target`] mode, in an arena grown with `n` to keep
+/// the density. Sensors on or off.
+pub fn grid_swarm(n: usize, spacing_m: Real, height_m: Real, sensors: bool) -> SceneSpec {
+    let cols = (n as f64).sqrt().ceil().max(1.0) as usize;
+    let rows = n.div_ceil(cols).max(1);
+    let size = [cols as Real * spacing_m, rows as Real * spacing_m];
+    let copters = (0..n)
+        .map(|i| {
+            let (cx, cy) = ((i % cols) as Real, (i / cols) as Real);
+            let x = -size[0] / 2.0 + (cx + 0.5) * spacing_m;
+            let y = -size[1] / 2.0 + (cy + 0.5) * spacing_m;
+            CopterSpec {
+                name: format!("c{i}"),
+                kind: CopterKind::Virtual,
+                ac_id: None,
+                airframe: AirframeRef::default(),
+                start: StartSpec { pos_m: [x, y], z_m: Some(height_m), yaw_deg: 0.0 },
+                mode: FlightMode::Target,
+                command: CommandSpec { height_m, target_m: Some([x, y, height_m]), ..CommandSpec::default() },
+            }
+        })
+        .collect();
+    SceneSpec {
+        name: "swarm".into(),
+        sim: SimSpec::default(),
+        arena: ArenaSpec { size_m: size, height_m: 2.5, walls: true, wall_thickness_m: 0.1 },
+        boxes: Vec::new(),
+        airframes: BTreeMap::new(),
+        sensors: SensorSpec { enabled: sensors, ..SensorSpec::default() },
+        copters,
+    }
 }

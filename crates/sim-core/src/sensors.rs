@@ -214,7 +214,11 @@ impl SensorSpec {
             return Err(err("sonar", "opening_deg", format!("must be below 180, got {}", s.opening_deg)));
         }
         if s.min_range_m >= s.max_range_m {
-            return Err(err("sonar", "min_range_m", format!("must be below max_range_m = {}, got {}", s.max_range_m, s.min_range_m)));
+            return Err(err(
+                "sonar",
+                "min_range_m",
+                format!("must be below max_range_m = {}, got {}", s.max_range_m, s.min_range_m),
+            ));
         }
         if s.period_steps == 0 {
             return Err(err("sonar", "period_steps", "must be at least 1".into()));
@@ -303,9 +307,120 @@ pub struct SonarScene {
     pub boxes: Vec<OrientedBox>,
     /// Copter bodies, by id (crashed ones included: they are still there).
     pub copters: Vec<OrientedBox>,
+    /// A uniform grid over the copters, rebuilt by [`SonarScene::index_copters`].
+    pub grid: CopterGrid,
+}
+
+/// A uniform 2D grid of copter ids by the cell of their centre: sonars and cross-talk visit
+/// cells in rings of growing distance and stop once no closer copter can exist. Rebuilt each
+/// sensing step with a counting sort into reused buffers (no allocation once warm).
+#[derive(Clone, Debug, Default)]
+pub struct CopterGrid {
+    min: [Real; 2],
+    cell_m: Real,
+    nx: usize,
+    ny: usize,
+    starts: Vec<u32>,
+    items: Vec<u32>,
+    cells: Vec<u32>,
+    cursor: Vec<u32>,
+    max_radius_m: Real,
+    built_for: usize,
+}
+
+impl CopterGrid {
+    /// Cells per axis at most (bounds memory for sparse, huge arenas).
+    const MAX_CELLS_PER_AXIS: usize = 1024;
+
+    /// Indexes `boxes` by the cell of their centre.
+    pub fn build(&mut self, boxes: &[OrientedBox], cell_m: Real) {
+        self.built_for = boxes.len();
+        self.max_radius_m = boxes.iter().map(OrientedBox::bounding_radius).fold(0.0, Real::max);
+        let (mut lo, mut hi) = ([Real::MAX; 2], [Real::MIN; 2]);
+        for b in boxes {
+            lo = [lo[0].min(b.center.x), lo[1].min(b.center.y)];
+            hi = [hi[0].max(b.center.x), hi[1].max(b.center.y)];
+        }
+        if boxes.is_empty() {
+            (lo, hi) = ([0.0; 2], [0.0; 2]);
+        }
+        let span = (hi[0] - lo[0]).max(hi[1] - lo[1]);
+        self.cell_m = cell_m.max(span / Self::MAX_CELLS_PER_AXIS as Real).max(1e-3);
+        self.min = lo;
+        self.nx = ((hi[0] - lo[0]) / self.cell_m) as usize + 1;
+        self.ny = ((hi[1] - lo[1]) / self.cell_m) as usize + 1;
+        let n_cells = self.nx * self.ny;
+        self.starts.clear();
+        self.starts.resize(n_cells + 1, 0);
+        self.cells.clear();
+        for b in boxes {
+            let (ix, iy) = self.cell_of(b.center);
+            let c = (iy as usize) * self.nx + ix as usize;
+            self.cells.push(c as u32);
+            self.starts[c + 1] += 1;
+        }
+        for c in 0..n_cells {
+            self.starts[c + 1] += self.starts[c];
+        }
+        self.items.clear();
+        self.items.resize(boxes.len(), 0);
+        // Fill in id order, so each cell lists ids ascending.
+        self.cursor.clear();
+        self.cursor.extend_from_slice(&self.starts[..n_cells]);
+        for (id, &c) in self.cells.iter().enumerate() {
+            let slot = &mut self.cursor[c as usize];
+            self.items[*slot as usize] = id as u32;
+            *slot += 1;
+        }
+    }
+
+    fn cell_of(&self, p: Vec3) -> (isize, isize) {
+        let ix = ((p.x - self.min[0]) / self.cell_m).floor() as isize;
+        let iy = ((p.y - self.min[1]) / self.cell_m).floor() as isize;
+        (ix.clamp(-1, self.nx as isize), iy.clamp(-1, self.ny as isize))
+    }
+
+    /// Visits copter ids in rings of cells around `p`, nearest rings first. `visit` gets each
+    /// id and returns the current search radius (m): rings that cannot hold anything closer
+    /// are not visited.
+    pub fn visit_near(&self, p: Vec3, mut radius_m: Real, mut visit: impl FnMut(usize) -> Real) {
+        if self.nx == 0 {
+            return;
+        }
+        let (cx, cy) = self.cell_of(p);
+        let max_ring = self.nx.max(self.ny) as isize + 2;
+        for r in 0..=max_ring {
+            let ring_min = (r as Real - 1.0).max(0.0) * self.cell_m - self.max_radius_m;
+            if ring_min > radius_m {
+                break;
+            }
+            for iy in (cy - r)..=(cy + r) {
+                if iy < 0 || iy >= self.ny as isize {
+                    continue;
+                }
+                let edge_row = iy == cy - r || iy == cy + r;
+                let step = if edge_row || r == 0 { 1 } else { (2 * r) as usize };
+                let mut ix = cx - r;
+                while ix <= cx + r {
+                    if ix >= 0 && ix < self.nx as isize {
+                        let c = iy as usize * self.nx + ix as usize;
+                        for k in self.starts[c]..self.starts[c + 1] {
+                            radius_m = visit(self.items[k as usize] as usize);
+                        }
+                    }
+                    ix += step as isize;
+                }
+            }
+        }
+    }
 }
 
 impl SonarScene {
+    /// Indexes the copters for fast neighbour queries. Call after filling `copters`.
+    pub fn index_copters(&mut self, cell_m: Real) {
+        self.grid.build(&self.copters, cell_m);
+    }
+
     /// Distance from a sonar to the nearest object in its cone, ignoring copter `self_id`.
     /// `f32::INFINITY` if nothing is inside the cone within `max_range_m`.
     pub fn cone_distance(&self, cone: &Cone, self_id: usize, max_range_m: Real) -> Real {
@@ -346,9 +461,18 @@ impl SonarScene {
         for b in &self.boxes {
             consider(b, &mut best, &mut hit);
         }
-        for (id, b) in self.copters.iter().enumerate() {
-            if id != self_id {
-                consider(b, &mut best, &mut hit);
+        if self.grid.built_for == self.copters.len() && !self.copters.is_empty() {
+            self.grid.visit_near(cone.apex, best, |id| {
+                if id != self_id {
+                    consider(&self.copters[id], &mut best, &mut hit);
+                }
+                best
+            });
+        } else {
+            for (id, b) in self.copters.iter().enumerate() {
+                if id != self_id {
+                    consider(b, &mut best, &mut hit);
+                }
             }
         }
         if hit { best } else { Real::INFINITY }
@@ -392,6 +516,9 @@ pub fn sonar_reading(spec: &SonarSpec, truth_m: Real, noise_m: Real) -> Real {
         return spec.cap_m;
     }
     let v = (truth_m + noise_m).clamp(spec.min_range_m, spec.cap_m);
+    if v >= spec.cap_m {
+        return spec.cap_m;
+    }
     quantise(v, spec.quantum_m).min(spec.cap_m)
 }
 
@@ -451,6 +578,39 @@ mod tests {
     use super::*;
 
     #[test]
+    fn the_copter_grid_finds_exactly_what_a_full_scan_finds() {
+        let mut x: u32 = 99;
+        let mut rnd = || {
+            x ^= x << 13;
+            x ^= x >> 17;
+            x ^= x << 5;
+            x as Real / u32::MAX as Real
+        };
+        let mut scene = SonarScene::default();
+        for _ in 0..400 {
+            scene.copters.push(OrientedBox {
+                center: Vec3::new(rnd() * 30.0 - 15.0, rnd() * 20.0 - 10.0, 0.5 + rnd()),
+                rotation: Quat::from_rotation_z(rnd() * 6.0),
+                half: Vec3::new(0.134, 0.134, 0.03),
+            });
+        }
+        let linear = scene.clone();
+        scene.index_copters(1.0);
+        let mut hits = 0;
+        for id in 0..scene.copters.len() {
+            let c = scene.copters[id];
+            for axis in SONAR_AXES_IN_BODY {
+                let cone = Cone::new(c.center + c.rotation * axis * 0.05, c.rotation * axis, 15f32.to_radians());
+                let a = scene.cone_distance(&cone, id, 7.65);
+                let b = linear.cone_distance(&cone, id, 7.65);
+                assert_eq!(a.to_bits(), b.to_bits(), "copter {id}: grid {a} vs scan {b}");
+                hits += usize::from(a.is_finite());
+            }
+        }
+        assert!(hits > 100, "the layout must exercise hits: {hits}");
+    }
+
+    #[test]
     fn fusion_takes_the_minimum_and_ignores_garbage() {
         let phys = [1.0, 2.0, 3.0, 4.0];
         assert_eq!(fuse_min(phys, None), phys);
@@ -477,7 +637,8 @@ mod tests {
         assert!(crosstalk_eligible(&a, &away, 7.65).is_none());
         assert!(crosstalk_eligible(&a, &side, 7.65).is_none());
         // Rotating the receiver: eligible only within the half-angle.
-        let rot = |deg: Real| Cone::new(Vec3::new(1.0, 0.0, 0.0), Quat::from_rotation_z(deg.to_radians()) * Vec3::NEG_X, h);
+        let rot =
+            |deg: Real| Cone::new(Vec3::new(1.0, 0.0, 0.0), Quat::from_rotation_z(deg.to_radians()) * Vec3::NEG_X, h);
         assert!(crosstalk_eligible(&a, &rot(10.0), 7.65).is_some());
         assert!(crosstalk_eligible(&a, &rot(20.0), 7.65).is_none());
     }

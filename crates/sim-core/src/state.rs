@@ -163,6 +163,15 @@ impl State {
         }
     }
 
+    /// Adds the bodies and runtime state of copters that `world` has and this state does not
+    /// yet (after [`World::with_spawned`]). Existing copters are untouched.
+    pub fn add_copters(&mut self, world: &World) {
+        for id in self.copters.len()..world.copters.len() {
+            let copter = world.make_copter(&mut self.physics, id);
+            self.copters.push(copter);
+        }
+    }
+
     /// Simulated time, s.
     pub fn time_s(&self, world: &World) -> f64 {
         world.time_at(self.tick)
@@ -210,4 +219,5 @@ pub(crate) struct Scratch {
     pub(crate) started: Vec<(ColliderHandle, ColliderHandle)>,
     pub(crate) vel_before: Vec<Vec3>,
     pub(crate) sonar_scene: SonarScene,
+    pub(crate) near: Vec<usize>,
 }

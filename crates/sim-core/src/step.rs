@@ -47,6 +47,9 @@ pub struct StepReport {
     pub events: Vec<Event>,
 }
 
+/// Cell size of the copter grid used by sonars and cross-talk, m.
+const GRID_CELL_M: Real = 1.0;
+
 /// Height above the rest height that counts as airborne, m.
 const TAKEOFF_MARGIN_M: Real = 0.05;
 
@@ -59,7 +62,7 @@ pub fn step(world: &World, state: &mut State, inputs: &Inputs) -> StepReport {
 
     let sonar_period = world.sensors.spec.sonar.period_steps.max(1) as u64;
     if world.sensors.spec.enabled {
-        sense(world, state, inputs, state.tick % sonar_period == 0);
+        sense(world, state, inputs, state.tick.is_multiple_of(sonar_period));
     }
 
     // Outer loop.
@@ -69,7 +72,7 @@ pub fn step(world: &World, state: &mut State, inputs: &Inputs) -> StepReport {
         let cmd = command(i);
         let af = &world.airframes[world.copters[i].airframe];
         let c = &mut state.copters[i];
-        c.setpoint = outer_loop(world, af, c, cmd, pose.pos_m, pose.vel_m_s, pose.rpy_rad[2], dt_control);
+        c.setpoint = outer_loop(world, af, c, cmd, pose.pos_m, pose.vel_m_s, pose.rpy_rad[2], dt_control, state.tick);
     }
 
     // Physics substeps.
@@ -168,6 +171,7 @@ fn outer_loop(
     vel_m_s: Vec3,
     true_yaw_rad: Real,
     dt: Real,
+    tick: u64,
 ) -> Setpoint {
     let mut sp = Setpoint {
         roll_rad: cmd.roll_rad,
@@ -189,10 +193,16 @@ fn outer_loop(
         FlightMode::WallAvoid => {
             let spec = &world.sensors.spec.wall_avoid;
             let fused = c.sensors.sonar_fused_m;
-            let avoid = if world.sensors.spec.enabled && c.sensors.sonar_fused_m != [0.0; 4] {
-                control::wall_avoid(spec, &mut c.wall_avoid, fused, dt)
-            } else {
+            // The PD runs on fresh readings only, with the sonar period as its time step;
+            // between sonar updates the last output holds.
+            let period = world.sensors.spec.sonar.period_steps.max(1);
+            let fresh = c.sensors.sonar_tick == tick;
+            let avoid = if !world.sensors.spec.enabled || c.sensors.sonar_fused_m == [0.0; 4] {
                 None
+            } else if fresh {
+                control::wall_avoid(spec, &mut c.wall_avoid, fused, dt * period as Real)
+            } else {
+                (c.wall_avoid.out_rad != [0.0; 2]).then_some((c.wall_avoid.out_rad[0], c.wall_avoid.out_rad[1]))
             };
             match (avoid, cmd.velocity_m_s) {
                 (Some((pitch, roll)), _) => {
@@ -243,6 +253,7 @@ fn sense(world: &World, state: &mut State, inputs: &Inputs, sonar_due: bool) {
             half: Vec3::new(half_xy, half_xy, af.spec.body_size_m[2] / 2.0 + 0.01),
         });
     }
+    scene.index_copters(GRID_CELL_M);
 
     let noise = spec.noise;
     for i in 0..n {
@@ -253,8 +264,8 @@ fn sense(world: &World, state: &mut State, inputs: &Inputs, sonar_due: bool) {
         if sonar_due {
             let cones = sonar_cones(params, pos, rot);
             r.sonar_tick = state.tick;
-            for s in 0..4 {
-                let truth = scene.cone_distance(&cones[s], i, spec.sonar.max_range_m);
+            for (s, cone) in cones.iter().enumerate() {
+                let truth = scene.cone_distance(cone, i, spec.sonar.max_range_m);
                 let nz = if noise { spec.sonar.noise_sigma_m * c.rng.normal() } else { 0.0 };
                 r.sonar_truth_m[s] = truth.min(spec.sonar.cap_m);
                 r.sonar_m[s] = sonar_reading(&spec.sonar, truth, nz);
@@ -265,7 +276,11 @@ fn sense(world: &World, state: &mut State, inputs: &Inputs, sonar_due: bool) {
         let dir = rot * Vec3::NEG_Z;
         let ir_truth = scene.ir_distance(pos, dir, i);
         r.ir_truth_m = ir_truth;
-        let ir_noise = if noise { (spec.ir.noise_sigma_m + spec.ir.noise_sigma_rel * ir_truth.min(10.0)) * c.rng.normal() } else { 0.0 };
+        let ir_noise = if noise {
+            (spec.ir.noise_sigma_m + spec.ir.noise_sigma_rel * ir_truth.min(10.0)) * c.rng.normal()
+        } else {
+            0.0
+        };
         let ir = ir_truth + ir_noise;
         r.ir_m = (ir_truth.is_finite() && (spec.ir.min_range_m..=spec.ir.max_range_m).contains(&ir)).then_some(ir);
         // AHRS and IMU.
@@ -296,13 +311,20 @@ fn sense(world: &World, state: &mut State, inputs: &Inputs, sonar_due: bool) {
     // Cross-talk: copter A's pings heard by copter B's sonars, for B in id order, with B's
     // random stream.
     if sonar_due && spec.crosstalk.enabled && n > 1 {
+        let near = &mut state.scratch.near;
         for b in 0..n {
             let body_b = &state.physics.bodies[state.copters[b].body];
             let cones_b = sonar_cones(params, body_b.translation(), *body_b.rotation());
-            for a in 0..n {
-                if a == b {
-                    continue;
+            near.clear();
+            let reach = spec.sonar.max_range_m + 1.0;
+            scene.grid.visit_near(body_b.translation(), reach, |a| {
+                if a != b {
+                    near.push(a);
                 }
+                reach
+            });
+            near.sort_unstable();
+            for &a in near.iter() {
                 let body_a = &state.physics.bodies[state.copters[a].body];
                 let pa = body_a.translation();
                 if (pa - body_b.translation()).length() > spec.sonar.max_range_m + 1.0 {
@@ -315,7 +337,10 @@ fn sense(world: &World, state: &mut State, inputs: &Inputs, sonar_due: bool) {
                             let c = &mut state.copters[b];
                             if c.rng.uniform() < spec.crosstalk.probability {
                                 let v = crosstalk_reading(&spec.sonar, spec.crosstalk.phase, d, &mut c.rng);
-                                let q = sensors::quantise(v.clamp(spec.sonar.min_range_m, spec.sonar.cap_m), spec.sonar.quantum_m);
+                                let q = sensors::quantise(
+                                    v.clamp(spec.sonar.min_range_m, spec.sonar.cap_m),
+                                    spec.sonar.quantum_m,
+                                );
                                 if q < c.sensors.sonar_m[k] {
                                     c.sensors.sonar_m[k] = q;
                                     c.sensors.sonar_crosstalk[k] = true;

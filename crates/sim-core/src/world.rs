@@ -1,8 +1,6 @@
 //! The immutable compiled model ([`World`]) and the construction of a fresh [`State`] from it.
 
-use rapier3d::prelude::{
-    ActiveEvents, ColliderBuilder, MassProperties, PhysicsWorld, RigidBodyBuilder,
-};
+use rapier3d::prelude::{ActiveEvents, ColliderBuilder, MassProperties, PhysicsWorld, RigidBodyBuilder};
 use serde::{Deserialize, Serialize};
 
 use crate::airframe::Airframe;
@@ -212,14 +210,50 @@ impl World {
                 .user_data(tag.encode());
             physics.insert_collider(collider, Some(ground));
         };
-        add(physics, Vec3::new(sx / 2.0 + t, sy / 2.0 + t, t / 2.0), Vec3::new(0.0, 0.0, -t / 2.0), 0.0, ColliderTag::Floor);
+        add(
+            physics,
+            Vec3::new(sx / 2.0 + t, sy / 2.0 + t, t / 2.0),
+            Vec3::new(0.0, 0.0, -t / 2.0),
+            0.0,
+            ColliderTag::Floor,
+        );
         if self.arena.walls {
             let hz = h / 2.0;
-            add(physics, Vec3::new(t / 2.0, sy / 2.0 + t, hz), Vec3::new(sx / 2.0 + t / 2.0, 0.0, hz), 0.0, ColliderTag::Wall);
-            add(physics, Vec3::new(t / 2.0, sy / 2.0 + t, hz), Vec3::new(-sx / 2.0 - t / 2.0, 0.0, hz), 0.0, ColliderTag::Wall);
-            add(physics, Vec3::new(sx / 2.0 + t, t / 2.0, hz), Vec3::new(0.0, sy / 2.0 + t / 2.0, hz), 0.0, ColliderTag::Wall);
-            add(physics, Vec3::new(sx / 2.0 + t, t / 2.0, hz), Vec3::new(0.0, -sy / 2.0 - t / 2.0, hz), 0.0, ColliderTag::Wall);
-            add(physics, Vec3::new(sx / 2.0 + t, sy / 2.0 + t, t / 2.0), Vec3::new(0.0, 0.0, h + t / 2.0), 0.0, ColliderTag::Ceiling);
+            add(
+                physics,
+                Vec3::new(t / 2.0, sy / 2.0 + t, hz),
+                Vec3::new(sx / 2.0 + t / 2.0, 0.0, hz),
+                0.0,
+                ColliderTag::Wall,
+            );
+            add(
+                physics,
+                Vec3::new(t / 2.0, sy / 2.0 + t, hz),
+                Vec3::new(-sx / 2.0 - t / 2.0, 0.0, hz),
+                0.0,
+                ColliderTag::Wall,
+            );
+            add(
+                physics,
+                Vec3::new(sx / 2.0 + t, t / 2.0, hz),
+                Vec3::new(0.0, sy / 2.0 + t / 2.0, hz),
+                0.0,
+                ColliderTag::Wall,
+            );
+            add(
+                physics,
+                Vec3::new(sx / 2.0 + t, t / 2.0, hz),
+                Vec3::new(0.0, -sy / 2.0 - t / 2.0, hz),
+                0.0,
+                ColliderTag::Wall,
+            );
+            add(
+                physics,
+                Vec3::new(sx / 2.0 + t, sy / 2.0 + t, t / 2.0),
+                Vec3::new(0.0, 0.0, h + t / 2.0),
+                0.0,
+                ColliderTag::Ceiling,
+            );
         }
         for (i, b) in self.boxes.iter().enumerate() {
             add(physics, b.half_extents_m, b.center_m, b.yaw_rad, ColliderTag::Box(i));

@@ -37,9 +37,12 @@ mode = "mixed_manual""#,
 
 #[test]
 fn cutting_the_throttle_mid_air_crashes_on_the_floor() {
-    let world = common::one_copter_scene("", r#"mode = "manual"
+    let world = common::one_copter_scene(
+        "",
+        r#"mode = "manual"
 start = { pos_m = [0.0, 0.0], z_m = 2.0 }
-command = { throttle_pct = 0.0 }"#);
+command = { throttle_pct = 0.0 }"#,
+    );
     let mut state = world.initial_state();
     let inputs = world.initial_inputs();
     let mut cause = None;
@@ -99,8 +102,14 @@ command = { height_m = 1.0, pitch_deg = 10.0 }
         }
     }
     assert_eq!(crashes.len(), 2, "{crashes:?}");
-    assert!(crashes.iter().any(|(c, cause)| *c == 0 && matches!(cause, CrashCause::Copter { other: 1, .. })), "{crashes:?}");
-    assert!(crashes.iter().any(|(c, cause)| *c == 1 && matches!(cause, CrashCause::Copter { other: 0, .. })), "{crashes:?}");
+    assert!(
+        crashes.iter().any(|(c, cause)| *c == 0 && matches!(cause, CrashCause::Copter { other: 1, .. })),
+        "{crashes:?}"
+    );
+    assert!(
+        crashes.iter().any(|(c, cause)| *c == 1 && matches!(cause, CrashCause::Copter { other: 0, .. })),
+        "{crashes:?}"
+    );
 }
 
 #[test]

@@ -8,7 +8,10 @@ fn pose_bits(state: &State) -> Vec<u32> {
     (0..state.copters.len())
         .flat_map(|i| {
             let p = state.pose(i);
-            let mut v: Vec<u32> = [p.pos_m.x, p.pos_m.y, p.pos_m.z, p.vel_m_s.x, p.vel_m_s.y, p.vel_m_s.z].iter().map(|f| f.to_bits()).collect();
+            let mut v: Vec<u32> = [p.pos_m.x, p.pos_m.y, p.pos_m.z, p.vel_m_s.x, p.vel_m_s.y, p.vel_m_s.z]
+                .iter()
+                .map(|f| f.to_bits())
+                .collect();
             v.extend(p.quat_xyzw.iter().map(|f| f.to_bits()));
             v.extend(state.copters[i].sensors.sonar_m.iter().map(|f| f.to_bits()));
             v
@@ -65,7 +68,11 @@ fn snapshot_round_trip_continues_bit_for_bit() {
         step(&world, &mut restored, &inputs);
     }
     assert_eq!(pose_bits(&straight), pose_bits(&restored));
-    assert_eq!(postcard::to_allocvec(&straight).unwrap(), postcard::to_allocvec(&restored).unwrap(), "the whole state, byte for byte");
+    assert_eq!(
+        postcard::to_allocvec(&straight).unwrap(),
+        postcard::to_allocvec(&restored).unwrap(),
+        "the whole state, byte for byte"
+    );
 }
 
 #[test]

@@ -59,7 +59,12 @@ fn the_reports_worked_example_is_reproduced() {
 fn particle_noise_is_unbiased() {
     use sim_core::airframe::ParticleNoise;
     for noise in ["dither", "poisson"] {
-        let world = common::one_copter_scene("", &format!("airframe = {{ particle_noise = \"{noise}\", rotor_tolerance_sigma = 0.0 }}\ncommand = {{ height_m = 1.0 }}"));
+        let world = common::one_copter_scene(
+            "",
+            &format!(
+                "airframe = {{ particle_noise = \"{noise}\", rotor_tolerance_sigma = 0.0 }}\ncommand = {{ height_m = 1.0 }}"
+            ),
+        );
         assert_ne!(world.airframes[0].spec.particle_noise, ParticleNoise::Off);
         let mut state = world.initial_state();
         let inputs = world.initial_inputs();
@@ -74,7 +79,12 @@ fn particle_noise_is_unbiased() {
             }
         }
         let bias = (sum_thrust - sum_mean) / sum_mean;
-        println!("{noise}: mean thrust {:.4} N vs k ω² {:.4} N (bias {:.2} %)", sum_thrust / n as f64, sum_mean / n as f64, bias * 100.0);
+        println!(
+            "{noise}: mean thrust {:.4} N vs k ω² {:.4} N (bias {:.2} %)",
+            sum_thrust / n as f64,
+            sum_mean / n as f64,
+            bias * 100.0
+        );
         assert!(bias.abs() < 0.03, "{noise}: bias {bias}");
     }
 }

@@ -118,7 +118,10 @@ fn inline_airframe_override_is_checked() {
 
 #[test]
 fn copter_inside_a_box() {
-    let text = GOOD.replace("[[copter]]\nname = \"a\"", "[[box]]\npos_m = [-1.0, 0.0]\nsize_m = [0.5, 0.5, 0.5]\n\n[[copter]]\nname = \"a\"");
+    let text = GOOD.replace(
+        "[[copter]]\nname = \"a\"",
+        "[[box]]\npos_m = [-1.0, 0.0]\nsize_m = [0.5, 0.5, 0.5]\n\n[[copter]]\nname = \"a\"",
+    );
     let e = error_of(&text);
     assert_eq!(e.path().to_string(), "copter[0].start.pos_m", "{e}");
     assert!(e.message().contains("inside or touching box \"box0\""), "{e}");
@@ -151,7 +154,10 @@ fn every_scene_asset_loads() {
 
 #[test]
 fn the_embedded_default_is_the_shipped_lab_scene() {
-    let shipped = std::fs::read_to_string(std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../../assets/scenes/finken_lab.toml")).unwrap();
+    let shipped = std::fs::read_to_string(
+        std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../../assets/scenes/finken_lab.toml"),
+    )
+    .unwrap();
     assert_eq!(scene::DEFAULT_SCENE_TOML, shipped);
     let (spec, world) = scene::load_default();
     assert_eq!(world.arena.size_m, [4.0, 3.0]);

@@ -1,0 +1,423 @@
+//! [`Logger`]: the MCAP file of a run, written by a writer thread.
+
+use std::collections::BTreeMap;
+use std::fs::File;
+use std::io::BufWriter;
+use std::path::{Path, PathBuf};
+use std::sync::mpsc::{Receiver, SyncSender, sync_channel};
+use std::thread::JoinHandle;
+
+use mcap::records::{MessageHeader, Metadata};
+use mcap::{Attachment, Compression, McapError, WriteOptions, Writer};
+use sim_core::{Inputs, State, StepReport, World};
+
+use super::capture::StepFrame;
+use super::encode::{Encoder, LogEvent, Topic};
+use super::schemas::schema_for;
+use super::time::{format_utc_iso, now_unix_ns};
+
+/// Why logging failed.
+#[derive(Debug, thiserror::Error)]
+pub enum LogError {
+    /// The file could not be created.
+    #[error("cannot create log file {path}: {source}")]
+    Create {
+        /// The file.
+        path: PathBuf,
+        /// The I/O error.
+        source: std::io::Error,
+    },
+    /// Writing MCAP failed (disk full, I/O error).
+    #[error("cannot write log file {path}: {source}")]
+    Write {
+        /// The file.
+        path: PathBuf,
+        /// The MCAP writer's error.
+        source: McapError,
+    },
+    /// The writer thread ended early (it panicked).
+    #[error("the log writer thread for {path} stopped unexpectedly")]
+    WriterGone {
+        /// The file.
+        path: PathBuf,
+    },
+}
+
+/// Who made the run: goes into the `twinswarm` metadata record.
+#[derive(Clone, Debug, Default)]
+pub struct LogMeta {
+    /// The command line, as typed (arguments joined with spaces).
+    pub command_line: String,
+    /// Where the scene came from (a path, or `<embedded finken_lab.toml>`).
+    pub scene_origin: String,
+    /// Unix time of tick 0, ns; `None`: now.
+    pub epoch_ns: Option<u64>,
+}
+
+/// Tuning of the writer.
+#[derive(Clone, Debug)]
+pub struct LogOptions {
+    /// Finish the chunk and flush the file every this many simulated seconds (default 1).
+    pub flush_interval_s: f64,
+    /// zstd level (default 1: fast; JSON still compresses about 10x).
+    pub compression_level: u32,
+    /// zstd worker threads (0: compress on the writer thread; default 0).
+    pub compression_threads: u32,
+    /// Steps that may wait for the writer thread before `log_step` blocks (default 4).
+    pub queue_steps: usize,
+}
+
+impl Default for LogOptions {
+    fn default() -> Self {
+        Self { flush_interval_s: 1.0, compression_level: 1, compression_threads: 0, queue_steps: 4 }
+    }
+}
+
+/// What was written.
+#[derive(Clone, Debug, Default)]
+pub struct LogStats {
+    /// The file.
+    pub path: PathBuf,
+    /// Messages written, per topic (in [`Topic::ALL`] order).
+    pub messages: [u64; Topic::ALL.len()],
+    /// Last tick logged.
+    pub last_tick: u64,
+}
+
+impl LogStats {
+    /// All messages.
+    pub fn total_messages(&self) -> u64 {
+        self.messages.iter().sum()
+    }
+}
+
+enum Job {
+    Step(Box<StepFrame>),
+    Event(LogEvent),
+    Bus { tick: u64, key: String, direction: &'static str, text: String, received_ns: u64 },
+    Flush,
+}
+
+type McapOut = Writer<BufWriter<File>>;
+
+/// The MCAP log of one run.
+///
+/// ```no_run
+/// # fn main() -> Result<(), bridge::log::LogError> {
+/// let (_, world) = sim_core::scene::load_default();
+/// let mut state = world.initial_state();
+/// let inputs = world.initial_inputs();
+/// let meta = bridge::log::LogMeta::default();
+/// let mut log = bridge::log::Logger::create("run.mcap".as_ref(), &world, sim_core::scene::DEFAULT_SCENE_TOML, meta)?;
+/// for _ in 0..100 {
+///     let report = sim_core::step(&world, &mut state, &inputs);
+///     log.log_step(&world, &state, &inputs, &report)?;
+/// }
+/// log.finish()?;
+/// # Ok(()) }
+/// ```
+#[derive(Debug)]
+pub struct Logger {
+    path: PathBuf,
+    jobs: Option<SyncSender<Job>>,
+    free: Receiver<Box<StepFrame>>,
+    thread: Option<JoinHandle<Result<LogStats, LogError>>>,
+    last_tick: u64,
+    epoch_ns: u64,
+    dt_ns: u64,
+}
+
+impl Logger {
+    /// Creates the file and writes the header, the scene attachments, the `twinswarm`
+    /// metadata, every schema and channel and the static scene, flushed; then starts the
+    /// writer thread.
+    pub fn create(path: &Path, world: &World, scene_text: &str, meta: LogMeta) -> Result<Self, LogError> {
+        Self::with_options(path, world, scene_text, meta, LogOptions::default())
+    }
+
+    /// [`Logger::create`] with options.
+    pub fn with_options(
+        path: &Path,
+        world: &World,
+        scene_text: &str,
+        meta: LogMeta,
+        options: LogOptions,
+    ) -> Result<Self, LogError> {
+        let file = File::create(path).map_err(|source| LogError::Create { path: path.to_owned(), source })?;
+        let werr = |source| LogError::Write { path: path.to_owned(), source };
+        let mut out = WriteOptions::new()
+            .compression(Some(Compression::Zstd))
+            .compression_level(options.compression_level)
+            .compression_threads(options.compression_threads)
+            .profile("")
+            .library(format!("twinswarm {}", env!("CARGO_PKG_VERSION")))
+            .create(BufWriter::with_capacity(1 << 16, file))
+            .map_err(werr)?;
+        let epoch_ns = meta.epoch_ns.unwrap_or_else(now_unix_ns);
+        let mut encoder = Encoder::new(world, epoch_ns);
+        let now = now_unix_ns();
+        for (name, text) in [("scene.toml", scene_text.to_owned()), ("scene.effective.toml", world.spec.to_toml())] {
+            out.attach(&Attachment {
+                log_time: epoch_ns,
+                create_time: now,
+                name: name.into(),
+                media_type: "application/toml".into(),
+                data: text.into_bytes().into(),
+            })
+            .map_err(werr)?;
+        }
+        out.write_metadata(&metadata_record(world, &meta, epoch_ns, encoder.control_dt_ns())).map_err(werr)?;
+        let mut channels = [0u16; Topic::ALL.len()];
+        for topic in Topic::ALL {
+            if topic == Topic::Bus {
+                continue; // added on first use
+            }
+            channels[topic.index()] = add_channel(&mut out, topic).map_err(werr)?;
+        }
+        let mut state = WriterState {
+            out,
+            channels,
+            sequences: [0; Topic::ALL.len()],
+            stats: LogStats { path: path.to_owned(), ..LogStats::default() },
+            publish_override: None,
+        };
+        encoder.encode_arena(world, &mut |topic, lt, data: &[u8]| state.write(topic, lt, data)).map_err(werr)?;
+        state.out.flush().map_err(werr)?;
+
+        let flush_every = ((options.flush_interval_s / world.params.control_dt_s).round() as u64).max(1);
+        let (jobs, rx) = sync_channel::<Job>(options.queue_steps.max(1));
+        let (free_tx, free) = sync_channel::<Box<StepFrame>>(options.queue_steps.max(1) + 2);
+        let thread_path = path.to_owned();
+        let thread = std::thread::Builder::new()
+            .name("mcap-writer".into())
+            .spawn(move || {
+                let werr = |source| LogError::Write { path: thread_path.clone(), source };
+                let mut since_flush = 0u64;
+                for job in rx {
+                    match job {
+                        Job::Step(frame) => {
+                            encoder.encode_step(&frame, &mut |t, lt, d: &[u8]| state.write(t, lt, d)).map_err(werr)?;
+                            state.stats.last_tick = frame.tick;
+                            let _ = free_tx.try_send(frame);
+                            since_flush += 1;
+                            if since_flush >= flush_every {
+                                state.out.flush().map_err(werr)?;
+                                since_flush = 0;
+                            }
+                        }
+                        Job::Event(ev) => {
+                            encoder.encode_event(&ev, &mut |t, lt, d: &[u8]| state.write(t, lt, d)).map_err(werr)?
+                        }
+                        Job::Bus { tick, key, direction, text, received_ns } => {
+                            if state.channels[Topic::Bus.index()] == 0 {
+                                state.channels[Topic::Bus.index()] =
+                                    add_channel(&mut state.out, Topic::Bus).map_err(werr)?;
+                            }
+                            state.publish_override = Some(received_ns);
+                            let r = encoder
+                                .encode_bus(tick, &key, direction, &text, &mut |t, lt, d: &[u8]| state.write(t, lt, d));
+                            state.publish_override = None;
+                            r.map_err(werr)?;
+                        }
+                        Job::Flush => state.out.flush().map_err(werr)?,
+                    }
+                }
+                state.out.finish().map_err(werr)?;
+                Ok(state.stats.clone())
+            })
+            .map_err(|source| LogError::Create { path: path.to_owned(), source })?;
+        Ok(Self {
+            path: path.to_owned(),
+            jobs: Some(jobs),
+            free,
+            thread: Some(thread),
+            last_tick: 0,
+            epoch_ns,
+            dt_ns: (world.params.control_dt_s * 1e9).round() as u64,
+        })
+    }
+
+    /// The file.
+    pub fn path(&self) -> &Path {
+        &self.path
+    }
+
+    /// Unix time of tick 0, ns.
+    pub fn epoch_ns(&self) -> u64 {
+        self.epoch_ns
+    }
+
+    /// Log time of a tick, ns.
+    pub fn log_time(&self, tick: u64) -> u64 {
+        self.epoch_ns + tick * self.dt_ns
+    }
+
+    /// Logs a step just taken: per copter its state, sensors, command, controller outputs and
+    /// transform, the copters' 3D view, and the step's events. Cheap: copies numbers into a
+    /// reused frame and queues it; blocks only if the writer thread is several steps behind.
+    pub fn log_step(
+        &mut self,
+        world: &World,
+        state: &State,
+        inputs: &Inputs,
+        report: &StepReport,
+    ) -> Result<(), LogError> {
+        // A frame the writer has finished with, or a new one while the pool fills.
+        let mut frame = self.free.try_recv().unwrap_or_default();
+        frame.capture(world, state, inputs, report);
+        self.last_tick = state.tick;
+        self.send(Job::Step(frame))
+    }
+
+    /// Logs an event (spawn, pairing, rejected input, step overrun, interruption) on
+    /// `/events` and `/log`.
+    pub fn log_event(&mut self, event: LogEvent) -> Result<(), LogError> {
+        self.send(Job::Event(event))
+    }
+
+    /// Logs a bus message on `/bus`: `log_time` is the simulated time of the last logged step,
+    /// `publish_time` the wall-clock receive time (Unix ns).
+    pub fn log_bus_message(
+        &mut self,
+        key: &str,
+        incoming: bool,
+        text: &str,
+        received_unix_ns: u64,
+    ) -> Result<(), LogError> {
+        self.send(Job::Bus {
+            tick: self.last_tick,
+            key: key.to_owned(),
+            direction: if incoming { "in" } else { "out" },
+            text: text.to_owned(),
+            received_ns: received_unix_ns,
+        })
+    }
+
+    /// Finishes the current chunk and flushes the file now.
+    pub fn flush(&mut self) -> Result<(), LogError> {
+        self.send(Job::Flush)
+    }
+
+    fn send(&mut self, job: Job) -> Result<(), LogError> {
+        let Some(jobs) = &self.jobs else { return Err(LogError::WriterGone { path: self.path.clone() }) };
+        if jobs.send(job).is_ok() {
+            return Ok(());
+        }
+        // The writer thread has stopped: report why.
+        self.jobs = None;
+        match self.join() {
+            Err(e) => Err(e),
+            Ok(_) => Err(LogError::WriterGone { path: self.path.clone() }),
+        }
+    }
+
+    fn join(&mut self) -> Result<LogStats, LogError> {
+        match self.thread.take() {
+            Some(t) => t.join().unwrap_or_else(|_| Err(LogError::WriterGone { path: self.path.clone() })),
+            None => Err(LogError::WriterGone { path: self.path.clone() }),
+        }
+    }
+
+    /// Writes everything queued, the summary section and the footer; closes the file.
+    pub fn finish(mut self) -> Result<LogStats, LogError> {
+        self.jobs = None;
+        self.join()
+    }
+}
+
+impl Drop for Logger {
+    fn drop(&mut self) {
+        // Finish the file even when the run ends with an error; the error of `finish` was
+        // returned to whoever called it.
+        self.jobs = None;
+        if let Some(t) = self.thread.take() {
+            let _ = t.join();
+        }
+    }
+}
+
+struct WriterState {
+    out: McapOut,
+    channels: [u16; Topic::ALL.len()],
+    sequences: [u32; Topic::ALL.len()],
+    stats: LogStats,
+    publish_override: Option<u64>,
+}
+
+impl WriterState {
+    fn write(&mut self, topic: Topic, log_time: u64, data: &[u8]) -> Result<(), McapError> {
+        let i = topic.index();
+        let seq = self.sequences[i];
+        self.sequences[i] = seq.wrapping_add(1);
+        self.stats.messages[i] += 1;
+        let header = MessageHeader {
+            channel_id: self.channels[i],
+            sequence: seq,
+            log_time,
+            publish_time: self.publish_override.unwrap_or(log_time),
+        };
+        self.out.write_to_known_channel(&header, data)
+    }
+}
+
+fn add_channel(out: &mut McapOut, topic: Topic) -> Result<u16, McapError> {
+    let schema = schema_for(topic.schema()).map(|s| s.json).unwrap_or("{}");
+    let schema_id = out.add_schema(topic.schema(), "jsonschema", schema.as_bytes())?;
+    out.add_channel(schema_id, topic.name(), "json", &BTreeMap::new())
+}
+
+fn metadata_record(world: &World, meta: &LogMeta, epoch_ns: u64, dt_ns: u64) -> Metadata {
+    let copters: Vec<serde_json::Value> = world
+        .copters
+        .iter()
+        .enumerate()
+        .map(|(id, c)| {
+            serde_json::json!({
+                "id": id,
+                "name": c.name,
+                "kind": c.kind,
+                "ac_id": c.ac_id,
+                "mass_kg": world.airframes[c.airframe].mass_kg,
+                "start_pos_m": [c.start_pos_m.x, c.start_pos_m.y, c.start_pos_m.z],
+            })
+        })
+        .collect();
+    let boxes: Vec<serde_json::Value> = world
+        .boxes
+        .iter()
+        .map(|b| {
+            serde_json::json!({
+                "name": b.name,
+                "center_m": [b.center_m.x, b.center_m.y, b.center_m.z],
+                "size_m": [2.0 * b.half_extents_m.x, 2.0 * b.half_extents_m.y, 2.0 * b.half_extents_m.z],
+                "yaw_rad": b.yaw_rad,
+            })
+        })
+        .collect();
+    let mut m = BTreeMap::new();
+    let mut put = |k: &str, v: String| {
+        m.insert(k.to_owned(), v);
+    };
+    put("version", env!("CARGO_PKG_VERSION").to_owned());
+    put("seed", world.params.seed.to_string());
+    put("command_line", meta.command_line.clone());
+    put("scene_origin", meta.scene_origin.clone());
+    put("world", world.name.clone());
+    put("copters", serde_json::Value::Array(copters).to_string());
+    put("boxes", serde_json::Value::Array(boxes).to_string());
+    put("arena_size_m", serde_json::json!(world.arena.size_m).to_string());
+    put("arena_height_m", world.arena.height_m.to_string());
+    put("control_dt_s", world.params.control_dt_s.to_string());
+    put("physics_dt_s", world.params.physics_dt_s.to_string());
+    put("epoch_unix_ns", epoch_ns.to_string());
+    put("epoch_utc", format_utc_iso(epoch_ns));
+    put(
+        "time",
+        format!(
+            "log_time = epoch_unix_ns + tick * {dt_ns} ns (tick: control steps since the start; epoch: wall-clock UTC \
+             at the start of the run); publish_time = log_time for simulator messages, the wall-clock receive time \
+             for bus messages"
+        ),
+    );
+    Metadata { name: "twinswarm".into(), metadata: m }
+}

@@ -1,0 +1,377 @@
+//! The Zenoh side: configuration, key expressions, publishing frames, the command subscriber,
+//! queryables and liveliness.
+//!
+//! Key expressions, under a prefix (default `twinswarm/<world>`):
+//!
+//! | key | direction | payload |
+//! |---|---|---|
+//! | `…/clock` | out, every control step | [`ClockMsg`] |
+//! | `…/copters/<name>/state` | out, every control step | [`StateMsg`](crate::wire::StateMsg) |
+//! | `…/copters/<name>/sensors` | out, at the sonar rate | [`SensorsMsg`](crate::wire::SensorsMsg) |
+//! | `…/copters/<name>/cmd` | in | [`CommandMsg`] |
+//! | `…/pprz/<ac_id>/<MSG_NAME>` | both | Paparazzi Ivy text |
+//! | `…/scene` | queryable | the scene as JSON |
+//! | `…/copters` | queryable | [`CopterListEntry`] list |
+//! | `…/spawn` | queryable | JSON copter table in, name or error out |
+//! | `…/alive/sim` | liveliness token of the simulator | |
+//! | `…/alive/copters/<name>` | liveliness tokens of attached clients | |
+
+use std::collections::BTreeSet;
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::mpsc::SyncSender;
+use std::sync::{Arc, Mutex};
+use std::time::{Duration, Instant};
+
+use sim_core::World;
+use sim_core::scene::CopterSpec;
+use zenoh::Wait;
+use zenoh::sample::SampleKind;
+
+use crate::sim::{Frame, Request};
+use crate::wire::{ClockMsg, CommandMsg, CopterListEntry};
+
+/// The default Zenoh endpoint the simulator listens on.
+pub const DEFAULT_LISTEN: &str = "tcp/127.0.0.1:7447";
+
+/// Errors of the Zenoh side.
+#[derive(Debug, thiserror::Error)]
+pub enum NodeError {
+    /// The Zenoh configuration is invalid.
+    #[error("zenoh configuration: {0}")]
+    Config(String),
+    /// Zenoh failed to open or declare.
+    #[error("zenoh: {0}")]
+    Zenoh(String),
+}
+
+fn zerr(e: impl std::fmt::Display) -> NodeError {
+    NodeError::Zenoh(e.to_string())
+}
+
+/// The embedded default configuration: peer mode, listening on `listen` (default
+/// [`DEFAULT_LISTEN`]), connecting to `connect`, multicast scouting off.
+pub fn default_config(listen: &[String], connect: &[String]) -> Result<zenoh::Config, NodeError> {
+    let listen: Vec<String> = if listen.is_empty() { vec![DEFAULT_LISTEN.to_owned()] } else { listen.to_vec() };
+    let mut c = zenoh::Config::default();
+    let set = |c: &mut zenoh::Config, k: &str, v: String| c.insert_json5(k, &v).map_err(|e| NodeError::Config(format!("{k}: {e}")));
+    set(&mut c, "mode", "\"peer\"".into())?;
+    set(&mut c, "scouting/multicast/enabled", "false".into())?;
+    set(&mut c, "listen/endpoints", serde_json::to_string(&listen).map_err(|e| NodeError::Config(e.to_string()))?)?;
+    set(&mut c, "connect/endpoints", serde_json::to_string(connect).map_err(|e| NodeError::Config(e.to_string()))?)?;
+    Ok(c)
+}
+
+/// A client configuration for tests and tools: client-less peer that only connects to
+/// `connect`, listens nowhere, multicast scouting off.
+pub fn client_config(connect: &[String]) -> Result<zenoh::Config, NodeError> {
+    let mut c = zenoh::Config::default();
+    let set = |c: &mut zenoh::Config, k: &str, v: String| c.insert_json5(k, &v).map_err(|e| NodeError::Config(format!("{k}: {e}")));
+    set(&mut c, "mode", "\"peer\"".into())?;
+    set(&mut c, "scouting/multicast/enabled", "false".into())?;
+    set(&mut c, "listen/endpoints", "[]".into())?;
+    set(&mut c, "connect/endpoints", serde_json::to_string(connect).map_err(|e| NodeError::Config(e.to_string()))?)?;
+    Ok(c)
+}
+
+/// Counters shared between Zenoh callbacks and the reporter.
+#[derive(Debug, Default)]
+pub struct NodeCounters {
+    /// Commands accepted and queued.
+    pub commands_accepted: AtomicU64,
+    /// Commands rejected (malformed, not finite, out of range, unknown copter, queue full).
+    pub commands_rejected: AtomicU64,
+    /// Samples published.
+    pub published: AtomicU64,
+    /// Clients seen through liveliness.
+    pub clients_seen: AtomicU64,
+}
+
+/// Logs at most once per `period` (plus a count of what was suppressed).
+#[derive(Debug)]
+struct RateLimiter {
+    last: Mutex<Option<Instant>>,
+    suppressed: AtomicU64,
+    period: Duration,
+}
+
+impl RateLimiter {
+    fn new(period: Duration) -> Self {
+        Self { last: Mutex::new(None), suppressed: AtomicU64::new(0), period }
+    }
+    fn warn(&self, what: &str) {
+        let now = Instant::now();
+        let Ok(mut last) = self.last.lock() else { return };
+        if last.is_none_or(|t| now.duration_since(t) >= self.period) {
+            *last = Some(now);
+            let n = self.suppressed.swap(0, Ordering::Relaxed);
+            tracing::warn!("{what} ({n} similar messages suppressed)");
+        } else {
+            self.suppressed.fetch_add(1, Ordering::Relaxed);
+        }
+    }
+}
+
+/// The simulator's Zenoh node.
+pub struct Node {
+    session: zenoh::Session,
+    prefix: String,
+    world: Arc<Mutex<Arc<World>>>,
+    /// Counters.
+    pub counters: Arc<NodeCounters>,
+    /// Names of attached clients (liveliness).
+    pub clients: Arc<Mutex<BTreeSet<String>>>,
+    _token: zenoh::liveliness::LivelinessToken,
+    _cmd_sub: zenoh::pubsub::Subscriber<()>,
+    _alive_sub: zenoh::pubsub::Subscriber<()>,
+    _queryables: Vec<zenoh::query::Queryable<()>>,
+    publishers: Vec<(zenoh::pubsub::Publisher<'static>, zenoh::pubsub::Publisher<'static>)>,
+    clock_pub: zenoh::pubsub::Publisher<'static>,
+    scene_json: Arc<Mutex<String>>,
+}
+
+impl std::fmt::Debug for Node {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("Node").field("prefix", &self.prefix).field("counters", &self.counters).finish_non_exhaustive()
+    }
+}
+
+/// The default key-expression prefix of a world.
+pub fn default_prefix(world: &World) -> String {
+    format!("twinswarm/{}", world.name)
+}
+
+impl Node {
+    /// Opens the session and declares everything. `requests` feeds the step loop.
+    pub async fn open(
+        config: zenoh::Config,
+        prefix: String,
+        world: Arc<World>,
+        requests: SyncSender<Request>,
+    ) -> Result<Self, NodeError> {
+        let session = zenoh::open(config).await.map_err(zerr)?;
+        let counters = Arc::new(NodeCounters::default());
+        let world_cell = Arc::new(Mutex::new(world.clone()));
+        let scene_json = Arc::new(Mutex::new(serde_json::to_string(&world.spec).unwrap_or_default()));
+
+        // Commands.
+        let limiter = Arc::new(RateLimiter::new(Duration::from_secs(1)));
+        let cmd_sub = {
+            let (counters, world_cell, requests, limiter) =
+                (counters.clone(), world_cell.clone(), requests.clone(), limiter.clone());
+            let prefix_len = prefix.len();
+            session
+                .declare_subscriber(format!("{prefix}/copters/*/cmd"))
+                .callback(move |sample| {
+                    let key = sample.key_expr().as_str();
+                    let name = key[prefix_len..].trim_start_matches("/copters/").trim_end_matches("/cmd").to_owned();
+                    let payload = sample.payload().to_bytes();
+                    let world = match world_cell.lock() {
+                        Ok(w) => w.clone(),
+                        Err(_) => return,
+                    };
+                    let result = match world.copter_id(&name) {
+                        None => Err(crate::wire::CommandError::UnknownCopter(name.clone())),
+                        Some(_) => CommandMsg::parse(&payload, &world),
+                    };
+                    match result {
+                        Ok(cmd) => match requests.try_send(Request::Command { copter: name, cmd }) {
+                            Ok(()) => {
+                                counters.commands_accepted.fetch_add(1, Ordering::Relaxed);
+                            }
+                            Err(_) => {
+                                counters.commands_rejected.fetch_add(1, Ordering::Relaxed);
+                                limiter.warn("command dropped: the step loop's queue is full");
+                            }
+                        },
+                        Err(e) => {
+                            counters.commands_rejected.fetch_add(1, Ordering::Relaxed);
+                            limiter.warn(&format!("rejected command on {key}: {e}"));
+                        }
+                    }
+                })
+                .await
+                .map_err(zerr)?
+        };
+
+        // Liveliness: our token, and the clients'.
+        let token = session.liveliness().declare_token(format!("{prefix}/alive/sim")).await.map_err(zerr)?;
+        let clients = Arc::new(Mutex::new(BTreeSet::new()));
+        let alive_sub = {
+            let (clients, counters) = (clients.clone(), counters.clone());
+            let base = format!("{prefix}/alive/copters/");
+            session
+                .liveliness()
+                .declare_subscriber(format!("{prefix}/alive/copters/*"))
+                .history(true)
+                .callback(move |sample| {
+                    let name = sample.key_expr().as_str().trim_start_matches(base.as_str()).to_owned();
+                    if let Ok(mut c) = clients.lock() {
+                        match sample.kind() {
+                            SampleKind::Put => {
+                                if c.insert(name.clone()) {
+                                    counters.clients_seen.fetch_add(1, Ordering::Relaxed);
+                                    tracing::info!("client attached: {name}");
+                                }
+                            }
+                            SampleKind::Delete => {
+                                c.remove(&name);
+                                tracing::info!("client left: {name}");
+                            }
+                        }
+                    }
+                })
+                .await
+                .map_err(zerr)?
+        };
+
+        // Queryables.
+        let mut queryables = Vec::new();
+        {
+            let scene_json = scene_json.clone();
+            queryables.push(
+                session
+                    .declare_queryable(format!("{prefix}/scene"))
+                    .callback(move |q| {
+                        let body = scene_json.lock().map(|s| s.clone()).unwrap_or_default();
+                        let _ = q.reply(q.key_expr().clone(), body).wait();
+                    })
+                    .await
+                    .map_err(zerr)?,
+            );
+        }
+        {
+            let world_cell = world_cell.clone();
+            queryables.push(
+                session
+                    .declare_queryable(format!("{prefix}/copters"))
+                    .callback(move |q| {
+                        let list: Vec<CopterListEntry> = match world_cell.lock() {
+                            Ok(w) => w
+                                .copters
+                                .iter()
+                                .enumerate()
+                                .map(|(id, c)| CopterListEntry {
+                                    id,
+                                    name: c.name.clone(),
+                                    kind: crate::wire::kind_str(c.kind).into(),
+                                    ac_id: c.ac_id,
+                                    crashed: false,
+                                })
+                                .collect(),
+                            Err(_) => Vec::new(),
+                        };
+                        let _ = q.reply(q.key_expr().clone(), serde_json::to_string(&list).unwrap_or_default()).wait();
+                    })
+                    .await
+                    .map_err(zerr)?,
+            );
+        }
+        {
+            let requests = requests.clone();
+            queryables.push(
+                session
+                    .declare_queryable(format!("{prefix}/spawn"))
+                    .callback(move |q| {
+                        let payload = q.payload().map(|p| p.to_bytes().into_owned()).unwrap_or_default();
+                        let spec: CopterSpec = match serde_json::from_slice(&payload) {
+                            Ok(s) => s,
+                            Err(e) => {
+                                let _ = q.reply_err(format!("malformed spawn request: {e}")).wait();
+                                return;
+                            }
+                        };
+                        let (tx, rx) = tokio::sync::oneshot::channel();
+                        if requests.try_send(Request::Spawn { spec: Box::new(spec), reply: tx }).is_err() {
+                            let _ = q.reply_err("the step loop is busy or stopped").wait();
+                            return;
+                        }
+                        // Answer from a task: the step loop replies at its next step.
+                        tokio::spawn(async move {
+                            let answer = tokio::time::timeout(Duration::from_secs(5), rx).await;
+                            let _ = match answer {
+                                Ok(Ok(Ok(name))) => {
+                                    q.reply(q.key_expr().clone(), serde_json::json!({ "spawned": name }).to_string()).await
+                                }
+                                Ok(Ok(Err(e))) => q.reply_err(e).await,
+                                _ => q.reply_err("the step loop did not answer").await,
+                            };
+                        });
+                    })
+                    .await
+                    .map_err(zerr)?,
+            );
+        }
+
+        let clock_pub = session.declare_publisher(format!("{prefix}/clock")).await.map_err(zerr)?;
+        let mut node = Self {
+            session,
+            prefix,
+            world: world_cell,
+            counters,
+            clients,
+            _token: token,
+            _cmd_sub: cmd_sub,
+            _alive_sub: alive_sub,
+            _queryables: queryables,
+            publishers: Vec::new(),
+            clock_pub,
+            scene_json,
+        };
+        node.declare_copter_publishers(&world).await?;
+        Ok(node)
+    }
+
+    /// The key-expression prefix.
+    pub fn prefix(&self) -> &str {
+        &self.prefix
+    }
+
+    /// The session (for the Paparazzi side).
+    pub fn session(&self) -> &zenoh::Session {
+        &self.session
+    }
+
+    async fn declare_copter_publishers(&mut self, world: &World) -> Result<(), NodeError> {
+        for c in &world.copters[self.publishers.len()..] {
+            let state = self.session.declare_publisher(format!("{}/copters/{}/state", self.prefix, c.name)).await.map_err(zerr)?;
+            let sensors =
+                self.session.declare_publisher(format!("{}/copters/{}/sensors", self.prefix, c.name)).await.map_err(zerr)?;
+            self.publishers.push((state, sensors));
+        }
+        Ok(())
+    }
+
+    /// Publishes one frame: clock, then each copter's state and sensors.
+    pub async fn publish(&mut self, frame: &Frame) -> Result<(), NodeError> {
+        if frame.world.copters.len() != self.publishers.len() {
+            if let Ok(mut w) = self.world.lock() {
+                *w = frame.world.clone();
+            }
+            if let Ok(mut s) = self.scene_json.lock() {
+                *s = serde_json::to_string(&frame.world.spec).unwrap_or_default();
+            }
+            let world = frame.world.clone();
+            self.declare_copter_publishers(&world).await?;
+        }
+        let clock = ClockMsg { tick: frame.tick, time_s: frame.time_s };
+        self.clock_pub.put(serde_json::to_vec(&clock).unwrap_or_default()).await.map_err(zerr)?;
+        for (i, s) in frame.states.iter().enumerate() {
+            let payload = serde_json::to_vec(s).unwrap_or_default();
+            self.publishers[i].0.put(payload).await.map_err(zerr)?;
+        }
+        for (i, s) in frame.sensors.iter().enumerate() {
+            let payload = serde_json::to_vec(s).unwrap_or_default();
+            self.publishers[i].1.put(payload).await.map_err(zerr)?;
+        }
+        self.counters.published.fetch_add((1 + frame.states.len() + frame.sensors.len()) as u64, Ordering::Relaxed);
+        Ok(())
+    }
+
+    /// Undeclares everything and closes the session.
+    pub async fn close(self) -> Result<(), NodeError> {
+        let Node { session, _token, _cmd_sub, _alive_sub, _queryables, publishers, clock_pub, .. } = self;
+        drop((_cmd_sub, _alive_sub, _queryables, publishers, clock_pub));
+        _token.undeclare().await.map_err(zerr)?;
+        session.close().await.map_err(zerr)
+    }
+}

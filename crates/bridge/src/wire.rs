@@ -1,0 +1,322 @@
+//! JSON messages on the bus: what the simulator publishes (clock, copter state, sensors) and
+//! what it accepts (commands, spawn requests). Angles in radians, SI units, world frame as in
+//! `sim-core` (x along the arena's long side, y across, z up; body FLU).
+
+use serde::{Deserialize, Serialize};
+use sim_core::sensors::SONAR_NAMES;
+use sim_core::{Command, CopterKind, FlightMode, State, World};
+
+/// `…/clock`, every control step.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct ClockMsg {
+    /// Control steps done.
+    pub tick: u64,
+    /// Simulated time, s.
+    pub time_s: f64,
+}
+
+/// `…/copters/<name>/state`, every control step.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct StateMsg {
+    /// Copter name.
+    pub name: String,
+    /// `virtual` or `twin`.
+    pub kind: String,
+    /// Paparazzi aircraft id, if any.
+    pub ac_id: Option<u8>,
+    /// Control step.
+    pub tick: u64,
+    /// Simulated time, s.
+    pub time_s: f64,
+    /// Flight mode.
+    pub mode: String,
+    /// Position, world frame, m.
+    pub pos_m: [f32; 3],
+    /// Velocity, world frame, m/s.
+    pub vel_m_s: [f32; 3],
+    /// Roll, pitch, yaw (true attitude), rad.
+    pub attitude_rad: [f32; 3],
+    /// Angular velocity, world frame, rad/s.
+    pub angvel_rad_s: [f32; 3],
+    /// Orientation quaternion (x, y, z, w), world from body.
+    pub quat_xyzw: [f32; 4],
+    /// Rotor thrusts (front-left, front-right, back-right, back-left), N.
+    pub rotor_thrust_n: [f32; 4],
+    /// Whether it has crashed.
+    pub crashed: bool,
+}
+
+/// Sonar readings by name, m.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct SonarMsg {
+    /// Front (body +x).
+    pub front: f32,
+    /// Right (body −y).
+    pub right: f32,
+    /// Back (body −x).
+    pub back: f32,
+    /// Left (body +y).
+    pub left: f32,
+}
+
+impl From<[f32; 4]> for SonarMsg {
+    fn from(v: [f32; 4]) -> Self {
+        debug_assert_eq!(SONAR_NAMES, ["front", "right", "back", "left"]);
+        Self { front: v[0], right: v[1], back: v[2], left: v[3] }
+    }
+}
+
+/// `…/copters/<name>/sensors`, at the sonar rate.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct SensorsMsg {
+    /// Copter name.
+    pub name: String,
+    /// Control step.
+    pub tick: u64,
+    /// Simulated time, s.
+    pub time_s: f64,
+    /// Physical sonar readings (noise, quantisation, cross-talk), m.
+    pub sonar_m: SonarMsg,
+    /// What the copter's behaviour uses: `min(physical, virtual)`, m.
+    pub sonar_fused_m: SonarMsg,
+    /// IR height, m; `null` when out of range.
+    pub ir_m: Option<f32>,
+    /// AHRS estimate: roll, pitch, yaw (with drift), rad.
+    pub attitude_rad: [f32; 3],
+    /// Gyro, body rates, rad/s.
+    pub rate_body_rad_s: [f32; 3],
+    /// Accelerometer, body frame, m/s².
+    pub accel_body_m_s2: [f32; 3],
+}
+
+/// Builds the state message of copter `i`, flying `inputs`' command.
+pub fn state_msg(world: &World, state: &State, inputs: &sim_core::Inputs, i: usize) -> StateMsg {
+    let def = &world.copters[i];
+    let c = &state.copters[i];
+    let p = state.pose(i);
+    StateMsg {
+        name: def.name.clone(),
+        kind: kind_str(def.kind).into(),
+        ac_id: def.ac_id,
+        tick: state.tick,
+        time_s: state.time_s(world),
+        mode: inputs.commands.get(i).map_or(def.initial_command.mode, |c| c.mode).as_str().into(),
+        pos_m: p.pos_m.to_array(),
+        vel_m_s: p.vel_m_s.to_array(),
+        attitude_rad: p.rpy_rad,
+        angvel_rad_s: p.angvel_rad_s.to_array(),
+        quat_xyzw: p.quat_xyzw,
+        rotor_thrust_n: c.rotor_thrust_n,
+        crashed: c.crash.is_some(),
+    }
+}
+
+/// Builds the sensors message of copter `i`.
+pub fn sensors_msg(world: &World, state: &State, i: usize) -> SensorsMsg {
+    let r = &state.copters[i].sensors;
+    SensorsMsg {
+        name: world.copters[i].name.clone(),
+        tick: state.tick,
+        time_s: state.time_s(world),
+        sonar_m: r.sonar_m.into(),
+        sonar_fused_m: r.sonar_fused_m.into(),
+        ir_m: r.ir_m,
+        attitude_rad: r.attitude_rad,
+        rate_body_rad_s: r.rate_body_rad_s,
+        accel_body_m_s2: r.accel_body_m_s2,
+    }
+}
+
+/// The wire name of a copter kind.
+pub fn kind_str(kind: CopterKind) -> &'static str {
+    match kind {
+        CopterKind::Virtual => "virtual",
+        CopterKind::Real => "twin",
+    }
+}
+
+/// `…/copters/<name>/cmd`: a command, every field optional. Unknown fields are rejected.
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct CommandMsg {
+    /// `manual`, `mixed_manual`, `wall_avoid` or `target`.
+    pub mode: Option<FlightMode>,
+    /// Pitch target, rad (> 0: nose down, forward).
+    pub pitch: Option<f32>,
+    /// Roll target, rad (> 0: right side down, rightwards).
+    pub roll: Option<f32>,
+    /// Yaw target, rad, counter-clockwise from +x.
+    pub yaw: Option<f32>,
+    /// Throttle, 0 to 1 (0.5 = hover), used when no height is held.
+    pub throttle: Option<f32>,
+    /// Height to hold, m; 0 turns height hold off.
+    pub height: Option<f32>,
+    /// Target point for `target` mode, m.
+    pub target: Option<[f32; 3]>,
+    /// Velocity when safe in `wall_avoid`, body frame (forward, left), m/s.
+    pub velocity: Option<[f32; 2]>,
+    /// Virtual sonar readings to fuse as `min(physical, virtual)`, m (front, right, back, left).
+    pub virtual_sonar: Option<[f32; 4]>,
+}
+
+/// Why a command was rejected.
+#[derive(Clone, Debug, PartialEq, thiserror::Error)]
+pub enum CommandError {
+    /// Not JSON, or not a command.
+    #[error("malformed command: {0}")]
+    Malformed(String),
+    /// A field is NaN or infinite.
+    #[error("field `{0}` is not a finite number")]
+    NotFinite(&'static str),
+    /// A field is out of its range.
+    #[error("field `{field}` = {value} is out of range [{min}, {max}]")]
+    OutOfRange {
+        /// The field.
+        field: &'static str,
+        /// Its value.
+        value: f32,
+        /// Lower bound.
+        min: f32,
+        /// Upper bound.
+        max: f32,
+    },
+    /// No such copter.
+    #[error("no copter named {0:?}")]
+    UnknownCopter(String),
+}
+
+impl CommandMsg {
+    /// Parses and validates a command payload against the world.
+    pub fn parse(payload: &[u8], world: &World) -> Result<Self, CommandError> {
+        let cmd: CommandMsg = serde_json::from_slice(payload).map_err(|e| CommandError::Malformed(e.to_string()))?;
+        cmd.validate(world)?;
+        Ok(cmd)
+    }
+
+    /// Checks every field is finite and in range.
+    pub fn validate(&self, world: &World) -> Result<(), CommandError> {
+        use std::f32::consts::{FRAC_PI_2, PI};
+        let range = |field: &'static str, v: f32, min: f32, max: f32| -> Result<(), CommandError> {
+            if !v.is_finite() {
+                return Err(CommandError::NotFinite(field));
+            }
+            if v < min || v > max {
+                return Err(CommandError::OutOfRange { field, value: v, min, max });
+            }
+            Ok(())
+        };
+        let [hx, hy] = world.arena.size_m.map(|s| s / 2.0);
+        if let Some(v) = self.pitch {
+            range("pitch", v, -FRAC_PI_2, FRAC_PI_2)?;
+        }
+        if let Some(v) = self.roll {
+            range("roll", v, -FRAC_PI_2, FRAC_PI_2)?;
+        }
+        if let Some(v) = self.yaw {
+            range("yaw", v, -2.0 * PI, 2.0 * PI)?;
+        }
+        if let Some(v) = self.throttle {
+            range("throttle", v, 0.0, 1.0)?;
+        }
+        if let Some(v) = self.height {
+            range("height", v, 0.0, world.arena.height_m)?;
+        }
+        if let Some([x, y, z]) = self.target {
+            range("target", x, -hx, hx)?;
+            range("target", y, -hy, hy)?;
+            range("target", z, 0.0, world.arena.height_m)?;
+        }
+        if let Some(v) = self.velocity {
+            for c in v {
+                range("velocity", c, -5.0, 5.0)?;
+            }
+        }
+        if let Some(v) = self.virtual_sonar {
+            for c in v {
+                range("virtual_sonar", c, 0.0, 100.0)?;
+            }
+        }
+        Ok(())
+    }
+
+    /// Applies the fields that are set onto a copter's command.
+    pub fn apply(&self, cmd: &mut Command) {
+        if let Some(m) = self.mode {
+            cmd.mode = m;
+        }
+        if let Some(v) = self.pitch {
+            cmd.pitch_rad = v;
+        }
+        if let Some(v) = self.roll {
+            cmd.roll_rad = v;
+        }
+        if let Some(v) = self.yaw {
+            cmd.yaw_rad = v;
+        }
+        if let Some(v) = self.throttle {
+            cmd.throttle = v;
+        }
+        if let Some(v) = self.height {
+            cmd.height_m = v;
+        }
+        if let Some(v) = self.target {
+            cmd.target_m = Some(v);
+        }
+        if let Some(v) = self.velocity {
+            cmd.velocity_m_s = Some(v);
+        }
+        if let Some(v) = self.virtual_sonar {
+            cmd.virtual_sonar_m = Some(v);
+        }
+    }
+}
+
+/// One entry of the `…/copters` queryable's reply.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct CopterListEntry {
+    /// Copter id.
+    pub id: usize,
+    /// Name.
+    pub name: String,
+    /// `virtual` or `twin`.
+    pub kind: String,
+    /// Paparazzi aircraft id.
+    pub ac_id: Option<u8>,
+    /// Whether it has crashed.
+    pub crashed: bool,
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn world() -> World {
+        sim_core::scene::load_default().1
+    }
+
+    #[test]
+    fn commands_parse_validate_and_apply() {
+        let w = world();
+        let c = CommandMsg::parse(br#"{"mode":"target","height":1.0,"target":[0.5,0.2,1.0]}"#, &w).unwrap();
+        let mut cmd = Command::default();
+        c.apply(&mut cmd);
+        assert_eq!(cmd.mode, FlightMode::Target);
+        assert_eq!(cmd.target_m, Some([0.5, 0.2, 1.0]));
+        assert_eq!(cmd.height_m, 1.0);
+    }
+
+    #[test]
+    fn malformed_nan_and_out_of_range_commands_are_rejected() {
+        let w = world();
+        assert!(matches!(CommandMsg::parse(b"not json", &w), Err(CommandError::Malformed(_))));
+        assert!(matches!(CommandMsg::parse(br#"{"pitchh":0.1}"#, &w), Err(CommandError::Malformed(_))));
+        assert!(matches!(CommandMsg::parse(br#"{"mode":"loop"}"#, &w), Err(CommandError::Malformed(_))));
+        // JSON has no NaN literal: a NaN arrives as a string or null and is malformed.
+        assert!(matches!(CommandMsg::parse(br#"{"pitch":"NaN"}"#, &w), Err(CommandError::Malformed(_))));
+        let nan = CommandMsg { pitch: Some(f32::NAN), ..Default::default() };
+        assert_eq!(nan.validate(&w), Err(CommandError::NotFinite("pitch")));
+        assert!(matches!(CommandMsg::parse(br#"{"throttle":1.5}"#, &w), Err(CommandError::OutOfRange { field: "throttle", .. })));
+        assert!(matches!(CommandMsg::parse(br#"{"height":9.0}"#, &w), Err(CommandError::OutOfRange { field: "height", .. })));
+        assert!(matches!(CommandMsg::parse(br#"{"target":[9,0,1]}"#, &w), Err(CommandError::OutOfRange { field: "target", .. })));
+    }
+}

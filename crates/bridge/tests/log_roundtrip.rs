@@ -1,0 +1,184 @@
+//! The logger round trip: a short run of the lab written with `Logger` and read back with the
+//! `mcap` crate (channels, counts, times, attachments, metadata, JSON against the schemas'
+//! required fields), plus bad input files.
+
+use std::collections::BTreeMap;
+use std::path::{Path, PathBuf};
+
+use bridge::log::{LogFile, LogMeta, LogReadError, Logger, SCHEMAS, Topic};
+
+fn temp_dir(tag: &str) -> PathBuf {
+    let dir = std::env::temp_dir().join(format!("twinswarm-log-{tag}-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    dir
+}
+
+const STEPS: u64 = 60;
+const EPOCH_NS: u64 = 1_700_000_000_123_000_000;
+
+fn write_run(path: &Path) -> sim_core::World {
+    let text = sim_core::scene::DEFAULT_SCENE_TOML;
+    let (_, world) = sim_core::scene::load("lab.toml", text).unwrap();
+    let mut state = world.initial_state();
+    let inputs = world.initial_inputs();
+    let meta = LogMeta {
+        command_line: "twinswarm run --test".into(),
+        scene_origin: "lab.toml".into(),
+        epoch_ns: Some(EPOCH_NS),
+    };
+    let mut log = Logger::create(path, &world, text, meta).unwrap();
+    for _ in 0..STEPS {
+        let r = sim_core::step(&world, &mut state, &inputs);
+        log.log_step(&world, &state, &inputs, &r).unwrap();
+    }
+    log.log_bus_message("lab/ivy/201/ATTITUDE", true, "201 ATTITUDE 0.1 0.2 0.3", EPOCH_NS + 42).unwrap();
+    let stats = log.finish().unwrap();
+    assert_eq!(stats.last_tick, STEPS);
+    world
+}
+
+#[test]
+fn a_logged_run_reads_back_with_every_channel_count_and_record() {
+    let dir = temp_dir("roundtrip");
+    let path = dir.join("run.mcap");
+    let world = write_run(&path);
+    let n = world.copters.len() as u64;
+    let data = std::fs::read(&path).unwrap();
+
+    let summary = mcap::Summary::read(&data).unwrap().expect("a summary section");
+    let stats = summary.stats.clone().expect("statistics");
+    assert!(!summary.chunk_indexes.is_empty());
+    assert!(summary.chunk_indexes.iter().all(|c| c.compression == "zstd"), "zstd chunks");
+    assert!(summary.chunk_indexes.iter().all(|c| !c.message_index_offsets.is_empty()), "message indexes");
+
+    let mut counts: BTreeMap<String, u64> = BTreeMap::new();
+    let mut last_time: BTreeMap<String, u64> = BTreeMap::new();
+    let mut first_state_time = None;
+    for m in mcap::MessageStream::new(&data).unwrap() {
+        let m = m.unwrap();
+        let topic = m.channel.topic.clone();
+        let schema = m.channel.schema.as_ref().expect("every channel has a schema");
+        assert_eq!(schema.encoding, "jsonschema");
+        assert_eq!(m.channel.message_encoding, "json");
+        // Every message is JSON with the top-level fields its schema requires.
+        let v: serde_json::Value = serde_json::from_slice(&m.data).unwrap();
+        let s: serde_json::Value = serde_json::from_slice(&schema.data).unwrap();
+        assert_eq!(s["title"], schema.name.as_str());
+        for key in s["required"].as_array().unwrap() {
+            assert!(v.get(key.as_str().unwrap()).is_some(), "{topic}: missing {key} in {v}");
+        }
+        let prev = last_time.insert(topic.clone(), m.log_time).unwrap_or(0);
+        assert!(m.log_time >= prev, "{topic}: log_time goes back");
+        if topic == "/bus" {
+            assert_eq!(m.publish_time, EPOCH_NS + 42, "bus: publish_time is the receive time");
+        } else {
+            assert_eq!(m.publish_time, m.log_time);
+        }
+        if topic == "/copters/state" && first_state_time.is_none() {
+            first_state_time = Some(m.log_time);
+            assert_eq!(v["tick"], 1);
+            assert_eq!(v["copter"], "finken1");
+        }
+        *counts.entry(topic).or_insert(0) += 1;
+    }
+    // log_time = epoch + tick x 50 ms.
+    assert_eq!(first_state_time, Some(EPOCH_NS + 50_000_000));
+    assert_eq!(last_time["/copters/state"], EPOCH_NS + STEPS * 50_000_000);
+
+    let topics: Vec<&str> = counts.keys().map(String::as_str).collect();
+    let mut expected: Vec<&str> = Topic::ALL.iter().map(|t| t.name()).collect();
+    expected.sort_unstable();
+    assert_eq!(topics, expected);
+    for t in ["/copters/state", "/copters/sensors", "/copters/command", "/copters/control", "/tf"] {
+        assert_eq!(counts[t], STEPS * n, "{t}: steps x copters");
+    }
+    assert_eq!(counts["/scene/copters"], STEPS);
+    assert_eq!(counts["/scene/arena"], 1);
+    assert_eq!(counts["/bus"], 1);
+    assert!(counts["/events"] >= n, "both copters took off: {counts:?}");
+    assert_eq!(counts["/events"], counts["/log"]);
+    assert_eq!(stats.message_count, counts.values().sum::<u64>());
+
+    // Attachments and metadata.
+    let mut names = Vec::new();
+    for idx in &summary.attachment_indexes {
+        let a = mcap::read::attachment(&data, idx).unwrap();
+        assert_eq!(a.media_type, "application/toml");
+        names.push(a.name.clone());
+        if a.name == "scene.toml" {
+            assert_eq!(&a.data[..], sim_core::scene::DEFAULT_SCENE_TOML.as_bytes());
+        }
+    }
+    assert_eq!(names, ["scene.toml", "scene.effective.toml"]);
+    assert_eq!(summary.metadata_indexes.len(), 1);
+    let meta = mcap::read::metadata(&data, &summary.metadata_indexes[0]).unwrap();
+    assert_eq!(meta.name, "twinswarm");
+    let m = &meta.metadata;
+    assert_eq!(m["version"], env!("CARGO_PKG_VERSION"));
+    assert_eq!(m["seed"], "2016");
+    assert_eq!(m["world"], "lab");
+    assert_eq!(m["scene_origin"], "lab.toml");
+    assert_eq!(m["command_line"], "twinswarm run --test");
+    assert_eq!(m["epoch_unix_ns"], EPOCH_NS.to_string());
+    let copters: serde_json::Value = serde_json::from_str(&m["copters"]).unwrap();
+    assert_eq!(copters[1]["name"], "finken2");
+    assert_eq!(copters[1]["ac_id"], 202);
+
+    // The reader behind `log info` agrees.
+    let info = LogFile::open(&path).unwrap().info().unwrap();
+    assert_eq!(info.messages, stats.message_count);
+    let state = info.channels.iter().find(|c| c.topic == "/copters/state").unwrap();
+    assert_eq!(
+        (state.schema.as_str(), state.encoding.as_str(), state.messages),
+        ("twinswarm.CopterState", "json", STEPS * n)
+    );
+    let (a, b) = info.time_range_ns.unwrap();
+    assert_eq!(b - a, STEPS * 50_000_000);
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+#[test]
+fn the_embedded_schemas_are_the_checked_in_files_and_name_themselves() {
+    for s in SCHEMAS {
+        let v: serde_json::Value = serde_json::from_str(s.json).unwrap();
+        assert_eq!(v["title"], s.name);
+        let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("schemas").join(format!("{}.json", s.name));
+        assert_eq!(std::fs::read_to_string(&path).unwrap(), s.json, "{}", path.display());
+    }
+}
+
+#[test]
+fn bad_files_give_clear_errors_not_panics() {
+    let dir = temp_dir("bad");
+    let good = dir.join("good.mcap");
+    write_run(&good);
+    let bytes = std::fs::read(&good).unwrap();
+    let write = |name: &str, content: &[u8]| {
+        let p = dir.join(name);
+        std::fs::write(&p, content).unwrap();
+        p
+    };
+    let err = LogFile::open(&write("empty.mcap", b"")).unwrap_err();
+    assert!(matches!(err, LogReadError::Empty { .. }), "{err}");
+    let err = LogFile::open(&write("text.mcap", b"this is not a log, just some text\n")).unwrap_err();
+    assert!(matches!(err, LogReadError::NotMcap { .. }), "{err}");
+    assert!(err.to_string().contains("not an MCAP file"), "{err}");
+    for cut in [8, 100, bytes.len() / 3, bytes.len() - 1] {
+        let err = LogFile::open(&write("cut.mcap", &bytes[..cut])).unwrap_err();
+        assert!(matches!(err, LogReadError::Truncated { .. }), "cut at {cut}: {err}");
+        assert!(err.to_string().contains("log recover"), "{err}");
+    }
+    let err = LogFile::open(&dir.join("missing.mcap")).unwrap_err();
+    assert!(matches!(err, LogReadError::Io { .. }), "{err}");
+    // A damaged chunk (bytes flipped in the middle) is an error, not a panic.
+    let mut damaged = bytes.clone();
+    let mid = damaged.len() / 2;
+    for b in &mut damaged[mid..mid + 64] {
+        *b ^= 0x5a;
+    }
+    let p = write("damaged.mcap", &damaged);
+    if let Ok(f) = LogFile::open(&p) {
+        assert!(f.messages::<serde_json::Value>("/copters/state").is_err(), "damage went unnoticed");
+    }
+    let _ = std::fs::remove_dir_all(&dir);
+}

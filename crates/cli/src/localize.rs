@@ -1,0 +1,715 @@
+//! `twinswarm localize --eval`: MEDUSA localization measured on a simulated Wall-Avoid flight.
+//!
+//! The embedded lab scene is flown with one copter (or both) in Wall-Avoid at 0.8 m, with
+//! σ = 5 cm sonar noise, 2° AHRS yaw noise and the default yaw-bias random walk. Every control
+//! step each evaluated copter's **own** readings feed raw MEDUSA and the MEDUSA particle
+//! filter: its sonar readings (the cap means no echo), its AHRS yaw (σ = 2°; the filter
+//! estimates the bias) and its commanded attitude (the setpoint) as the motion input. The
+//! estimates are compared with the ground-truth position at the instant the sonars were
+//! sampled.
+//!
+//! Sensor sets:
+//! - **2**: front + right, the first two channels of Paparazzi's `SONAR_ARRAY`. Any two
+//!   *perpendicular* sonars fix both axes in a rectangle (two opposite ones leave one axis
+//!   free); front + left is the mirror image and performs the same.
+//! - **4**: the FINken's four physical sonars.
+//! - **8**: the four physical sonars plus four diagonal ones synthesised here with sim-core's
+//!   exact cone geometry ([`SonarScene::cone_distance`]), noise from a seeded stream of their
+//!   own, and sim-core's quantisation and cap ([`sonar_reading`]).
+//!
+//! The flight: Wall-Avoid only pushes away from walls, so a hovering copter would sit still.
+//! Like a pilot flying Wall-Avoid, the harness commands a cruise velocity (0.3 m/s, body frame)
+//! whose direction changes every 3–8 s (seeded); Wall-Avoid overrides it near obstacles.
+//! Statistics start 5 s after take-off (the filter starts from a uniform particle cloud at
+//! tick 0).
+
+use std::time::Instant;
+
+use anyhow::Context;
+use medusa::{
+    Arena, BoxObstacle, FilterConfig, FilterEstimate, Medusa, MedusaFilter, MotionInput, SensorLayout, SensorModel,
+    SensorSpec as MedusaSensor, World as MedusaWorld, YawEstimate,
+};
+use nalgebra::Vector2;
+use serde::Serialize;
+use sim_core::control::FlightMode;
+use sim_core::geometry::{Cone, OrientedBox};
+use sim_core::math::{Quat, Real, Vec3};
+use sim_core::rng::Rng32;
+use sim_core::scene::{self, SceneSpec};
+use sim_core::sensors::{SonarScene, sonar_reading};
+use sim_core::{State, World, step};
+
+use crate::BadInput;
+
+/// Flight height of the evaluation, m.
+pub const FLIGHT_HEIGHT_M: Real = 0.8;
+/// Cruise speed commanded between wall encounters, m/s.
+pub const CRUISE_SPEED_M_S: Real = 0.5;
+/// Statistics start this long after take-off, s.
+pub const SETTLE_S: f64 = 5.0;
+/// Sonar noise of the evaluation, m.
+pub const SONAR_SIGMA_M: Real = 0.05;
+/// AHRS yaw noise of the evaluation, deg.
+pub const YAW_NOISE_DEG: Real = 2.0;
+/// Body-frame directions of the 8 sonar slots (deg, CCW from forward): the 4 physical ones in
+/// sim-core order (front, right, back, left), then 4 synthetic diagonals.
+pub const SLOT_ANGLES_DEG: [f64; 8] = [0.0, -90.0, 180.0, 90.0, 45.0, -45.0, -135.0, 135.0];
+/// Slot names, in slot order.
+pub const SLOT_NAMES: [&str; 8] = ["front", "right", "back", "left", "front-left", "front-right", "back-right", "back-left"];
+/// The evaluated sensor sets, as slot indices.
+pub const SENSOR_SETS: [&[usize]; 3] = [&[0, 1], &[0, 1, 2, 3], &[0, 1, 2, 3, 4, 5, 6, 7]];
+/// Boxes are given to MEDUSA when their top is at least this high: lower ones are under the
+/// sonar cones most of the time (seen only from afar through the cone's lower edge).
+pub const MIN_BOX_TOP_M: Real = FLIGHT_HEIGHT_M - 0.1;
+
+/// Which world to fly in.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum, Serialize)]
+#[serde(rename_all = "snake_case")]
+pub enum WorldChoice {
+    /// The 4 m × 3 m lab arena without its boxes (the issue's setup).
+    Empty,
+    /// The lab with its table, crate and pillar.
+    Lab,
+    /// Both, one after the other.
+    Both,
+}
+
+/// `twinswarm localize`.
+#[derive(Debug, clap::Args)]
+pub struct LocalizeArgs {
+    /// Evaluate MEDUSA (raw and filtered) against ground truth on a simulated Wall-Avoid flight.
+    #[arg(long)]
+    pub eval: bool,
+    /// Length of the flight, minutes.
+    #[arg(long, value_name = "M", default_value_t = 9.0)]
+    pub minutes: f64,
+    /// Seed of the simulation and the harness (default: the lab scene's seed).
+    #[arg(long, value_name = "N")]
+    pub seed: Option<u64>,
+    /// World: the empty 4 m × 3 m arena, the lab with its boxes, or both.
+    #[arg(long, value_enum, default_value_t = WorldChoice::Empty)]
+    pub world: WorldChoice,
+    /// Copters flying (1 or 2, from the lab scene); each is evaluated.
+    #[arg(long, default_value_t = 1, value_parser = clap::value_parser!(u8).range(1..=2))]
+    pub copters: u8,
+    /// Keep the start heading for the whole flight instead of a new random heading every leg.
+    #[arg(long)]
+    pub hold_yaw: bool,
+    /// Print JSON instead of a table.
+    #[arg(long)]
+    pub json: bool,
+}
+
+/// Error statistics of one estimator, cm.
+#[derive(Clone, Debug, Serialize)]
+pub struct ErrorStats {
+    /// Median position error, cm.
+    pub median_cm: f64,
+    /// 95th percentile, cm.
+    pub p95_cm: f64,
+    /// Largest error, cm.
+    pub max_cm: f64,
+}
+
+/// One sensor set on one copter.
+#[derive(Clone, Debug, Serialize)]
+pub struct SensorSetReport {
+    /// Number of sonars.
+    pub sensors: usize,
+    /// Their names.
+    pub slots: Vec<&'static str>,
+    /// Raw MEDUSA (the best candidate).
+    pub raw: ErrorStats,
+    /// Raw MEDUSA refined by Gauss-Newton on all readings.
+    pub refined: ErrorStats,
+    /// The particle filter.
+    pub filtered: ErrorStats,
+    /// Median filter confidence.
+    pub confidence_median: f64,
+    /// 5th percentile of the filter confidence.
+    pub confidence_p05: f64,
+    /// Median confidence when the filter error is above 15 cm (NaN-free: 0 if never).
+    pub confidence_median_when_err_above_15cm: f64,
+    /// Share of samples with a filter error above 15 cm.
+    pub share_filtered_above_15cm: f64,
+    /// Non-finite estimates or confidences seen (should be 0).
+    pub non_finite: u64,
+    /// Mean wall-clock cost of one filter update (predict + correct), µs.
+    pub filter_us_per_update: f64,
+    /// Mean wall-clock cost of one raw MEDUSA `locate`, µs.
+    pub raw_us_per_locate: f64,
+    /// Final yaw-bias estimate minus the true bias, deg.
+    pub final_yaw_bias_error_deg: f64,
+}
+
+/// One evaluated copter.
+#[derive(Clone, Debug, Serialize)]
+pub struct CopterReport {
+    /// Copter name.
+    pub name: String,
+    /// Samples in the statistics (one per control step after settling).
+    pub samples: u64,
+    /// Crash, if any (statistics stop there).
+    pub crash: Option<String>,
+    /// Distance flown horizontally, m.
+    pub distance_m: f64,
+    /// Ground-truth x range visited, m.
+    pub x_range_m: [f64; 2],
+    /// Ground-truth y range visited, m.
+    pub y_range_m: [f64; 2],
+    /// Largest |true yaw bias| during the flight, deg.
+    pub max_abs_yaw_bias_deg: f64,
+    /// Per sensor set: 2, 4, 8.
+    pub sets: Vec<SensorSetReport>,
+}
+
+/// One flight.
+#[derive(Clone, Debug, Serialize)]
+pub struct FlightReport {
+    /// `empty` or `lab`.
+    pub world: WorldChoice,
+    /// Boxes in the simulated world.
+    pub boxes_simulated: Vec<String>,
+    /// Boxes given to MEDUSA.
+    pub boxes_known_to_medusa: Vec<String>,
+    /// Simulated minutes.
+    pub minutes: f64,
+    /// Seed.
+    pub seed: u64,
+    /// Whether the heading was held (else a new random heading every leg).
+    pub hold_yaw: bool,
+    /// Wall-clock time of the whole flight and evaluation, s.
+    pub wall_s: f64,
+    /// Evaluated copters.
+    pub copters: Vec<CopterReport>,
+}
+
+/// The whole evaluation.
+#[derive(Clone, Debug, Serialize)]
+pub struct EvalReport {
+    /// Sonar noise, m.
+    pub sonar_sigma_m: f64,
+    /// Yaw noise, deg.
+    pub yaw_noise_deg: f64,
+    /// Yaw-bias random walk, deg/√s.
+    pub yaw_bias_walk_deg_per_sqrt_s: f64,
+    /// Flight height, m.
+    pub height_m: f64,
+    /// Seconds after take-off when statistics start.
+    pub settle_s: f64,
+    /// Build profile of this binary (timings depend on it).
+    pub profile: &'static str,
+    /// Flights.
+    pub flights: Vec<FlightReport>,
+    /// Target: 4 sensors, filtered, median < 5 cm and p95 < 15 cm, on every evaluated copter.
+    pub target_4_sensors_met: bool,
+}
+
+/// Runs the subcommand.
+pub fn run(args: LocalizeArgs) -> anyhow::Result<()> {
+    if !args.eval {
+        return Err(BadInput(anyhow::anyhow!("localize: only `--eval` is implemented; try `twinswarm localize --eval`"))
+            .into());
+    }
+    if !(args.minutes.is_finite() && args.minutes > 0.0 && args.minutes <= 24.0 * 60.0) {
+        return Err(BadInput(anyhow::anyhow!("--minutes must be in (0, 1440], got {}", args.minutes)).into());
+    }
+    let worlds: &[WorldChoice] = match args.world {
+        WorldChoice::Both => &[WorldChoice::Empty, WorldChoice::Lab],
+        WorldChoice::Empty => &[WorldChoice::Empty],
+        WorldChoice::Lab => &[WorldChoice::Lab],
+    };
+    let mut flights = Vec::new();
+    for &w in worlds {
+        flights.push(evaluate(w, args.minutes, args.seed, usize::from(args.copters), args.hold_yaw)?);
+    }
+    let walk = eval_scene(WorldChoice::Empty, args.minutes, args.seed, 1)?.sensors.imu.yaw_bias_walk_deg_per_sqrt_s;
+    let report = EvalReport::new(flights, f64::from(walk));
+    if args.json {
+        println!("{}", serde_json::to_string_pretty(&report)?);
+    } else {
+        print!("{}", report.to_text());
+    }
+    Ok(())
+}
+
+impl EvalReport {
+    fn new(flights: Vec<FlightReport>, yaw_bias_walk_deg_per_sqrt_s: f64) -> Self {
+        let target = flights.iter().flat_map(|f| &f.copters).all(|c| {
+            c.sets.iter().filter(|s| s.sensors == 4).all(|s| s.filtered.median_cm < 5.0 && s.filtered.p95_cm < 15.0)
+        });
+        Self {
+            sonar_sigma_m: f64::from(SONAR_SIGMA_M),
+            yaw_noise_deg: f64::from(YAW_NOISE_DEG),
+            yaw_bias_walk_deg_per_sqrt_s,
+            height_m: f64::from(FLIGHT_HEIGHT_M),
+            settle_s: SETTLE_S,
+            profile: if cfg!(debug_assertions) { "debug" } else { "release" },
+            flights,
+            target_4_sensors_met: target,
+        }
+    }
+
+    /// The table.
+    pub fn to_text(&self) -> String {
+        use std::fmt::Write;
+        let mut s = String::new();
+        let _ = writeln!(
+            s,
+            "twinswarm localize --eval: Wall-Avoid at {:.1} m, sonar σ {:.0} cm, yaw noise {:.0}° + bias walk {}°/√s; \
+             statistics from {:.0} s after take-off; {} build",
+            self.height_m,
+            self.sonar_sigma_m * 100.0,
+            self.yaw_noise_deg,
+            self.yaw_bias_walk_deg_per_sqrt_s,
+            self.settle_s,
+            self.profile
+        );
+        for f in &self.flights {
+            let _ = writeln!(
+                s,
+                "\nworld {:?}: {:.1} min simulated, seed {}, heading {}, {:.1} s wall; boxes simulated [{}], known to MEDUSA [{}]",
+                f.world,
+                f.minutes,
+                f.seed,
+                if f.hold_yaw { "held" } else { "random per leg" },
+                f.wall_s,
+                f.boxes_simulated.join(", "),
+                f.boxes_known_to_medusa.join(", ")
+            );
+            for c in &f.copters {
+                let _ = writeln!(
+                    s,
+                    "  {}: {} samples, flew {:.0} m over x [{:.2}, {:.2}] y [{:.2}, {:.2}], max |yaw bias| {:.1}°{}",
+                    c.name,
+                    c.samples,
+                    c.distance_m,
+                    c.x_range_m[0],
+                    c.x_range_m[1],
+                    c.y_range_m[0],
+                    c.y_range_m[1],
+                    c.max_abs_yaw_bias_deg,
+                    c.crash.as_ref().map(|x| format!(", CRASHED: {x}")).unwrap_or_default()
+                );
+                let _ = writeln!(
+                    s,
+                    "    sonars |  raw MEDUSA cm  | refined cm      | filtered cm           | conf       | >15cm | µs/update"
+                );
+                let _ = writeln!(
+                    s,
+                    "           |   med    p95    |   med    p95    |  med   p95    max     | med   p05  | share | filter   raw"
+                );
+                for r in &c.sets {
+                    let _ = writeln!(
+                        s,
+                        "    {:>6} | {:>5.1} {:>7.1}   | {:>5.1} {:>7.1}   | {:>4.1} {:>5.1} {:>7.1}     | {:.2}  {:.2} | {:>4.1}% | {:>6.0} {:>5.0}",
+                        r.sensors,
+                        r.raw.median_cm,
+                        r.raw.p95_cm,
+                        r.refined.median_cm,
+                        r.refined.p95_cm,
+                        r.filtered.median_cm,
+                        r.filtered.p95_cm,
+                        r.filtered.max_cm,
+                        r.confidence_median,
+                        r.confidence_p05,
+                        r.share_filtered_above_15cm * 100.0,
+                        r.filter_us_per_update,
+                        r.raw_us_per_locate,
+                    );
+                }
+            }
+        }
+        let _ = writeln!(
+            s,
+            "\ntarget (4 sonars, filtered: median < 5 cm, p95 < 15 cm): {}",
+            if self.target_4_sensors_met { "met" } else { "NOT met" }
+        );
+        s
+    }
+}
+
+/// The scene of one evaluation flight.
+pub fn eval_scene(world: WorldChoice, minutes: f64, seed: Option<u64>, copters: usize) -> anyhow::Result<SceneSpec> {
+    let (mut spec, _) = scene::load_default();
+    if let Some(seed) = seed {
+        spec.sim.seed = seed;
+    }
+    spec.sim.duration_s = minutes * 60.0;
+    if world != WorldChoice::Lab {
+        spec.boxes.clear();
+    }
+    spec.copters.truncate(copters.max(1));
+    for c in &mut spec.copters {
+        c.mode = FlightMode::WallAvoid;
+        c.command.height_m = FLIGHT_HEIGHT_M;
+    }
+    spec.sensors.enabled = true;
+    spec.sensors.noise = true;
+    spec.sensors.sonar.noise_sigma_m = SONAR_SIGMA_M;
+    spec.sensors.imu.yaw_noise_deg = YAW_NOISE_DEG;
+    Ok(spec)
+}
+
+/// Raw MEDUSA + filter for one sensor set of one copter, and their statistics.
+struct Tracker {
+    slots: &'static [usize],
+    filter: MedusaFilter,
+    raw_err: Vec<f64>,
+    refined_err: Vec<f64>,
+    filt_err: Vec<f64>,
+    conf: Vec<f64>,
+    non_finite: u64,
+    filter_s: f64,
+    raw_s: f64,
+    updates: u64,
+    last: Option<FilterEstimate>,
+    readings: Vec<Option<f64>>,
+}
+
+/// Per-copter harness state.
+struct CopterEval {
+    id: usize,
+    trackers: Vec<Tracker>,
+    prev_input: MotionInput,
+    samples: u64,
+    distance_m: f64,
+    last_pos: Option<Vector2<f64>>,
+    x_range: [f64; 2],
+    y_range: [f64; 2],
+    max_bias: f64,
+    diag_rng: Rng32,
+    cruise_rng: Rng32,
+    next_leg_tick: u64,
+    stopped: bool,
+}
+
+fn medusa_for(world: &World, slots: &[usize], boxes: &[BoxObstacle]) -> anyhow::Result<Medusa> {
+    let sonar = &world.sensors.spec.sonar;
+    let sensors = slots
+        .iter()
+        .map(|&k| {
+            let a = SLOT_ANGLES_DEG[k].to_radians();
+            MedusaSensor {
+                angle_in_body_rad: a,
+                offset_in_body_m: Vector2::new(a.cos(), a.sin()) * f64::from(sonar.mount_offset_m),
+                max_range_m: f64::from(sonar.cap_m),
+            }
+        })
+        .collect();
+    let layout = SensorLayout::new(sensors)?;
+    let (w, h) = (f64::from(world.arena.size_m[0]), f64::from(world.arena.size_m[1]));
+    let mworld = MedusaWorld::new(Arena::new(w, h)?, boxes.to_vec())?;
+    let model = SensorModel {
+        noise_sigma_m: f64::from(sonar.noise_sigma_m),
+        cone_half_angle_rad: f64::from(world.sensors.sonar_half_angle_rad),
+        outlier_probability: std::env::var("LOC_OUT").ok().and_then(|v| v.parse().ok()).unwrap_or(0.02),
+        ..SensorModel::default()
+    };
+    Ok(Medusa::new(mworld, layout, model)?)
+}
+
+/// The filter configuration used by the evaluation.
+pub fn filter_config(world: &World, copter: usize) -> FilterConfig {
+    let af = &world.airframes[world.copters[copter].airframe];
+    FilterConfig {
+        seed: world.params.seed ^ (0x4d45_4455_5341 + copter as u64),
+        // The motion model's drag is the airframe's linear damping (the same law:
+        // `g tan(tilt) = damping * v` at steady state).
+        drag_per_s: f64::from(af.spec.linear_damping),
+        ..FilterConfig::default()
+    }
+}
+
+/// The sonar scene as sim-core's `sense` builds it, from the current state.
+fn sonar_scene(world: &World, state: &State, scene: &mut SonarScene) {
+    let (hx, hy) = (world.arena.size_m[0] / 2.0, world.arena.size_m[1] / 2.0);
+    scene.walls.clear();
+    if world.arena.walls {
+        scene.walls.extend([(Vec3::X, hx), (Vec3::X, -hx), (Vec3::Y, hy), (Vec3::Y, -hy)]);
+    }
+    scene.boxes.clear();
+    scene.boxes.extend(world.boxes.iter().map(|b| OrientedBox {
+        center: b.center_m,
+        rotation: Quat::from_rotation_z(b.yaw_rad),
+        half: b.half_extents_m,
+    }));
+    scene.copters.clear();
+    for (i, c) in state.copters.iter().enumerate() {
+        let body = &state.physics.bodies[c.body];
+        let af = &world.airframes[world.copters[i].airframe];
+        let half_xy = af.spec.arm_length_m / std::f32::consts::SQRT_2 + af.spec.rotor_diameter_m / 2.0;
+        scene.copters.push(OrientedBox {
+            center: body.translation(),
+            rotation: *body.rotation(),
+            half: Vec3::new(half_xy, half_xy, af.spec.body_size_m[2] / 2.0 + 0.01),
+        });
+    }
+}
+
+/// Readings of the four synthetic diagonal sonars (slots 4..8) at the current state.
+fn diagonal_readings(world: &World, state: &State, scene: &SonarScene, id: usize, rng: &mut Rng32) -> [Real; 4] {
+    let spec = &world.sensors.spec.sonar;
+    let body = &state.physics.bodies[state.copters[id].body];
+    let (pos, rot) = (body.translation(), *body.rotation());
+    std::array::from_fn(|k| {
+        let a = SLOT_ANGLES_DEG[4 + k].to_radians() as Real;
+        let axis = rot * Vec3::new(a.cos(), a.sin(), 0.0);
+        let cone = Cone::new(pos + axis * spec.mount_offset_m, axis, world.sensors.sonar_half_angle_rad);
+        let truth = scene.cone_distance(&cone, id, spec.max_range_m);
+        let noise = if world.sensors.spec.noise { spec.noise_sigma_m * rng.normal() } else { 0.0 };
+        sonar_reading(spec, truth, noise)
+    })
+}
+
+fn percentile(sorted: &[f64], q: f64) -> f64 {
+    if sorted.is_empty() {
+        return f64::NAN;
+    }
+    let idx = ((sorted.len() - 1) as f64 * q).round() as usize;
+    sorted[idx.min(sorted.len() - 1)]
+}
+
+fn stats(v: &[f64]) -> ErrorStats {
+    let mut s = v.to_vec();
+    s.sort_by(f64::total_cmp);
+    ErrorStats {
+        median_cm: percentile(&s, 0.5) * 100.0,
+        p95_cm: percentile(&s, 0.95) * 100.0,
+        max_cm: percentile(&s, 1.0) * 100.0,
+    }
+}
+
+/// Flies one evaluation flight and measures every evaluated copter.
+pub fn evaluate(
+    choice: WorldChoice,
+    minutes: f64,
+    seed: Option<u64>,
+    copters: usize,
+    hold_yaw: bool,
+) -> anyhow::Result<FlightReport> {
+    let spec = eval_scene(choice, minutes, seed, copters)?;
+    let world = scene::compile(&spec).context("compiling the evaluation scene")?;
+    let started = Instant::now();
+    let known: Vec<usize> = (0..world.boxes.len())
+        .filter(|&b| world.boxes[b].center_m.z + world.boxes[b].half_extents_m.z >= std::env::var("LOC_MINTOP").ok().and_then(|v| v.parse().ok()).unwrap_or(MIN_BOX_TOP_M))
+        .collect();
+    let boxes: Vec<BoxObstacle> = known
+        .iter()
+        .map(|&b| {
+            let sb = &world.boxes[b];
+            BoxObstacle::new(
+                Vector2::new(f64::from(sb.center_m.x), f64::from(sb.center_m.y)),
+                Vector2::new(f64::from(sb.half_extents_m.x), f64::from(sb.half_extents_m.y)),
+                f64::from(sb.yaw_rad),
+            )
+        })
+        .collect();
+
+    let seed = world.params.seed;
+    let mut evals = Vec::new();
+    for id in 0..world.copters.len() {
+        let mut trackers = Vec::new();
+        for slots in SENSOR_SETS {
+            let medusa = medusa_for(&world, slots, &boxes)?;
+            let filter = MedusaFilter::new(medusa, filter_config(&world, id))?;
+            trackers.push(Tracker {
+                slots,
+                filter,
+                raw_err: Vec::new(),
+                refined_err: Vec::new(),
+                filt_err: Vec::new(),
+                conf: Vec::new(),
+                non_finite: 0,
+                filter_s: 0.0,
+                raw_s: 0.0,
+                updates: 0,
+                last: None,
+                readings: vec![None; slots.len()],
+            });
+        }
+        evals.push(CopterEval {
+            id,
+            trackers,
+            prev_input: MotionInput::zero(),
+            samples: 0,
+            distance_m: 0.0,
+            last_pos: None,
+            x_range: [f64::INFINITY, f64::NEG_INFINITY],
+            y_range: [f64::INFINITY, f64::NEG_INFINITY],
+            max_bias: 0.0,
+            diag_rng: Rng32::new(seed ^ 0x5eed_d1a6, 1000 + id as u64),
+            cruise_rng: Rng32::new(seed ^ 0xc401_5e00, 2000 + id as u64),
+            next_leg_tick: 0,
+            stopped: false,
+        });
+    }
+
+    let ticks = world.default_ticks();
+    let dt = world.params.control_dt_s;
+    let mut state = world.initial_state();
+    let mut inputs = world.initial_inputs();
+    let mut scene_buf = SonarScene::default();
+    let cap = f64::from(world.sensors.spec.sonar.cap_m);
+    for _ in 0..ticks {
+        // Cruise legs: a new commanded direction every 3-8 s.
+        for e in &mut evals {
+            if state.tick >= e.next_leg_tick {
+                let cmd = &mut inputs.commands[e.id];
+                let a = e.cruise_rng.uniform() * std::f32::consts::TAU;
+                cmd.velocity_m_s = Some([CRUISE_SPEED_M_S * a.cos(), CRUISE_SPEED_M_S * a.sin()]);
+                if !hold_yaw {
+                    cmd.yaw_rad = sim_core::math::wrap_angle_rad(e.cruise_rng.uniform() * std::f32::consts::TAU);
+                }
+                let leg_s = 3.0 + 5.0 * f64::from(e.cruise_rng.uniform());
+                e.next_leg_tick = state.tick + (leg_s / dt).round().max(1.0) as u64;
+            }
+        }
+        // Ground truth and the synthetic diagonals at the instant sim-core senses.
+        sonar_scene(&world, &state, &mut scene_buf);
+        let truth: Vec<Vector2<f64>> = (0..world.copters.len())
+            .map(|i| {
+                let p = state.pose(i).pos_m;
+                Vector2::new(f64::from(p.x), f64::from(p.y))
+            })
+            .collect();
+        let diagonals: Vec<[Real; 4]> =
+            evals.iter_mut().map(|e| diagonal_readings(&world, &state, &scene_buf, e.id, &mut e.diag_rng)).collect();
+        let took_off = |state: &State, i: usize| state.copters[i].took_off_tick;
+        let sense_tick = state.tick;
+        let report = step(&world, &mut state, &inputs);
+        let _ = report;
+
+        for (e, diag) in evals.iter_mut().zip(&diagonals) {
+            let c = &state.copters[e.id];
+            if e.stopped {
+                continue;
+            }
+            if c.crash.is_some() {
+                e.stopped = true;
+                continue;
+            }
+            let r = &c.sensors;
+            let all: [Real; 8] =
+                [r.sonar_m[0], r.sonar_m[1], r.sonar_m[2], r.sonar_m[3], diag[0], diag[1], diag[2], diag[3]];
+            let yaw = YawEstimate::new(f64::from(r.attitude_rad[2]), f64::from(YAW_NOISE_DEG).to_radians());
+            let input = e.prev_input;
+            let settled = took_off(&state, e.id)
+                .is_some_and(|t| (sense_tick as f64 - t as f64) * dt >= SETTLE_S);
+            let t = truth[e.id];
+            if settled {
+                e.samples += 1;
+                if let Some(lp) = e.last_pos {
+                    e.distance_m += (t - lp).norm();
+                }
+                e.last_pos = Some(t);
+                e.x_range = [e.x_range[0].min(t.x), e.x_range[1].max(t.x)];
+                e.y_range = [e.y_range[0].min(t.y), e.y_range[1].max(t.y)];
+                e.max_bias = e.max_bias.max(f64::from(r.yaw_bias_rad).abs());
+            }
+            for tr in &mut e.trackers {
+                for (slot, &k) in tr.readings.iter_mut().zip(tr.slots) {
+                    let v = f64::from(all[k]);
+                    *slot = (v < cap).then_some(v);
+                }
+                let t0 = Instant::now();
+                let est = tr.filter.update(dt, &input, yaw, &tr.readings)?;
+                let t1 = Instant::now();
+                let raw = tr.filter.medusa().locate(yaw, &tr.readings)?;
+                let t2 = Instant::now();
+                tr.filter_s += (t1 - t0).as_secs_f64();
+                tr.raw_s += (t2 - t1).as_secs_f64();
+                tr.updates += 1;
+                tr.last = Some(est);
+                if std::env::var_os("LOCDBG2").is_some() && tr.slots.len() == 4 && settled && (est.pos_in_world - t).norm() > 0.15 && sense_tick % 5 == 0 {
+                    eprintln!("BIG t {:.1} truth ({:.2},{:.2}) est ({:.2},{:.2}) conf {:.2} readings {:?} pred {:?} truthsonar {:?}", sense_tick as f64 * dt, t.x, t.y, est.pos_in_world.x, est.pos_in_world.y, est.confidence, tr.readings, tr.filter.medusa().predict_ranges_m(&t, f64::from(state.pose(e.id).rpy_rad[2])), c.sensors.sonar_truth_m);
+                }
+                if std::env::var_os("LOCDBG").is_some() && tr.slots.len() == 4 && settled && (raw.best.pos_in_world - t).norm() > 0.3 && sense_tick % 10 == 0 {
+                    let p = state.pose(e.id);
+                    eprintln!("t {:.1} truth ({:.2},{:.2}) yaw true {:.1} est {:.1} readings {:?} best ({:.2},{:.2}) ll {:.1} refined ({:.2},{:.2}) amb {} und {} conf {:.2} modes {:?}", sense_tick as f64 * dt, t.x, t.y, p.rpy_rad[2].to_degrees(), yaw.yaw_rad.to_degrees(), tr.readings, raw.best.pos_in_world.x, raw.best.pos_in_world.y, raw.best.log_likelihood, raw.refined.pos_in_world.x, raw.refined.pos_in_world.y, raw.ambiguous, raw.underdetermined, raw.confidence, raw.modes.iter().map(|m| (m.pos_in_world.x, m.pos_in_world.y, m.log_likelihood)).collect::<Vec<_>>());
+                    let truth_ll = tr.filter.medusa().log_likelihood(&t, yaw, &tr.readings);
+                    eprintln!("   truth ll {:?}  pred at truth {:?}", truth_ll, tr.filter.medusa().predict_ranges_m(&t, yaw.yaw_rad));
+                }
+                if settled {
+                    let fe = (est.pos_in_world - t).norm();
+                    if !(fe.is_finite() && est.confidence.is_finite()) {
+                        tr.non_finite += 1;
+                    }
+                    tr.filt_err.push(fe);
+                    tr.conf.push(est.confidence);
+                    tr.raw_err.push((raw.best.pos_in_world - t).norm());
+                    tr.refined_err.push((raw.refined.pos_in_world - t).norm());
+                }
+            }
+            let sp = &c.setpoint;
+            e.prev_input = MotionInput::from_attitude(f64::from(sp.pitch_rad), f64::from(sp.roll_rad));
+        }
+    }
+
+    let copter_reports = evals
+        .iter()
+        .map(|e| {
+            let c = &state.copters[e.id];
+            let true_bias = f64::from(c.yaw_bias_rad);
+            CopterReport {
+                name: world.copters[e.id].name.clone(),
+                samples: e.samples,
+                crash: c.crash.map(|x| format!("{x:?}")),
+                distance_m: e.distance_m,
+                x_range_m: e.x_range,
+                y_range_m: e.y_range,
+                max_abs_yaw_bias_deg: e.max_bias.to_degrees(),
+                sets: e
+                    .trackers
+                    .iter()
+                    .map(|tr| {
+                        let mut conf = tr.conf.clone();
+                        conf.sort_by(f64::total_cmp);
+                        let mut bad_conf: Vec<f64> = tr
+                            .filt_err
+                            .iter()
+                            .zip(&tr.conf)
+                            .filter(|(e, _)| **e > 0.15)
+                            .map(|(_, c)| *c)
+                            .collect();
+                        bad_conf.sort_by(f64::total_cmp);
+                        let n = tr.filt_err.len().max(1) as f64;
+                        SensorSetReport {
+                            sensors: tr.slots.len(),
+                            slots: tr.slots.iter().map(|&k| SLOT_NAMES[k]).collect(),
+                            raw: stats(&tr.raw_err),
+                            refined: stats(&tr.refined_err),
+                            filtered: stats(&tr.filt_err),
+                            confidence_median: percentile(&conf, 0.5),
+                            confidence_p05: percentile(&conf, 0.05),
+                            confidence_median_when_err_above_15cm: if bad_conf.is_empty() {
+                                0.0
+                            } else {
+                                percentile(&bad_conf, 0.5)
+                            },
+                            share_filtered_above_15cm: tr.filt_err.iter().filter(|&&e| e > 0.15).count() as f64 / n,
+                            non_finite: tr.non_finite,
+                            filter_us_per_update: tr.filter_s / tr.updates.max(1) as f64 * 1e6,
+                            raw_us_per_locate: tr.raw_s / tr.updates.max(1) as f64 * 1e6,
+                            final_yaw_bias_error_deg: tr
+                                .last
+                                .map_or(f64::NAN, |est| (est.yaw_bias_rad - true_bias).to_degrees()),
+                        }
+                    })
+                    .collect(),
+            }
+        })
+        .collect();
+
+    Ok(FlightReport {
+        world: choice,
+        boxes_simulated: world.boxes.iter().map(|b| b.name.clone()).collect(),
+        boxes_known_to_medusa: known.iter().map(|&b| world.boxes[b].name.clone()).collect(),
+        minutes,
+        seed,
+        hold_yaw,
+        wall_s: started.elapsed().as_secs_f64(),
+        copters: copter_reports,
+    })
+}

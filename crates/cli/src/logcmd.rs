@@ -1,0 +1,221 @@
+//! `twinswarm log info|recover`, and the logging of `twinswarm run`: where the file goes,
+//! the stop flag for SIGINT/SIGTERM, and the lines the summary prints.
+
+use std::path::{Path, PathBuf};
+use std::sync::Arc;
+use std::sync::atomic::{AtomicBool, Ordering};
+
+use anyhow::Context;
+use bridge::log::{
+    EventKind, LogEvent, LogFile, LogMeta, LogReadError, LogStats, Logger, format_utc_basic, now_unix_ns,
+};
+use sim_core::World;
+
+use crate::BadInput;
+
+/// A log reading error is the input file's fault (exit code 2) unless it is about writing
+/// the output.
+pub fn read_error(e: LogReadError) -> anyhow::Error {
+    match e {
+        LogReadError::Write { .. } => anyhow::Error::new(e),
+        other => anyhow::Error::new(BadInput(other.into())),
+    }
+}
+
+/// The default log file: `runs/<world name>-<UTC timestamp>.mcap`, made unique with `-1`,
+/// `-2`, … if needed.
+pub fn default_log_path(world: &World, epoch_ns: u64) -> PathBuf {
+    let name: String =
+        world.name.chars().map(|c| if c.is_ascii_alphanumeric() || c == '-' || c == '_' { c } else { '_' }).collect();
+    let stem = format!("{}-{}", if name.is_empty() { "run" } else { &name }, format_utc_basic(epoch_ns));
+    let dir = Path::new("runs");
+    let mut path = dir.join(format!("{stem}.mcap"));
+    let mut k = 1;
+    while path.exists() {
+        path = dir.join(format!("{stem}-{k}.mcap"));
+        k += 1;
+    }
+    path
+}
+
+/// Starts the log of a run, unless `no_log`. `scene_path`: the scene file (`None`: the
+/// embedded lab).
+pub fn start_run_log(
+    log: Option<&Path>,
+    no_log: bool,
+    world: &World,
+    scene_path: Option<&Path>,
+    scene_origin: &str,
+) -> anyhow::Result<Option<Logger>> {
+    if no_log {
+        return Ok(None);
+    }
+    let epoch_ns = now_unix_ns();
+    let path = match log {
+        Some(p) => p.to_owned(),
+        None => default_log_path(world, epoch_ns),
+    };
+    if let Some(dir) = path.parent().filter(|d| !d.as_os_str().is_empty()) {
+        std::fs::create_dir_all(dir).with_context(|| format!("cannot create log directory {}", dir.display()))?;
+    }
+    let scene_text = match scene_path {
+        None => sim_core::scene::DEFAULT_SCENE_TOML.to_owned(),
+        Some(p) => std::fs::read_to_string(p).with_context(|| format!("cannot read scene file {}", p.display()))?,
+    };
+    let meta = LogMeta {
+        command_line: std::env::args().collect::<Vec<_>>().join(" "),
+        scene_origin: scene_origin.to_owned(),
+        epoch_ns: Some(epoch_ns),
+    };
+    Ok(Some(Logger::create(&path, world, &scene_text, meta)?))
+}
+
+/// SIGINT and SIGTERM set the returned flag (the run loop stops and finishes the log); a
+/// second signal of the same kind exits at once.
+pub fn install_stop_flag() -> anyhow::Result<Arc<AtomicBool>> {
+    use signal_hook::consts::{SIGINT, SIGTERM};
+    let stop = Arc::new(AtomicBool::new(false));
+    for sig in [SIGINT, SIGTERM] {
+        signal_hook::flag::register_conditional_shutdown(sig, 130, Arc::clone(&stop))
+            .context("cannot install the signal handler")?;
+        signal_hook::flag::register(sig, Arc::clone(&stop)).context("cannot install the signal handler")?;
+    }
+    Ok(stop)
+}
+
+/// Whether the stop flag is set.
+pub fn stopped(flag: &AtomicBool) -> bool {
+    flag.load(Ordering::Relaxed)
+}
+
+/// Logs a real-time overrun (if logging).
+pub fn log_overrun(log: &mut Option<Logger>, tick: u64, late_s: f64) -> anyhow::Result<()> {
+    if let Some(l) = log {
+        l.log_event(LogEvent {
+            tick,
+            kind: EventKind::StepOverrun,
+            copter: None,
+            detail: Some(serde_json::json!({ "late_s": late_s })),
+            message: format!("control step {tick} finished {:.1} ms after its deadline", late_s * 1e3),
+        })?;
+    }
+    Ok(())
+}
+
+/// Finishes the log of a run.
+pub fn finish_run_log(log: Option<Logger>, interrupted_at_tick: Option<u64>) -> anyhow::Result<Option<LogStats>> {
+    let Some(mut log) = log else { return Ok(None) };
+    if let Some(tick) = interrupted_at_tick {
+        log.log_event(LogEvent {
+            tick,
+            kind: EventKind::Interrupted,
+            copter: None,
+            detail: None,
+            message: "run interrupted by a signal; log finished cleanly".into(),
+        })?;
+    }
+    Ok(Some(log.finish()?))
+}
+
+/// The summary's log line: path and message count.
+pub fn describe(stats: &LogStats) -> String {
+    format!("{} ({} messages)", stats.path.display(), stats.total_messages())
+}
+
+/// `twinswarm log info FILE`.
+pub fn info(path: &Path) -> anyhow::Result<()> {
+    let file = LogFile::open(path).map_err(read_error)?;
+    let info = file.info().map_err(read_error)?;
+    println!("{}: MCAP, {:.2} MB, {} chunks ({})", path.display(), info.file_bytes as f64 / 1e6, info.chunks, {
+        if info.compression.is_empty() { "uncompressed" } else { &info.compression }
+    });
+    let meta = info.metadata.get("twinswarm");
+    let get = |k: &str| meta.and_then(|m| m.get(k)).map(String::as_str).unwrap_or("?");
+    if meta.is_some() {
+        println!(
+            "  twinswarm {}, world {:?}, seed {}, scene {}",
+            get("version"),
+            get("world"),
+            get("seed"),
+            get("scene_origin")
+        );
+        println!("  command line: {}", get("command_line"));
+        println!("  started {} (log_time epoch)", get("epoch_utc"));
+    } else {
+        println!("  no `twinswarm` metadata record: not written by twinswarm run");
+    }
+    let (dt_s, epoch) = (get("control_dt_s").parse::<f64>().ok(), get("epoch_unix_ns").parse::<u64>().ok());
+    match info.time_range_ns {
+        Some((a, b)) => {
+            let sim_s = (b - a) as f64 / 1e9;
+            let from_epoch = epoch.map(|e| {
+                format!(
+                    ", {:.2} s to {:.2} s simulated",
+                    a.saturating_sub(e) as f64 / 1e9,
+                    b.saturating_sub(e) as f64 / 1e9
+                )
+            });
+            let steps = dt_s.map(|dt| format!(", control step {:.0} ms", dt * 1e3));
+            println!("  duration {sim_s:.2} s (sim){}{}", from_epoch.unwrap_or_default(), steps.unwrap_or_default());
+        }
+        None => println!("  no messages"),
+    }
+    if let Some(Ok(serde_json::Value::Array(copters))) =
+        meta.and_then(|m| m.get("copters")).map(|s| serde_json::from_str(s))
+    {
+        println!("  {} copter(s):", copters.len());
+        for c in &copters {
+            println!(
+                "    {:<12} {:<8} ac_id {}",
+                c["name"].as_str().unwrap_or("?"),
+                c["kind"].as_str().unwrap_or("?"),
+                c["ac_id"].as_u64().map_or("-".into(), |a| a.to_string())
+            );
+        }
+    }
+    println!("  {} messages on {} channels:", info.messages, info.channels.len());
+    println!("    {:<18} {:<26} {:<8} {:>10}", "topic", "schema", "encoding", "messages");
+    for c in &info.channels {
+        println!("    {:<18} {:<26} {:<8} {:>10}", c.topic, c.schema, c.encoding, c.messages);
+    }
+    println!("  attachments:");
+    for (name, media, bytes) in &info.attachments {
+        println!("    {name} ({media}, {bytes} bytes)");
+    }
+    if let Some(scene) = file.attachment("scene.toml").map_err(read_error)? {
+        let text = String::from_utf8_lossy(&scene);
+        let first: Vec<&str> = text.lines().filter(|l| !l.trim().is_empty() && !l.starts_with('#')).take(3).collect();
+        println!("  scene.toml begins: {}", first.join(" | "));
+    }
+    Ok(())
+}
+
+/// `twinswarm log recover BROKEN FIXED`.
+pub fn recover(broken: &Path, fixed: &Path) -> anyhow::Result<()> {
+    if broken == fixed {
+        return Err(BadInput(anyhow::anyhow!("log recover: the output must differ from the input")).into());
+    }
+    let r = bridge::log::recover(broken, fixed).map_err(read_error)?;
+    println!(
+        "{} -> {}: recovered {} messages on {} channels, {} schemas, {} attachments, {} metadata records",
+        broken.display(),
+        fixed.display(),
+        r.total_messages(),
+        r.channels,
+        r.schemas,
+        r.attachments,
+        r.metadata
+    );
+    if let Some((a, b)) = r.time_range_ns {
+        println!("  log time span {:.2} s", (b - a) as f64 / 1e9);
+    }
+    for (topic, n) in &r.messages {
+        println!("    {topic:<18} {n:>10}");
+    }
+    match (&r.stopped_by, r.complete) {
+        (_, true) => println!("  the input was complete (its data section ended cleanly)"),
+        (Some(why), false) => println!("  the input was truncated; reading stopped at: {why}"),
+        (None, false) => println!("  the input ended without a data-end record"),
+    }
+    Ok(())
+}

@@ -1,0 +1,565 @@
+//! `twinswarm plot FILE --heatmap OUT.png --attitude OUT.png --sonar OUT.png`: the paper's
+//! figures from a log. Text uses DejaVu Sans, embedded in the binary (no system fonts).
+
+use std::path::Path;
+use std::sync::Once;
+
+use anyhow::Context;
+use bridge::log::LogFile;
+use plotters::coord::Shift;
+use plotters::prelude::*;
+use serde::Deserialize;
+
+use crate::BadInput;
+use crate::logcmd::read_error;
+
+/// Font family name the embedded font is registered under.
+const FONT: &str = "sans-serif";
+
+/// Registers the embedded DejaVu Sans (once).
+fn register_font() -> anyhow::Result<()> {
+    static ONCE: Once = Once::new();
+    let mut ok = true;
+    ONCE.call_once(|| {
+        ok = plotters::style::register_font(FONT, FontStyle::Normal, dejavu::sans::regular()).is_ok();
+    });
+    anyhow::ensure!(ok, "the embedded font could not be loaded");
+    Ok(())
+}
+
+/// Heat-map panel size, px.
+pub const HEATMAP_PANEL_PX: (u32, u32) = (560, 460);
+/// Attitude and sonar figure size, px.
+pub const FIGURE_PX: (u32, u32) = (1200, 800);
+/// Heat-map cell, m.
+const CELL_M: f64 = 0.05;
+/// Copters drawn in one line plot.
+const MAX_LINES: usize = 8;
+
+#[derive(Debug, Deserialize)]
+struct StateRow {
+    t_s: f64,
+    id: usize,
+    pos_m: [f32; 3],
+    rpy_rad: [f32; 3],
+}
+
+#[derive(Debug, Deserialize)]
+struct CommandRow {
+    t_s: f64,
+    id: usize,
+    roll_rad: f32,
+    pitch_rad: f32,
+}
+
+#[derive(Debug, Deserialize)]
+struct SensorRow {
+    t_s: f64,
+    id: usize,
+    sonar_m: [f32; 4],
+}
+
+#[derive(Clone, Debug, Deserialize)]
+struct CopterMeta {
+    name: String,
+    kind: String,
+    #[serde(default)]
+    start_pos_m: Option<[f32; 3]>,
+}
+
+#[derive(Clone, Debug, Deserialize)]
+struct BoxMeta {
+    name: String,
+    center_m: [f32; 3],
+    size_m: [f32; 3],
+    yaw_rad: f32,
+}
+
+/// What the plots need from a log.
+#[derive(Debug, Default)]
+pub struct PlotData {
+    copters: Vec<CopterMeta>,
+    arena_m: [f64; 2],
+    boxes: Vec<BoxMeta>,
+    dt_s: f64,
+    states: Vec<StateRow>,
+    commands: Vec<CommandRow>,
+    sensors: Vec<SensorRow>,
+}
+
+impl PlotData {
+    /// Reads the copters, the arena and the messages the plots use.
+    pub fn load(file: &LogFile, need_commands: bool, need_sensors: bool) -> anyhow::Result<Self> {
+        let info = file.info().map_err(read_error)?;
+        let meta = info.metadata.get("twinswarm").ok_or_else(|| {
+            BadInput(anyhow::anyhow!(
+                "{}: no `twinswarm` metadata record: not a twinswarm run log",
+                file.path().display()
+            ))
+        })?;
+        let parse = |key: &str| -> anyhow::Result<serde_json::Value> {
+            let text = meta.get(key).with_context(|| format!("metadata has no {key:?}"))?;
+            serde_json::from_str(text).with_context(|| format!("metadata {key:?} is not JSON"))
+        };
+        let bad = |e: anyhow::Error| anyhow::Error::new(BadInput(e.context(format!("{}", file.path().display()))));
+        let copters: Vec<CopterMeta> =
+            serde_json::from_value(parse("copters").map_err(bad)?).map_err(|e| bad(e.into()))?;
+        let arena_m: [f64; 2] =
+            serde_json::from_value(parse("arena_size_m").map_err(bad)?).map_err(|e| bad(e.into()))?;
+        let boxes: Vec<BoxMeta> = match parse("boxes") {
+            Ok(v) => serde_json::from_value(v).map_err(|e| bad(e.into()))?,
+            Err(_) => Vec::new(),
+        };
+        let dt_s = meta.get("control_dt_s").and_then(|s| s.parse().ok()).unwrap_or(0.05);
+        let states =
+            file.messages::<StateRow>("/copters/state").map_err(read_error)?.into_iter().map(|m| m.1).collect();
+        let commands = if need_commands {
+            file.messages::<CommandRow>("/copters/command").map_err(read_error)?.into_iter().map(|m| m.1).collect()
+        } else {
+            Vec::new()
+        };
+        let sensors = if need_sensors {
+            file.messages::<SensorRow>("/copters/sensors").map_err(read_error)?.into_iter().map(|m| m.1).collect()
+        } else {
+            Vec::new()
+        };
+        Ok(Self { copters, arena_m, boxes, dt_s, states, commands, sensors })
+    }
+
+    fn copter_id(&self, name: &str) -> Option<usize> {
+        self.copters.iter().position(|c| c.name == name)
+    }
+}
+
+/// The outputs of `twinswarm plot`.
+#[derive(Debug, Default)]
+pub struct PlotRequest<'a> {
+    /// `--heatmap`.
+    pub heatmap: Option<&'a Path>,
+    /// `--attitude`.
+    pub attitude: Option<&'a Path>,
+    /// `--sonar`.
+    pub sonar: Option<&'a Path>,
+    /// `--copter` (for the sonar plot; default the first copter).
+    pub copter: Option<&'a str>,
+}
+
+/// `twinswarm plot`.
+pub fn plot(path: &Path, req: &PlotRequest<'_>) -> anyhow::Result<()> {
+    if req.heatmap.is_none() && req.attitude.is_none() && req.sonar.is_none() {
+        return Err(BadInput(anyhow::anyhow!("plot: give at least one of --heatmap, --attitude, --sonar")).into());
+    }
+    let file = LogFile::open(path).map_err(read_error)?;
+    let data = PlotData::load(&file, req.attitude.is_some(), req.sonar.is_some())?;
+    if data.states.is_empty() {
+        return Err(BadInput(anyhow::anyhow!("{}: no messages on /copters/state to plot", path.display())).into());
+    }
+    let sonar_id = match req.copter {
+        None => 0,
+        Some(name) => data.copter_id(name).ok_or_else(|| {
+            let names: Vec<&str> = data.copters.iter().map(|c| c.name.as_str()).collect();
+            BadInput(anyhow::anyhow!("--copter {name:?}: no such copter in the log (copters: {})", names.join(", ")))
+        })?,
+    };
+    register_font()?;
+    if let Some(out) = req.heatmap {
+        let size = heatmap_size(&data);
+        draw_png(out, size, |root| draw_heatmap(&data, root))?;
+        println!("wrote {} ({}x{} px): position heat-map", out.display(), size.0, size.1);
+    }
+    if let Some(out) = req.attitude {
+        draw_png(out, FIGURE_PX, |root| draw_attitude(&data, root))?;
+        println!("wrote {} ({}x{} px): pitch and roll", out.display(), FIGURE_PX.0, FIGURE_PX.1);
+    }
+    if let Some(out) = req.sonar {
+        draw_png(out, FIGURE_PX, |root| draw_sonar(&data, sonar_id, root))?;
+        println!(
+            "wrote {} ({}x{} px): sonars and y of {}",
+            out.display(),
+            FIGURE_PX.0,
+            FIGURE_PX.1,
+            data.copters[sonar_id].name
+        );
+    }
+    Ok(())
+}
+
+type Area<'a> = DrawingArea<BitMapBackend<'a>, Shift>;
+type DrawResult = Result<(), Box<dyn std::error::Error + 'static>>;
+
+fn draw_png(out: &Path, size: (u32, u32), draw: impl FnOnce(&Area<'_>) -> DrawResult) -> anyhow::Result<()> {
+    if let Some(dir) = out.parent().filter(|d| !d.as_os_str().is_empty()) {
+        std::fs::create_dir_all(dir).with_context(|| format!("cannot create {}", dir.display()))?;
+    }
+    let root = BitMapBackend::new(out, size).into_drawing_area();
+    draw(&root).map_err(|e| anyhow::anyhow!("cannot draw {}: {e}", out.display()))?;
+    root.present().map_err(|e| anyhow::anyhow!("cannot write {}: {e}", out.display()))?;
+    Ok(())
+}
+
+/// Draws into an RGB buffer (for tests): `w × h × 3` bytes.
+#[cfg(test)]
+fn draw_buffer(size: (u32, u32), draw: impl FnOnce(&Area<'_>) -> DrawResult) -> Vec<u8> {
+    let mut buf = vec![0u8; (size.0 * size.1 * 3) as usize];
+    {
+        let root = BitMapBackend::with_buffer(&mut buf, size).into_drawing_area();
+        draw(&root).expect("draw");
+        root.present().expect("present");
+    }
+    buf
+}
+
+const PALETTE: [RGBColor; 8] = [
+    RGBColor(31, 119, 180),
+    RGBColor(214, 39, 40),
+    RGBColor(44, 160, 44),
+    RGBColor(255, 127, 14),
+    RGBColor(148, 103, 189),
+    RGBColor(140, 86, 75),
+    RGBColor(227, 119, 194),
+    RGBColor(23, 190, 207),
+];
+
+fn lighter(c: RGBColor) -> RGBColor {
+    RGBColor(c.0 / 2 + 128, c.1 / 2 + 128, c.2 / 2 + 128)
+}
+
+/// Panels: one per copter up to 9, else one panel with all copters together.
+fn heatmap_panels(data: &PlotData) -> Vec<Option<usize>> {
+    if data.copters.len() <= 9 { (0..data.copters.len()).map(Some).collect() } else { vec![None] }
+}
+
+fn heatmap_grid(n: usize) -> (usize, usize) {
+    let cols = (n as f64).sqrt().ceil().max(1.0) as usize;
+    (n.div_ceil(cols), cols)
+}
+
+fn heatmap_size(data: &PlotData) -> (u32, u32) {
+    let (rows, cols) = heatmap_grid(heatmap_panels(data).len());
+    (HEATMAP_PANEL_PX.0 * cols as u32, HEATMAP_PANEL_PX.1 * rows as u32)
+}
+
+fn draw_heatmap(data: &PlotData, root: &Area<'_>) -> DrawResult {
+    root.fill(&WHITE)?;
+    let panels = heatmap_panels(data);
+    let (rows, cols) = heatmap_grid(panels.len());
+    let areas = root.split_evenly((rows, cols));
+    let [sx, sy] = data.arena_m;
+    let (hx, hy) = (sx / 2.0, sy / 2.0);
+    let nx = (sx / CELL_M).ceil() as usize;
+    let ny = (sy / CELL_M).ceil() as usize;
+    for (panel, area) in panels.iter().zip(&areas) {
+        let mut counts = vec![0u32; nx * ny];
+        for s in data.states.iter().filter(|s| panel.is_none_or(|id| s.id == id)) {
+            let (x, y) = (s.pos_m[0] as f64, s.pos_m[1] as f64);
+            let (i, j) = (((x + hx) / CELL_M).floor(), ((y + hy) / CELL_M).floor());
+            if i >= 0.0 && j >= 0.0 && (i as usize) < nx && (j as usize) < ny {
+                counts[j as usize * nx + i as usize] += 1;
+            }
+        }
+        let max = counts.iter().copied().max().unwrap_or(0).max(1);
+        let title = match panel {
+            Some(id) => format!("{} ({})", data.copters[*id].name, data.copters[*id].kind),
+            None => format!("all {} copters", data.copters.len()),
+        };
+        let caption = format!("{title}: time per {:.0} cm cell, max {:.1} s", CELL_M * 100.0, max as f64 * data.dt_s);
+        let m = 0.15;
+        let mut chart = ChartBuilder::on(area)
+            .caption(caption, (FONT, 17))
+            .margin(10)
+            .x_label_area_size(40)
+            .y_label_area_size(50)
+            .build_cartesian_2d((-hx - m)..(hx + m), (-hy - m)..(hy + m))?;
+        chart
+            .configure_mesh()
+            .disable_mesh()
+            .x_desc("x (m)")
+            .y_desc("y (m)")
+            .label_style((FONT, 14))
+            .axis_desc_style((FONT, 15))
+            .draw()?;
+        let ln_max = (1.0 + max as f64).ln();
+        chart.draw_series(counts.iter().enumerate().filter(|(_, c)| **c > 0).map(|(k, c)| {
+            let (i, j) = ((k % nx) as f64, (k / nx) as f64);
+            let t = (1.0 + *c as f64).ln() / ln_max;
+            let lerp = |a: f64, b: f64| (a + (b - a) * t).round() as u8;
+            let color = RGBColor(lerp(222.0, 8.0), lerp(235.0, 48.0), lerp(247.0, 107.0));
+            let (x0, y0) = (-hx + i * CELL_M, -hy + j * CELL_M);
+            Rectangle::new([(x0, y0), (x0 + CELL_M, y0 + CELL_M)], color.filled())
+        }))?;
+        // Arena outline and boxes.
+        chart.draw_series(std::iter::once(PathElement::new(
+            vec![(-hx, -hy), (hx, -hy), (hx, hy), (-hx, hy), (-hx, -hy)],
+            BLACK.stroke_width(2),
+        )))?;
+        for b in &data.boxes {
+            let (c, s) = (b.yaw_rad.cos() as f64, b.yaw_rad.sin() as f64);
+            let (ex, ey) = (b.size_m[0] as f64 / 2.0, b.size_m[1] as f64 / 2.0);
+            let corner = |u: f64, v: f64| (b.center_m[0] as f64 + c * u - s * v, b.center_m[1] as f64 + s * u + c * v);
+            let pts = vec![corner(-ex, -ey), corner(ex, -ey), corner(ex, ey), corner(-ex, ey), corner(-ex, -ey)];
+            chart.draw_series(std::iter::once(PathElement::new(pts, RGBColor(140, 80, 30).stroke_width(2))))?;
+            chart.draw_series(std::iter::once(Text::new(
+                b.name.clone(),
+                corner(-ex, ey),
+                (FONT, 12).into_font().color(&RGBColor(140, 80, 30)),
+            )))?;
+        }
+        // Start positions.
+        for (id, c) in data.copters.iter().enumerate() {
+            if panel.is_some_and(|p| p != id) {
+                continue;
+            }
+            if let Some(p) = c.start_pos_m {
+                chart.draw_series(std::iter::once(Cross::new((p[0] as f64, p[1] as f64), 5, RED.stroke_width(2))))?;
+            }
+        }
+    }
+    Ok(())
+}
+
+/// Copters in line plots: the first [`MAX_LINES`].
+fn line_copters(data: &PlotData) -> (Vec<usize>, String) {
+    let n = data.copters.len();
+    let ids: Vec<usize> = (0..n.min(MAX_LINES)).collect();
+    let note = if n > MAX_LINES { format!(" (first {MAX_LINES} of {n} copters)") } else { String::new() };
+    (ids, note)
+}
+
+fn time_range(data: &PlotData) -> std::ops::Range<f64> {
+    let end = data.states.iter().map(|s| s.t_s).fold(0.0, f64::max);
+    0.0..end.max(data.dt_s)
+}
+
+fn value_range(values: impl Iterator<Item = f64>, min_span: f64) -> std::ops::Range<f64> {
+    let (lo, hi) = values.filter(|v| v.is_finite()).fold((f64::MAX, f64::MIN), |(a, b), v| (a.min(v), b.max(v)));
+    if lo > hi {
+        return -min_span..min_span;
+    }
+    let mid = (lo + hi) / 2.0;
+    let half = ((hi - lo) / 2.0).max(min_span / 2.0) * 1.1;
+    (mid - half)..(mid + half)
+}
+
+fn draw_attitude(data: &PlotData, root: &Area<'_>) -> DrawResult {
+    root.fill(&WHITE)?;
+    let (ids, note) = line_copters(data);
+    let areas = root.split_evenly((2, 1));
+    let t = time_range(data);
+    for (axis, (area, name)) in areas.iter().zip(["pitch", "roll"]).enumerate() {
+        // rpy_rad: [roll, pitch, yaw]; axis 0 = pitch.
+        let k = if axis == 0 { 1 } else { 0 };
+        let cmd_of = |c: &CommandRow| (if axis == 0 { c.pitch_rad } else { c.roll_rad }) as f64;
+        let twins: Vec<usize> = ids.iter().copied().filter(|&id| data.copters[id].kind == "real").collect();
+        let values = data
+            .states
+            .iter()
+            .filter(|s| s.id < MAX_LINES)
+            .map(|s| (s.rpy_rad[k] as f64).to_degrees())
+            .chain(data.commands.iter().filter(|c| twins.contains(&c.id)).map(|c| cmd_of(c).to_degrees()));
+        let y = value_range(values, 2.0);
+        let mut chart = ChartBuilder::on(area)
+            .caption(format!("{name} over time{note}"), (FONT, 20))
+            .margin(12)
+            .x_label_area_size(45)
+            .y_label_area_size(60)
+            .build_cartesian_2d(t.clone(), y)?;
+        chart
+            .configure_mesh()
+            .x_desc("time (s)")
+            .y_desc(format!("{name} (°)"))
+            .label_style((FONT, 14))
+            .axis_desc_style((FONT, 16))
+            .light_line_style(RGBColor(235, 235, 235))
+            .draw()?;
+        for (n, &id) in ids.iter().enumerate() {
+            let color = PALETTE[n % PALETTE.len()];
+            let c = &data.copters[id];
+            if c.kind == "real" {
+                let cmd = data.commands.iter().filter(|r| r.id == id).map(|r| (r.t_s, cmd_of(r).to_degrees()));
+                chart
+                    .draw_series(LineSeries::new(cmd, lighter(color).stroke_width(3)))?
+                    .label(format!("{} commanded", c.name))
+                    .legend(move |(x, y)| PathElement::new(vec![(x, y), (x + 20, y)], lighter(color).stroke_width(3)));
+            }
+            let series = data.states.iter().filter(|s| s.id == id).map(|s| (s.t_s, (s.rpy_rad[k] as f64).to_degrees()));
+            let label = if c.kind == "real" { format!("{} twin", c.name) } else { c.name.clone() };
+            chart
+                .draw_series(LineSeries::new(series, color.stroke_width(1)))?
+                .label(label)
+                .legend(move |(x, y)| PathElement::new(vec![(x, y), (x + 20, y)], color.stroke_width(2)));
+        }
+        chart
+            .configure_series_labels()
+            .label_font((FONT, 14))
+            .background_style(WHITE.mix(0.85))
+            .border_style(RGBColor(180, 180, 180))
+            .position(SeriesLabelPosition::UpperRight)
+            .draw()?;
+    }
+    Ok(())
+}
+
+fn draw_sonar(data: &PlotData, id: usize, root: &Area<'_>) -> DrawResult {
+    root.fill(&WHITE)?;
+    let areas = root.split_evenly((2, 1));
+    let t = time_range(data);
+    let name = &data.copters[id].name;
+    let readings: Vec<&SensorRow> = data.sensors.iter().filter(|s| s.id == id).collect();
+    let max = readings.iter().flat_map(|r| r.sonar_m).fold(1.0f32, f32::max) as f64;
+    let mut chart = ChartBuilder::on(&areas[0])
+        .caption(format!("{name}: sonar distances"), (FONT, 20))
+        .margin(12)
+        .x_label_area_size(45)
+        .y_label_area_size(60)
+        .build_cartesian_2d(t.clone(), 0.0..max * 1.05)?;
+    chart
+        .configure_mesh()
+        .x_desc("time (s)")
+        .y_desc("distance (m)")
+        .label_style((FONT, 14))
+        .axis_desc_style((FONT, 16))
+        .light_line_style(RGBColor(235, 235, 235))
+        .draw()?;
+    for (k, label) in ["front", "right", "back", "left"].into_iter().enumerate() {
+        let color = PALETTE[k];
+        chart
+            .draw_series(LineSeries::new(readings.iter().map(|r| (r.t_s, r.sonar_m[k] as f64)), color.stroke_width(1)))?
+            .label(label)
+            .legend(move |(x, y)| PathElement::new(vec![(x, y), (x + 20, y)], color.stroke_width(2)));
+    }
+    chart
+        .configure_series_labels()
+        .label_font((FONT, 14))
+        .background_style(WHITE.mix(0.85))
+        .border_style(RGBColor(180, 180, 180))
+        .position(SeriesLabelPosition::UpperRight)
+        .draw()?;
+    let ys: Vec<(f64, f64)> = data.states.iter().filter(|s| s.id == id).map(|s| (s.t_s, s.pos_m[1] as f64)).collect();
+    let y_range = value_range(ys.iter().map(|p| p.1), 0.2);
+    let mut chart = ChartBuilder::on(&areas[1])
+        .caption(format!("{name}: y position"), (FONT, 20))
+        .margin(12)
+        .x_label_area_size(45)
+        .y_label_area_size(60)
+        .build_cartesian_2d(t, y_range)?;
+    chart
+        .configure_mesh()
+        .x_desc("time (s)")
+        .y_desc("y (m)")
+        .label_style((FONT, 14))
+        .axis_desc_style((FONT, 16))
+        .light_line_style(RGBColor(235, 235, 235))
+        .draw()?;
+    chart.draw_series(LineSeries::new(ys, BLACK.stroke_width(2)))?;
+    Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use bridge::log::{LogMeta, Logger};
+
+    fn temp_dir(tag: &str) -> std::path::PathBuf {
+        let dir = std::env::temp_dir().join(format!("twinswarm-plot-{tag}-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        dir
+    }
+
+    /// A 6 s run of the lab with the second copter made a twin (kind real) flying a
+    /// commanded pitch, logged.
+    fn sample_log(dir: &Path) -> std::path::PathBuf {
+        let text = sim_core::scene::DEFAULT_SCENE_TOML.replacen(
+            "name = \"finken2\"\nkind = \"virtual\"",
+            "name = \"finken2\"\nkind = \"real\"",
+            1,
+        );
+        let (_, world) = sim_core::scene::load("test", &text).unwrap();
+        let mut state = world.initial_state();
+        let mut inputs = world.initial_inputs();
+        inputs.commands[1].mode = sim_core::FlightMode::MixedManual;
+        let path = dir.join("run.mcap");
+        let mut log = Logger::create(&path, &world, &text, LogMeta::default()).unwrap();
+        for k in 0..120 {
+            inputs.commands[1].pitch_rad = if (k / 20) % 2 == 1 { 0.05 } else { -0.05 };
+            let r = sim_core::step(&world, &mut state, &inputs);
+            log.log_step(&world, &state, &inputs, &r).unwrap();
+        }
+        log.finish().unwrap();
+        path
+    }
+
+    fn distinct_colors(buf: &[u8]) -> usize {
+        let mut seen = std::collections::HashSet::new();
+        for px in buf.chunks_exact(3) {
+            seen.insert((px[0], px[1], px[2]));
+            if seen.len() > 64 {
+                break;
+            }
+        }
+        seen.len()
+    }
+
+    #[test]
+    fn plots_draw_something_and_write_pngs_of_the_expected_size() {
+        register_font().unwrap();
+        let dir = temp_dir("ok");
+        let path = sample_log(&dir);
+        let file = LogFile::open(&path).unwrap();
+        let data = PlotData::load(&file, true, true).unwrap();
+        assert_eq!(data.copters.len(), 2);
+        assert_eq!(data.states.len(), 240);
+        assert_eq!(heatmap_size(&data), (HEATMAP_PANEL_PX.0 * 2, HEATMAP_PANEL_PX.1));
+        for (what, buf) in [
+            ("heatmap", draw_buffer(heatmap_size(&data), |a| draw_heatmap(&data, a))),
+            ("attitude", draw_buffer(FIGURE_PX, |a| draw_attitude(&data, a))),
+            ("sonar", draw_buffer(FIGURE_PX, |a| draw_sonar(&data, 0, a))),
+        ] {
+            assert!(distinct_colors(&buf) > 16, "{what} looks blank: {} colours", distinct_colors(&buf));
+        }
+        let outs = [dir.join("h.png"), dir.join("a.png"), dir.join("s.png")];
+        let req = PlotRequest {
+            heatmap: Some(&outs[0]),
+            attitude: Some(&outs[1]),
+            sonar: Some(&outs[2]),
+            copter: Some("finken2"),
+        };
+        plot(&path, &req).unwrap();
+        for (out, (w, h)) in outs.iter().zip([heatmap_size(&data), FIGURE_PX, FIGURE_PX]) {
+            let png = std::fs::read(out).unwrap();
+            assert_eq!(&png[..8], b"\x89PNG\r\n\x1a\n", "{}", out.display());
+            let width = u32::from_be_bytes(png[16..20].try_into().unwrap());
+            let height = u32::from_be_bytes(png[20..24].try_into().unwrap());
+            assert_eq!((width, height), (w, h), "{}", out.display());
+        }
+        let _ = std::fs::remove_dir_all(&dir);
+    }
+
+    #[test]
+    fn bad_files_give_clear_bad_input_errors() {
+        let dir = temp_dir("bad");
+        let good = sample_log(&dir);
+        let bytes = std::fs::read(&good).unwrap();
+        let cases = [
+            ("empty.mcap", Vec::new(), "is empty"),
+            ("text.mcap", b"name = \"lab\"\n".repeat(20), "not an MCAP file"),
+            ("cut.mcap", bytes[..bytes.len() / 2].to_vec(), "truncated"),
+        ];
+        let out = dir.join("x.png");
+        for (name, content, expect) in cases {
+            let p = dir.join(name);
+            std::fs::write(&p, content).unwrap();
+            let req = PlotRequest { heatmap: Some(&out), ..PlotRequest::default() };
+            let err = plot(&p, &req).unwrap_err();
+            assert!(err.downcast_ref::<BadInput>().is_some(), "{name}: not a bad-input error: {err:#}");
+            assert!(format!("{err:#}").contains(expect), "{name}: {err:#}");
+            let err = crate::logcmd::info(&p).unwrap_err();
+            assert!(err.downcast_ref::<BadInput>().is_some(), "{name}: info: {err:#}");
+            assert!(format!("{err:#}").contains(expect), "{name}: info: {err:#}");
+        }
+        let missing = dir.join("missing.mcap");
+        let err = crate::logcmd::info(&missing).unwrap_err();
+        assert!(err.downcast_ref::<BadInput>().is_some(), "{err:#}");
+        assert!(!out.exists());
+        let _ = std::fs::remove_dir_all(&dir);
+    }
+}

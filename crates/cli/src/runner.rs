@@ -1,0 +1,168 @@
+//! Runs a world: the step loop on its own thread, and, unless `--no-bus`, the Zenoh node on a
+//! tokio multi-thread runtime publishing its frames and feeding it commands. Ctrl-C and
+//! SIGTERM stop the loop after the current step; the session is closed explicitly.
+
+use std::path::PathBuf;
+use std::sync::Arc;
+use std::sync::atomic::{AtomicBool, Ordering};
+
+use anyhow::Context;
+use bridge::node::{self, Node};
+use bridge::sim::{self, LoopOptions, LoopStats, Request, StepObserver};
+use sim_core::{State, World};
+
+/// Bus options from the command line.
+#[derive(Debug, Clone, Default)]
+pub struct BusOptions {
+    /// Run without Zenoh.
+    pub no_bus: bool,
+    /// A full Zenoh configuration file (JSON5).
+    pub zenoh_config: Option<PathBuf>,
+    /// Endpoints to listen on (override).
+    pub listen: Vec<String>,
+    /// Endpoints to connect to (override).
+    pub connect: Vec<String>,
+    /// Key-expression prefix (default `twinswarm/<world>`).
+    pub prefix: Option<String>,
+}
+
+/// What a run leaves behind.
+#[derive(Debug)]
+pub struct RunOutcome {
+    pub world: Arc<World>,
+    pub state: State,
+    pub stats: LoopStats,
+    pub bus: Option<BusReport>,
+}
+
+/// Counters of the bus side.
+#[derive(Debug, Clone, serde::Serialize)]
+pub struct BusReport {
+    pub prefix: String,
+    pub commands_accepted: u64,
+    pub commands_rejected: u64,
+    pub published: u64,
+    pub clients_seen: u64,
+}
+
+/// Builds the Zenoh configuration: the file if given (with `--listen`/`--connect` applied on
+/// top), else the embedded default (peer, `tcp/127.0.0.1:7447`, multicast scouting off).
+pub fn zenoh_config(opts: &BusOptions) -> anyhow::Result<zenoh::Config> {
+    match &opts.zenoh_config {
+        None => Ok(node::default_config(&opts.listen, &opts.connect)?),
+        Some(path) => {
+            let mut c = zenoh::Config::from_file(path)
+                .map_err(|e| anyhow::anyhow!("{e}"))
+                .with_context(|| format!("cannot load zenoh config {}", path.display()))?;
+            if !opts.listen.is_empty() {
+                c.insert_json5("listen/endpoints", &serde_json::to_string(&opts.listen)?)
+                    .map_err(|e| anyhow::anyhow!("--listen: {e}"))?;
+            }
+            if !opts.connect.is_empty() {
+                c.insert_json5("connect/endpoints", &serde_json::to_string(&opts.connect)?)
+                    .map_err(|e| anyhow::anyhow!("--connect: {e}"))?;
+            }
+            Ok(c)
+        }
+    }
+}
+
+/// Runs `ticks` control steps of `world`.
+pub fn run(
+    world: World,
+    ticks: u64,
+    realtime: bool,
+    bus: &BusOptions,
+    observer: &mut (dyn StepObserver + Send),
+) -> anyhow::Result<RunOutcome> {
+    let stop = Arc::new(AtomicBool::new(false));
+    let state = world.initial_state();
+    let inputs = world.initial_inputs();
+    let opts = LoopOptions { realtime, ticks };
+    let (req_tx, req_rx) = std::sync::mpsc::sync_channel::<Request>(1024);
+
+    if bus.no_bus {
+        // No bus, but signals still stop the run cleanly: one worker thread waits for them.
+        let rt = tokio::runtime::Builder::new_multi_thread().worker_threads(1).enable_all().build()?;
+        let stop2 = stop.clone();
+        rt.spawn(async move {
+            wait_for_signal().await;
+            stop2.store(true, Ordering::Relaxed);
+        });
+        let (world, state, stats) = sim::run_loop(world, state, inputs, req_rx, None, observer, &stop, &opts);
+        drop(req_tx);
+        rt.shutdown_background();
+        return Ok(RunOutcome { world, state, stats, bus: None });
+    }
+
+    let config = zenoh_config(bus)?;
+    let prefix = bus.prefix.clone().unwrap_or_else(|| node::default_prefix(&world));
+    let rt = tokio::runtime::Builder::new_multi_thread().worker_threads(2).enable_all().build()?;
+    let world_arc = Arc::new(world.clone());
+    let mut node = rt
+        .block_on(Node::open(config, prefix.clone(), world_arc, req_tx.clone()))
+        .with_context(|| format!("cannot start the Zenoh node (prefix {prefix})"))?;
+    let (frame_tx, mut frame_rx) = tokio::sync::mpsc::channel(256);
+
+    let outcome = std::thread::scope(|s| -> anyhow::Result<(Arc<World>, State, LoopStats)> {
+        let stop_loop = stop.clone();
+        let h = s.spawn(move || sim::run_loop(world, state, inputs, req_rx, Some(frame_tx), observer, &stop_loop, &opts));
+        let stop_sig = stop.clone();
+        rt.block_on(async {
+            let signal = wait_for_signal();
+            tokio::pin!(signal);
+            let mut signalled = false;
+            loop {
+                tokio::select! {
+                    frame = frame_rx.recv() => match frame {
+                        Some(frame) => {
+                            if let Err(e) = node.publish(&frame).await {
+                                tracing::warn!("publish failed: {e}");
+                            }
+                        }
+                        None => break, // the loop ended
+                    },
+                    _ = &mut signal, if !signalled => {
+                        signalled = true;
+                        stop_sig.store(true, Ordering::Relaxed);
+                    }
+                }
+            }
+        });
+        h.join().map_err(|_| anyhow::anyhow!("the step loop panicked"))
+    })?;
+    drop(req_tx);
+    let c = &node.counters;
+    let report = BusReport {
+        prefix,
+        commands_accepted: c.commands_accepted.load(Ordering::Relaxed),
+        commands_rejected: c.commands_rejected.load(Ordering::Relaxed),
+        published: c.published.load(Ordering::Relaxed),
+        clients_seen: c.clients_seen.load(Ordering::Relaxed),
+    };
+    rt.block_on(node.close()).context("closing the Zenoh session")?;
+    let (world, state, stats) = outcome;
+    Ok(RunOutcome { world, state, stats, bus: Some(report) })
+}
+
+/// Resolves on Ctrl-C or SIGTERM.
+async fn wait_for_signal() {
+    #[cfg(unix)]
+    {
+        let mut term = match tokio::signal::unix::signal(tokio::signal::unix::SignalKind::terminate()) {
+            Ok(s) => s,
+            Err(_) => {
+                let _ = tokio::signal::ctrl_c().await;
+                return;
+            }
+        };
+        tokio::select! {
+            _ = tokio::signal::ctrl_c() => {}
+            _ = term.recv() => {}
+        }
+    }
+    #[cfg(not(unix))]
+    {
+        let _ = tokio::signal::ctrl_c().await;
+    }
+}

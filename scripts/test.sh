@@ -1,0 +1,48 @@
+#!/usr/bin/env bash
+# The one test command: installs what the tests need, then runs every check and test.
+#   scripts/test.sh
+# Safe to run on a fresh machine and in CI (.ci/run calls it).
+set -euo pipefail
+cd "$(dirname "$0")/.."
+
+say() { printf '\n==> %s\n' "$*"; }
+
+say "toolchain"
+cargo --version
+for comp in rustfmt clippy; do
+  if ! rustup component list --installed 2>/dev/null | grep -q "^${comp}"; then
+    echo "installing rustup component ${comp}"
+    rustup component add "${comp}"
+  fi
+done
+
+say "cargo fmt --check"
+cargo fmt --all -- --check
+
+say "cargo clippy --all-targets -- -D warnings"
+cargo clippy --workspace --all-targets --locked -- -D warnings
+
+say "cargo test (every crate, every test; benches built and run once as tests)"
+cargo test --workspace --all-targets --locked
+
+say "cargo test --doc"
+cargo test --workspace --doc --locked
+
+say "python: independent MCAP reader (tests/python)"
+if [ ! -x .venv/bin/python ]; then
+  python3 -m venv .venv
+fi
+.venv/bin/python -m pip install --quiet --disable-pip-version-check -r tests/python/requirements.txt
+cargo build -p twinswarm --locked
+pytest_status=0
+TWINSWARM_BIN="$PWD/target/debug/twinswarm" .venv/bin/python -m pytest -q tests/python || pytest_status=$?
+if [ "$pytest_status" -eq 5 ]; then
+  echo "error: pytest collected no tests in tests/python" >&2
+  exit 1
+elif [ "$pytest_status" -ne 0 ]; then
+  echo "error: python tests failed (pytest exit code $pytest_status)" >&2
+  exit "$pytest_status"
+fi
+
+echo
+echo "all checks passed: fmt, clippy, cargo tests, doc tests, python MCAP reader tests"
