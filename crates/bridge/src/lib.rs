@@ -1,7 +1,6 @@
-//! Twinswarm's bridge core, without any network: everything the bridge
-//! needs to speak Paparazzi's language, so that the Zenoh layer on top only
-//! moves texts around.
+//! Twinswarm's bridge: everything between the simulation core and the outside world.
 //!
+//! Sans-I/O formats (pure functions over text):
 //! * [`messages`]: message definitions from `messages.xml` (pprzlink v1.0
 //!   and the older FINken-era `conf/messages.xml`).
 //! * [`codec`]: the Ivy text form `<sender> <NAME> <fields...>`, encode and
@@ -13,29 +12,35 @@
 //!   `dispatch`), transport-agnostic.
 //! * [`keyexpr`]: Zenoh keys for Ivy texts and regex → key-expression
 //!   narrowing.
+//! * [`pprz`]: real telemetry → twin commands, `VIRTUAL_SONAR`, virtual
+//!   copters' telemetry, with the NED/FLU frame conversions.
+//! * [`wire`]: the JSON messages of the bus (state, sensors, commands).
 //! * [`xml`]: the shared XML reader and its error type with file/line/column.
-//! * [`log`]: MCAP logging of runs (a writer thread), `log info`/`recover`
-//!   and the readers behind `plot`.
 //!
-//! **Architecture invariant:** apart from [`log`], this crate does no I/O
-//! except reading the files it is asked to parse (`from_file` constructors);
-//! it has no async, no threads, no clocks, and never panics on input.
-//! [`log`] writes files from one writer thread and reads the wall clock
-//! once per run (the log epoch); its encoding ([`log::Encoder`]) is sans I/O.
+//! Runtime:
+//! * [`sim`]: the step loop on its own thread, bounded channels in and out,
+//!   real-time pacing against absolute deadlines.
+//! * [`node`]: the Zenoh session: key expressions, publishers, the command
+//!   subscriber, queryables and liveliness.
+//!
+//! **Architecture invariant:** the format modules never do I/O except reading
+//! the files they are asked to parse, and never panic on input. Only [`node`]
+//! knows Zenoh; only [`sim`] runs the step loop, and it never blocks on
+//! publishing.
 
 pub mod bus;
-pub mod node;
-pub mod sim;
-pub mod wire;
 pub mod codec;
 pub mod conf;
 pub mod keyexpr;
 pub mod log;
 pub mod messages;
+pub mod node;
 pub mod pairing;
 pub mod pprz;
+pub mod sim;
 pub mod telemetry;
 pub mod value;
+pub mod wire;
 pub mod xml;
 
 /// Paparazzi aircraft id (one byte on the link, the Ivy sender of telemetry).

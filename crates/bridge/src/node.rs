@@ -53,7 +53,9 @@ fn zerr(e: impl std::fmt::Display) -> NodeError {
 pub fn default_config(listen: &[String], connect: &[String]) -> Result<zenoh::Config, NodeError> {
     let listen: Vec<String> = if listen.is_empty() { vec![DEFAULT_LISTEN.to_owned()] } else { listen.to_vec() };
     let mut c = zenoh::Config::default();
-    let set = |c: &mut zenoh::Config, k: &str, v: String| c.insert_json5(k, &v).map_err(|e| NodeError::Config(format!("{k}: {e}")));
+    let set = |c: &mut zenoh::Config, k: &str, v: String| {
+        c.insert_json5(k, &v).map_err(|e| NodeError::Config(format!("{k}: {e}")))
+    };
     set(&mut c, "mode", "\"peer\"".into())?;
     set(&mut c, "scouting/multicast/enabled", "false".into())?;
     set(&mut c, "listen/endpoints", serde_json::to_string(&listen).map_err(|e| NodeError::Config(e.to_string()))?)?;
@@ -65,7 +67,9 @@ pub fn default_config(listen: &[String], connect: &[String]) -> Result<zenoh::Co
 /// `connect`, listens nowhere, multicast scouting off.
 pub fn client_config(connect: &[String]) -> Result<zenoh::Config, NodeError> {
     let mut c = zenoh::Config::default();
-    let set = |c: &mut zenoh::Config, k: &str, v: String| c.insert_json5(k, &v).map_err(|e| NodeError::Config(format!("{k}: {e}")));
+    let set = |c: &mut zenoh::Config, k: &str, v: String| {
+        c.insert_json5(k, &v).map_err(|e| NodeError::Config(format!("{k}: {e}")))
+    };
     set(&mut c, "mode", "\"peer\"".into())?;
     set(&mut c, "scouting/multicast/enabled", "false".into())?;
     set(&mut c, "listen/endpoints", "[]".into())?;
@@ -290,7 +294,8 @@ impl Node {
                             let answer = tokio::time::timeout(Duration::from_secs(5), rx).await;
                             let _ = match answer {
                                 Ok(Ok(Ok(name))) => {
-                                    q.reply(q.key_expr().clone(), serde_json::json!({ "spawned": name }).to_string()).await
+                                    q.reply(q.key_expr().clone(), serde_json::json!({ "spawned": name }).to_string())
+                                        .await
                                 }
                                 Ok(Ok(Err(e))) => q.reply_err(e).await,
                                 _ => q.reply_err("the step loop did not answer").await,
@@ -333,9 +338,16 @@ impl Node {
 
     async fn declare_copter_publishers(&mut self, world: &World) -> Result<(), NodeError> {
         for c in &world.copters[self.publishers.len()..] {
-            let state = self.session.declare_publisher(format!("{}/copters/{}/state", self.prefix, c.name)).await.map_err(zerr)?;
-            let sensors =
-                self.session.declare_publisher(format!("{}/copters/{}/sensors", self.prefix, c.name)).await.map_err(zerr)?;
+            let state = self
+                .session
+                .declare_publisher(format!("{}/copters/{}/state", self.prefix, c.name))
+                .await
+                .map_err(zerr)?;
+            let sensors = self
+                .session
+                .declare_publisher(format!("{}/copters/{}/sensors", self.prefix, c.name))
+                .await
+                .map_err(zerr)?;
             self.publishers.push((state, sensors));
         }
         Ok(())

@@ -46,10 +46,12 @@ pub fn twin_command(msg: &Message<'_>) -> Option<CommandMsg> {
             throttle: f(msg, "thrust").map(|p| (p / 100.0).clamp(0.0, 1.0)),
             ..CommandMsg::default()
         }),
-        "FINKEN_SENSOR_MODEL" => f(msg, "pos_z").filter(|z| *z > 0.0).map(|z| CommandMsg { height: Some(z), ..Default::default() }),
-        "FINKEN_IR_ADC" => {
-            f(msg, "ir_distance").filter(|cm| *cm > 0.0).map(|cm| CommandMsg { height: Some(cm / 100.0), ..Default::default() })
+        "FINKEN_SENSOR_MODEL" => {
+            f(msg, "pos_z").filter(|z| *z > 0.0).map(|z| CommandMsg { height: Some(z), ..Default::default() })
         }
+        "FINKEN_IR_ADC" => f(msg, "ir_distance")
+            .filter(|cm| *cm > 0.0)
+            .map(|cm| CommandMsg { height: Some(cm / 100.0), ..Default::default() }),
         "ATTITUDE" => Some(CommandMsg {
             pitch: f(msg, "theta").map(|t| -t),
             roll: f(msg, "phi"),
@@ -138,7 +140,15 @@ pub fn virtual_telemetry(
     );
     if let Some(s) = sensors {
         let sonar = s.sonar_m;
-        push("SONAR_ARRAY", vec![Value::U16(cm(sonar.front)), Value::U16(cm(sonar.right)), Value::U16(cm(sonar.back)), Value::U16(cm(sonar.left))]);
+        push(
+            "SONAR_ARRAY",
+            vec![
+                Value::U16(cm(sonar.front)),
+                Value::U16(cm(sonar.right)),
+                Value::U16(cm(sonar.back)),
+                Value::U16(cm(sonar.left)),
+            ],
+        );
         let [ax, ay, az] = s.accel_body_m_s2;
         push(
             "FINKEN_SENSOR_MODEL",
@@ -177,7 +187,15 @@ mod tests {
     #[test]
     fn the_embedded_definitions_parse_and_have_what_the_bridge_uses() {
         let m = project_messages();
-        for name in ["SONAR_ARRAY", "FINKEN_SENSOR_MODEL", "FINKEN_ACTUATORS_SET_POINT", "FINKEN_IR_ADC", "ATTITUDE", "ROTORCRAFT_FP", "VIRTUAL_SONAR"] {
+        for name in [
+            "SONAR_ARRAY",
+            "FINKEN_SENSOR_MODEL",
+            "FINKEN_ACTUATORS_SET_POINT",
+            "FINKEN_IR_ADC",
+            "ATTITUDE",
+            "ROTORCRAFT_FP",
+            "VIRTUAL_SONAR",
+        ] {
             assert!(m.by_name(name).is_some(), "{name}");
         }
     }

@@ -92,6 +92,8 @@ pub trait StepObserver: Send {
     fn after_step(&mut self, world: &World, state: &State, inputs: &Inputs, report: &StepReport);
     /// Called when a copter is spawned, after the world changed.
     fn spawned(&mut self, _world: &World, _id: usize) {}
+    /// Called when a real-time step finished `late_s` after its deadline.
+    fn overrun(&mut self, _tick: u64, _late_s: f64) {}
 }
 
 /// No observer.
@@ -100,6 +102,7 @@ impl StepObserver for () {
 }
 
 /// Runs the loop until `ticks` steps, a stop request, or `stop_flag`. Returns the final state.
+#[allow(clippy::too_many_arguments)]
 pub fn run_loop(
     world: World,
     mut state: State,
@@ -175,6 +178,7 @@ pub fn run_loop(
             let now = Instant::now();
             if now > deadline {
                 stats.overruns += 1;
+                observer.overrun(state.tick, (now - deadline).as_secs_f64());
             } else {
                 std::thread::sleep(deadline - now);
             }

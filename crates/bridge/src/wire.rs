@@ -315,8 +315,17 @@ mod tests {
         assert!(matches!(CommandMsg::parse(br#"{"pitch":"NaN"}"#, &w), Err(CommandError::Malformed(_))));
         let nan = CommandMsg { pitch: Some(f32::NAN), ..Default::default() };
         assert_eq!(nan.validate(&w), Err(CommandError::NotFinite("pitch")));
-        assert!(matches!(CommandMsg::parse(br#"{"throttle":1.5}"#, &w), Err(CommandError::OutOfRange { field: "throttle", .. })));
-        assert!(matches!(CommandMsg::parse(br#"{"height":9.0}"#, &w), Err(CommandError::OutOfRange { field: "height", .. })));
-        assert!(matches!(CommandMsg::parse(br#"{"target":[9,0,1]}"#, &w), Err(CommandError::OutOfRange { field: "target", .. })));
+        assert!(matches!(
+            CommandMsg::parse(br#"{"throttle":1.5}"#, &w),
+            Err(CommandError::OutOfRange { field: "throttle", .. })
+        ));
+        assert!(matches!(
+            CommandMsg::parse(br#"{"height":9.0}"#, &w),
+            Err(CommandError::OutOfRange { field: "height", .. })
+        ));
+        assert!(matches!(
+            CommandMsg::parse(br#"{"target":[9,0,1]}"#, &w),
+            Err(CommandError::OutOfRange { field: "target", .. })
+        ));
     }
 }

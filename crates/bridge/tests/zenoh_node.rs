@@ -80,7 +80,8 @@ async fn commands_queryables_spawn_liveliness_and_bad_payloads() {
     eventually("first state of finken1", || latest("finken1").is_some()).await;
 
     // Liveliness: the simulator's token, and ours tracked by the simulator.
-    let token = within("token", client.liveliness().declare_token(format!("{prefix}/alive/copters/tester"))).await.unwrap();
+    let token =
+        within("token", client.liveliness().declare_token(format!("{prefix}/alive/copters/tester"))).await.unwrap();
     let replies = within("liveliness get", client.liveliness().get(format!("{prefix}/alive/sim"))).await.unwrap();
     let sim_alive = within("liveliness reply", replies.recv_async()).await.is_ok();
     assert!(sim_alive, "the simulator declares a liveliness token");
@@ -95,8 +96,10 @@ async fn commands_queryables_spawn_liveliness_and_bad_payloads() {
     // Command → state: fly finken1 to a target at 1.2 m.
     let cmd = r#"{"mode":"target","target":[-0.8,0.0,1.2],"height":1.2}"#;
     within("put cmd", client.put(&bad_key, cmd)).await.unwrap();
-    eventually("finken1 climbs above 1.1 m", || latest("finken1").is_some_and(|m| m.pos_m[2] > 1.1 && m.mode == "target"))
-        .await;
+    eventually("finken1 climbs above 1.1 m", || {
+        latest("finken1").is_some_and(|m| m.pos_m[2] > 1.1 && m.mode == "target")
+    })
+    .await;
     let n_before = states.lock().unwrap().len();
     eventually("the stream continues", || states.lock().unwrap().len() > n_before + 4).await;
 
@@ -117,7 +120,8 @@ async fn commands_queryables_spawn_liveliness_and_bad_payloads() {
     let bad_spawn = r#"{"name":"newbie","start":{"pos_m":[1.0,1.0]}}"#;
     let replies = within("spawn dup", client.get(format!("{prefix}/spawn")).payload(bad_spawn)).await.unwrap();
     let reply = within("spawn dup reply", replies.recv_async()).await.unwrap();
-    let err = reply.result().err().map(|e| String::from_utf8_lossy(&e.payload().to_bytes()).into_owned()).unwrap_or_default();
+    let err =
+        reply.result().err().map(|e| String::from_utf8_lossy(&e.payload().to_bytes()).into_owned()).unwrap_or_default();
     assert!(err.contains("already used"), "duplicate spawn refused with a reason: {err}");
 
     let list = within("get copters", client.get(format!("{prefix}/copters"))).await.unwrap();

@@ -34,7 +34,7 @@ use nalgebra::Vector2;
 use serde::Serialize;
 use sim_core::control::FlightMode;
 use sim_core::geometry::{Cone, OrientedBox};
-use sim_core::math::{Quat, Real, Vec3};
+use sim_core::math::{Quat, Real, Vec3, wrap_angle_rad};
 use sim_core::rng::Rng32;
 use sim_core::scene::{self, SceneSpec};
 use sim_core::sensors::{SonarScene, sonar_reading};
@@ -45,7 +45,9 @@ use crate::BadInput;
 /// Flight height of the evaluation, m.
 pub const FLIGHT_HEIGHT_M: Real = 0.8;
 /// Cruise speed commanded between wall encounters, m/s.
-pub const CRUISE_SPEED_M_S: Real = 0.5;
+pub const CRUISE_SPEED_M_S: Real = 0.3;
+/// Largest turn rate of the heading command between legs, deg/s.
+pub const TURN_RATE_DEG_S: Real = 30.0;
 /// Statistics start this long after take-off, s.
 pub const SETTLE_S: f64 = 5.0;
 /// Sonar noise of the evaluation, m.
@@ -56,7 +58,8 @@ pub const YAW_NOISE_DEG: Real = 2.0;
 /// sim-core order (front, right, back, left), then 4 synthetic diagonals.
 pub const SLOT_ANGLES_DEG: [f64; 8] = [0.0, -90.0, 180.0, 90.0, 45.0, -45.0, -135.0, 135.0];
 /// Slot names, in slot order.
-pub const SLOT_NAMES: [&str; 8] = ["front", "right", "back", "left", "front-left", "front-right", "back-right", "back-left"];
+pub const SLOT_NAMES: [&str; 8] =
+    ["front", "right", "back", "left", "front-left", "front-right", "back-right", "back-left"];
 /// The evaluated sensor sets, as slot indices.
 pub const SENSOR_SETS: [&[usize]; 3] = [&[0, 1], &[0, 1, 2, 3], &[0, 1, 2, 3, 4, 5, 6, 7]];
 /// Boxes are given to MEDUSA when their top is at least this high: lower ones are under the
@@ -209,8 +212,10 @@ pub struct EvalReport {
 /// Runs the subcommand.
 pub fn run(args: LocalizeArgs) -> anyhow::Result<()> {
     if !args.eval {
-        return Err(BadInput(anyhow::anyhow!("localize: only `--eval` is implemented; try `twinswarm localize --eval`"))
-            .into());
+        return Err(BadInput(anyhow::anyhow!(
+            "localize: only `--eval` is implemented; try `twinswarm localize --eval`"
+        ))
+        .into());
     }
     if !(args.minutes.is_finite() && args.minutes > 0.0 && args.minutes <= 24.0 * 60.0) {
         return Err(BadInput(anyhow::anyhow!("--minutes must be in (0, 1440], got {}", args.minutes)).into());
@@ -227,9 +232,9 @@ pub fn run(args: LocalizeArgs) -> anyhow::Result<()> {
     let walk = eval_scene(WorldChoice::Empty, args.minutes, args.seed, 1)?.sensors.imu.yaw_bias_walk_deg_per_sqrt_s;
     let report = EvalReport::new(flights, f64::from(walk));
     if args.json {
-        println!("{}", serde_json::to_string_pretty(&report)?);
+        outln!("{}", serde_json::to_string_pretty(&report)?);
     } else {
-        print!("{}", report.to_text());
+        out!("{}", report.to_text());
     }
     Ok(())
 }
@@ -294,16 +299,16 @@ impl EvalReport {
                 );
                 let _ = writeln!(
                     s,
-                    "    sonars |  raw MEDUSA cm  | refined cm      | filtered cm           | conf       | >15cm | µs/update"
+                    "    sonars | raw MEDUSA cm | refined cm    | filtered cm         | confidence       | filt > 15 cm | µs/update"
                 );
                 let _ = writeln!(
                     s,
-                    "           |   med    p95    |   med    p95    |  med   p95    max     | med   p05  | share | filter   raw"
+                    "           |   med    p95  |   med    p95  |  med   p95    max  | med   p05  >15cm | share        | filter   raw"
                 );
                 for r in &c.sets {
                     let _ = writeln!(
                         s,
-                        "    {:>6} | {:>5.1} {:>7.1}   | {:>5.1} {:>7.1}   | {:>4.1} {:>5.1} {:>7.1}     | {:.2}  {:.2} | {:>4.1}% | {:>6.0} {:>5.0}",
+                        "    {:>6} | {:>5.1} {:>6.1}  | {:>5.1} {:>6.1}  | {:>4.1} {:>5.1} {:>6.1}  | {:.2}  {:.2}  {:.2} | {:>5.1} %      | {:>6.0} {:>5.0}",
                         r.sensors,
                         r.raw.median_cm,
                         r.raw.p95_cm,
@@ -314,6 +319,7 @@ impl EvalReport {
                         r.filtered.max_cm,
                         r.confidence_median,
                         r.confidence_p05,
+                        r.confidence_median_when_err_above_15cm,
                         r.share_filtered_above_15cm * 100.0,
                         r.filter_us_per_update,
                         r.raw_us_per_locate,
@@ -382,6 +388,7 @@ struct CopterEval {
     diag_rng: Rng32,
     cruise_rng: Rng32,
     next_leg_tick: u64,
+    heading_target_rad: Real,
     stopped: bool,
 }
 
@@ -404,7 +411,6 @@ fn medusa_for(world: &World, slots: &[usize], boxes: &[BoxObstacle]) -> anyhow::
     let model = SensorModel {
         noise_sigma_m: f64::from(sonar.noise_sigma_m),
         cone_half_angle_rad: f64::from(world.sensors.sonar_half_angle_rad),
-        outlier_probability: std::env::var("LOC_OUT").ok().and_then(|v| v.parse().ok()).unwrap_or(0.02),
         ..SensorModel::default()
     };
     Ok(Medusa::new(mworld, layout, model)?)
@@ -493,7 +499,7 @@ pub fn evaluate(
     let world = scene::compile(&spec).context("compiling the evaluation scene")?;
     let started = Instant::now();
     let known: Vec<usize> = (0..world.boxes.len())
-        .filter(|&b| world.boxes[b].center_m.z + world.boxes[b].half_extents_m.z >= std::env::var("LOC_MINTOP").ok().and_then(|v| v.parse().ok()).unwrap_or(MIN_BOX_TOP_M))
+        .filter(|&b| world.boxes[b].center_m.z + world.boxes[b].half_extents_m.z >= MIN_BOX_TOP_M)
         .collect();
     let boxes: Vec<BoxObstacle> = known
         .iter()
@@ -542,6 +548,7 @@ pub fn evaluate(
             diag_rng: Rng32::new(seed ^ 0x5eed_d1a6, 1000 + id as u64),
             cruise_rng: Rng32::new(seed ^ 0xc401_5e00, 2000 + id as u64),
             next_leg_tick: 0,
+            heading_target_rad: world.copters[id].initial_command.yaw_rad,
             stopped: false,
         });
     }
@@ -553,17 +560,23 @@ pub fn evaluate(
     let mut scene_buf = SonarScene::default();
     let cap = f64::from(world.sensors.spec.sonar.cap_m);
     for _ in 0..ticks {
-        // Cruise legs: a new commanded direction every 3-8 s.
+        // Cruise legs: a new commanded direction (and heading) every 3-8 s; the heading
+        // command turns towards its target at a bounded rate.
         for e in &mut evals {
+            let cmd = &mut inputs.commands[e.id];
             if state.tick >= e.next_leg_tick {
-                let cmd = &mut inputs.commands[e.id];
                 let a = e.cruise_rng.uniform() * std::f32::consts::TAU;
                 cmd.velocity_m_s = Some([CRUISE_SPEED_M_S * a.cos(), CRUISE_SPEED_M_S * a.sin()]);
                 if !hold_yaw {
-                    cmd.yaw_rad = sim_core::math::wrap_angle_rad(e.cruise_rng.uniform() * std::f32::consts::TAU);
+                    e.heading_target_rad = wrap_angle_rad(e.cruise_rng.uniform() * std::f32::consts::TAU);
                 }
                 let leg_s = 3.0 + 5.0 * f64::from(e.cruise_rng.uniform());
                 e.next_leg_tick = state.tick + (leg_s / dt).round().max(1.0) as u64;
+            }
+            if !hold_yaw {
+                let max_turn = TURN_RATE_DEG_S.to_radians() * dt as Real;
+                let turn = wrap_angle_rad(e.heading_target_rad - cmd.yaw_rad).clamp(-max_turn, max_turn);
+                cmd.yaw_rad = wrap_angle_rad(cmd.yaw_rad + turn);
             }
         }
         // Ground truth and the synthetic diagonals at the instant sim-core senses.
@@ -595,8 +608,7 @@ pub fn evaluate(
                 [r.sonar_m[0], r.sonar_m[1], r.sonar_m[2], r.sonar_m[3], diag[0], diag[1], diag[2], diag[3]];
             let yaw = YawEstimate::new(f64::from(r.attitude_rad[2]), f64::from(YAW_NOISE_DEG).to_radians());
             let input = e.prev_input;
-            let settled = took_off(&state, e.id)
-                .is_some_and(|t| (sense_tick as f64 - t as f64) * dt >= SETTLE_S);
+            let settled = took_off(&state, e.id).is_some_and(|t| (sense_tick as f64 - t as f64) * dt >= SETTLE_S);
             let t = truth[e.id];
             if settled {
                 e.samples += 1;
@@ -622,15 +634,6 @@ pub fn evaluate(
                 tr.raw_s += (t2 - t1).as_secs_f64();
                 tr.updates += 1;
                 tr.last = Some(est);
-                if std::env::var_os("LOCDBG2").is_some() && tr.slots.len() == 4 && settled && (est.pos_in_world - t).norm() > 0.15 && sense_tick % 5 == 0 {
-                    eprintln!("BIG t {:.1} truth ({:.2},{:.2}) est ({:.2},{:.2}) conf {:.2} readings {:?} pred {:?} truthsonar {:?}", sense_tick as f64 * dt, t.x, t.y, est.pos_in_world.x, est.pos_in_world.y, est.confidence, tr.readings, tr.filter.medusa().predict_ranges_m(&t, f64::from(state.pose(e.id).rpy_rad[2])), c.sensors.sonar_truth_m);
-                }
-                if std::env::var_os("LOCDBG").is_some() && tr.slots.len() == 4 && settled && (raw.best.pos_in_world - t).norm() > 0.3 && sense_tick % 10 == 0 {
-                    let p = state.pose(e.id);
-                    eprintln!("t {:.1} truth ({:.2},{:.2}) yaw true {:.1} est {:.1} readings {:?} best ({:.2},{:.2}) ll {:.1} refined ({:.2},{:.2}) amb {} und {} conf {:.2} modes {:?}", sense_tick as f64 * dt, t.x, t.y, p.rpy_rad[2].to_degrees(), yaw.yaw_rad.to_degrees(), tr.readings, raw.best.pos_in_world.x, raw.best.pos_in_world.y, raw.best.log_likelihood, raw.refined.pos_in_world.x, raw.refined.pos_in_world.y, raw.ambiguous, raw.underdetermined, raw.confidence, raw.modes.iter().map(|m| (m.pos_in_world.x, m.pos_in_world.y, m.log_likelihood)).collect::<Vec<_>>());
-                    let truth_ll = tr.filter.medusa().log_likelihood(&t, yaw, &tr.readings);
-                    eprintln!("   truth ll {:?}  pred at truth {:?}", truth_ll, tr.filter.medusa().predict_ranges_m(&t, yaw.yaw_rad));
-                }
                 if settled {
                     let fe = (est.pos_in_world - t).norm();
                     if !(fe.is_finite() && est.confidence.is_finite()) {
@@ -666,13 +669,8 @@ pub fn evaluate(
                     .map(|tr| {
                         let mut conf = tr.conf.clone();
                         conf.sort_by(f64::total_cmp);
-                        let mut bad_conf: Vec<f64> = tr
-                            .filt_err
-                            .iter()
-                            .zip(&tr.conf)
-                            .filter(|(e, _)| **e > 0.15)
-                            .map(|(_, c)| *c)
-                            .collect();
+                        let mut bad_conf: Vec<f64> =
+                            tr.filt_err.iter().zip(&tr.conf).filter(|(e, _)| **e > 0.15).map(|(_, c)| *c).collect();
                         bad_conf.sort_by(f64::total_cmp);
                         let n = tr.filt_err.len().max(1) as f64;
                         SensorSetReport {
@@ -712,4 +710,44 @@ pub fn evaluate(
         wall_s: started.elapsed().as_secs_f64(),
         copters: copter_reports,
     })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// sim-core's attitude convention and medusa's `MotionInput::from_attitude` agree: a
+    /// commanded pitch or roll accelerates the simulated copter along the body-frame direction
+    /// medusa assumes.
+    #[test]
+    fn commanded_attitude_moves_the_copter_where_medusa_expects() {
+        for (pitch_deg, roll_deg) in [(5.0f64, 0.0f64), (-5.0, 0.0), (0.0, 5.0), (0.0, -5.0)] {
+            let (mut spec, _) = scene::load_default();
+            spec.boxes.clear();
+            spec.copters.truncate(1);
+            spec.copters[0].mode = FlightMode::MixedManual;
+            spec.copters[0].command.height_m = FLIGHT_HEIGHT_M;
+            spec.copters[0].start.yaw_deg = 30.0;
+            spec.copters[0].command.yaw_deg = Some(30.0);
+            let world = scene::compile(&spec).unwrap();
+            let mut state = world.initial_state();
+            let mut inputs = world.initial_inputs();
+            for _ in 0..60 {
+                step(&world, &mut state, &inputs);
+            }
+            let v0 = state.pose(0).vel_m_s;
+            inputs.commands[0].pitch_rad = (pitch_deg as Real).to_radians();
+            inputs.commands[0].roll_rad = (roll_deg as Real).to_radians();
+            for _ in 0..10 {
+                step(&world, &mut state, &inputs);
+            }
+            let pose = state.pose(0);
+            let dv = pose.vel_m_s - v0;
+            let (s, c) = (pose.rpy_rad[2] as f64).sin_cos();
+            let dv_body = Vector2::new(c * dv.x as f64 + s * dv.y as f64, -s * dv.x as f64 + c * dv.y as f64);
+            let a = MotionInput::from_attitude(pitch_deg.to_radians(), roll_deg.to_radians()).accel_in_body_mps2;
+            let cos = dv_body.dot(&a) / (dv_body.norm() * a.norm());
+            assert!(cos > 0.9, "pitch {pitch_deg}° roll {roll_deg}°: body Δv {dv_body:?} vs medusa accel {a:?}");
+        }
+    }
 }

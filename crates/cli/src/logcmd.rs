@@ -3,7 +3,7 @@
 
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
-use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::atomic::AtomicBool;
 
 use anyhow::Context;
 use bridge::log::{
@@ -83,11 +83,6 @@ pub fn install_stop_flag() -> anyhow::Result<Arc<AtomicBool>> {
     Ok(stop)
 }
 
-/// Whether the stop flag is set.
-pub fn stopped(flag: &AtomicBool) -> bool {
-    flag.load(Ordering::Relaxed)
-}
-
 /// Logs a real-time overrun (if logging).
 pub fn log_overrun(log: &mut Option<Logger>, tick: u64, late_s: f64) -> anyhow::Result<()> {
     if let Some(l) = log {
@@ -126,23 +121,23 @@ pub fn describe(stats: &LogStats) -> String {
 pub fn info(path: &Path) -> anyhow::Result<()> {
     let file = LogFile::open(path).map_err(read_error)?;
     let info = file.info().map_err(read_error)?;
-    println!("{}: MCAP, {:.2} MB, {} chunks ({})", path.display(), info.file_bytes as f64 / 1e6, info.chunks, {
+    outln!("{}: MCAP, {:.2} MB, {} chunks ({})", path.display(), info.file_bytes as f64 / 1e6, info.chunks, {
         if info.compression.is_empty() { "uncompressed" } else { &info.compression }
     });
     let meta = info.metadata.get("twinswarm");
     let get = |k: &str| meta.and_then(|m| m.get(k)).map(String::as_str).unwrap_or("?");
     if meta.is_some() {
-        println!(
+        outln!(
             "  twinswarm {}, world {:?}, seed {}, scene {}",
             get("version"),
             get("world"),
             get("seed"),
             get("scene_origin")
         );
-        println!("  command line: {}", get("command_line"));
-        println!("  started {} (log_time epoch)", get("epoch_utc"));
+        outln!("  command line: {}", get("command_line"));
+        outln!("  started {} (log_time epoch)", get("epoch_utc"));
     } else {
-        println!("  no `twinswarm` metadata record: not written by twinswarm run");
+        outln!("  no `twinswarm` metadata record: not written by twinswarm run");
     }
     let (dt_s, epoch) = (get("control_dt_s").parse::<f64>().ok(), get("epoch_unix_ns").parse::<u64>().ok());
     match info.time_range_ns {
@@ -156,16 +151,16 @@ pub fn info(path: &Path) -> anyhow::Result<()> {
                 )
             });
             let steps = dt_s.map(|dt| format!(", control step {:.0} ms", dt * 1e3));
-            println!("  duration {sim_s:.2} s (sim){}{}", from_epoch.unwrap_or_default(), steps.unwrap_or_default());
+            outln!("  duration {sim_s:.2} s (sim){}{}", from_epoch.unwrap_or_default(), steps.unwrap_or_default());
         }
-        None => println!("  no messages"),
+        None => outln!("  no messages"),
     }
     if let Some(Ok(serde_json::Value::Array(copters))) =
         meta.and_then(|m| m.get("copters")).map(|s| serde_json::from_str(s))
     {
-        println!("  {} copter(s):", copters.len());
+        outln!("  {} copter(s):", copters.len());
         for c in &copters {
-            println!(
+            outln!(
                 "    {:<12} {:<8} ac_id {}",
                 c["name"].as_str().unwrap_or("?"),
                 c["kind"].as_str().unwrap_or("?"),
@@ -173,19 +168,19 @@ pub fn info(path: &Path) -> anyhow::Result<()> {
             );
         }
     }
-    println!("  {} messages on {} channels:", info.messages, info.channels.len());
-    println!("    {:<18} {:<26} {:<8} {:>10}", "topic", "schema", "encoding", "messages");
+    outln!("  {} messages on {} channels:", info.messages, info.channels.len());
+    outln!("    {:<18} {:<26} {:<8} {:>10}", "topic", "schema", "encoding", "messages");
     for c in &info.channels {
-        println!("    {:<18} {:<26} {:<8} {:>10}", c.topic, c.schema, c.encoding, c.messages);
+        outln!("    {:<18} {:<26} {:<8} {:>10}", c.topic, c.schema, c.encoding, c.messages);
     }
-    println!("  attachments:");
+    outln!("  attachments:");
     for (name, media, bytes) in &info.attachments {
-        println!("    {name} ({media}, {bytes} bytes)");
+        outln!("    {name} ({media}, {bytes} bytes)");
     }
     if let Some(scene) = file.attachment("scene.toml").map_err(read_error)? {
         let text = String::from_utf8_lossy(&scene);
         let first: Vec<&str> = text.lines().filter(|l| !l.trim().is_empty() && !l.starts_with('#')).take(3).collect();
-        println!("  scene.toml begins: {}", first.join(" | "));
+        outln!("  scene.toml begins: {}", first.join(" | "));
     }
     Ok(())
 }
@@ -196,7 +191,7 @@ pub fn recover(broken: &Path, fixed: &Path) -> anyhow::Result<()> {
         return Err(BadInput(anyhow::anyhow!("log recover: the output must differ from the input")).into());
     }
     let r = bridge::log::recover(broken, fixed).map_err(read_error)?;
-    println!(
+    outln!(
         "{} -> {}: recovered {} messages on {} channels, {} schemas, {} attachments, {} metadata records",
         broken.display(),
         fixed.display(),
@@ -207,15 +202,15 @@ pub fn recover(broken: &Path, fixed: &Path) -> anyhow::Result<()> {
         r.metadata
     );
     if let Some((a, b)) = r.time_range_ns {
-        println!("  log time span {:.2} s", (b - a) as f64 / 1e9);
+        outln!("  log time span {:.2} s", (b - a) as f64 / 1e9);
     }
     for (topic, n) in &r.messages {
-        println!("    {topic:<18} {n:>10}");
+        outln!("    {topic:<18} {n:>10}");
     }
     match (&r.stopped_by, r.complete) {
-        (_, true) => println!("  the input was complete (its data section ended cleanly)"),
-        (Some(why), false) => println!("  the input was truncated; reading stopped at: {why}"),
-        (None, false) => println!("  the input ended without a data-end record"),
+        (_, true) => outln!("  the input was complete (its data section ended cleanly)"),
+        (Some(why), false) => outln!("  the input was truncated; reading stopped at: {why}"),
+        (None, false) => outln!("  the input ended without a data-end record"),
     }
     Ok(())
 }

@@ -2,10 +2,28 @@
 //! load the scene, drive `sim-core`, report. Errors are printed with their whole chain and
 //! mapped to exit codes: 0 ok, 2 bad input (usage or scene), 1 runtime failure.
 
+/// `print!` that ignores a closed stdout (e.g. `twinswarm log info F | head`) instead of
+/// panicking.
+macro_rules! out {
+    ($($arg:tt)*) => {{
+        use std::io::Write as _;
+        let _ = write!(std::io::stdout(), $($arg)*);
+    }};
+}
+
+/// `println!` that ignores a closed stdout.
+macro_rules! outln {
+    ($($arg:tt)*) => {{
+        use std::io::Write as _;
+        let _ = writeln!(std::io::stdout(), $($arg)*);
+    }};
+}
+
 mod localize;
 mod logcmd;
 mod plot;
 mod report;
+mod runner;
 
 use std::io::IsTerminal;
 use std::path::PathBuf;
@@ -14,8 +32,8 @@ use std::time::Instant;
 
 use anyhow::Context;
 use clap::{Parser, Subcommand};
+use sim_core::World;
 use sim_core::scene::{self, SceneSpec};
-use sim_core::{World, step};
 
 /// Twinswarm: a deterministic simulator for swarms of FINken indoor quadcopters, with virtual
 /// twins of real copters (mixed reality).
@@ -105,6 +123,22 @@ struct RunArgs {
     /// Do not write a log.
     #[arg(long)]
     no_log: bool,
+    /// Run without Zenoh (no bus at all).
+    #[arg(long)]
+    no_bus: bool,
+    /// A full Zenoh configuration file (JSON5), instead of the embedded default (peer mode,
+    /// listen on tcp/127.0.0.1:7447, multicast scouting off).
+    #[arg(long, value_name = "FILE.json5")]
+    zenoh_config: Option<PathBuf>,
+    /// Zenoh endpoint to listen on, e.g. tcp/127.0.0.1:7448 (repeatable; overrides the config).
+    #[arg(long, value_name = "ENDPOINT")]
+    listen: Vec<String>,
+    /// Zenoh endpoint to connect to (repeatable; overrides the config).
+    #[arg(long, value_name = "ENDPOINT")]
+    connect: Vec<String>,
+    /// Key-expression prefix (default: twinswarm/<world name>).
+    #[arg(long, value_name = "KEY")]
+    prefix: Option<String>,
 }
 
 /// An error that is the user's input's fault (exit code 2).
@@ -193,13 +227,8 @@ fn run(args: RunArgs) -> anyhow::Result<()> {
     }
     let world = scene::compile(&spec).map_err(|e| anyhow::Error::new(BadInput(e.into())))?;
     let ticks = world.default_ticks();
-    let mut state = world.initial_state();
-    let inputs = world.initial_inputs();
-    let mut tracker = report::Tracker::new(&world);
-    let mut log = logcmd::start_run_log(args.log.as_deref(), args.no_log, &world, args.scene.as_deref(), &origin)?;
+    let log = logcmd::start_run_log(args.log.as_deref(), args.no_log, &world, args.scene.as_deref(), &origin)?;
     let stop = logcmd::install_stop_flag()?;
-    let mut interrupted = None;
-
     let progress = (!args.json && !args.realtime && std::io::stderr().is_terminal()).then(|| {
         let bar = indicatif::ProgressBar::new(ticks);
         bar.set_style(
@@ -209,64 +238,101 @@ fn run(args: RunArgs) -> anyhow::Result<()> {
         );
         bar
     });
+    let bus = runner::BusOptions {
+        no_bus: args.no_bus,
+        zenoh_config: args.zenoh_config.clone(),
+        listen: args.listen.clone(),
+        connect: args.connect.clone(),
+        prefix: args.prefix.clone(),
+    };
+    let mut observer = RunObserver { tracker: report::Tracker::new(&world), log, log_error: None, progress };
     let started = Instant::now();
-    let control_dt = std::time::Duration::from_secs_f64(world.params.control_dt_s);
-    let mut overruns = 0u64;
-    for k in 0..ticks {
-        if logcmd::stopped(&stop) {
-            interrupted = Some(state.tick);
-            break;
-        }
-        let step_report = step(&world, &mut state, &inputs);
-        tracker.observe(&world, &state, &step_report);
-        if let Some(log) = &mut log {
-            log.log_step(&world, &state, &inputs, &step_report)?;
-        }
-        if let Some(bar) = &progress
-            && k % 20 == 0
-        {
-            bar.set_position(k);
-        }
-        if args.realtime {
-            // Absolute deadlines: no drift, overruns counted.
-            let deadline = started + control_dt * (k as u32 + 1);
-            let now = Instant::now();
-            if now < deadline {
-                std::thread::sleep(deadline - now);
-            } else if now > deadline + control_dt {
-                overruns += 1;
-                logcmd::log_overrun(&mut log, state.tick, (now - deadline).as_secs_f64())?;
-            }
-        }
-    }
+    let outcome = runner::run(world, ticks, args.realtime, &bus, &mut observer, stop)?;
+    let wall_s = started.elapsed().as_secs_f64();
+    let RunObserver { tracker, log, log_error, progress } = observer;
     if let Some(bar) = progress {
         bar.finish_and_clear();
     }
-    let wall_s = started.elapsed().as_secs_f64();
-    let summary = tracker.summary(&world, &state, &origin, wall_s, overruns);
+    let interrupted = outcome.stats.stopped_early.then_some(outcome.state.tick);
     let log_stats = logcmd::finish_run_log(log, interrupted)?;
+    if let Some(e) = log_error {
+        return Err(e.context("logging failed; the log holds everything up to the failure"));
+    }
+    let summary = tracker.summary(&outcome.world, &outcome.state, &origin, wall_s, outcome.stats.overruns);
     if args.json {
         let mut json = serde_json::to_value(&summary)?;
         json["log"] = log_stats.as_ref().map_or(serde_json::Value::Null, |l| l.path.display().to_string().into());
         json["interrupted"] = interrupted.is_some().into();
-        println!("{}", serde_json::to_string_pretty(&json)?);
+        json["bus"] = serde_json::to_value(&outcome.bus)?;
+        json["frames_dropped"] = outcome.stats.frames_dropped.into();
+        outln!("{}", serde_json::to_string_pretty(&json)?);
     } else {
-        print!("{}", summary.to_text());
-        println!("  log: {}", log_stats.as_ref().map_or("off (--no-log)".into(), logcmd::describe));
+        out!("{}", summary.to_text());
+        outln!("  log: {}", log_stats.as_ref().map_or("off (--no-log)".into(), logcmd::describe));
+        match &outcome.bus {
+            Some(b) => outln!(
+                "  bus: zenoh, prefix {}; {} commands accepted, {} rejected; {} samples published; {} clients seen",
+                b.prefix,
+                b.commands_accepted,
+                b.commands_rejected,
+                b.published,
+                b.clients_seen
+            ),
+            None => outln!("  bus: off (--no-bus)"),
+        }
         if interrupted.is_some() {
-            println!(
+            outln!(
                 "  interrupted by a signal after {:.2} s simulated; the log was finished cleanly",
-                state.time_s(&world)
+                outcome.state.time_s(&outcome.world)
             );
         }
     }
     Ok(())
 }
 
+/// Follows the step loop: summary tracker, MCAP log, progress bar.
+struct RunObserver {
+    tracker: report::Tracker,
+    log: Option<bridge::log::Logger>,
+    log_error: Option<anyhow::Error>,
+    progress: Option<indicatif::ProgressBar>,
+}
+
+impl bridge::sim::StepObserver for RunObserver {
+    fn after_step(
+        &mut self,
+        world: &sim_core::World,
+        state: &sim_core::State,
+        inputs: &sim_core::Inputs,
+        report: &sim_core::StepReport,
+    ) {
+        self.tracker.observe(world, state, report);
+        if let Some(log) = &mut self.log
+            && let Err(e) = log.log_step(world, state, inputs, report)
+        {
+            // Stop logging, keep flying; the error is reported at the end.
+            self.log_error = Some(e.into());
+            self.log = None;
+        }
+        if let Some(bar) = &self.progress
+            && state.tick.is_multiple_of(20)
+        {
+            bar.set_position(state.tick);
+        }
+    }
+
+    fn overrun(&mut self, tick: u64, late_s: f64) {
+        if let Err(e) = logcmd::log_overrun(&mut self.log, tick, late_s) {
+            self.log_error = Some(e);
+            self.log = None;
+        }
+    }
+}
+
 fn check(path: &std::path::Path) -> anyhow::Result<()> {
     let (origin, spec, world) = load_scene(Some(path))?;
-    println!("{origin}: OK");
-    println!(
+    outln!("{origin}: OK");
+    outln!(
         "  world {:?}: arena {} m x {} m x {} m high, walls {}",
         world.name,
         world.arena.size_m[0],
@@ -274,7 +340,7 @@ fn check(path: &std::path::Path) -> anyhow::Result<()> {
         world.arena.height_m,
         if world.arena.walls { "on" } else { "off" }
     );
-    println!(
+    outln!(
         "  stepping: physics {} ms x {} substeps = control {} ms; seed {}; duration {} s ({} control steps)",
         world.params.physics_dt_s * 1e3,
         world.params.substeps,
@@ -283,9 +349,9 @@ fn check(path: &std::path::Path) -> anyhow::Result<()> {
         world.params.duration_s,
         world.default_ticks()
     );
-    println!("  {} static box(es):", world.boxes.len());
+    outln!("  {} static box(es):", world.boxes.len());
     for b in &world.boxes {
-        println!(
+        outln!(
             "    {:<10} centre ({:.2}, {:.2}, {:.2}) m, size {:.2} x {:.2} x {:.2} m, yaw {:.1}°",
             b.name,
             b.center_m.x,
@@ -297,7 +363,7 @@ fn check(path: &std::path::Path) -> anyhow::Result<()> {
             b.yaw_rad.to_degrees()
         );
     }
-    println!("  {} copter(s):", world.copters.len());
+    outln!("  {} copter(s):", world.copters.len());
     for (c, cs) in world.copters.iter().zip(&spec.copters) {
         let af = &world.airframes[c.airframe];
         let cmd = &c.initial_command;
@@ -306,7 +372,7 @@ fn check(path: &std::path::Path) -> anyhow::Result<()> {
         } else {
             format!("throttle {:.0} %", cmd.throttle * 100.0)
         };
-        println!(
+        outln!(
             "    {:<10} {:?}{} at ({:.2}, {:.2}, {:.2}) m, yaw {:.1}°, {:.3} kg, mode {}, {}",
             c.name,
             c.kind,
@@ -320,11 +386,11 @@ fn check(path: &std::path::Path) -> anyhow::Result<()> {
             vertical
         );
         if let scene::AirframeRef::Named(name) = &cs.airframe {
-            println!("               airframe preset {name:?}");
+            outln!("               airframe preset {name:?}");
         }
     }
     let s = &world.sensors.spec;
-    println!(
+    outln!(
         "  sensors {}: sonar {}° cone, {}-{} m, sigma {} m; cross-talk {}",
         if s.enabled { "on" } else { "off" },
         s.sonar.opening_deg,
@@ -344,10 +410,10 @@ fn inspect(path: Option<&std::path::Path>, json: bool) -> anyhow::Result<()> {
     let (_, _, world) = load_scene(path)?;
     let models: Vec<report::CopterModel> = world.copters.iter().map(|c| report::CopterModel::new(&world, c)).collect();
     if json {
-        println!("{}", serde_json::to_string_pretty(&models)?);
+        outln!("{}", serde_json::to_string_pretty(&models)?);
     } else {
         for m in &models {
-            print!("{}", m.to_text());
+            out!("{}", m.to_text());
         }
     }
     Ok(())

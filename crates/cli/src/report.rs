@@ -29,6 +29,8 @@ impl Tracker {
     }
 
     pub fn observe(&mut self, world: &World, state: &State, report: &StepReport) {
+        // Copters spawned at runtime join the summary.
+        self.worst_height_error_m.resize(world.copters.len(), 0.0);
         for e in &report.events {
             if let Event::Crashed { copter, cause } = e {
                 self.crashes.push(CrashLine {

@@ -1,6 +1,7 @@
 //! Runs a world: the step loop on its own thread, and, unless `--no-bus`, the Zenoh node on a
-//! tokio multi-thread runtime publishing its frames and feeding it commands. Ctrl-C and
-//! SIGTERM stop the loop after the current step; the session is closed explicitly.
+//! tokio multi-thread runtime publishing its frames and feeding it commands. The caller's stop
+//! flag (set by SIGINT/SIGTERM) ends the loop after the current step; the session is then
+//! closed explicitly.
 
 use std::path::PathBuf;
 use std::sync::Arc;
@@ -74,24 +75,16 @@ pub fn run(
     realtime: bool,
     bus: &BusOptions,
     observer: &mut (dyn StepObserver + Send),
+    stop: Arc<AtomicBool>,
 ) -> anyhow::Result<RunOutcome> {
-    let stop = Arc::new(AtomicBool::new(false));
     let state = world.initial_state();
     let inputs = world.initial_inputs();
     let opts = LoopOptions { realtime, ticks };
     let (req_tx, req_rx) = std::sync::mpsc::sync_channel::<Request>(1024);
 
     if bus.no_bus {
-        // No bus, but signals still stop the run cleanly: one worker thread waits for them.
-        let rt = tokio::runtime::Builder::new_multi_thread().worker_threads(1).enable_all().build()?;
-        let stop2 = stop.clone();
-        rt.spawn(async move {
-            wait_for_signal().await;
-            stop2.store(true, Ordering::Relaxed);
-        });
         let (world, state, stats) = sim::run_loop(world, state, inputs, req_rx, None, observer, &stop, &opts);
         drop(req_tx);
-        rt.shutdown_background();
         return Ok(RunOutcome { world, state, stats, bus: None });
     }
 
@@ -106,26 +99,13 @@ pub fn run(
 
     let outcome = std::thread::scope(|s| -> anyhow::Result<(Arc<World>, State, LoopStats)> {
         let stop_loop = stop.clone();
-        let h = s.spawn(move || sim::run_loop(world, state, inputs, req_rx, Some(frame_tx), observer, &stop_loop, &opts));
-        let stop_sig = stop.clone();
+        let h =
+            s.spawn(move || sim::run_loop(world, state, inputs, req_rx, Some(frame_tx), observer, &stop_loop, &opts));
         rt.block_on(async {
-            let signal = wait_for_signal();
-            tokio::pin!(signal);
-            let mut signalled = false;
-            loop {
-                tokio::select! {
-                    frame = frame_rx.recv() => match frame {
-                        Some(frame) => {
-                            if let Err(e) = node.publish(&frame).await {
-                                tracing::warn!("publish failed: {e}");
-                            }
-                        }
-                        None => break, // the loop ended
-                    },
-                    _ = &mut signal, if !signalled => {
-                        signalled = true;
-                        stop_sig.store(true, Ordering::Relaxed);
-                    }
+            // Publish until the loop ends (its frame sender drops).
+            while let Some(frame) = frame_rx.recv().await {
+                if let Err(e) = node.publish(&frame).await {
+                    tracing::warn!("publish failed: {e}");
                 }
             }
         });
@@ -143,26 +123,4 @@ pub fn run(
     rt.block_on(node.close()).context("closing the Zenoh session")?;
     let (world, state, stats) = outcome;
     Ok(RunOutcome { world, state, stats, bus: Some(report) })
-}
-
-/// Resolves on Ctrl-C or SIGTERM.
-async fn wait_for_signal() {
-    #[cfg(unix)]
-    {
-        let mut term = match tokio::signal::unix::signal(tokio::signal::unix::SignalKind::terminate()) {
-            Ok(s) => s,
-            Err(_) => {
-                let _ = tokio::signal::ctrl_c().await;
-                return;
-            }
-        };
-        tokio::select! {
-            _ = tokio::signal::ctrl_c() => {}
-            _ = term.recv() => {}
-        }
-    }
-    #[cfg(not(unix))]
-    {
-        let _ = tokio::signal::ctrl_c().await;
-    }
 }

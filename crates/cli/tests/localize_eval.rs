@@ -57,9 +57,20 @@ fn four_sonars_filtered_meet_the_target_on_a_two_minute_wall_avoid_flight() {
     assert_eq!(rows.len(), 1);
     for (name, set) in rows {
         let (med, p95) = (num(&set["filtered"], "median_cm"), num(&set["filtered"], "p95_cm"));
-        println!("{name}: 4 sonars filtered median {med:.1} cm, p95 {p95:.1} cm, confidence {}", set["confidence_median"]);
+        println!(
+            "{name}: 4 sonars filtered median {med:.1} cm, p95 {p95:.1} cm, confidence {}",
+            set["confidence_median"]
+        );
         assert!(med < 5.0, "{name}: filtered median {med:.1} cm >= 5 cm");
         assert!(p95 < 15.0, "{name}: filtered p95 {p95:.1} cm >= 15 cm");
     }
     assert_eq!(report["target_4_sensors_met"], Value::Bool(true));
+}
+
+#[test]
+fn localize_without_eval_or_with_bad_minutes_is_a_usage_error() {
+    for args in [&["localize"][..], &["localize", "--eval", "--minutes", "-1"][..]] {
+        let out = Command::new(env!("CARGO_BIN_EXE_twinswarm")).args(args).output().expect("run twinswarm");
+        assert_eq!(out.status.code(), Some(2), "{args:?}: {}", String::from_utf8_lossy(&out.stderr));
+    }
 }

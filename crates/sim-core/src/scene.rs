@@ -459,7 +459,15 @@ pub fn compile(spec: &SceneSpec) -> Result<World, SceneError> {
     }
 
     // [[copter]]
-    let mut cc = CopterCompiler { spec_airframes: &spec.airframes, arena: &arena, boxes: &boxes, airframes, airframe_index, names: BTreeMap::new(), ac_ids: BTreeMap::new() };
+    let mut cc = CopterCompiler {
+        spec_airframes: &spec.airframes,
+        arena: &arena,
+        boxes: &boxes,
+        airframes,
+        airframe_index,
+        names: BTreeMap::new(),
+        ac_ids: BTreeMap::new(),
+    };
     let mut copters: Vec<CopterDef> = Vec::with_capacity(spec.copters.len());
     for (i, c) in spec.copters.iter().enumerate() {
         let occupied: Vec<(String, Vec3, Real)> =
@@ -485,7 +493,12 @@ struct CopterCompiler<'a> {
 
 impl CopterCompiler<'_> {
     /// Compiles copter `i`; `occupied` lists where other copters are (name, centre, radius).
-    fn compile(&mut self, i: usize, c: &CopterSpec, occupied: &[(String, Vec3, Real)]) -> Result<CopterDef, SceneError> {
+    fn compile(
+        &mut self,
+        i: usize,
+        c: &CopterSpec,
+        occupied: &[(String, Vec3, Real)],
+    ) -> Result<CopterDef, SceneError> {
         let p = FieldPath::default().key("copter").index(i);
         if c.name.is_empty() || !c.name.chars().all(|ch| ch.is_ascii_alphanumeric() || ch == '_' || ch == '-') {
             return Err(SceneError::invalid(
@@ -615,14 +628,19 @@ impl World {
             ac_ids: self.copters.iter().enumerate().filter_map(|(i, c)| c.ac_id.map(|a| (a, i))).collect(),
         };
         for name in self.spec.airframes.keys() {
-            if let Some(idx) = self.copters.iter().zip(&self.spec.copters).find_map(|(d, s)| {
-                matches!(&s.airframe, AirframeRef::Named(n) if n == name).then_some(d.airframe)
-            }) {
+            if let Some(idx) = self
+                .copters
+                .iter()
+                .zip(&self.spec.copters)
+                .find_map(|(d, s)| matches!(&s.airframe, AirframeRef::Named(n) if n == name).then_some(d.airframe))
+            {
                 cc.airframe_index.insert(name.clone(), idx);
             }
         }
         let occupied: Vec<(String, Vec3, Real)> = (0..self.copters.len())
-            .map(|i| (self.copters[i].name.clone(), state.pose(i).pos_m, self.airframes[self.copters[i].airframe].radius_m))
+            .map(|i| {
+                (self.copters[i].name.clone(), state.pose(i).pos_m, self.airframes[self.copters[i].airframe].radius_m)
+            })
             .collect();
         let id = self.copters.len();
         let def = cc.compile(id, spec, &occupied)?;

@@ -297,8 +297,7 @@ pub fn recover(broken: &Path, fixed: &Path) -> Result<RecoverReport, LogReadErro
                 report.schemas += 1;
             }
             Record::Channel(c) if !topics.contains_key(&c.id) => {
-                out.add_channel_with_id(c.id, c.schema_id, &c.topic, &c.message_encoding, &c.metadata)
-                    .map_err(werr)?;
+                out.add_channel_with_id(c.id, c.schema_id, &c.topic, &c.message_encoding, &c.metadata).map_err(werr)?;
                 topics.insert(c.id, c.topic);
                 report.channels += 1;
             }
