@@ -6,13 +6,17 @@ import subprocess
 import sys
 import time
 
+import zenoh
+from mcap.reader import make_reader
+
 from conftest import ROOT
 
 
-def test_python_client_flies_a_copter_up(twinswarm_bin, free_port):
+def test_python_client_flies_a_copter_up(twinswarm_bin, free_port, tmp_path):
     endpoint = f"tcp/127.0.0.1:{free_port}"
+    log = tmp_path / "attach.mcap"
     sim = subprocess.Popen(
-        [str(twinswarm_bin), "run", "--realtime", "--duration", "120", "--no-log", "--listen", endpoint, "--json"],
+        [str(twinswarm_bin), "run", "--realtime", "--duration", "120", "--log", str(log), "--listen", endpoint, "--json"],
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,
         text=True,
@@ -28,6 +32,15 @@ def test_python_client_flies_a_copter_up(twinswarm_bin, free_port):
         assert client.returncode == 0, client.stderr
         assert "climbed from" in client.stdout, client.stdout
         print(client.stdout.strip())
+        # A malformed command: rejected, counted, and logged with its source key.
+        conf = zenoh.Config()
+        conf.insert_json5("mode", '"peer"')
+        conf.insert_json5("scouting/multicast/enabled", "false")
+        conf.insert_json5("connect/endpoints", json.dumps([endpoint]))
+        with zenoh.open(conf) as session:
+            time.sleep(0.5)
+            session.put("twinswarm/lab/copters/finken2/cmd", '{"throttle": "full"}')
+            time.sleep(0.5)
     finally:
         sim.send_signal(signal.SIGTERM)
         out, err = sim.communicate(timeout=30)
@@ -36,3 +49,15 @@ def test_python_client_flies_a_copter_up(twinswarm_bin, free_port):
     assert summary["bus"]["commands_accepted"] >= 1
     assert summary["bus"]["clients_seen"] >= 1
     assert summary["control_steps"] < 120 * 20, "stopped early by SIGTERM"
+    assert summary["bus"]["commands_rejected"] >= 1
+
+    # The log holds the bus inputs with their keys, and the rejection as an event.
+    with open(log, "rb") as f:
+        reader = make_reader(f, validate_crcs=True)
+        bus, events = [], []
+        for _schema, channel, message in reader.iter_messages(topics=["/bus", "/events"]):
+            (bus if channel.topic == "/bus" else events).append(json.loads(message.data))
+    keys = {m["key"] for m in bus}
+    assert "twinswarm/lab/copters/finken1/cmd" in keys, keys
+    assert "twinswarm/lab/copters/finken2/cmd" in keys, keys
+    assert any(e["kind"] == "input_rejected" for e in events), events

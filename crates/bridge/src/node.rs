@@ -139,6 +139,11 @@ impl std::fmt::Debug for Node {
     }
 }
 
+/// Wall-clock time, ns since the Unix epoch (0 if the clock is before it).
+fn unix_now_ns() -> u64 {
+    std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).map_or(0, |d| d.as_nanos() as u64)
+}
+
 /// The default key-expression prefix of a world.
 pub fn default_prefix(world: &World) -> String {
     format!("twinswarm/{}", world.name)
@@ -169,6 +174,11 @@ impl Node {
                     let key = sample.key_expr().as_str();
                     let name = key[prefix_len..].trim_start_matches("/copters/").trim_end_matches("/cmd").to_owned();
                     let payload = sample.payload().to_bytes();
+                    let origin = crate::sim::BusInput {
+                        key: key.to_owned(),
+                        text: String::from_utf8_lossy(&payload).into_owned(),
+                        received_unix_ns: unix_now_ns(),
+                    };
                     let world = match world_cell.lock() {
                         Ok(w) => w.clone(),
                         Err(_) => return,
@@ -178,7 +188,7 @@ impl Node {
                         Some(_) => CommandMsg::parse(&payload, &world),
                     };
                     match result {
-                        Ok(cmd) => match requests.try_send(Request::Command { copter: name, cmd }) {
+                        Ok(cmd) => match requests.try_send(Request::Command { copter: name, cmd, origin }) {
                             Ok(()) => {
                                 counters.commands_accepted.fetch_add(1, Ordering::Relaxed);
                             }
@@ -190,6 +200,8 @@ impl Node {
                         Err(e) => {
                             counters.commands_rejected.fetch_add(1, Ordering::Relaxed);
                             limiter.warn(&format!("rejected command on {key}: {e}"));
+                            // For the log; if the queue is full, the counter still has it.
+                            let _ = requests.try_send(Request::Rejected { origin, reason: e.to_string() });
                         }
                     }
                 })

@@ -26,6 +26,15 @@ pub enum Request {
         copter: String,
         /// The command.
         cmd: CommandMsg,
+        /// Where it came from (the bus key) and its raw text, for the log.
+        origin: BusInput,
+    },
+    /// An input the bus refused (malformed, out of range, unknown copter), for the log.
+    Rejected {
+        /// Where it came from and its raw text.
+        origin: BusInput,
+        /// Why it was refused.
+        reason: String,
     },
     /// Add a virtual copter; the reply says its name or why not.
     Spawn {
@@ -36,6 +45,17 @@ pub enum Request {
     },
     /// Finish after the current step.
     Stop,
+}
+
+/// A message as it arrived on the bus.
+#[derive(Debug, Clone)]
+pub struct BusInput {
+    /// The key it arrived on (its source).
+    pub key: String,
+    /// Its payload as text (lossy UTF-8).
+    pub text: String,
+    /// Wall-clock receive time, ns since the Unix epoch.
+    pub received_unix_ns: u64,
 }
 
 /// What one control step produced, for publishing.
@@ -91,9 +111,13 @@ pub trait StepObserver: Send {
     /// Called after each step.
     fn after_step(&mut self, world: &World, state: &State, inputs: &Inputs, report: &StepReport);
     /// Called when a copter is spawned, after the world changed.
-    fn spawned(&mut self, _world: &World, _id: usize) {}
+    fn spawned(&mut self, _world: &World, _id: usize, _tick: u64) {}
     /// Called when a real-time step finished `late_s` after its deadline.
     fn overrun(&mut self, _tick: u64, _late_s: f64) {}
+    /// Called for each accepted bus input, before it applies.
+    fn bus_input(&mut self, _input: &BusInput) {}
+    /// Called for each input the bus refused.
+    fn input_rejected(&mut self, _tick: u64, _input: &BusInput, _reason: &str) {}
 }
 
 /// No observer.
@@ -122,13 +146,18 @@ pub fn run_loop(
         // Requests, applied before this step.
         loop {
             match requests.try_recv() {
-                Ok(Request::Command { copter, cmd }) => match world.copter_id(&copter) {
+                Ok(Request::Command { copter, cmd, origin }) => match world.copter_id(&copter) {
                     Some(id) => {
+                        observer.bus_input(&origin);
                         cmd.apply(&mut inputs.commands[id]);
                         stats.commands_applied += 1;
                     }
-                    None => stats.commands_unknown_copter += 1,
+                    None => {
+                        stats.commands_unknown_copter += 1;
+                        observer.input_rejected(state.tick, &origin, &format!("no copter named {copter:?}"));
+                    }
                 },
+                Ok(Request::Rejected { origin, reason }) => observer.input_rejected(state.tick, &origin, &reason),
                 Ok(Request::Spawn { spec, reply }) => {
                     let answer = match world.with_spawned(&state, &spec) {
                         Ok(w) => {
@@ -136,7 +165,7 @@ pub fn run_loop(
                             state.add_copters(&w);
                             inputs.commands.push(w.copters[id].initial_command.clone());
                             world = Arc::new(w);
-                            observer.spawned(&world, id);
+                            observer.spawned(&world, id, state.tick);
                             stats.spawned += 1;
                             Ok(spec.name.clone())
                         }

@@ -22,6 +22,7 @@ macro_rules! outln {
 mod localize;
 mod logcmd;
 mod plot;
+mod replay;
 mod report;
 mod runner;
 
@@ -66,6 +67,9 @@ enum Command {
     /// Inspect or repair MCAP run logs.
     #[command(subcommand)]
     Log(LogCommand),
+    /// Republish a run log's bus traffic (clock, states, sensors, /bus) onto Zenoh with its
+    /// original timing.
+    Replay(replay::ReplayArgs),
     /// Plot a run log: position heat-map, pitch and roll, sonars and y position (PNG).
     Plot {
         /// The MCAP log.
@@ -172,6 +176,7 @@ fn main() -> ExitCode {
         Command::Localize(args) => localize::run(args),
         Command::Log(LogCommand::Info { file }) => logcmd::info(&file),
         Command::Log(LogCommand::Recover { broken, fixed }) => logcmd::recover(&broken, &fixed),
+        Command::Replay(args) => replay::run(args),
         Command::Plot { file, heatmap, attitude, sonar, copter } => plot::plot(
             &file,
             &plot::PlotRequest {
@@ -318,6 +323,48 @@ impl bridge::sim::StepObserver for RunObserver {
             && state.tick.is_multiple_of(20)
         {
             bar.set_position(state.tick);
+        }
+    }
+
+    fn bus_input(&mut self, input: &bridge::sim::BusInput) {
+        if let Some(log) = &mut self.log
+            && let Err(e) = log.log_bus_message(&input.key, true, &input.text, input.received_unix_ns)
+        {
+            self.log_error = Some(e.into());
+            self.log = None;
+        }
+    }
+
+    fn input_rejected(&mut self, tick: u64, input: &bridge::sim::BusInput, reason: &str) {
+        self.bus_input(input);
+        if let Some(log) = &mut self.log {
+            let event = bridge::log::LogEvent {
+                tick,
+                kind: bridge::log::EventKind::InputRejected,
+                copter: None,
+                detail: Some(serde_json::json!({ "key": input.key, "reason": reason })),
+                message: format!("rejected input on {}: {reason}", input.key),
+            };
+            if let Err(e) = log.log_event(event) {
+                self.log_error = Some(e.into());
+                self.log = None;
+            }
+        }
+    }
+
+    fn spawned(&mut self, world: &sim_core::World, id: usize, tick: u64) {
+        if let Some(log) = &mut self.log {
+            let event = bridge::log::LogEvent {
+                tick,
+                kind: bridge::log::EventKind::Spawned,
+                copter: Some(id),
+                detail: None,
+                message: format!("spawned copter {:?}", world.copters[id].name),
+            };
+            if let Err(e) = log.log_event(event) {
+                self.log_error = Some(e.into());
+                self.log = None;
+            }
         }
     }
 

@@ -1,0 +1,490 @@
+//! `twinswarm replay FILE`: republishes a run log's bus traffic onto Zenoh with its original
+//! timing, so ground tools can watch a flight again.
+//!
+//! What goes out, under the prefix (default: a `prefix` entry of the log's `twinswarm` metadata,
+//! else `--prefix` from the recorded command line, else `twinswarm/<world>`; `--prefix`
+//! overrides):
+//!
+//! - `…/clock` ([`ClockMsg`]) once per logged control step, before that step's states;
+//! - `…/copters/<name>/state` ([`StateMsg`]) from `/copters/state`, every step. Every field of
+//!   the live message is in the log (`copter` → `name`, `t_s` → `time_s`, `rpy_rad` →
+//!   `attitude_rad`, kind `real` → `twin`); nothing is invented;
+//! - `…/copters/<name>/sensors` ([`SensorsMsg`]) from `/copters/sensors`, only on steps whose
+//!   sonar reading is fresh (its `sonar_tick` changed), i.e. at the sonar rate like the live
+//!   simulator (the log holds the held reading every step);
+//! - every `/bus` message (raw text) on its original key; keys under the recorded prefix are
+//!   moved under the replay prefix, others go out unchanged. These are the inputs the simulator
+//!   received (e.g. `…/copters/<name>/cmd`): a live simulator on the same prefix obeys them.
+//!
+//! Timing: a step logged at `log_time` goes out at `start + (log_time − t0) / speed` (absolute
+//! deadlines, no drift). Messages come in file order, which is `log_time` order for logs written
+//! by `twinswarm run` (and `log recover`); a message earlier than its predecessor goes out at
+//! once. `--wait-for-subscriber S` waits (up to S s) until some subscriber matches the clock,
+//! state or sensors keys before sending, so a tool started alongside sees the first step.
+
+use std::collections::HashMap;
+use std::path::{Path, PathBuf};
+use std::sync::Arc;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::time::{Duration, Instant};
+
+use anyhow::Context;
+use bridge::log::{LogFile, LogReadError};
+use bridge::wire::{ClockMsg, SensorsMsg, SonarMsg, StateMsg};
+use serde::Deserialize;
+use zenoh::Wait;
+use zenoh::qos::CongestionControl;
+
+use crate::BadInput;
+use crate::logcmd::read_error;
+use crate::runner::{BusOptions, zenoh_config};
+
+/// `twinswarm replay` arguments.
+#[derive(Debug, clap::Args)]
+pub struct ReplayArgs {
+    /// The MCAP log of a run.
+    pub file: PathBuf,
+    /// Playback speed: 2 plays twice as fast, 0.5 half as fast (> 0).
+    #[arg(long, value_name = "X", default_value_t = 1.0)]
+    pub speed: f64,
+    /// A full Zenoh configuration file (JSON5), instead of the embedded default (peer mode,
+    /// listen on tcp/127.0.0.1:7447, multicast scouting off).
+    #[arg(long, value_name = "FILE.json5")]
+    pub zenoh_config: Option<PathBuf>,
+    /// Zenoh endpoint to listen on (repeatable; overrides the config).
+    #[arg(long, value_name = "ENDPOINT")]
+    pub listen: Vec<String>,
+    /// Zenoh endpoint to connect to (repeatable; overrides the config).
+    #[arg(long, value_name = "ENDPOINT")]
+    pub connect: Vec<String>,
+    /// Key-expression prefix (default: the one recorded in the log, else twinswarm/<world>).
+    #[arg(long, value_name = "KEY")]
+    pub prefix: Option<String>,
+    /// Before sending, wait up to S seconds for a subscriber to the clock, state or sensors
+    /// keys (then start anyway).
+    #[arg(long, value_name = "S")]
+    pub wait_for_subscriber: Option<f64>,
+    /// Wait this long after opening the session (and after any subscriber wait) before sending.
+    #[arg(long, value_name = "MS", default_value_t = 0)]
+    pub start_delay_ms: u64,
+}
+
+/// The fields of a logged `twinswarm.CopterState` the live message needs.
+#[derive(Debug, Deserialize)]
+struct LoggedState {
+    tick: u64,
+    t_s: f64,
+    copter: String,
+    ac_id: Option<u8>,
+    kind: String,
+    mode: String,
+    crashed: bool,
+    pos_m: [f32; 3],
+    vel_m_s: [f32; 3],
+    rpy_rad: [f32; 3],
+    angvel_rad_s: [f32; 3],
+    quat_xyzw: [f32; 4],
+    rotor_thrust_n: [f32; 4],
+}
+
+/// The fields of a logged `twinswarm.CopterSensors` the live message needs.
+#[derive(Debug, Deserialize)]
+struct LoggedSensors {
+    tick: u64,
+    t_s: f64,
+    copter: String,
+    sonar_tick: u64,
+    sonar_m: [f32; 4],
+    sonar_fused_m: [f32; 4],
+    ir_m: Option<f32>,
+    attitude_rad: [f32; 3],
+    rate_body_rad_s: [f32; 3],
+    accel_body_m_s2: [f32; 3],
+}
+
+/// A logged `twinswarm.BusMessage`.
+#[derive(Debug, Deserialize)]
+struct LoggedBus {
+    key: String,
+    text: String,
+}
+
+impl From<LoggedState> for StateMsg {
+    fn from(s: LoggedState) -> Self {
+        StateMsg {
+            name: s.copter,
+            kind: if s.kind == "real" { "twin".into() } else { s.kind },
+            ac_id: s.ac_id,
+            tick: s.tick,
+            time_s: s.t_s,
+            mode: s.mode,
+            pos_m: s.pos_m,
+            vel_m_s: s.vel_m_s,
+            attitude_rad: s.rpy_rad,
+            angvel_rad_s: s.angvel_rad_s,
+            quat_xyzw: s.quat_xyzw,
+            rotor_thrust_n: s.rotor_thrust_n,
+            crashed: s.crashed,
+        }
+    }
+}
+
+impl From<LoggedSensors> for SensorsMsg {
+    fn from(s: LoggedSensors) -> Self {
+        SensorsMsg {
+            name: s.copter,
+            tick: s.tick,
+            time_s: s.t_s,
+            sonar_m: SonarMsg::from(s.sonar_m),
+            sonar_fused_m: SonarMsg::from(s.sonar_fused_m),
+            ir_m: s.ir_m,
+            attitude_rad: s.attitude_rad,
+            rate_body_rad_s: s.rate_body_rad_s,
+            accel_body_m_s2: s.accel_body_m_s2,
+        }
+    }
+}
+
+/// Messages republished, per key class.
+#[derive(Debug, Default, Clone, Copy)]
+struct Counts {
+    clock: u64,
+    state: u64,
+    sensors: u64,
+    bus: u64,
+    /// Bus messages whose key is not a valid key expression.
+    skipped: u64,
+}
+
+/// The prefix the run published under, as far as the log tells.
+fn recorded_prefix(meta: Option<&std::collections::BTreeMap<String, String>>) -> Option<String> {
+    let meta = meta?;
+    if let Some(p) = meta.get("prefix").filter(|p| !p.is_empty()) {
+        return Some(p.clone());
+    }
+    let words: Vec<&str> = meta.get("command_line").map(|c| c.split_whitespace().collect()).unwrap_or_default();
+    for (i, w) in words.iter().enumerate() {
+        if let Some(p) = w.strip_prefix("--prefix=") {
+            return Some(p.to_owned());
+        }
+        if *w == "--prefix"
+            && let Some(p) = words.get(i + 1)
+        {
+            return Some((*p).to_owned());
+        }
+    }
+    meta.get("world").map(|w| format!("twinswarm/{w}"))
+}
+
+/// Moves a logged bus key from the recorded prefix to the replay prefix.
+fn rekey(key: &str, recorded: Option<&str>, prefix: &str) -> String {
+    match recorded.and_then(|r| key.strip_prefix(r)) {
+        Some(rest) if rest.is_empty() || rest.starts_with('/') => format!("{prefix}{rest}"),
+        _ => key.to_owned(),
+    }
+}
+
+/// Replays into a Zenoh session.
+struct Replayer<'a> {
+    session: &'a zenoh::Session,
+    prefix: String,
+    recorded: Option<String>,
+    publishers: HashMap<String, zenoh::pubsub::Publisher<'static>>,
+    last_sonar_tick: HashMap<String, u64>,
+    last_clock_tick: Option<u64>,
+    counts: Counts,
+    start: Instant,
+    t0_ns: u64,
+    speed: f64,
+    stop: Arc<AtomicBool>,
+}
+
+impl Replayer<'_> {
+    fn publisher(&mut self, key: &str) -> anyhow::Result<&zenoh::pubsub::Publisher<'static>> {
+        if !self.publishers.contains_key(key) {
+            let p = self
+                .session
+                .declare_publisher(key.to_owned())
+                .congestion_control(CongestionControl::Block)
+                .wait()
+                .map_err(|e| anyhow::anyhow!("{e}"))
+                .with_context(|| format!("cannot declare a publisher on {key}"))?;
+            self.publishers.insert(key.to_owned(), p);
+        }
+        Ok(&self.publishers[key])
+    }
+
+    fn put(&mut self, key: &str, payload: Vec<u8>) -> anyhow::Result<()> {
+        self.publisher(key)?.put(payload).wait().map_err(|e| anyhow::anyhow!("{e}")).with_context(|| format!("put {key}"))
+    }
+
+    /// Sleeps until the deadline of `log_time_ns`; false if stopped meanwhile.
+    fn wait_until(&self, log_time_ns: u64) -> bool {
+        let offset_s = log_time_ns.saturating_sub(self.t0_ns) as f64 / 1e9 / self.speed;
+        let deadline = self.start + Duration::from_secs_f64(offset_s);
+        loop {
+            if self.stop.load(Ordering::Relaxed) {
+                return false;
+            }
+            let now = Instant::now();
+            if now >= deadline {
+                return true;
+            }
+            std::thread::sleep((deadline - now).min(Duration::from_millis(100)));
+        }
+    }
+
+    /// Handles one message. `Ok(false)`: stopped by a signal.
+    fn message(&mut self, path: &Path, topic: &str, log_time: u64, data: &[u8]) -> anyhow::Result<bool> {
+        let json_err = |source| read_error(LogReadError::Json { path: path.to_owned(), topic: topic.to_owned(), source });
+        match topic {
+            "/copters/state" => {
+                let s: LoggedState = serde_json::from_slice(data).map_err(json_err)?;
+                if !self.wait_until(log_time) {
+                    return Ok(false);
+                }
+                if self.last_clock_tick != Some(s.tick) {
+                    self.last_clock_tick = Some(s.tick);
+                    let clock = ClockMsg { tick: s.tick, time_s: s.t_s };
+                    self.put(&format!("{}/clock", self.prefix), serde_json::to_vec(&clock)?)?;
+                    self.counts.clock += 1;
+                }
+                let key = format!("{}/copters/{}/state", self.prefix, s.copter);
+                self.put(&key, serde_json::to_vec(&StateMsg::from(s))?)?;
+                self.counts.state += 1;
+            }
+            "/copters/sensors" => {
+                let s: LoggedSensors = serde_json::from_slice(data).map_err(json_err)?;
+                if self.last_sonar_tick.get(&s.copter) == Some(&s.sonar_tick) {
+                    return Ok(true);
+                }
+                self.last_sonar_tick.insert(s.copter.clone(), s.sonar_tick);
+                if !self.wait_until(log_time) {
+                    return Ok(false);
+                }
+                let key = format!("{}/copters/{}/sensors", self.prefix, s.copter);
+                self.put(&key, serde_json::to_vec(&SensorsMsg::from(s))?)?;
+                self.counts.sensors += 1;
+            }
+            "/bus" => {
+                let b: LoggedBus = serde_json::from_slice(data).map_err(json_err)?;
+                let key = rekey(&b.key, self.recorded.as_deref(), &self.prefix);
+                if zenoh::key_expr::KeyExpr::try_from(key.as_str()).is_err() {
+                    tracing::warn!("skipping a /bus message: {key:?} is not a valid key expression");
+                    self.counts.skipped += 1;
+                    return Ok(true);
+                }
+                if !self.wait_until(log_time) {
+                    return Ok(false);
+                }
+                self.put(&key, b.text.into_bytes())?;
+                self.counts.bus += 1;
+            }
+            _ => {}
+        }
+        Ok(true)
+    }
+}
+
+/// `twinswarm replay FILE`.
+pub fn run(args: ReplayArgs) -> anyhow::Result<()> {
+    let bad = |msg: String| anyhow::Error::new(BadInput(anyhow::anyhow!(msg)));
+    if !args.speed.is_finite() || args.speed <= 0.0 {
+        return Err(bad(format!("--speed must be a positive finite number, got {}", args.speed)));
+    }
+    if let Some(w) = args.wait_for_subscriber
+        && (!w.is_finite() || w < 0.0)
+    {
+        return Err(bad(format!("--wait-for-subscriber must be a non-negative number of seconds, got {w}")));
+    }
+    let path = args.file.as_path();
+    let file = LogFile::open(path).map_err(read_error)?;
+    let info = file.info().map_err(read_error)?;
+    let meta = info.metadata.get("twinswarm");
+    let recorded = recorded_prefix(meta);
+    let Some(prefix) = args.prefix.clone().or_else(|| recorded.clone()) else {
+        return Err(bad(format!(
+            "{}: no `twinswarm` metadata record (not written by twinswarm run?); give --prefix",
+            path.display()
+        )));
+    };
+    let count = |topic: &str| info.channels.iter().find(|c| c.topic == topic).map_or(0, |c| c.messages);
+    let replayable = count("/copters/state") + count("/copters/sensors") + count("/bus");
+    let Some((t0_ns, t1_ns)) = info.time_range_ns.filter(|_| replayable > 0) else {
+        return Err(bad(format!("{}: no state, sensor or bus messages to replay", path.display())));
+    };
+    let span_s = (t1_ns - t0_ns) as f64 / 1e9;
+    let copters: Vec<String> = meta
+        .and_then(|m| m.get("copters"))
+        .and_then(|s| serde_json::from_str::<Vec<serde_json::Value>>(s).ok())
+        .unwrap_or_default()
+        .iter()
+        .filter_map(|c| c["name"].as_str().map(str::to_owned))
+        .collect();
+
+    let stop = crate::logcmd::install_stop_flag()?;
+    let bus = BusOptions {
+        no_bus: false,
+        zenoh_config: args.zenoh_config.clone(),
+        listen: args.listen.clone(),
+        connect: args.connect.clone(),
+        prefix: Some(prefix.clone()),
+    };
+    let config = zenoh_config(&bus)?;
+    let session = zenoh::open(config).wait().map_err(|e| anyhow::anyhow!("{e}")).context("cannot open the Zenoh session")?;
+    let mut r = Replayer {
+        session: &session,
+        prefix: prefix.clone(),
+        recorded,
+        publishers: HashMap::new(),
+        last_sonar_tick: HashMap::new(),
+        last_clock_tick: None,
+        counts: Counts::default(),
+        start: Instant::now(),
+        t0_ns,
+        speed: args.speed,
+        stop: stop.clone(),
+    };
+    outln!(
+        "replay {}: {:.2} s of log at speed {} ({:.2} s), prefix {prefix}",
+        path.display(),
+        span_s,
+        args.speed,
+        span_s / args.speed
+    );
+    let result = replay(&mut r, &file, &copters, &args);
+    let wall_s = r.start.elapsed().as_secs_f64();
+    let counts = r.counts;
+    let publishers = std::mem::take(&mut r.publishers);
+    drop(r);
+    // Let the last samples leave the transmission queue, then close explicitly.
+    std::thread::sleep(Duration::from_millis(200));
+    drop(publishers);
+    let closed = session.close().wait().map_err(|e| anyhow::anyhow!("{e}")).context("closing the Zenoh session");
+    let interrupted = result?;
+    closed?;
+    outln!(
+        "  republished {} messages: {} clock, {} state, {} sensors, {} bus{}",
+        counts.clock + counts.state + counts.sensors + counts.bus,
+        counts.clock,
+        counts.state,
+        counts.sensors,
+        counts.bus,
+        if counts.skipped > 0 { format!(" ({} bus messages with invalid keys skipped)", counts.skipped) } else { String::new() }
+    );
+    outln!(
+        "  {:.2} s of log in {:.2} s wall at speed {} ({:.2}x effective)",
+        span_s,
+        wall_s,
+        args.speed,
+        if wall_s > 0.0 { span_s / wall_s } else { 0.0 }
+    );
+    if interrupted {
+        outln!("  interrupted by a signal; the session was closed cleanly");
+    }
+    Ok(())
+}
+
+/// Waits for subscribers, then replays. `Ok(true)`: interrupted by a signal.
+fn replay(r: &mut Replayer<'_>, file: &LogFile, copters: &[String], args: &ReplayArgs) -> anyhow::Result<bool> {
+    let mut keys = vec![format!("{}/clock", r.prefix)];
+    for c in copters {
+        keys.push(format!("{}/copters/{c}/state", r.prefix));
+        keys.push(format!("{}/copters/{c}/sensors", r.prefix));
+    }
+    for k in &keys {
+        r.publisher(k)?;
+    }
+    if let Some(wait_s) = args.wait_for_subscriber {
+        outln!("  waiting up to {wait_s} s for a subscriber");
+        let until = Instant::now() + Duration::from_secs_f64(wait_s);
+        let matched = |r: &Replayer<'_>| {
+            keys.iter().any(|k| r.publishers[k].matching_status().wait().is_ok_and(|m| m.matching()))
+        };
+        while !matched(r) {
+            if r.stop.load(Ordering::Relaxed) {
+                return Ok(true);
+            }
+            if Instant::now() >= until {
+                tracing::warn!("no subscriber after {wait_s} s; replaying anyway");
+                break;
+            }
+            std::thread::sleep(Duration::from_millis(20));
+        }
+    }
+    let delay_until = Instant::now() + Duration::from_millis(args.start_delay_ms);
+    while Instant::now() < delay_until {
+        if r.stop.load(Ordering::Relaxed) {
+            return Ok(true);
+        }
+        std::thread::sleep((delay_until - Instant::now()).min(Duration::from_millis(50)));
+    }
+    r.start = Instant::now();
+    // The reader's callback can only fail with a `LogReadError`: our own failures and a stop
+    // are parked here and signalled with a placeholder error.
+    let mut failure: Option<anyhow::Result<bool>> = None;
+    let path = file.path().to_owned();
+    let sentinel = || LogReadError::Io { path: path.clone(), source: std::io::Error::other("replay stopped") };
+    let read = file.for_each_message(&["/copters/state", "/copters/sensors", "/bus"], |topic, log_time, data| {
+        match r.message(&path, topic, log_time, data) {
+            Ok(true) => Ok(()),
+            Ok(false) => {
+                failure = Some(Ok(true));
+                Err(sentinel())
+            }
+            Err(e) => {
+                failure = Some(Err(e));
+                Err(sentinel())
+            }
+        }
+    });
+    if let Some(f) = failure {
+        return f;
+    }
+    read.map_err(read_error)?;
+    Ok(false)
+}
+
+#[cfg(test)]
+mod tests {
+    use std::collections::BTreeMap;
+
+    use super::*;
+
+    #[test]
+    fn prefix_from_metadata_and_rekeying() {
+        let mut m = BTreeMap::new();
+        m.insert("world".to_owned(), "lab".to_owned());
+        m.insert("command_line".to_owned(), "twinswarm run --no-bus".to_owned());
+        assert_eq!(recorded_prefix(Some(&m)).as_deref(), Some("twinswarm/lab"));
+        m.insert("command_line".to_owned(), "twinswarm run --prefix demo/x --log a.mcap".to_owned());
+        assert_eq!(recorded_prefix(Some(&m)).as_deref(), Some("demo/x"));
+        m.insert("prefix".to_owned(), "rec/p".to_owned());
+        assert_eq!(recorded_prefix(Some(&m)).as_deref(), Some("rec/p"));
+        assert_eq!(recorded_prefix(None), None);
+        assert_eq!(rekey("twinswarm/lab/copters/a/cmd", Some("twinswarm/lab"), "r/x"), "r/x/copters/a/cmd");
+        assert_eq!(rekey("twinswarm/labx/a", Some("twinswarm/lab"), "r/x"), "twinswarm/labx/a");
+        assert_eq!(rekey("other/a", Some("twinswarm/lab"), "r/x"), "other/a");
+    }
+
+    #[test]
+    fn logged_state_maps_to_the_live_shape() {
+        let logged = LoggedState {
+            tick: 3,
+            t_s: 0.15,
+            copter: "finken1".into(),
+            ac_id: Some(201),
+            kind: "real".into(),
+            mode: "wall_avoid".into(),
+            crashed: false,
+            pos_m: [1.0, 2.0, 3.0],
+            vel_m_s: [0.0; 3],
+            rpy_rad: [0.1, 0.2, 0.3],
+            angvel_rad_s: [0.0; 3],
+            quat_xyzw: [0.0, 0.0, 0.0, 1.0],
+            rotor_thrust_n: [0.5; 4],
+        };
+        let s = StateMsg::from(logged);
+        assert_eq!((s.name.as_str(), s.kind.as_str(), s.time_s, s.attitude_rad), ("finken1", "twin", 0.15, [0.1, 0.2, 0.3]));
+    }
+}
