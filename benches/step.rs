@@ -38,5 +38,54 @@ fn bench_step(c: &mut Criterion) {
     group.finish();
 }
 
-criterion_group!(benches, bench_step);
+/// One sonar reading (exact cone distance to walls, boxes and copters): the default lab (2
+/// copters, 3 boxes), and a 1000-copter swarm through the copter grid.
+fn bench_sonar_reading(c: &mut Criterion) {
+    use sim_core::geometry::{Cone, OrientedBox};
+    use sim_core::math::{Quat, Vec3};
+    use sim_core::sensors::{SONAR_AXES_IN_BODY, SonarScene};
+    let mut group = c.benchmark_group("sonar_reading");
+    for (label, spec) in [("lab", scene::load_default().0), ("swarm_1000", scene::grid_swarm(1000, 2.0, 0.8, true))] {
+        let world = match scene::compile(&spec) {
+            Ok(w) => w,
+            Err(e) => panic!("{e}"),
+        };
+        let state = world.initial_state();
+        let (hx, hy) = (world.arena.size_m[0] / 2.0, world.arena.size_m[1] / 2.0);
+        let mut sonar = SonarScene {
+            walls: vec![(Vec3::X, hx), (Vec3::X, -hx), (Vec3::Y, hy), (Vec3::Y, -hy)],
+            ..SonarScene::default()
+        };
+        sonar.boxes = world
+            .boxes
+            .iter()
+            .map(|b| OrientedBox {
+                center: b.center_m,
+                rotation: Quat::from_rotation_z(b.yaw_rad),
+                half: b.half_extents_m,
+            })
+            .collect();
+        sonar.copters = (0..world.copters.len())
+            .map(|i| OrientedBox {
+                center: state.pose(i).pos_m,
+                rotation: Quat::IDENTITY,
+                half: Vec3::new(0.134, 0.134, 0.03),
+            })
+            .collect();
+        sonar.index_copters(1.0);
+        let cones: Vec<(usize, Cone)> = (0..world.copters.len().min(64))
+            .flat_map(|i| {
+                let p = state.pose(i).pos_m;
+                SONAR_AXES_IN_BODY.map(|a| (i, Cone::new(p + a * 0.05, a, 15f32.to_radians())))
+            })
+            .collect();
+        group.throughput(criterion::Throughput::Elements(cones.len() as u64));
+        group.bench_function(label, |b| {
+            b.iter(|| cones.iter().map(|(i, cone)| sonar.cone_distance(cone, *i, 7.65)).sum::<f32>())
+        });
+    }
+    group.finish();
+}
+
+criterion_group!(benches, bench_step, bench_sonar_reading);
 criterion_main!(benches);

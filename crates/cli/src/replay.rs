@@ -45,7 +45,7 @@ pub struct ReplayArgs {
     /// The MCAP log of a run.
     pub file: PathBuf,
     /// Playback speed: 2 plays twice as fast, 0.5 half as fast (> 0).
-    #[arg(long, value_name = "X", default_value_t = 1.0)]
+    #[arg(long, value_name = "X", default_value_t = 1.0, allow_negative_numbers = true)]
     pub speed: f64,
     /// A full Zenoh configuration file (JSON5), instead of the embedded default (peer mode,
     /// listen on tcp/127.0.0.1:7447, multicast scouting off).
@@ -215,7 +215,11 @@ impl Replayer<'_> {
     }
 
     fn put(&mut self, key: &str, payload: Vec<u8>) -> anyhow::Result<()> {
-        self.publisher(key)?.put(payload).wait().map_err(|e| anyhow::anyhow!("{e}")).with_context(|| format!("put {key}"))
+        self.publisher(key)?
+            .put(payload)
+            .wait()
+            .map_err(|e| anyhow::anyhow!("{e}"))
+            .with_context(|| format!("put {key}"))
     }
 
     /// Sleeps until the deadline of `log_time_ns`; false if stopped meanwhile.
@@ -236,7 +240,8 @@ impl Replayer<'_> {
 
     /// Handles one message. `Ok(false)`: stopped by a signal.
     fn message(&mut self, path: &Path, topic: &str, log_time: u64, data: &[u8]) -> anyhow::Result<bool> {
-        let json_err = |source| read_error(LogReadError::Json { path: path.to_owned(), topic: topic.to_owned(), source });
+        let json_err =
+            |source| read_error(LogReadError::Json { path: path.to_owned(), topic: topic.to_owned(), source });
         match topic {
             "/copters/state" => {
                 let s: LoggedState = serde_json::from_slice(data).map_err(json_err)?;
@@ -331,7 +336,8 @@ pub fn run(args: ReplayArgs) -> anyhow::Result<()> {
         prefix: Some(prefix.clone()),
     };
     let config = zenoh_config(&bus)?;
-    let session = zenoh::open(config).wait().map_err(|e| anyhow::anyhow!("{e}")).context("cannot open the Zenoh session")?;
+    let session =
+        zenoh::open(config).wait().map_err(|e| anyhow::anyhow!("{e}")).context("cannot open the Zenoh session")?;
     let mut r = Replayer {
         session: &session,
         prefix: prefix.clone(),
@@ -370,17 +376,25 @@ pub fn run(args: ReplayArgs) -> anyhow::Result<()> {
         counts.state,
         counts.sensors,
         counts.bus,
-        if counts.skipped > 0 { format!(" ({} bus messages with invalid keys skipped)", counts.skipped) } else { String::new() }
-    );
-    outln!(
-        "  {:.2} s of log in {:.2} s wall at speed {} ({:.2}x effective)",
-        span_s,
-        wall_s,
-        args.speed,
-        if wall_s > 0.0 { span_s / wall_s } else { 0.0 }
+        if counts.skipped > 0 {
+            format!(" ({} bus messages with invalid keys skipped)", counts.skipped)
+        } else {
+            String::new()
+        }
     );
     if interrupted {
-        outln!("  interrupted by a signal; the session was closed cleanly");
+        outln!(
+            "  interrupted by a signal after {wall_s:.2} s wall (speed {}); the session was closed cleanly",
+            args.speed
+        );
+    } else {
+        outln!(
+            "  {:.2} s of log in {:.2} s wall at speed {} ({:.2}x effective)",
+            span_s,
+            wall_s,
+            args.speed,
+            if wall_s > 0.0 { span_s / wall_s } else { 0.0 }
+        );
     }
     Ok(())
 }
@@ -425,17 +439,17 @@ fn replay(r: &mut Replayer<'_>, file: &LogFile, copters: &[String], args: &Repla
     let mut failure: Option<anyhow::Result<bool>> = None;
     let path = file.path().to_owned();
     let sentinel = || LogReadError::Io { path: path.clone(), source: std::io::Error::other("replay stopped") };
-    let read = file.for_each_message(&["/copters/state", "/copters/sensors", "/bus"], |topic, log_time, data| {
-        match r.message(&path, topic, log_time, data) {
-            Ok(true) => Ok(()),
-            Ok(false) => {
-                failure = Some(Ok(true));
-                Err(sentinel())
-            }
-            Err(e) => {
-                failure = Some(Err(e));
-                Err(sentinel())
-            }
+    let read = file.for_each_message(&["/copters/state", "/copters/sensors", "/bus"], |topic, log_time, data| match r
+        .message(&path, topic, log_time, data)
+    {
+        Ok(true) => Ok(()),
+        Ok(false) => {
+            failure = Some(Ok(true));
+            Err(sentinel())
+        }
+        Err(e) => {
+            failure = Some(Err(e));
+            Err(sentinel())
         }
     });
     if let Some(f) = failure {
@@ -485,6 +499,9 @@ mod tests {
             rotor_thrust_n: [0.5; 4],
         };
         let s = StateMsg::from(logged);
-        assert_eq!((s.name.as_str(), s.kind.as_str(), s.time_s, s.attitude_rad), ("finken1", "twin", 0.15, [0.1, 0.2, 0.3]));
+        assert_eq!(
+            (s.name.as_str(), s.kind.as_str(), s.time_s, s.attitude_rad),
+            ("finken1", "twin", 0.15, [0.1, 0.2, 0.3])
+        );
     }
 }
