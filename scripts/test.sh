@@ -33,7 +33,8 @@ if [ ! -x .venv/bin/python ]; then
   python3 -m venv .venv
 fi
 .venv/bin/python -m pip install --quiet --disable-pip-version-check -r tests/python/requirements.txt
-cargo build -p twinswarm --locked
+# Same targets and features as the test run above, so nothing is rebuilt.
+cargo build --workspace --all-targets --locked
 pytest_status=0
 TWINSWARM_BIN="$PWD/target/debug/twinswarm" .venv/bin/python -m pytest -q tests/python || pytest_status=$?
 if [ "$pytest_status" -eq 5 ]; then
@@ -45,4 +46,4 @@ elif [ "$pytest_status" -ne 0 ]; then
 fi
 
 echo
-echo "all checks passed: fmt, clippy, cargo tests, doc tests, python MCAP reader tests"
+echo "all checks passed: fmt, clippy, cargo tests, doc tests, python tests (Zenoh client, MCAP reader, replay)"
