@@ -33,8 +33,8 @@ use medusa::{
 use nalgebra::Vector2;
 use serde::Serialize;
 use sim_core::control::FlightMode;
-use sim_core::geometry::{Cone, OrientedBox};
-use sim_core::math::{Quat, Real, Vec3, wrap_angle_rad};
+use sim_core::geometry::Cone;
+use sim_core::math::{Real, Vec3, wrap_angle_rad};
 use sim_core::rng::Rng32;
 use sim_core::scene::{self, SceneSpec};
 use sim_core::sensors::{SonarScene, sonar_reading};
@@ -428,30 +428,9 @@ pub fn filter_config(world: &World, copter: usize) -> FilterConfig {
     }
 }
 
-/// The sonar scene as sim-core's `sense` builds it, from the current state.
+/// The sonar scene exactly as sim-core's `sense` builds it, from the current state.
 fn sonar_scene(world: &World, state: &State, scene: &mut SonarScene) {
-    let (hx, hy) = (world.arena.size_m[0] / 2.0, world.arena.size_m[1] / 2.0);
-    scene.walls.clear();
-    if world.arena.walls {
-        scene.walls.extend([(Vec3::X, hx), (Vec3::X, -hx), (Vec3::Y, hy), (Vec3::Y, -hy)]);
-    }
-    scene.boxes.clear();
-    scene.boxes.extend(world.boxes.iter().map(|b| OrientedBox {
-        center: b.center_m,
-        rotation: Quat::from_rotation_z(b.yaw_rad),
-        half: b.half_extents_m,
-    }));
-    scene.copters.clear();
-    for (i, c) in state.copters.iter().enumerate() {
-        let body = &state.physics.bodies[c.body];
-        let af = &world.airframes[world.copters[i].airframe];
-        let half_xy = af.spec.arm_length_m / std::f32::consts::SQRT_2 + af.spec.rotor_diameter_m / 2.0;
-        scene.copters.push(OrientedBox {
-            center: body.translation(),
-            rotation: *body.rotation(),
-            half: Vec3::new(half_xy, half_xy, af.spec.body_size_m[2] / 2.0 + 0.01),
-        });
-    }
+    sim_core::step::fill_sonar_scene(world, &state.physics, &state.copters, scene);
 }
 
 /// Readings of the four synthetic diagonal sonars (slots 4..8) at the current state.

@@ -16,9 +16,12 @@ use crate::airframe::{Airframe, ParticleNoise, ROTOR_YAW_SIGN};
 use crate::control::{self, Command, FlightMode, Inputs, Setpoint};
 use crate::geometry::OrientedBox;
 use crate::math::{GRAVITY_M_S2, Real, Vec3, euler_from_quat, wrap_angle_rad};
-use crate::sensors::{self, SensorParams, crosstalk_eligible, crosstalk_reading, sonar_cones, sonar_reading};
+use crate::sensors::{
+    self, SensorParams, SonarScene, crosstalk_eligible, crosstalk_reading, sonar_cones, sonar_reading,
+};
 use crate::state::{CopterState, CrashCause, State};
 use crate::world::{ColliderTag, World};
+use rapier3d::prelude::PhysicsWorld;
 
 /// Something that happened during a step.
 #[derive(Clone, Debug, PartialEq, Serialize)]
@@ -222,15 +225,10 @@ fn outer_loop(
     sp
 }
 
-/// Samples every copter's sensors from the current state.
-fn sense(world: &World, state: &mut State, inputs: &Inputs, sonar_due: bool) {
-    let params: &SensorParams = &world.sensors;
-    let spec = &params.spec;
-    let n = world.copters.len();
-    let dt_control = world.params.control_dt_s as Real;
-
-    // What the sonars can see, gathered once.
-    let scene = &mut state.scratch.sonar_scene;
+/// Gathers what sonars can see in the current state: the arena walls, the static boxes and
+/// every copter's body (crashed ones too), indexed in the copter grid. `sense` uses it; so can
+/// tools that need the same geometry (e.g. extra virtual sonars).
+pub fn fill_sonar_scene(world: &World, physics: &PhysicsWorld, copters: &[CopterState], scene: &mut SonarScene) {
     let (hx, hy) = (world.arena.size_m[0] / 2.0, world.arena.size_m[1] / 2.0);
     scene.walls.clear();
     if world.arena.walls {
@@ -243,8 +241,8 @@ fn sense(world: &World, state: &mut State, inputs: &Inputs, sonar_due: bool) {
         half: b.half_extents_m,
     }));
     scene.copters.clear();
-    for i in 0..n {
-        let body = &state.physics.bodies[state.copters[i].body];
+    for (i, c) in copters.iter().enumerate() {
+        let body = &physics.bodies[c.body];
         let af = &world.airframes[world.copters[i].airframe];
         let half_xy = af.spec.arm_length_m / std::f32::consts::SQRT_2 + af.spec.rotor_diameter_m / 2.0;
         scene.copters.push(OrientedBox {
@@ -254,6 +252,18 @@ fn sense(world: &World, state: &mut State, inputs: &Inputs, sonar_due: bool) {
         });
     }
     scene.index_copters(GRID_CELL_M);
+}
+
+/// Samples every copter's sensors from the current state.
+fn sense(world: &World, state: &mut State, inputs: &Inputs, sonar_due: bool) {
+    let params: &SensorParams = &world.sensors;
+    let spec = &params.spec;
+    let n = world.copters.len();
+    let dt_control = world.params.control_dt_s as Real;
+
+    // What the sonars can see, gathered once.
+    let scene = &mut state.scratch.sonar_scene;
+    fill_sonar_scene(world, &state.physics, &state.copters, scene);
 
     let noise = spec.noise;
     for i in 0..n {
