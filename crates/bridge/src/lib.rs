@@ -31,9 +31,11 @@
 pub mod bus;
 pub mod codec;
 pub mod conf;
+pub mod ivy;
 pub mod keyexpr;
 pub mod log;
 pub mod messages;
+pub mod mixed;
 pub mod node;
 pub mod pairing;
 pub mod pprz;

@@ -387,7 +387,12 @@ impl Node {
             let payload = serde_json::to_vec(s).unwrap_or_default();
             self.publishers[i].1.put(payload).await.map_err(zerr)?;
         }
-        self.counters.published.fetch_add((1 + frame.states.len() + frame.sensors.len()) as u64, Ordering::Relaxed);
+        for out in &frame.pprz_out {
+            self.session.put(out.key.as_str(), out.text.as_str()).await.map_err(zerr)?;
+        }
+        self.counters
+            .published
+            .fetch_add((1 + frame.states.len() + frame.sensors.len() + frame.pprz_out.len()) as u64, Ordering::Relaxed);
         Ok(())
     }
 

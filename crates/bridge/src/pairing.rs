@@ -31,9 +31,16 @@
 //!   copter (k = 0, 1, ...) is placed `k × spacing_m` (default 0.5 m) along
 //!   the spawn pose's +y axis.
 //! * `<unknown_aircraft policy>` (optional): what to do with telemetry from
-//!   an `ac_id` that is neither twinned nor virtual: `ignore` (default; the
-//!   runtime counts such messages, see [`UnknownAircraftStats`]) or `spawn`
-//!   (create a twin at the spawn point).
+//!   an `ac_id` that is **not in conf.xml**: `ignore` (default; the runtime
+//!   counts such messages, see [`UnknownAircraftStats`]) or `spawn` (create a
+//!   twin named `ac_<id>` at the spawn point).
+//!
+//! **Automatic spawn.** A *real* aircraft of conf.xml that no `<twin>` names
+//! gets its twin at the spawn point (named after the aircraft, lower case) on
+//! its first telemetry message, whatever the policy; without a `<spawn>`
+//! point its messages are dropped and counted. An aircraft whose name marks
+//! it virtual (`Virtual…`) but which is not one of our `<virtual>` copters is
+//! someone else's simulation: its messages are dropped and counted.
 //!
 //! Poses are in the scene's world frame: metres, right-handed, z up; yaw in
 //! degrees in the file (user-facing), counter-clockwise about +z from +x,
@@ -167,10 +174,15 @@ pub struct Assignment {
 pub enum Route<'a> {
     /// Twinned or virtual.
     Assigned(&'a Assignment),
-    /// Unknown, dropped.
+    /// Dropped (and counted).
     Ignore,
-    /// Unknown, to be spawned (the runtime chooses the spawn index).
-    Spawn(SpawnPoint),
+    /// Not twinned yet: spawn a twin (the runtime chooses the spawn index).
+    Spawn {
+        /// Where.
+        point: SpawnPoint,
+        /// The aircraft's name in conf.xml; `None` for an `ac_id` not in conf.xml.
+        aircraft: Option<&'a str>,
+    },
 }
 
 /// The pairing checked against a conf.xml: roles by aircraft id.
@@ -182,17 +194,23 @@ pub struct ResolvedPairing {
     pub unknown_policy: UnknownAircraftPolicy,
     /// Spawn point, if any.
     pub spawn: Option<SpawnPoint>,
+    /// Aircraft of conf.xml that are not assigned, by id: name and kind by name.
+    pub unassigned: BTreeMap<AcId, (String, AircraftKind)>,
 }
 
 impl ResolvedPairing {
-    /// The route for messages from `ac_id`.
+    /// The route for messages from `ac_id` (see the module docs).
     pub fn route(&self, ac_id: AcId) -> Route<'_> {
         if let Some(a) = self.by_ac_id.get(&ac_id) {
             return Route::Assigned(a);
         }
-        match (self.unknown_policy, self.spawn) {
-            (UnknownAircraftPolicy::Spawn, Some(sp)) => Route::Spawn(sp),
-            _ => Route::Ignore,
+        match (self.unassigned.get(&ac_id), self.spawn) {
+            (Some((_, AircraftKind::Virtual)), _) | (Some(_), None) => Route::Ignore,
+            (Some((name, AircraftKind::Real)), Some(point)) => Route::Spawn { point, aircraft: Some(name) },
+            (None, Some(point)) if self.unknown_policy == UnknownAircraftPolicy::Spawn => {
+                Route::Spawn { point, aircraft: None }
+            }
+            (None, _) => Route::Ignore,
         }
     }
 }
@@ -492,6 +510,12 @@ impl Pairing {
                 },
             );
         }
-        Ok(ResolvedPairing { by_ac_id, unknown_policy: self.unknown_policy, spawn: self.spawn })
+        let unassigned = conf
+            .aircraft
+            .iter()
+            .filter(|a| !by_ac_id.contains_key(&a.ac_id))
+            .map(|a| (a.ac_id, (a.name.clone(), a.kind())))
+            .collect();
+        Ok(ResolvedPairing { by_ac_id, unknown_policy: self.unknown_policy, spawn: self.spawn, unassigned })
     }
 }

@@ -7,8 +7,10 @@
 //! yaw counter-clockwise from +x). With the arena's +x as Paparazzi's north and +y as its west:
 //! `roll = phi`, `pitch = −theta`, `yaw = −psi`. Positions: `north = x`, `east = −y`, `up = z`.
 
+use sim_core::Setpoint;
+
 use crate::codec::{CodecError, Message, Sender};
-use crate::messages::MessageSet;
+use crate::messages::{BaseType, FieldDef, MessageSet};
 use crate::value::Value;
 use crate::wire::{CommandMsg, SensorsMsg, StateMsg};
 
@@ -36,7 +38,8 @@ fn f(msg: &Message<'_>, field: &str) -> Option<f32> {
 ///
 /// - `FINKEN_ACTUATORS_SET_POINT` (deg, %): attitude targets and throttle;
 /// - `FINKEN_SENSOR_MODEL` `pos_z` (m) and `FINKEN_IR_ADC` `ir_distance` (cm): the height to hold;
-/// - `ATTITUDE` (rad), as fallback: attitude targets.
+/// - `ATTITUDE` (rad) and `ROTORCRAFT_FP` (fixed point, scaled by the definitions'
+///   `alt_unit_coef`), as fallback: attitude targets, and for `ROTORCRAFT_FP` the height.
 pub fn twin_command(msg: &Message<'_>) -> Option<CommandMsg> {
     match msg.def.name.as_str() {
         "FINKEN_ACTUATORS_SET_POINT" => Some(CommandMsg {
@@ -56,6 +59,13 @@ pub fn twin_command(msg: &Message<'_>) -> Option<CommandMsg> {
             pitch: f(msg, "theta").map(|t| -t),
             roll: f(msg, "phi"),
             yaw: f(msg, "psi").map(|p| wrap(-p)),
+            ..CommandMsg::default()
+        }),
+        "ROTORCRAFT_FP" => Some(CommandMsg {
+            pitch: display_value(msg, "theta").map(|d| -d.to_radians()),
+            roll: display_value(msg, "phi").map(f32::to_radians),
+            yaw: display_value(msg, "psi").map(|d| wrap(-d.to_radians())),
+            height: display_value(msg, "up").filter(|z| *z > 0.0),
             ..CommandMsg::default()
         }),
         _ => None,
@@ -94,90 +104,144 @@ pub fn virtual_sonar_readings(msg: &Message<'_>) -> Option<(u8, [f32; 4])> {
     Some((ac, out))
 }
 
-/// The telemetry a virtual copter publishes as aircraft `ac_id`, so ground tools see it:
-/// `(message name, Ivy text)` for `SONAR_ARRAY`, `ATTITUDE`, `ROTORCRAFT_FP`,
-/// `FINKEN_SENSOR_MODEL`.
-pub fn virtual_telemetry(
+/// What a copter's telemetry is made of: its state, its latest sensor readings and what its
+/// outer loop asks of its attitude and thrust controllers.
+#[derive(Clone, Copy, Debug)]
+pub struct TelemetrySource<'a> {
+    /// State (true pose; the telemetry of a simulated copter reports its truth).
+    pub state: &'a StateMsg,
+    /// Latest sensor readings.
+    pub sensors: &'a SensorsMsg,
+    /// Attitude and thrust set points of the outer loop.
+    pub setpoint: Setpoint,
+}
+
+/// The telemetry messages [`telemetry_text`] can produce.
+pub const TELEMETRY_MESSAGES: [&str; 6] =
+    ["FINKEN_ACTUATORS_SET_POINT", "FINKEN_IR_ADC", "FINKEN_SENSOR_MODEL", "SONAR_ARRAY", "ATTITUDE", "ROTORCRAFT_FP"];
+
+/// The value of a field in its transmitted unit: `display / alt_unit_coef`, cast to the
+/// field's type (saturating; integers rounded towards zero).
+fn wire_value(field: &FieldDef, display: f64) -> Value {
+    let v = field.alt_unit_coef.filter(|c| *c != 0.0).map_or(display, |c| display / c);
+    let v = if v.is_finite() { v } else { 0.0 };
+    match field.ty.base() {
+        BaseType::Int8 => Value::I8(v as i8),
+        BaseType::Uint8 => Value::U8(v as u8),
+        BaseType::Int16 => Value::I16(v as i16),
+        BaseType::Uint16 => Value::U16(v as u16),
+        BaseType::Int32 => Value::I32(v as i32),
+        BaseType::Uint32 => Value::U32(v as u32),
+        BaseType::Int64 => Value::I64(v as i64),
+        BaseType::Uint64 => Value::U64(v as u64),
+        BaseType::Double => Value::F64(v),
+        _ => Value::F32(v as f32),
+    }
+}
+
+/// The value of a field in its display unit (`alt_unit_coef × transmitted`).
+fn display_value(msg: &Message<'_>, field: &str) -> Option<f32> {
+    let coef = msg.def.field(field).and_then(|f| f.alt_unit_coef).unwrap_or(1.0);
+    msg.get(field).and_then(Value::as_f64).map(|v| (v * coef) as f32).filter(|v| v.is_finite())
+}
+
+/// Encodes message `name` from `ac_id` with each field's display value from `value_of`; the
+/// field layout comes from the definitions, never from here. A field `value_of` does not know
+/// is an error.
+fn encode_by_field(
     messages: &MessageSet,
     ac_id: u8,
-    state: &StateMsg,
-    sensors: Option<&SensorsMsg>,
-) -> Vec<(&'static str, String)> {
-    let sender = Sender::Aircraft(ac_id);
-    let [roll, pitch, yaw] = state.attitude_rad;
-    let (phi, theta, psi) = (roll, -pitch, wrap(-yaw));
-    let [x, y, z] = state.pos_m;
-    let [vx, vy, vz] = state.vel_m_s;
-    let mut out = Vec::with_capacity(4);
-    let mut push = |name: &'static str, values: Vec<Value>| match messages.encode(&sender, name, &values) {
-        Ok(text) => out.push((name, text)),
-        Err(e) => tracing::warn!("cannot encode {name}: {e}"),
-    };
-    push("ATTITUDE", vec![Value::F32(phi), Value::F32(psi), Value::F32(theta)]);
-    let pos_i = |m: f32| Value::I32((m / 0.003_906_3) as i32);
-    let vel_i = |m: f32| Value::I32((m / 0.000_001_9) as i32);
-    let ang_i = |rad: f32| Value::I32((rad.to_degrees() / 0.013_988_2) as i32);
-    let thrust: f32 = state.rotor_thrust_n.iter().sum();
-    push(
-        "ROTORCRAFT_FP",
-        vec![
-            pos_i(-y),
-            pos_i(x),
-            pos_i(z),
-            vel_i(-vy),
-            vel_i(vx),
-            vel_i(vz),
-            ang_i(phi),
-            ang_i(theta),
-            ang_i(psi),
-            pos_i(-y),
-            pos_i(x),
-            pos_i(z),
-            ang_i(psi),
-            Value::I32((thrust * 1000.0) as i32),
-            Value::U16(state.time_s.min(65_535.0) as u16),
-        ],
-    );
-    if let Some(s) = sensors {
-        let sonar = s.sonar_m;
-        push(
-            "SONAR_ARRAY",
-            vec![
-                Value::U16(cm(sonar.front)),
-                Value::U16(cm(sonar.right)),
-                Value::U16(cm(sonar.back)),
-                Value::U16(cm(sonar.left)),
-            ],
-        );
-        let [ax, ay, az] = s.accel_body_m_s2;
-        push(
-            "FINKEN_SENSOR_MODEL",
-            vec![
-                Value::U16(cm(sonar.front)),
-                Value::U16(cm(sonar.right)),
-                Value::U16(cm(sonar.left)),
-                Value::U16(cm(sonar.back)),
-                Value::I16(((sonar.front - sonar.back) * 100.0).clamp(-32_768.0, 32_767.0) as i16),
-                Value::I16(((sonar.left - sonar.right) * 100.0).clamp(-32_768.0, 32_767.0) as i16),
-                Value::F32(x),
-                Value::F32(y),
-                Value::F32(s.ir_m.unwrap_or(z)),
-                Value::F32(theta),
-                Value::F32(phi),
-                Value::F32(psi),
-                Value::F32(vx),
-                Value::F32(vy),
-                Value::F32(vz),
-                Value::F32(-s.rate_body_rad_s[1]),
-                Value::F32(s.rate_body_rad_s[0]),
-                Value::F32(-s.rate_body_rad_s[2]),
-                Value::F32(ax),
-                Value::F32(ay),
-                Value::F32(az),
-            ],
-        );
+    name: &str,
+    value_of: impl Fn(&str) -> Option<f64>,
+) -> Result<String, CodecError> {
+    let def = messages.by_name(name).ok_or_else(|| CodecError::UnknownMessage { name: name.to_owned() })?;
+    let mut values = Vec::with_capacity(def.fields.len());
+    for f in &def.fields {
+        let v = value_of(&f.name).ok_or_else(|| CodecError::Unencodable {
+            message: name.to_owned(),
+            field: f.name.clone(),
+            reason: "the simulator has no value for this field",
+        })?;
+        values.push(wire_value(f, v));
     }
-    out
+    crate::codec::encode(&Sender::Aircraft(ac_id), def, &values)
+}
+
+/// The Ivy text of telemetry message `name` for aircraft `ac_id`, from `src`; `None` for a
+/// message the simulator cannot produce (see [`TELEMETRY_MESSAGES`]).
+///
+/// Units are the messages' display units (`alt_unit`); frames are converted to Paparazzi's
+/// (see the module docs). What is not modelled is sent as 0: `FINKEN_IR_ADC.ir_measurement`
+/// (the raw ADC count) and the `carrot_*` fields of `ROTORCRAFT_FP`.
+pub fn telemetry_text(
+    messages: &MessageSet,
+    ac_id: u8,
+    name: &str,
+    src: &TelemetrySource<'_>,
+) -> Option<Result<String, CodecError>> {
+    let st = src.state;
+    let se = src.sensors;
+    let sp = src.setpoint;
+    let [roll, pitch, yaw] = st.attitude_rad.map(f64::from);
+    let (phi, theta, psi) = (roll, -pitch, f64::from(wrap(-yaw as f32)));
+    let [x, y, z] = st.pos_m.map(f64::from);
+    let [vx, vy, vz] = st.vel_m_s.map(f64::from);
+    let sonar = [se.sonar_m.front, se.sonar_m.right, se.sonar_m.back, se.sonar_m.left].map(|m| f64::from(cm(m)));
+    let ir_m = se.ir_m.map_or(0.0, f64::from);
+    let thrust_n: f32 = st.rotor_thrust_n.iter().sum();
+    let [gx, gy, gz] = se.rate_body_rad_s.map(f64::from);
+    let [ax, ay, az] = se.accel_body_m_s2.map(f64::from);
+    let value_of = |field: &str| -> Option<f64> {
+        Some(match (name, field) {
+            ("FINKEN_ACTUATORS_SET_POINT", "pitch") => -f64::from(sp.pitch_rad).to_degrees(),
+            ("FINKEN_ACTUATORS_SET_POINT", "roll") => f64::from(sp.roll_rad).to_degrees(),
+            ("FINKEN_ACTUATORS_SET_POINT", "yaw") => -f64::from(sp.yaw_rad).to_degrees(),
+            ("FINKEN_ACTUATORS_SET_POINT", "thrust") => f64::from(sp.throttle) * 100.0,
+            ("FINKEN_IR_ADC", "ir_distance") => ir_m * 100.0,
+            ("FINKEN_IR_ADC", "ir_measurement") => 0.0,
+            ("SONAR_ARRAY", "sonar_front") | ("FINKEN_SENSOR_MODEL", "distance_d_front") => sonar[0],
+            ("SONAR_ARRAY", "sonar_right") | ("FINKEN_SENSOR_MODEL", "distance_d_rigth") => sonar[1],
+            ("SONAR_ARRAY", "sonar_back") | ("FINKEN_SENSOR_MODEL", "distance_d_back") => sonar[2],
+            ("SONAR_ARRAY", "sonar_left") | ("FINKEN_SENSOR_MODEL", "distance_d_left") => sonar[3],
+            ("FINKEN_SENSOR_MODEL", "distance_diff_x") => sonar[0] - sonar[2],
+            ("FINKEN_SENSOR_MODEL", "distance_diff_y") => sonar[3] - sonar[1],
+            ("FINKEN_SENSOR_MODEL", "pos_x") => x,
+            ("FINKEN_SENSOR_MODEL", "pos_y") => y,
+            ("FINKEN_SENSOR_MODEL", "pos_z") => se.ir_m.map_or(z, f64::from),
+            ("FINKEN_SENSOR_MODEL", "pos_pitch") | ("ATTITUDE" | "ROTORCRAFT_FP", "theta") => theta,
+            ("FINKEN_SENSOR_MODEL", "pos_roll") | ("ATTITUDE" | "ROTORCRAFT_FP", "phi") => phi,
+            ("FINKEN_SENSOR_MODEL", "pos_yaw") | ("ATTITUDE" | "ROTORCRAFT_FP", "psi") => psi,
+            ("FINKEN_SENSOR_MODEL", "velocity_x") => vx,
+            ("FINKEN_SENSOR_MODEL", "velocity_y") => vy,
+            ("FINKEN_SENSOR_MODEL", "velocity_z") => vz,
+            ("FINKEN_SENSOR_MODEL", "velocity_pitch") => -gy,
+            ("FINKEN_SENSOR_MODEL", "velocity_roll") => gx,
+            ("FINKEN_SENSOR_MODEL", "velocity_yaw") => -gz,
+            ("FINKEN_SENSOR_MODEL", "acceleration_x") => ax,
+            ("FINKEN_SENSOR_MODEL", "acceleration_y") => ay,
+            ("FINKEN_SENSOR_MODEL", "acceleration_z") => az,
+            ("ROTORCRAFT_FP", "east") => -y,
+            ("ROTORCRAFT_FP", "north") => x,
+            ("ROTORCRAFT_FP", "up") => z,
+            ("ROTORCRAFT_FP", "veast") => -vy,
+            ("ROTORCRAFT_FP", "vnorth") => vx,
+            ("ROTORCRAFT_FP", "vup") => vz,
+            ("ROTORCRAFT_FP", "carrot_east" | "carrot_north" | "carrot_up" | "carrot_psi") => 0.0,
+            ("ROTORCRAFT_FP", "thrust") => f64::from(thrust_n) * 1000.0,
+            ("ROTORCRAFT_FP", "flight_time") => st.time_s.min(65_535.0),
+            _ => return None,
+        })
+    };
+    if !TELEMETRY_MESSAGES.contains(&name) {
+        return None;
+    }
+    // ATTITUDE's angles and the FINKEN_SENSOR_MODEL pose are radians; ROTORCRAFT_FP's display
+    // unit is degrees.
+    let value_of = |field: &str| {
+        let v = value_of(field)?;
+        Some(if name == "ROTORCRAFT_FP" && matches!(field, "phi" | "theta" | "psi") { v.to_degrees() } else { v })
+    };
+    Some(encode_by_field(messages, ac_id, name, value_of))
 }
 
 #[cfg(test)]

@@ -7,6 +7,7 @@
 //! - Real-time mode paces control steps against absolute wall-clock deadlines (`start + k·dt`),
 //!   so there is no drift; a step that ends after its deadline counts as an overrun.
 
+use std::collections::BTreeMap;
 use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::mpsc::{Receiver, TryRecvError};
@@ -15,6 +16,7 @@ use std::time::{Duration, Instant};
 use sim_core::scene::CopterSpec;
 use sim_core::{Inputs, State, StepReport, World, step};
 
+use crate::mixed::{Outbox, OutboxOptions, PprzOut, Summary};
 use crate::wire::{CommandMsg, SensorsMsg, StateMsg, sensors_msg, state_msg};
 
 /// What can be asked of the step loop.
@@ -42,6 +44,19 @@ pub enum Request {
         spec: Box<CopterSpec>,
         /// Where the answer goes.
         reply: tokio::sync::oneshot::Sender<Result<String, String>>,
+    },
+    /// Telemetry of a real copter for its twin (see [`crate::mixed`]).
+    Twin {
+        /// The twin's name.
+        copter: String,
+        /// Spawn it first if it does not exist yet.
+        spawn: Option<Box<CopterSpec>>,
+        /// What to apply (validated).
+        cmd: Option<CommandMsg>,
+        /// The real copter's attitude (roll, pitch, yaw), rad, simulator frame.
+        observed_rpy: Option<[f32; 3]>,
+        /// The telemetry text, its key and arrival time.
+        origin: BusInput,
     },
     /// Finish after the current step.
     Stop,
@@ -73,18 +88,54 @@ pub struct Frame {
     pub sensors: Vec<SensorsMsg>,
     /// Events of the step.
     pub report: StepReport,
+    /// Paparazzi texts to publish (virtual sonar, virtual copters' telemetry).
+    pub pprz_out: Vec<PprzOut>,
     /// Wall-clock instant the step finished.
     pub stepped_at: Instant,
 }
 
 /// How the loop runs.
-#[derive(Clone, Debug)]
+#[derive(Clone, Debug, Default)]
 pub struct LoopOptions {
     /// Pace against the wall clock.
     pub realtime: bool,
     /// Stop after this many control steps.
     pub ticks: u64,
+    /// Mixed reality: send virtual sonar and virtual telemetry (see [`crate::mixed`]).
+    pub outbox: Option<OutboxOptions>,
 }
+
+/// How well a twin follows its real copter.
+#[derive(Debug, Default, Clone, serde::Serialize)]
+pub struct TwinStats {
+    /// Telemetry-derived inputs applied.
+    pub inputs_applied: u64,
+    /// From a telemetry message's arrival to the step that applied it, ms.
+    pub input_latency_ms: Summary,
+    /// RMS of (twin − real) roll and pitch, deg, over steps with a real attitude at most
+    /// 0.2 s old (until the twin crashes, if it does).
+    pub attitude_rms_deg: [f64; 2],
+    /// Steps that went into `attitude_rms_deg`.
+    pub attitude_samples: u64,
+    /// Whether it was spawned on its first telemetry.
+    pub spawned: bool,
+    #[serde(skip)]
+    latencies_ms: Vec<f32>,
+    #[serde(skip)]
+    sq_sum: [f64; 2],
+    /// Times its telemetry stopped for longer than [`TWIN_LINK_TIMEOUT_S`].
+    pub link_lost: u64,
+    #[serde(skip)]
+    observed: Option<([f32; 3], Instant)>,
+    #[serde(skip)]
+    last_input: Option<Instant>,
+    #[serde(skip)]
+    holding: bool,
+}
+
+/// A twin whose telemetry has been silent this long levels out and holds its height (instead
+/// of flying on with its last attitude), until telemetry comes back.
+pub const TWIN_LINK_TIMEOUT_S: f64 = 0.5;
 
 /// What the loop reports when it ends.
 #[derive(Debug, Default, Clone)]
@@ -103,6 +154,10 @@ pub struct LoopStats {
     pub spawned: u64,
     /// Whether it stopped early (stop request or signal).
     pub stopped_early: bool,
+    /// Twins by name.
+    pub twins: BTreeMap<String, TwinStats>,
+    /// Paparazzi texts produced.
+    pub pprz_sent: u64,
 }
 
 /// Observes every step from inside the loop (e.g. a logger). Runs on the loop's thread: keep
@@ -118,6 +173,10 @@ pub trait StepObserver: Send {
     fn bus_input(&mut self, _input: &BusInput) {}
     /// Called for each input the bus refused.
     fn input_rejected(&mut self, _tick: u64, _input: &BusInput, _reason: &str) {}
+    /// Called for each Paparazzi text the loop sends.
+    fn pprz_out(&mut self, _tick: u64, _out: &PprzOut) {}
+    /// Called when a real aircraft's twin was spawned on its first telemetry.
+    fn paired(&mut self, _tick: u64, _ac_id: u8, _copter: &str) {}
 }
 
 /// No observer.
@@ -142,6 +201,7 @@ pub fn run_loop(
     let dt = Duration::from_secs_f64(world.params.control_dt_s);
     let start = Instant::now();
     let sonar_period = world.sensors.spec.sonar.period_steps.max(1) as u64;
+    let mut outbox = opts.outbox.clone().map(Outbox::new);
     for k in 0..opts.ticks {
         // Requests, applied before this step.
         loop {
@@ -159,19 +219,40 @@ pub fn run_loop(
                 },
                 Ok(Request::Rejected { origin, reason }) => observer.input_rejected(state.tick, &origin, &reason),
                 Ok(Request::Spawn { spec, reply }) => {
-                    let answer = match world.with_spawned(&state, &spec) {
-                        Ok(w) => {
-                            let id = w.copters.len() - 1;
-                            state.add_copters(&w);
-                            inputs.commands.push(w.copters[id].initial_command.clone());
-                            world = Arc::new(w);
-                            observer.spawned(&world, id, state.tick);
-                            stats.spawned += 1;
-                            Ok(spec.name.clone())
+                    let answer = spawn(&mut world, &mut state, &mut inputs, &spec, observer, &mut stats);
+                    let _ = reply.send(answer.map(|_| spec.name.clone()));
+                }
+                Ok(Request::Twin { copter, spawn: spec, cmd, observed_rpy, origin }) => {
+                    if world.copter_id(&copter).is_none()
+                        && let Some(spec) = spec
+                    {
+                        match spawn(&mut world, &mut state, &mut inputs, &spec, observer, &mut stats) {
+                            Ok(()) => {
+                                observer.paired(state.tick, spec.ac_id.unwrap_or(0), &copter);
+                                stats.twins.entry(copter.clone()).or_default().spawned = true;
+                            }
+                            Err(e) => tracing::warn!("cannot spawn twin `{copter}`: {e}"),
                         }
-                        Err(e) => Err(e.to_string()),
+                    }
+                    let Some(id) = world.copter_id(&copter) else {
+                        observer.input_rejected(state.tick, &origin, &format!("no copter named {copter:?}"));
+                        continue;
                     };
-                    let _ = reply.send(answer);
+                    observer.bus_input(&origin);
+                    let twin = stats.twins.entry(copter).or_default();
+                    if let Some(cmd) = cmd {
+                        cmd.apply(&mut inputs.commands[id]);
+                        twin.inputs_applied += 1;
+                        twin.last_input = Some(Instant::now());
+                        twin.holding = false;
+                        let now = unix_now_ns();
+                        if twin.latencies_ms.len() < 1_000_000 {
+                            twin.latencies_ms.push(now.saturating_sub(origin.received_unix_ns) as f32 / 1e6);
+                        }
+                    }
+                    if let Some(rpy) = observed_rpy {
+                        twin.observed = Some((rpy, Instant::now()));
+                    }
                 }
                 Ok(Request::Stop) => {
                     stats.stopped_early = true;
@@ -187,6 +268,16 @@ pub fn run_loop(
         let report = step(&world, &mut state, &inputs);
         observer.after_step(&world, &state, &inputs, &report);
         stats.steps += 1;
+        track_twins(&world, &state, &mut stats.twins);
+        hold_silent_twins(&world, &mut inputs, &mut stats.twins);
+        let mut pprz_out = Vec::new();
+        if let Some(outbox) = outbox.as_mut() {
+            outbox.after_step(&world, &state, &inputs, sensed, &mut pprz_out);
+            for out in &pprz_out {
+                observer.pprz_out(state.tick, out);
+            }
+            stats.pprz_sent += pprz_out.len() as u64;
+        }
         if let Some(tx) = &frames {
             let n = world.copters.len();
             let frame = Frame {
@@ -196,6 +287,7 @@ pub fn run_loop(
                 states: (0..n).map(|i| state_msg(&world, &state, &inputs, i)).collect(),
                 sensors: if sensed { (0..n).map(|i| sensors_msg(&world, &state, i)).collect() } else { Vec::new() },
                 report,
+                pprz_out,
                 stepped_at: Instant::now(),
             };
             if tx.try_send(frame).is_err() {
@@ -213,5 +305,69 @@ pub fn run_loop(
             }
         }
     }
+    for t in stats.twins.values_mut() {
+        t.input_latency_ms = Summary::of(&t.latencies_ms);
+        let n = t.attitude_samples.max(1) as f64;
+        t.attitude_rms_deg = t.sq_sum.map(|s| (s / n).sqrt().to_degrees());
+    }
     (world, state, stats)
+}
+
+/// Adds a copter to the running world.
+fn spawn(
+    world: &mut Arc<World>,
+    state: &mut State,
+    inputs: &mut Inputs,
+    spec: &CopterSpec,
+    observer: &mut dyn StepObserver,
+    stats: &mut LoopStats,
+) -> Result<(), String> {
+    let w = world.with_spawned(state, spec).map_err(|e| e.to_string())?;
+    let id = w.copters.len() - 1;
+    state.add_copters(&w);
+    inputs.commands.push(w.copters[id].initial_command.clone());
+    *world = Arc::new(w);
+    observer.spawned(world, id, state.tick);
+    stats.spawned += 1;
+    Ok(())
+}
+
+/// Accumulates each twin's attitude error against its real copter's latest attitude.
+fn track_twins(world: &World, state: &State, twins: &mut BTreeMap<String, TwinStats>) {
+    for (name, t) in twins.iter_mut() {
+        let Some((rpy, at)) = t.observed else { continue };
+        if at.elapsed().as_secs_f64() > 0.2 {
+            continue;
+        }
+        let Some(id) = world.copter_id(name) else { continue };
+        if state.copters[id].crash.is_some() {
+            continue;
+        }
+        let twin = state.pose(id).rpy_rad;
+        for k in 0..2 {
+            let e = f64::from(sim_core::math::wrap_angle_rad(twin[k] - rpy[k]));
+            t.sq_sum[k] += e * e;
+        }
+        t.attitude_samples += 1;
+    }
+}
+
+/// Levels out the twins whose telemetry stopped (see [`TWIN_LINK_TIMEOUT_S`]).
+fn hold_silent_twins(world: &World, inputs: &mut Inputs, twins: &mut BTreeMap<String, TwinStats>) {
+    for (name, t) in twins.iter_mut() {
+        let Some(last) = t.last_input else { continue };
+        if t.holding || last.elapsed().as_secs_f64() <= TWIN_LINK_TIMEOUT_S {
+            continue;
+        }
+        let Some(id) = world.copter_id(name) else { continue };
+        let cmd = &mut inputs.commands[id];
+        (cmd.roll_rad, cmd.pitch_rad) = (0.0, 0.0);
+        t.holding = true;
+        t.link_lost += 1;
+        tracing::warn!("twin {name}: no telemetry for {TWIN_LINK_TIMEOUT_S} s; levelling out, holding its height");
+    }
+}
+
+fn unix_now_ns() -> u64 {
+    std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).map_or(0, |d| d.as_nanos() as u64)
 }

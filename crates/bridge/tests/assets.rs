@@ -43,7 +43,7 @@ fn pairing_example_parses_and_resolves() {
     let spawn = p.spawn.expect("spawn point");
     assert_eq!(spawn.spacing_m, 0.5);
     let second = spawn.pose_for(1);
-    assert!((second.x_m - 2.0).abs() < 1e-12 && (second.y_m - 2.0).abs() < 1e-12);
+    assert!((second.x_m - 0.0).abs() < 1e-12 && (second.y_m - 0.8).abs() < 1e-12, "{second:?}");
 
     let conf_path = p.conf_path_from(&path);
     let conf = ConfXml::from_file(&conf_path).unwrap_or_else(|e| panic!("{e}"));
@@ -56,7 +56,11 @@ fn pairing_example_parses_and_resolves() {
     // Virtual_02 has no pose: it starts at the spawn point.
     assert_eq!(r.by_ac_id[&102].pose, spawn.pose);
     assert!(matches!(r.route(5), Route::Assigned(a) if a.copter == "finken_01"));
-    assert!(matches!(r.route(7), Route::Spawn(_)), "FINken_03 is not twinned");
+    assert!(
+        matches!(r.route(7), Route::Spawn { aircraft: Some("FINken_03"), .. }),
+        "FINken_03 is in conf.xml but not twinned"
+    );
+    assert!(matches!(r.route(99), Route::Spawn { aircraft: None, .. }), "not in conf.xml, policy spawn");
 }
 
 #[test]

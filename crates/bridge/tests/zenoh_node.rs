@@ -52,7 +52,7 @@ async fn commands_queryables_spawn_liveliness_and_bad_payloads() {
     let loop_thread = std::thread::spawn(move || {
         let state = world.initial_state();
         let inputs = world.initial_inputs();
-        let opts = LoopOptions { realtime: true, ticks: 20 * 120 };
+        let opts = LoopOptions { realtime: true, ticks: 20 * 120, ..LoopOptions::default() };
         sim::run_loop(world, state, inputs, req_rx, Some(frame_tx), &mut (), &stop2, &opts)
     });
     let publisher = tokio::spawn(async move {

@@ -25,6 +25,7 @@ mod plot;
 mod replay;
 mod report;
 mod runner;
+mod standin;
 
 use std::io::IsTerminal;
 use std::path::PathBuf;
@@ -49,6 +50,8 @@ struct Cli {
 enum Command {
     /// Fly a scene (default: the embedded FINken lab) and print a summary.
     Run(RunArgs),
+    /// Stand in for a real FINken: fly its own "reality", send telemetry, fuse virtual sonar.
+    Copter(standin::CopterArgs),
     /// Validate a scene file and explain what it contains.
     Check {
         /// The scene file (TOML).
@@ -143,6 +146,68 @@ struct RunArgs {
     /// Key-expression prefix (default: twinswarm/<world name>).
     #[arg(long, value_name = "KEY")]
     prefix: Option<String>,
+    /// Pairing file (XML): real aircraft and their twins, virtual aircraft, spawn rules.
+    #[arg(long, value_name = "FILE.xml")]
+    pairing: Option<PathBuf>,
+    /// Paparazzi telemetry file for virtual copters (default: the embedded
+    /// assets/paparazzi/telemetry.xml).
+    #[arg(long, value_name = "FILE.xml")]
+    telemetry: Option<PathBuf>,
+    /// Mode of the telemetry file (default: its first mode).
+    #[arg(long, value_name = "NAME")]
+    telemetry_mode: Option<String>,
+    /// Period of the virtual sonar readings sent to each real copter, s (default: every sonar
+    /// update of its twin).
+    #[arg(long, value_name = "S", default_value_t = 0.0)]
+    virtual_sonar_period: f64,
+    /// Which telemetry sets twins' attitude targets: `setpoint` (FINKEN_ACTUATORS_SET_POINT,
+    /// what the real copter asks for) or `measured` (ATTITUDE, what it does).
+    #[arg(long, value_name = "SOURCE", default_value = "setpoint", value_parser = parse_twin_attitude)]
+    twin_attitude: bridge::mixed::TwinAttitude,
+}
+
+fn parse_twin_attitude(s: &str) -> Result<bridge::mixed::TwinAttitude, String> {
+    match s {
+        "setpoint" => Ok(bridge::mixed::TwinAttitude::Setpoint),
+        "measured" => Ok(bridge::mixed::TwinAttitude::Measured),
+        _ => Err(format!("expected `setpoint` or `measured`, got `{s}`")),
+    }
+}
+
+/// Loads the mixed-reality options of `run` and `copter`: pairing (checked against its
+/// conf.xml) and telemetry plan.
+fn load_mixed(
+    pairing: Option<&std::path::Path>,
+    telemetry: Option<&std::path::Path>,
+    mode: Option<&str>,
+    virtual_sonar_period_s: f64,
+) -> anyhow::Result<runner::MixedOptions> {
+    let bad = |e: anyhow::Error| anyhow::Error::new(BadInput(e));
+    if !virtual_sonar_period_s.is_finite() || virtual_sonar_period_s < 0.0 {
+        return Err(bad(anyhow::anyhow!("--virtual-sonar-period must be >= 0 s, got {virtual_sonar_period_s}")));
+    }
+    let pairing = match pairing {
+        None => None,
+        Some(path) => {
+            let p = bridge::Pairing::from_file(path).map_err(|e| bad(e.into()))?;
+            let conf_path = p.conf_path_from(path);
+            let conf = bridge::ConfXml::from_file(&conf_path)
+                .map_err(|e| bad(anyhow::Error::new(e).context(format!("conf.xml named by {}", path.display()))))?;
+            Some(p.resolve(&conf).map_err(|e| bad(e.into()))?)
+        }
+    };
+    let plan = match telemetry {
+        None if mode.is_none() => bridge::mixed::TelemetryPlan::project_default(),
+        None => {
+            let t = bridge::Telemetry::parse(bridge::mixed::TELEMETRY_XML, "assets/paparazzi/telemetry.xml")?;
+            bridge::mixed::TelemetryPlan::from_telemetry(&t, None, mode).map_err(|e| bad(anyhow::anyhow!(e)))?
+        }
+        Some(path) => {
+            let t = bridge::Telemetry::from_file(path).map_err(|e| bad(e.into()))?;
+            bridge::mixed::TelemetryPlan::from_telemetry(&t, None, mode).map_err(|e| bad(anyhow::anyhow!(e)))?
+        }
+    };
+    Ok(runner::MixedOptions { pairing, plan, virtual_sonar_period_s, ..Default::default() })
 }
 
 /// An error that is the user's input's fault (exit code 2).
@@ -171,6 +236,7 @@ fn main() -> ExitCode {
         .init();
     let result = match cli.command.unwrap_or(Command::Run(RunArgs::default())) {
         Command::Run(args) => run(args),
+        Command::Copter(args) => standin::run(args),
         Command::Check { scene } => check(&scene),
         Command::Inspect { scene, json } => inspect(scene.as_deref(), json),
         Command::Localize(args) => localize::run(args),
@@ -230,7 +296,24 @@ fn run(args: RunArgs) -> anyhow::Result<()> {
         }
         spec.sim.duration_s = d;
     }
-    let world = scene::compile(&spec).map_err(|e| anyhow::Error::new(BadInput(e.into())))?;
+    let mixed = load_mixed(
+        args.pairing.as_deref(),
+        args.telemetry.as_deref(),
+        args.telemetry_mode.as_deref(),
+        args.virtual_sonar_period,
+    )?;
+    let mixed = runner::MixedOptions { twin_attitude: args.twin_attitude, ..mixed };
+    if let (Some(p), Some(path)) = (&mixed.pairing, &args.pairing) {
+        bridge::mixed::apply_pairing(&mut spec, p).map_err(|e| BadInput(anyhow::anyhow!("{}: {e}", path.display())))?;
+    }
+    let world = scene::compile(&spec).map_err(|e| {
+        let e = anyhow::Error::new(e);
+        let e = match &args.pairing {
+            Some(p) => e.context(format!("{origin} with the copters of pairing {}", p.display())),
+            None => e,
+        };
+        anyhow::Error::new(BadInput(e))
+    })?;
     let ticks = world.default_ticks();
     let log = logcmd::start_run_log(args.log.as_deref(), args.no_log, &world, args.scene.as_deref(), &origin)?;
     let stop = logcmd::install_stop_flag()?;
@@ -249,6 +332,7 @@ fn run(args: RunArgs) -> anyhow::Result<()> {
         listen: args.listen.clone(),
         connect: args.connect.clone(),
         prefix: args.prefix.clone(),
+        mixed,
     };
     let mut observer = RunObserver { tracker: report::Tracker::new(&world), log, log_error: None, progress };
     let started = Instant::now();
@@ -270,6 +354,8 @@ fn run(args: RunArgs) -> anyhow::Result<()> {
         json["interrupted"] = interrupted.is_some().into();
         json["bus"] = serde_json::to_value(&outcome.bus)?;
         json["frames_dropped"] = outcome.stats.frames_dropped.into();
+        json["twins"] = serde_json::to_value(&outcome.stats.twins)?;
+        json["pprz_sent"] = outcome.stats.pprz_sent.into();
         outln!("{}", serde_json::to_string_pretty(&json)?);
     } else {
         out!("{}", summary.to_text());
@@ -284,6 +370,42 @@ fn run(args: RunArgs) -> anyhow::Result<()> {
                 b.clients_seen
             ),
             None => outln!("  bus: off (--no-bus)"),
+        }
+        if let Some(b) = &outcome.bus {
+            outln!("  paparazzi: {} messages sent (virtual sonar, virtual telemetry)", outcome.stats.pprz_sent);
+            for a in &b.telemetry.arrivals {
+                outln!(
+                    "    from ac_id {:<3} {:<27} {:>6} received, every {:.1} ms (p50 {:.1}, p99 {:.1})",
+                    a.ac_id,
+                    a.message,
+                    a.count,
+                    a.gap_ms.mean,
+                    a.gap_ms.p50,
+                    a.gap_ms.p99
+                );
+            }
+            let t = &b.telemetry;
+            if !t.unknown_dropped.is_empty() || t.own_virtual_dropped > 0 || t.decode_errors > 0 || t.rejected > 0 {
+                outln!(
+                    "    dropped: unknown aircraft {:?}, as our virtual aircraft {}, undecodable {}, out of range {}",
+                    t.unknown_dropped,
+                    t.own_virtual_dropped,
+                    t.decode_errors,
+                    t.rejected
+                );
+            }
+        }
+        for (name, t) in &outcome.stats.twins {
+            outln!(
+                "  twin {name}{}: {} telemetry inputs, latency p50 {:.1} ms, p99 {:.1} ms; attitude RMS roll {:.2}°, pitch {:.2}° ({} steps)",
+                if t.spawned { " (spawned on first telemetry)" } else { "" },
+                t.inputs_applied,
+                t.input_latency_ms.p50,
+                t.input_latency_ms.p99,
+                t.attitude_rms_deg[0],
+                t.attitude_rms_deg[1],
+                t.attitude_samples
+            );
         }
         if interrupted.is_some() {
             outln!(

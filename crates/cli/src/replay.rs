@@ -334,6 +334,7 @@ pub fn run(args: ReplayArgs) -> anyhow::Result<()> {
         listen: args.listen.clone(),
         connect: args.connect.clone(),
         prefix: Some(prefix.clone()),
+        ..BusOptions::default()
     };
     let config = zenoh_config(&bus)?;
     let session =

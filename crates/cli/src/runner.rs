@@ -8,7 +8,9 @@ use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, Ordering};
 
 use anyhow::Context;
+use bridge::mixed::{Gateway, GatewayReport, OutboxOptions, TelemetryPlan, TwinAttitude};
 use bridge::node::{self, Node};
+use bridge::pairing::ResolvedPairing;
 use bridge::sim::{self, LoopOptions, LoopStats, Request, StepObserver};
 use sim_core::{State, World};
 
@@ -25,6 +27,32 @@ pub struct BusOptions {
     pub connect: Vec<String>,
     /// Key-expression prefix (default `twinswarm/<world>`).
     pub prefix: Option<String>,
+    /// Mixed reality: pairing, telemetry plan, virtual sonar rate.
+    pub mixed: MixedOptions,
+}
+
+/// Mixed-reality options (see `bridge::mixed`).
+#[derive(Debug, Clone)]
+pub struct MixedOptions {
+    /// The pairing checked against its conf.xml.
+    pub pairing: Option<ResolvedPairing>,
+    /// What virtual copters send.
+    pub plan: TelemetryPlan,
+    /// `VIRTUAL_SONAR` period per twin, s; 0: at every sonar update.
+    pub virtual_sonar_period_s: f64,
+    /// Which telemetry sets twins' attitude targets.
+    pub twin_attitude: TwinAttitude,
+}
+
+impl Default for MixedOptions {
+    fn default() -> Self {
+        Self {
+            pairing: None,
+            plan: TelemetryPlan::project_default(),
+            virtual_sonar_period_s: 0.0,
+            twin_attitude: TwinAttitude::default(),
+        }
+    }
 }
 
 /// What a run leaves behind.
@@ -44,6 +72,7 @@ pub struct BusReport {
     pub commands_rejected: u64,
     pub published: u64,
     pub clients_seen: u64,
+    pub telemetry: GatewayReport,
 }
 
 /// Builds the Zenoh configuration: the file if given (with `--listen`/`--connect` applied on
@@ -79,7 +108,7 @@ pub fn run(
 ) -> anyhow::Result<RunOutcome> {
     let state = world.initial_state();
     let inputs = world.initial_inputs();
-    let opts = LoopOptions { realtime, ticks };
+    let mut opts = LoopOptions { realtime, ticks, outbox: None };
     let (req_tx, req_rx) = std::sync::mpsc::sync_channel::<Request>(1024);
 
     if bus.no_bus {
@@ -93,8 +122,26 @@ pub fn run(
     let rt = tokio::runtime::Builder::new_multi_thread().worker_threads(2).enable_all().build()?;
     let world_arc = Arc::new(world.clone());
     let mut node = rt
-        .block_on(Node::open(config, prefix.clone(), world_arc, req_tx.clone()))
+        .block_on(Node::open(config, prefix.clone(), world_arc.clone(), req_tx.clone()))
         .with_context(|| format!("cannot start the Zenoh node (prefix {prefix})"))?;
+    let messages = Arc::new(bridge::pprz::project_messages());
+    let gateway = rt
+        .block_on(Gateway::start(
+            node.session().clone(),
+            &prefix,
+            world_arc.clone(),
+            bus.mixed.pairing.clone(),
+            messages.clone(),
+            req_tx.clone(),
+            bus.mixed.twin_attitude,
+        ))
+        .context("cannot bind the Paparazzi telemetry")?;
+    opts.outbox = Some(OutboxOptions {
+        prefix: prefix.clone(),
+        messages,
+        plan: bus.mixed.plan.clone(),
+        virtual_sonar_period_s: bus.mixed.virtual_sonar_period_s,
+    });
     let (frame_tx, mut frame_rx) = tokio::sync::mpsc::channel(256);
 
     let outcome = std::thread::scope(|s| -> anyhow::Result<(Arc<World>, State, LoopStats)> {
@@ -104,6 +151,7 @@ pub fn run(
         rt.block_on(async {
             // Publish until the loop ends (its frame sender drops).
             while let Some(frame) = frame_rx.recv().await {
+                gateway.set_world(&frame.world);
                 if let Err(e) = node.publish(&frame).await {
                     tracing::warn!("publish failed: {e}");
                 }
@@ -119,7 +167,9 @@ pub fn run(
         commands_rejected: c.commands_rejected.load(Ordering::Relaxed),
         published: c.published.load(Ordering::Relaxed),
         clients_seen: c.clients_seen.load(Ordering::Relaxed),
+        telemetry: gateway.report(),
     };
+    drop(gateway);
     rt.block_on(node.close()).context("closing the Zenoh session")?;
     let (world, state, stats) = outcome;
     Ok(RunOutcome { world, state, stats, bus: Some(report) })

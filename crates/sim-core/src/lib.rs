@@ -27,6 +27,7 @@ pub mod airframe;
 pub mod control;
 pub mod geometry;
 pub mod math;
+pub mod mixed;
 pub mod rng;
 pub mod scene;
 pub mod sensors;

@@ -113,9 +113,9 @@ pub struct BoxSpec {
     /// Rotation about z, degrees counter-clockwise.
     #[serde(default)]
     pub yaw_deg: Real,
-    /// Whether only virtual copters and twins see it (it exists only in the simulation).
-    /// Every box of a scene is virtual from the point of view of real copters; this flag is
-    /// informational for tools.
+    /// Whether it exists only in the simulation, not in the real lab. Virtual copters and twins
+    /// collide with every box; real copters learn of `virtual_only` boxes through their twin's
+    /// virtual sonar readings (see [`crate::mixed`]), and a stand-in "reality" leaves them out.
     #[serde(default)]
     pub virtual_only: bool,
 }
@@ -445,6 +445,7 @@ pub fn compile(spec: &SceneSpec) -> Result<World, SceneError> {
             center_m: Vec3::new(b.pos_m[0], b.pos_m[1], b.z_m + half.z),
             half_extents_m: half,
             yaw_rad: b.yaw_deg.to_radians(),
+            virtual_only: b.virtual_only,
         });
     }
 

@@ -82,7 +82,7 @@ pub struct CopterState {
     pub body: RigidBodyHandle,
     /// Its main (body box) collider.
     pub collider: ColliderHandle,
-    /// Seeded manufacturing tolerance of each rotor's thrust (1 = nominal).
+    /// Seeded manufacturing tolerance of each rotor's thrust (1 = nominal; always 1 for twins).
     pub rotor_tolerance: [Real; 4],
     /// Rotor speeds, rad/s.
     pub rotor_speed_rad_s: [Real; 4],
@@ -113,7 +113,10 @@ impl CopterState {
         let af = &world.airframes[world.copters[id].airframe];
         let mut rng = Rng32::new(world.params.seed, id as u64);
         let sigma = af.spec.rotor_tolerance_sigma;
-        let rotor_tolerance = std::array::from_fn(|_| (1.0 + sigma * rng.normal()).max(0.5));
+        let drawn: [Real; 4] = std::array::from_fn(|_| (1.0 + sigma * rng.normal()).max(0.5));
+        // A twin's rotors are nominal: its real copter's imperfections are unknown here, and
+        // its motion comes from that copter's telemetry. (Drawn anyway: same random stream.)
+        let rotor_tolerance = if world.copters[id].kind == crate::CopterKind::Real { [1.0; 4] } else { drawn };
         let cmd = &world.copters[id].initial_command;
         Self {
             body,

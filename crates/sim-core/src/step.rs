@@ -20,7 +20,7 @@ use crate::sensors::{
     self, SensorParams, SonarScene, crosstalk_eligible, crosstalk_reading, sonar_cones, sonar_reading,
 };
 use crate::state::{CopterState, CrashCause, State};
-use crate::world::{ColliderTag, World};
+use crate::world::{ColliderTag, CopterKind, World};
 use rapier3d::prelude::PhysicsWorld;
 
 /// Something that happened during a step.
@@ -51,7 +51,7 @@ pub struct StepReport {
 }
 
 /// Cell size of the copter grid used by sonars and cross-talk, m.
-const GRID_CELL_M: Real = 1.0;
+pub(crate) const GRID_CELL_M: Real = 1.0;
 
 /// Height above the rest height that counts as airborne, m.
 const TAKEOFF_MARGIN_M: Real = 0.05;
@@ -241,17 +241,20 @@ pub fn fill_sonar_scene(world: &World, physics: &PhysicsWorld, copters: &[Copter
         half: b.half_extents_m,
     }));
     scene.copters.clear();
-    for (i, c) in copters.iter().enumerate() {
-        let body = &physics.bodies[c.body];
-        let af = &world.airframes[world.copters[i].airframe];
-        let half_xy = af.spec.arm_length_m / std::f32::consts::SQRT_2 + af.spec.rotor_diameter_m / 2.0;
-        scene.copters.push(OrientedBox {
-            center: body.translation(),
-            rotation: *body.rotation(),
-            half: Vec3::new(half_xy, half_xy, af.spec.body_size_m[2] / 2.0 + 0.01),
-        });
-    }
+    scene.copters.extend((0..copters.len()).map(|i| copter_box(world, physics, copters, i)));
     scene.index_copters(GRID_CELL_M);
+}
+
+/// The box a sonar sees of copter `i`: its rotor disc square and body height.
+pub fn copter_box(world: &World, physics: &PhysicsWorld, copters: &[CopterState], i: usize) -> OrientedBox {
+    let body = &physics.bodies[copters[i].body];
+    let af = &world.airframes[world.copters[i].airframe];
+    let half_xy = af.spec.arm_length_m / std::f32::consts::SQRT_2 + af.spec.rotor_diameter_m / 2.0;
+    OrientedBox {
+        center: body.translation(),
+        rotation: *body.rotation(),
+        half: Vec3::new(half_xy, half_xy, af.spec.body_size_m[2] / 2.0 + 0.01),
+    }
 }
 
 /// Samples every copter's sensors from the current state.
@@ -293,7 +296,9 @@ fn sense(world: &World, state: &mut State, inputs: &Inputs, sonar_due: bool) {
         };
         let ir = ir_truth + ir_noise;
         r.ir_m = (ir_truth.is_finite() && (spec.ir.min_range_m..=spec.ir.max_range_m).contains(&ir)).then_some(ir);
-        // AHRS and IMU.
+        // AHRS and IMU. A twin's are ideal: it flies by its real copter's telemetry, and
+        // noise or a drifting yaw of its own would only add to its error.
+        let noise = noise && world.copters[i].kind != CopterKind::Real;
         let rpy = euler_from_quat(rot);
         let walk = spec.imu.yaw_bias_walk_deg_per_sqrt_s.to_radians() * dt_control.sqrt();
         if noise {

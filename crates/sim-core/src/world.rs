@@ -60,6 +60,9 @@ pub struct StaticBox {
     pub half_extents_m: Vec3,
     /// Rotation about z, rad.
     pub yaw_rad: Real,
+    /// Whether it exists only in the simulation: twins' virtual sonars see it (see
+    /// [`crate::mixed`]).
+    pub virtual_only: bool,
 }
 
 impl StaticBox {

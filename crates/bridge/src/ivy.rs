@@ -1,0 +1,212 @@
+//! The Ivy-style bus over Zenoh: [`crate::bus::Bus`] bindings fed by Zenoh subscribers on the
+//! narrowest key expressions their regexes allow.
+//!
+//! - [`ZenohBus::bind`] compiles the regex, narrows it to a key expression
+//!   (`^(\S*) ATTITUDE …` → `<prefix>/pprz/*/ATTITUDE`, see [`crate::keyexpr`]) and declares a
+//!   subscriber on that expression unless one is already there. Zenoh drops everything else
+//!   before it reaches this process: non-matching keys never arrive.
+//! - The regex then runs on the text, and the handler receives the capture groups, as with
+//!   Ivy's `IvyBindMsg`.
+//! - [`ZenohBus::bind_from`] restricts a binding to one aircraft (key and sender token).
+//! - [`ZenohBus::unbind`] works at runtime and drops the subscriber once no binding needs it.
+//! - [`ZenohBus::send`] publishes a text under `<prefix>/pprz/<sender>/<NAME>`: telemetry under
+//!   its aircraft id, datalink messages under `ground` (their destination is in their `ac_id`
+//!   field, as on the Ivy bus).
+//!
+//! Like Ivy, a process does not receive its own messages (subscribers accept remote samples
+//! only). Handlers run on Zenoh's callback threads with the bus locked: keep them short, and
+//! do not call `bind`/`unbind` from inside one (use [`Control`](crate::bus::Control)).
+
+use std::collections::BTreeMap;
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::{Arc, Mutex};
+
+use zenoh::sample::Locality;
+
+use crate::AcId;
+use crate::bus::{BindId, Bus, BusError, Control, Delivery};
+use crate::keyexpr::key_for_text;
+
+/// Errors of the Zenoh bus.
+#[derive(Debug, thiserror::Error)]
+pub enum IvyError {
+    /// The pattern or the text is not usable.
+    #[error(transparent)]
+    Bus(#[from] BusError),
+    /// Zenoh failed.
+    #[error("zenoh: {0}")]
+    Zenoh(String),
+}
+
+/// Counters of a [`ZenohBus`].
+#[derive(Debug, Default)]
+pub struct IvyCounters {
+    /// Samples that reached this process's subscribers.
+    pub samples_received: AtomicU64,
+    /// Handler calls.
+    pub delivered: AtomicU64,
+    /// Texts sent.
+    pub sent: AtomicU64,
+}
+
+struct Sub {
+    users: usize,
+    _subscriber: zenoh::pubsub::Subscriber<()>,
+}
+
+/// An Ivy-style bus on a Zenoh session.
+pub struct ZenohBus {
+    session: zenoh::Session,
+    prefix: String,
+    bus: Arc<Mutex<Bus>>,
+    subs: Mutex<BTreeMap<String, Sub>>,
+    key_of: Mutex<BTreeMap<BindId, String>>,
+    /// Counters.
+    pub counters: Arc<IvyCounters>,
+}
+
+impl std::fmt::Debug for ZenohBus {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("ZenohBus").field("prefix", &self.prefix).finish_non_exhaustive()
+    }
+}
+
+impl ZenohBus {
+    /// A bus on `session` under `prefix` (e.g. `twinswarm/lab`).
+    pub fn new(session: zenoh::Session, prefix: impl Into<String>) -> Self {
+        Self {
+            session,
+            prefix: prefix.into(),
+            bus: Arc::new(Mutex::new(Bus::default())),
+            subs: Mutex::new(BTreeMap::new()),
+            key_of: Mutex::new(BTreeMap::new()),
+            counters: Arc::new(IvyCounters::default()),
+        }
+    }
+
+    /// The key-expression prefix.
+    pub fn prefix(&self) -> &str {
+        &self.prefix
+    }
+
+    /// Binds `pattern`: `handler` receives the capture groups of every matching text.
+    pub async fn bind(
+        &self,
+        pattern: &str,
+        handler: impl FnMut(&Delivery<'_>, &mut Control) + Send + 'static,
+    ) -> Result<BindId, IvyError> {
+        self.bind_inner(None, pattern, Box::new(handler)).await
+    }
+
+    /// Binds `pattern` for texts from aircraft `ac_id` only.
+    pub async fn bind_from(
+        &self,
+        ac_id: AcId,
+        pattern: &str,
+        handler: impl FnMut(&Delivery<'_>, &mut Control) + Send + 'static,
+    ) -> Result<BindId, IvyError> {
+        self.bind_inner(Some(ac_id), pattern, Box::new(handler)).await
+    }
+
+    async fn bind_inner(
+        &self,
+        from: Option<AcId>,
+        pattern: &str,
+        handler: crate::bus::Handler,
+    ) -> Result<BindId, IvyError> {
+        let (id, key) = {
+            let mut bus = self.bus.lock().map_err(|_| poisoned())?;
+            let id = match from {
+                Some(ac) => bus.bind_from(ac, pattern, handler)?,
+                None => bus.bind(pattern, handler)?,
+            };
+            let key = bus.bindings().into_iter().find(|b| b.id == id).map(|b| b.narrowing.key_expr(&self.prefix));
+            (id, key.unwrap_or_else(|| format!("{}/pprz/**", self.prefix)))
+        };
+        self.key_of.lock().map_err(|_| poisoned())?.insert(id, key.clone());
+        if let Err(e) = self.subscribe(&key).await {
+            self.unbind(id).await;
+            return Err(e);
+        }
+        Ok(id)
+    }
+
+    async fn subscribe(&self, key: &str) -> Result<(), IvyError> {
+        if let Some(s) = self.subs.lock().map_err(|_| poisoned())?.get_mut(key) {
+            s.users += 1;
+            return Ok(());
+        }
+        let (bus, counters) = (self.bus.clone(), self.counters.clone());
+        let subscriber = self
+            .session
+            .declare_subscriber(key.to_owned())
+            .allowed_origin(Locality::Remote)
+            .callback(move |sample| {
+                counters.samples_received.fetch_add(1, Ordering::Relaxed);
+                let payload = sample.payload().to_bytes();
+                let Ok(text) = std::str::from_utf8(&payload) else {
+                    tracing::debug!("non-UTF-8 payload on {}", sample.key_expr());
+                    return;
+                };
+                if let Ok(mut bus) = bus.lock() {
+                    let n = bus.dispatch(sample.key_expr().as_str(), text.trim_end_matches(['\n', '\r']));
+                    counters.delivered.fetch_add(n as u64, Ordering::Relaxed);
+                }
+            })
+            .await
+            .map_err(|e| IvyError::Zenoh(e.to_string()))?;
+        let mut subs = self.subs.lock().map_err(|_| poisoned())?;
+        // Another bind may have raced us to the same key: keep one subscriber.
+        match subs.get_mut(key) {
+            Some(s) => s.users += 1,
+            None => {
+                subs.insert(key.to_owned(), Sub { users: 1, _subscriber: subscriber });
+            }
+        }
+        Ok(())
+    }
+
+    /// Removes a binding; its subscriber goes when no other binding uses its key expression.
+    /// Returns `false` if it was not bound (e.g. it unbound itself from its handler; its
+    /// subscriber is then released here).
+    pub async fn unbind(&self, id: BindId) -> bool {
+        let was_bound = self.bus.lock().map(|mut b| b.unbind(id)).unwrap_or(false);
+        let key = self.key_of.lock().ok().and_then(|mut k| k.remove(&id));
+        if let Some(key) = key {
+            let dead = self.subs.lock().ok().and_then(|mut subs| {
+                let s = subs.get_mut(&key)?;
+                s.users -= 1;
+                if s.users == 0 { subs.remove(&key) } else { None }
+            });
+            drop(dead);
+        }
+        was_bound
+    }
+
+    /// The key expressions this bus is subscribed to.
+    pub fn subscribed_keys(&self) -> Vec<String> {
+        self.subs.lock().map(|s| s.keys().cloned().collect()).unwrap_or_default()
+    }
+
+    /// Publishes `text` under its key (`<prefix>/pprz/<sender>/<NAME>`).
+    pub async fn send(&self, text: &str) -> Result<(), IvyError> {
+        let key = key_for_text(&self.prefix, text)?;
+        self.session.put(key, text.to_owned()).await.map_err(|e| IvyError::Zenoh(e.to_string()))?;
+        self.counters.sent.fetch_add(1, Ordering::Relaxed);
+        Ok(())
+    }
+
+    /// Number of live bindings.
+    pub fn len(&self) -> usize {
+        self.bus.lock().map(|b| b.len()).unwrap_or(0)
+    }
+
+    /// Whether there is no binding.
+    pub fn is_empty(&self) -> bool {
+        self.len() == 0
+    }
+}
+
+fn poisoned() -> IvyError {
+    IvyError::Zenoh("a bus handler panicked earlier".into())
+}

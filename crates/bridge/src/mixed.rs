@@ -1,0 +1,713 @@
+//! Mixed reality: real copters' telemetry drives their twins, twins' virtual sonar goes back,
+//! and virtual copters publish telemetry as if they were aircraft.
+//!
+//! Two halves, one per thread:
+//!
+//! - [`Outbox`] runs inside the step loop (it needs the state): after each step it produces
+//!   the Paparazzi texts to send, on the **simulated** clock: `VIRTUAL_SONAR` for every twin
+//!   (at the sonar rate, or a configured period), and each virtual copter's telemetry at the
+//!   periods of its [`TelemetryPlan`]. Periods shorter than the control step give one message
+//!   per control step (the values change only that often).
+//! - [`Gateway`] lives on the tokio side: it binds the FINken telemetry on the Ivy-style bus
+//!   ([`crate::ivy::ZenohBus`]), routes each message by aircraft id ([`Router`]), and sends the
+//!   loop [`Request::Twin`]s (commands, observed attitude, automatic spawns). It records
+//!   inter-arrival times per aircraft and message.
+//!
+//! How a twin follows its real copter ([`crate::pprz::twin_command`]):
+//! `FINKEN_ACTUATORS_SET_POINT` gives attitude targets and throttle, `FINKEN_IR_ADC` or
+//! `FINKEN_SENSOR_MODEL.pos_z` the height to hold. `ATTITUDE` and `ROTORCRAFT_FP` are
+//! fallbacks, used only while the primary source of the same quantity has been silent for
+//! [`FALLBACK_AFTER_S`]; `ATTITUDE` is also the real attitude the twin's tracking error is
+//! measured against. [`TwinAttitude::Measured`] swaps the roles of the set point and
+//! `ATTITUDE` for the attitude targets.
+
+use std::collections::BTreeMap;
+use std::sync::mpsc::SyncSender;
+use std::sync::{Arc, Mutex};
+use std::time::Instant;
+
+use sim_core::mixed::VirtualSonar;
+use sim_core::scene::{CommandSpec, CopterSpec, StartSpec};
+use sim_core::{CopterKind, FlightMode, SceneSpec, State, World};
+
+use crate::AcId;
+use crate::conf::AircraftKind;
+use crate::ivy::{IvyError, ZenohBus};
+use crate::messages::MessageSet;
+use crate::pairing::{ResolvedPairing, Route, UnknownAircraftStats};
+use crate::pprz::{TelemetrySource, telemetry_text, twin_command, virtual_sonar_text};
+use crate::sim::{BusInput, Request};
+use crate::telemetry::Telemetry;
+use crate::wire::{CommandMsg, sensors_msg, state_msg};
+
+/// The project's telemetry plan (`assets/paparazzi/telemetry.xml`).
+pub const TELEMETRY_XML: &str = include_str!("../../../assets/paparazzi/telemetry.xml");
+
+/// A fallback source drives a twin only after the primary source has been silent this long.
+pub const FALLBACK_AFTER_S: f64 = 0.5;
+
+/// Which messages a copter sends, and how often: one mode of a telemetry file.
+#[derive(Clone, Debug, PartialEq)]
+pub struct TelemetryPlan {
+    /// `<process>/<mode>` it came from.
+    pub label: String,
+    /// Message names and periods, s, in file order.
+    pub periods: Vec<(String, f64)>,
+}
+
+impl TelemetryPlan {
+    /// Mode `mode` (default: the first) of process `process` (default: the first).
+    pub fn from_telemetry(t: &Telemetry, process: Option<&str>, mode: Option<&str>) -> Result<Self, String> {
+        let p = match process {
+            Some(name) => t.process(name).ok_or_else(|| format!("{}: no process `{name}`", t.source))?,
+            None => t.processes.first().ok_or_else(|| format!("{}: no process", t.source))?,
+        };
+        let m = match mode {
+            Some(name) => {
+                p.mode(name).ok_or_else(|| format!("{}: process `{}` has no mode `{name}`", t.source, p.name))?
+            }
+            None => p.modes.first().ok_or_else(|| format!("{}: process `{}` has no mode", t.source, p.name))?,
+        };
+        Ok(Self {
+            label: format!("{}/{}", p.name, m.name),
+            periods: m.messages.iter().map(|msg| (msg.name.clone(), msg.period_s)).collect(),
+        })
+    }
+
+    /// The embedded plan ([`TELEMETRY_XML`], first mode: `Main/mixed`).
+    pub fn project_default() -> Self {
+        let parsed = Telemetry::parse(TELEMETRY_XML, "assets/paparazzi/telemetry.xml")
+            .map(|t| Self::from_telemetry(&t, None, None))
+            .map_err(|e| e.to_string());
+        match parsed {
+            Ok(Ok(plan)) => plan,
+            // Checked by a test; reaching this is a build defect.
+            Ok(Err(e)) | Err(e) => panic!("the embedded telemetry.xml is invalid: {e}"),
+        }
+    }
+
+    /// The period of `name`, if the plan sends it.
+    pub fn period_s(&self, name: &str) -> Option<f64> {
+        self.periods.iter().find(|(n, _)| n == name).map(|(_, p)| *p)
+    }
+}
+
+/// Adds the pairing's copters to a scene before it is compiled: each twin and virtual copter
+/// that the scene does not have is appended at its pairing pose (twins in `manual` mode on
+/// the floor, waiting for telemetry; virtual copters in `wall_avoid` at 0.8 m). A scene copter
+/// the pairing names gets the pairing's kind and `ac_id`; an `ac_id` used by another scene
+/// copter is an error.
+pub fn apply_pairing(spec: &mut SceneSpec, pairing: &ResolvedPairing) -> Result<(), String> {
+    for a in pairing.by_ac_id.values() {
+        let kind = match a.kind {
+            AircraftKind::Real => CopterKind::Real,
+            AircraftKind::Virtual => CopterKind::Virtual,
+        };
+        if let Some(other) = spec.copters.iter().find(|c| c.ac_id == Some(a.ac_id) && c.name != a.copter) {
+            return Err(format!(
+                "the pairing gives ac_id {} to `{}`, but scene copter `{}` already has it",
+                a.ac_id, a.copter, other.name
+            ));
+        }
+        match spec.copters.iter_mut().find(|c| c.name == a.copter) {
+            Some(c) => {
+                c.kind = kind;
+                c.ac_id = Some(a.ac_id);
+            }
+            None => spec.copters.push(paired_copter(&a.copter, kind, a.ac_id, &a.pose)),
+        }
+    }
+    Ok(())
+}
+
+/// The scene table of a copter the bridge adds (pairing, or automatic spawn).
+pub fn paired_copter(name: &str, kind: CopterKind, ac_id: AcId, pose: &crate::pairing::Pose) -> CopterSpec {
+    let (mode, command) = match kind {
+        CopterKind::Real => (FlightMode::Manual, CommandSpec::default()),
+        CopterKind::Virtual => (FlightMode::WallAvoid, CommandSpec { height_m: 0.8, ..CommandSpec::default() }),
+    };
+    CopterSpec {
+        name: name.to_owned(),
+        kind,
+        ac_id: Some(ac_id),
+        airframe: Default::default(),
+        start: StartSpec {
+            pos_m: [pose.x_m as f32, pose.y_m as f32],
+            z_m: (pose.z_m > 0.0).then_some(pose.z_m as f32),
+            yaw_deg: pose.yaw_rad.to_degrees() as f32,
+        },
+        mode,
+        command,
+    }
+}
+
+/// How the loop side sends Paparazzi messages.
+#[derive(Clone, Debug)]
+pub struct OutboxOptions {
+    /// Key-expression prefix.
+    pub prefix: String,
+    /// Message definitions (the project's `messages.xml`).
+    pub messages: Arc<MessageSet>,
+    /// What virtual copters send.
+    pub plan: TelemetryPlan,
+    /// Period of `VIRTUAL_SONAR` per twin, s; 0: at every sonar update.
+    pub virtual_sonar_period_s: f64,
+}
+
+/// A Paparazzi text to publish.
+#[derive(Clone, Debug, PartialEq)]
+pub struct PprzOut {
+    /// Its key (`<prefix>/pprz/<sender>/<NAME>`).
+    pub key: String,
+    /// The Ivy text.
+    pub text: String,
+}
+
+/// The loop side of mixed reality (see the module docs).
+#[derive(Debug)]
+pub struct Outbox {
+    opts: OutboxOptions,
+    /// Per copter: next due time of each plan message (virtual copters) or of
+    /// `VIRTUAL_SONAR` (twins), s.
+    due: Vec<Vec<f64>>,
+    virtual_sonar: VirtualSonar,
+    /// Messages whose encoding failed, by name (reported once each).
+    failed: BTreeMap<String, u64>,
+    /// Plan messages the simulator cannot produce (reported once each).
+    unsupported: Vec<String>,
+}
+
+impl Outbox {
+    /// An outbox for `world`.
+    pub fn new(opts: OutboxOptions) -> Self {
+        let unsupported: Vec<String> = opts
+            .plan
+            .periods
+            .iter()
+            .filter(|(n, _)| !crate::pprz::TELEMETRY_MESSAGES.contains(&n.as_str()))
+            .map(|(n, _)| n.clone())
+            .collect();
+        if !unsupported.is_empty() {
+            tracing::warn!(
+                "telemetry plan {}: virtual copters cannot send {} (not modelled)",
+                opts.plan.label,
+                unsupported.join(", ")
+            );
+        }
+        Self { opts, due: Vec::new(), virtual_sonar: VirtualSonar::default(), failed: BTreeMap::new(), unsupported }
+    }
+
+    /// Encoding failures by message name.
+    pub fn failures(&self) -> &BTreeMap<String, u64> {
+        &self.failed
+    }
+
+    /// Appends what is due after the step that led to `state` to `out`. `sonar_updated`:
+    /// whether this step sampled the sonars.
+    pub fn after_step(
+        &mut self,
+        world: &World,
+        state: &State,
+        inputs: &sim_core::Inputs,
+        sonar_updated: bool,
+        out: &mut Vec<PprzOut>,
+    ) {
+        let t = state.time_s(world);
+        let n = world.copters.len();
+        while self.due.len() < n {
+            let i = self.due.len();
+            let slots = match world.copters[i].kind {
+                CopterKind::Real => 1,
+                CopterKind::Virtual => self.opts.plan.periods.len(),
+            };
+            self.due.push(vec![t; slots]);
+        }
+        let dt = world.params.control_dt_s;
+        // Fires at most once per step, and keeps the schedule on its grid.
+        let fire = |due: &mut f64, period: f64| -> bool {
+            if t + 1e-9 < *due {
+                return false;
+            }
+            let period = period.max(1e-6);
+            while *due <= t + 1e-9 {
+                *due += period;
+            }
+            true
+        };
+        let mut prepared = false;
+        for i in 0..n {
+            let def = &world.copters[i];
+            let Some(ac_id) = def.ac_id else { continue };
+            match def.kind {
+                CopterKind::Real => {
+                    if !sonar_updated {
+                        continue;
+                    }
+                    let period = self.opts.virtual_sonar_period_s.max(dt * 0.5);
+                    if !fire(&mut self.due[i][0], period) {
+                        continue;
+                    }
+                    if !prepared {
+                        self.virtual_sonar.prepare(world, state);
+                        prepared = true;
+                    }
+                    let readings = self.virtual_sonar.readings(world, state, i);
+                    match virtual_sonar_text(&self.opts.messages, ac_id, readings) {
+                        Ok(text) => out.push(PprzOut { key: self.key("ground", "VIRTUAL_SONAR"), text }),
+                        Err(e) => self.fail("VIRTUAL_SONAR", &e.to_string()),
+                    }
+                }
+                CopterKind::Virtual => {
+                    let mut src = None;
+                    for k in 0..self.opts.plan.periods.len() {
+                        let (name, period) = &self.opts.plan.periods[k];
+                        if self.unsupported.contains(name) || !fire(&mut self.due[i][k], *period) {
+                            continue;
+                        }
+                        let (st, se) = src
+                            .get_or_insert_with(|| (state_msg(world, state, inputs, i), sensors_msg(world, state, i)));
+                        let source = TelemetrySource { state: st, sensors: se, setpoint: state.copters[i].setpoint };
+                        match telemetry_text(&self.opts.messages, ac_id, name, &source) {
+                            Some(Ok(text)) => out.push(PprzOut { key: self.key(&ac_id.to_string(), name), text }),
+                            Some(Err(e)) => {
+                                let name = name.clone();
+                                self.fail(&name, &e.to_string());
+                            }
+                            None => {}
+                        }
+                    }
+                }
+            }
+        }
+    }
+
+    fn key(&self, sender: &str, name: &str) -> String {
+        format!("{}/pprz/{sender}/{name}", self.opts.prefix)
+    }
+
+    fn fail(&mut self, name: &str, why: &str) {
+        let n = self.failed.entry(name.to_owned()).or_insert(0);
+        if *n == 0 {
+            tracing::warn!("cannot encode {name}: {why}");
+        }
+        *n += 1;
+    }
+}
+
+/// What the gateway does with a telemetry message from an aircraft.
+#[derive(Clone, Debug, PartialEq)]
+pub enum Decision {
+    /// Drive this twin.
+    Twin(String),
+    /// Spawn this twin first, then drive it.
+    SpawnTwin(Box<CopterSpec>),
+    /// Drop: one of our own virtual aircraft (someone else is sending as it).
+    OwnVirtual,
+    /// Drop: not ours and not to be spawned.
+    Unknown,
+}
+
+/// Routes aircraft ids to copters: the world's copters with an `ac_id`, then the pairing's
+/// rules for the rest (see [`crate::pairing`]). Spawn decisions are remembered, so an aircraft
+/// spawns once.
+#[derive(Clone, Debug)]
+pub struct Router {
+    by_ac_id: BTreeMap<AcId, (String, CopterKind)>,
+    pairing: Option<ResolvedPairing>,
+    spawned: u32,
+    /// Dropped messages of unknown aircraft.
+    pub unknown: UnknownAircraftStats,
+    /// Dropped messages claiming to come from one of our virtual aircraft.
+    pub own_virtual_dropped: u64,
+}
+
+impl Router {
+    /// A router for `world`'s copters and the optional pairing.
+    pub fn new(world: &World, pairing: Option<ResolvedPairing>) -> Self {
+        let by_ac_id = world.copters.iter().filter_map(|c| Some((c.ac_id?, (c.name.clone(), c.kind)))).collect();
+        Self { by_ac_id, pairing, spawned: 0, unknown: UnknownAircraftStats::default(), own_virtual_dropped: 0 }
+    }
+
+    /// What to do with a message from `ac_id`.
+    pub fn route(&mut self, ac_id: AcId) -> Decision {
+        match self.by_ac_id.get(&ac_id) {
+            Some((name, CopterKind::Real)) => return Decision::Twin(name.clone()),
+            Some((_, CopterKind::Virtual)) => {
+                self.own_virtual_dropped += 1;
+                return Decision::OwnVirtual;
+            }
+            None => {}
+        }
+        let route = self.pairing.as_ref().map_or(Route::Ignore, |p| p.route(ac_id));
+        let spawn = match route {
+            Route::Spawn { point, aircraft } => {
+                let name = aircraft.map_or_else(|| format!("ac_{ac_id}"), sanitise);
+                Some((name, point.pose_for(self.spawned)))
+            }
+            // Assigned ids are in the world (the pairing was applied to the scene).
+            Route::Assigned(_) | Route::Ignore => None,
+        };
+        match spawn {
+            Some((name, pose)) => {
+                self.spawned += 1;
+                self.by_ac_id.insert(ac_id, (name.clone(), CopterKind::Real));
+                Decision::SpawnTwin(Box::new(paired_copter(&name, CopterKind::Real, ac_id, &pose)))
+            }
+            None => {
+                self.unknown.record(ac_id);
+                Decision::Unknown
+            }
+        }
+    }
+}
+
+/// A copter name from an aircraft name: lower case, characters outside `[a-z0-9_-]` as `_`.
+fn sanitise(name: &str) -> String {
+    name.chars().map(|c| if c.is_ascii_alphanumeric() || c == '-' { c.to_ascii_lowercase() } else { '_' }).collect()
+}
+
+/// Inter-arrival times of one message kind from one aircraft.
+#[derive(Clone, Debug, Default)]
+pub struct Arrivals {
+    last: Option<Instant>,
+    /// Inter-arrival times, ms (the first 100 000).
+    pub gaps_ms: Vec<f32>,
+    /// Messages received.
+    pub count: u64,
+}
+
+impl Arrivals {
+    fn record(&mut self, now: Instant) {
+        if let Some(last) = self.last
+            && self.gaps_ms.len() < 100_000
+        {
+            self.gaps_ms.push((now - last).as_secs_f32() * 1e3);
+        }
+        self.last = Some(now);
+        self.count += 1;
+    }
+}
+
+/// What the gateway saw.
+#[derive(Debug, Default)]
+pub struct GatewayStats {
+    /// Arrivals by (aircraft id, message name).
+    pub arrivals: BTreeMap<(AcId, String), Arrivals>,
+    /// Texts that did not decode.
+    pub decode_errors: u64,
+    /// Commands derived from telemetry that were out of range.
+    pub rejected: u64,
+    /// Requests the loop's queue could not take.
+    pub queue_full: u64,
+    /// Twins spawned on first telemetry.
+    pub spawned: Vec<String>,
+}
+
+struct Shared {
+    router: Router,
+    stats: GatewayStats,
+    /// Per aircraft: when the primary attitude and height sources were last heard.
+    last_primary: BTreeMap<AcId, [Option<Instant>; 2]>,
+    world: Arc<World>,
+    attitude: TwinAttitude,
+}
+
+/// Which telemetry sets a twin's attitude targets.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum TwinAttitude {
+    /// `FINKEN_ACTUATORS_SET_POINT`: what the real copter's outer loop asks for (the original
+    /// system's choice). A real copter's own attitude-control error is not reproduced.
+    #[default]
+    Setpoint,
+    /// `ATTITUDE`: what the real copter's AHRS measures. Reproduces its actual tilt, and so
+    /// its drift, at the cost of its AHRS noise. `FINKEN_ACTUATORS_SET_POINT` still gives the
+    /// throttle, and its attitude is the fallback.
+    Measured,
+}
+
+/// The telemetry the gateway binds, with the regex it binds it with.
+pub const BOUND_TELEMETRY: [&str; 5] =
+    ["FINKEN_ACTUATORS_SET_POINT", "FINKEN_IR_ADC", "FINKEN_SENSOR_MODEL", "ATTITUDE", "ROTORCRAFT_FP"];
+
+/// The tokio side of mixed reality (see the module docs).
+pub struct Gateway {
+    bus: ZenohBus,
+    shared: Arc<Mutex<Shared>>,
+}
+
+impl std::fmt::Debug for Gateway {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("Gateway").field("bus", &self.bus).finish_non_exhaustive()
+    }
+}
+
+fn unix_now_ns() -> u64 {
+    std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).map_or(0, |d| d.as_nanos() as u64)
+}
+
+impl Gateway {
+    /// Binds the FINken telemetry under `prefix` on `session`; requests go to the loop.
+    pub async fn start(
+        session: zenoh::Session,
+        prefix: &str,
+        world: Arc<World>,
+        pairing: Option<ResolvedPairing>,
+        messages: Arc<MessageSet>,
+        requests: SyncSender<Request>,
+        attitude: TwinAttitude,
+    ) -> Result<Self, IvyError> {
+        let bus = ZenohBus::new(session, prefix);
+        let shared = Arc::new(Mutex::new(Shared {
+            router: Router::new(&world, pairing),
+            stats: GatewayStats::default(),
+            last_primary: BTreeMap::new(),
+            world,
+            attitude,
+        }));
+        for name in BOUND_TELEMETRY {
+            let (shared, messages, requests) = (shared.clone(), messages.clone(), requests.clone());
+            bus.bind(&format!(r"^(\d+) {name} "), move |d, _| {
+                let received = Instant::now();
+                let origin =
+                    BusInput { key: d.key.to_owned(), text: d.text.to_owned(), received_unix_ns: unix_now_ns() };
+                let Ok(mut sh) = shared.lock() else { return };
+                handle(&mut sh, &messages, &requests, origin, received);
+            })
+            .await?;
+        }
+        Ok(Self { bus, shared })
+    }
+
+    /// Tells the gateway about the world after a spawn (for command validation).
+    pub fn set_world(&self, world: &Arc<World>) {
+        if let Ok(mut sh) = self.shared.lock()
+            && !Arc::ptr_eq(&sh.world, world)
+        {
+            sh.world = world.clone();
+        }
+    }
+
+    /// A copy of the statistics so far, and of the router's counters.
+    pub fn report(&self) -> GatewayReport {
+        let Ok(sh) = self.shared.lock() else { return GatewayReport::default() };
+        let arrivals = sh
+            .stats
+            .arrivals
+            .iter()
+            .map(|((ac, name), a)| ArrivalReport {
+                ac_id: *ac,
+                message: name.clone(),
+                count: a.count,
+                gap_ms: Summary::of(&a.gaps_ms),
+            })
+            .collect();
+        GatewayReport {
+            arrivals,
+            decode_errors: sh.stats.decode_errors,
+            rejected: sh.stats.rejected,
+            queue_full: sh.stats.queue_full,
+            spawned: sh.stats.spawned.clone(),
+            unknown_dropped: sh.router.unknown.dropped_by_ac_id.clone(),
+            own_virtual_dropped: sh.router.own_virtual_dropped,
+        }
+    }
+
+    /// The Ivy bus the gateway uses (for counters).
+    pub fn bus(&self) -> &ZenohBus {
+        &self.bus
+    }
+}
+
+fn handle(sh: &mut Shared, messages: &MessageSet, requests: &SyncSender<Request>, origin: BusInput, received: Instant) {
+    let msg = match messages.decode(&origin.text) {
+        Ok(m) => m,
+        Err(e) => {
+            sh.stats.decode_errors += 1;
+            let reason = format!("undecodable telemetry: {e}");
+            let _ = requests.try_send(Request::Rejected { origin, reason });
+            return;
+        }
+    };
+    let Some(ac_id) = msg.sender.ac_id() else { return };
+    let name = msg.def.name.clone();
+    sh.stats.arrivals.entry((ac_id, name.clone())).or_default().record(received);
+    let (copter, spawn) = match sh.router.route(ac_id) {
+        Decision::Twin(c) => (c, None),
+        Decision::SpawnTwin(spec) => {
+            sh.stats.spawned.push(spec.name.clone());
+            tracing::info!("aircraft {ac_id}: spawning its twin `{}`", spec.name);
+            (spec.name.clone(), Some(spec))
+        }
+        Decision::OwnVirtual | Decision::Unknown => return,
+    };
+    // Primary and fallback sources.
+    let last = sh.last_primary.entry(ac_id).or_default();
+    let silent = |t: Option<Instant>| t.is_none_or(|t| (received - t).as_secs_f64() > FALLBACK_AFTER_S);
+    let mut cmd = twin_command(&msg);
+    let mut observed = None;
+    let (primary_attitude, fallback_attitude) = match sh.attitude {
+        TwinAttitude::Setpoint => ("FINKEN_ACTUATORS_SET_POINT", "ATTITUDE"),
+        TwinAttitude::Measured => ("ATTITUDE", "FINKEN_ACTUATORS_SET_POINT"),
+    };
+    match name.as_str() {
+        n if n == primary_attitude => {
+            last[0] = Some(received);
+            if n == "ATTITUDE"
+                && let Some(c) = &cmd
+            {
+                observed = Some([c.roll.unwrap_or(0.0), c.pitch.unwrap_or(0.0), c.yaw.unwrap_or(0.0)]);
+            }
+        }
+        n if n == fallback_attitude => {
+            if n == "ATTITUDE"
+                && let Some(c) = &cmd
+            {
+                observed = Some([c.roll.unwrap_or(0.0), c.pitch.unwrap_or(0.0), c.yaw.unwrap_or(0.0)]);
+            }
+            if !silent(last[0])
+                && let Some(c) = cmd.as_mut()
+            {
+                (c.roll, c.pitch, c.yaw) = (None, None, None);
+            }
+        }
+        "FINKEN_IR_ADC" | "FINKEN_SENSOR_MODEL" => last[1] = Some(received),
+        "ROTORCRAFT_FP" => {
+            if let Some(c) = cmd.as_mut() {
+                if !silent(last[0]) {
+                    (c.roll, c.pitch, c.yaw) = (None, None, None);
+                }
+                if !silent(last[1]) {
+                    c.height = None;
+                }
+            }
+        }
+        _ => {}
+    }
+    let cmd = cmd.filter(|c| *c != CommandMsg::default());
+    if let Some(c) = &cmd
+        && let Err(e) = c.validate(&sh.world)
+    {
+        sh.stats.rejected += 1;
+        let _ = requests.try_send(Request::Rejected { origin, reason: format!("telemetry gives {e}") });
+        return;
+    }
+    if cmd.is_none() && observed.is_none() && spawn.is_none() {
+        return;
+    }
+    if requests.try_send(Request::Twin { copter, spawn, cmd, observed_rpy: observed, origin }).is_err() {
+        sh.stats.queue_full += 1;
+    }
+}
+
+/// Order statistics of a sample.
+#[derive(Clone, Copy, Debug, Default, PartialEq, serde::Serialize)]
+pub struct Summary {
+    /// Number of values.
+    pub n: usize,
+    /// Mean.
+    pub mean: f64,
+    /// Median.
+    pub p50: f64,
+    /// 99th percentile.
+    pub p99: f64,
+    /// Maximum.
+    pub max: f64,
+}
+
+impl Summary {
+    /// Summarises `values` (NaNs ignored).
+    pub fn of(values: &[f32]) -> Self {
+        let mut v: Vec<f64> = values.iter().map(|&x| f64::from(x)).filter(|x| x.is_finite()).collect();
+        if v.is_empty() {
+            return Self::default();
+        }
+        v.sort_by(f64::total_cmp);
+        let q = |p: f64| v[((v.len() - 1) as f64 * p).round() as usize];
+        Self {
+            n: v.len(),
+            mean: v.iter().sum::<f64>() / v.len() as f64,
+            p50: q(0.5),
+            p99: q(0.99),
+            max: v[v.len() - 1],
+        }
+    }
+}
+
+/// Arrivals of one message kind from one aircraft.
+#[derive(Clone, Debug, PartialEq, serde::Serialize)]
+pub struct ArrivalReport {
+    /// Aircraft.
+    pub ac_id: AcId,
+    /// Message name.
+    pub message: String,
+    /// Messages received.
+    pub count: u64,
+    /// Inter-arrival times, ms.
+    pub gap_ms: Summary,
+}
+
+/// What the gateway reports at the end of a run.
+#[derive(Clone, Debug, Default, PartialEq, serde::Serialize)]
+pub struct GatewayReport {
+    /// Arrivals per aircraft and message.
+    pub arrivals: Vec<ArrivalReport>,
+    /// Texts that did not decode.
+    pub decode_errors: u64,
+    /// Commands derived from telemetry that were out of range.
+    pub rejected: u64,
+    /// Requests the loop's queue could not take.
+    pub queue_full: u64,
+    /// Twins spawned on first telemetry.
+    pub spawned: Vec<String>,
+    /// Dropped messages of unknown aircraft, by id.
+    pub unknown_dropped: BTreeMap<AcId, u64>,
+    /// Dropped messages claiming to come from one of our virtual aircraft.
+    pub own_virtual_dropped: u64,
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::conf::ConfXml;
+    use crate::pairing::Pairing;
+
+    #[test]
+    fn the_embedded_plan_parses_and_sends_what_drives_a_twin_every_22_ms() {
+        let plan = TelemetryPlan::project_default();
+        assert_eq!(plan.label, "Main/mixed");
+        assert_eq!(plan.period_s("FINKEN_ACTUATORS_SET_POINT"), Some(0.022));
+        for (name, _) in &plan.periods {
+            assert!(crate::pprz::TELEMETRY_MESSAGES.contains(&name.as_str()), "{name} cannot be produced");
+        }
+    }
+
+    #[test]
+    fn known_aircraft_spawn_once_unknown_ones_follow_the_policy() {
+        let (_, world) = sim_core::scene::load_default();
+        let conf = ConfXml::parse(
+            r#"<conf><aircraft name="FINken_01" ac_id="5"/><aircraft name="FINken 03" ac_id="7"/>
+               <aircraft name="Virtual_09" ac_id="9"/></conf>"#,
+            "c.xml",
+        )
+        .unwrap();
+        let text = r#"<pairing version="1"><conf path="c.xml"/>
+            <twin ac_id="5" copter="finken1" x_m="0" y_m="0" z_m="0" yaw_deg="0"/>
+            <spawn x_m="0" y_m="0.5" z_m="0" yaw_deg="0" spacing_m="0.5"/></pairing>"#;
+        let pairing = Pairing::parse(text, "p.xml").unwrap().resolve(&conf).unwrap();
+        let mut r = Router::new(&world, Some(pairing));
+        // The scene's virtual copters (201, 202) are ours.
+        assert_eq!(r.route(201), Decision::OwnVirtual);
+        // 7 is a real aircraft of conf.xml: spawned once, at the spawn point, then driven.
+        let Decision::SpawnTwin(spec) = r.route(7) else { panic!("7 should spawn") };
+        assert_eq!(spec.name, "finken_03");
+        assert_eq!(spec.kind, CopterKind::Real);
+        assert_eq!(spec.start.pos_m, [0.0, 0.5]);
+        assert_eq!(r.route(7), Decision::Twin("finken_03".into()));
+        // 9 is virtual by name but not ours; 42 is not in conf.xml and the policy is ignore.
+        assert_eq!(r.route(9), Decision::Unknown);
+        assert_eq!(r.route(42), Decision::Unknown);
+        assert_eq!(r.route(42), Decision::Unknown);
+        assert_eq!(r.unknown.dropped_by_ac_id.get(&42), Some(&2));
+    }
+}

@@ -1,0 +1,410 @@
+//! `twinswarm copter`: a stand-in for a real FINken, so mixed reality can be tested end to end
+//! without hardware.
+//!
+//! It flies its own `sim-core` world, the "reality": the scene's arena and boxes **without**
+//! the `virtual_only` ones and without the other copters, one copter, its own seed. Like the
+//! firmware, it
+//! - publishes its telemetry on the bus as aircraft `--ac-id`, at the periods of a telemetry
+//!   plan (default: the embedded `Main/mixed` mode, 22 ms for what drives a twin), each
+//!   message delayed by a uniform random jitter and dropped with a loss probability;
+//! - receives `VIRTUAL_SONAR` for its `ac_id` and fuses it as `min(real, virtual)` into its
+//!   own Wall-Avoid; a virtual reading older than [`VIRTUAL_STALE_S`] is ignored.
+//!
+//! With `--no-bus` it flies alone, as fast as it can (a control run).
+
+use std::io::Write as _;
+use std::path::PathBuf;
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
+use std::sync::{Arc, Mutex};
+use std::time::{Duration, Instant};
+
+use anyhow::Context;
+use bridge::mixed::TelemetryPlan;
+use bridge::pprz::{TELEMETRY_MESSAGES, TelemetrySource, telemetry_text, virtual_sonar_readings};
+use bridge::wire::{SensorsMsg, StateMsg, sensors_msg, state_msg};
+use sim_core::rng::Rng32;
+use sim_core::scene::{self, CommandSpec, CopterSpec, StartSpec};
+use sim_core::{CopterKind, FlightMode, Setpoint, State, World};
+
+use crate::BadInput;
+
+/// A virtual sonar reading older than this is ignored, s.
+pub const VIRTUAL_STALE_S: f64 = 0.5;
+
+/// Arguments of `twinswarm copter`.
+#[derive(Debug, clap::Args)]
+pub struct CopterArgs {
+    /// The scene whose arena and (non-virtual) boxes are the reality; default: the embedded
+    /// FINken lab.
+    scene: Option<PathBuf>,
+    /// Paparazzi aircraft id to fly as.
+    #[arg(long, value_name = "N")]
+    ac_id: u8,
+    /// Start pose `X,Y,YAW_DEG` (m, m, degrees); default: the pairing's twin pose for this
+    /// ac_id, else the scene copter with this ac_id.
+    #[arg(long, value_name = "X,Y,YAW", allow_hyphen_values = true)]
+    start: Option<String>,
+    /// Pairing file, for the start pose.
+    #[arg(long, value_name = "FILE.xml")]
+    pairing: Option<PathBuf>,
+    /// Seed of the reality (default: the scene's seed + 1000 + ac_id).
+    #[arg(long, value_name = "N")]
+    seed: Option<u64>,
+    /// Simulated duration, s (default: the scene's).
+    #[arg(long, value_name = "S")]
+    duration: Option<f64>,
+    /// Height to hold, m.
+    #[arg(long, value_name = "M", default_value_t = 0.8)]
+    height: f32,
+    /// Velocity to fly when no obstacle is near, body frame `FORWARD,LEFT`, m/s.
+    #[arg(long, value_name = "FWD,LEFT", allow_hyphen_values = true)]
+    velocity: Option<String>,
+    /// Telemetry delay jitter: each message is sent up to this late, ms (uniform).
+    #[arg(long, value_name = "MS", default_value_t = 5.0)]
+    jitter_ms: f64,
+    /// Probability that a telemetry message is lost, 0..1.
+    #[arg(long, value_name = "P", default_value_t = 0.0)]
+    loss: f64,
+    /// Paparazzi telemetry file (default: the embedded assets/paparazzi/telemetry.xml).
+    #[arg(long, value_name = "FILE.xml")]
+    telemetry: Option<PathBuf>,
+    /// Mode of the telemetry file (default: its first mode).
+    #[arg(long, value_name = "NAME")]
+    telemetry_mode: Option<String>,
+    /// Fly alone, as fast as possible, without Zenoh (a control run).
+    #[arg(long)]
+    no_bus: bool,
+    /// A full Zenoh configuration file (JSON5); default: connect to tcp/127.0.0.1:7447,
+    /// listen nowhere, multicast scouting off.
+    #[arg(long, value_name = "FILE.json5")]
+    zenoh_config: Option<PathBuf>,
+    /// Zenoh endpoint to connect to (repeatable).
+    #[arg(long, value_name = "ENDPOINT")]
+    connect: Vec<String>,
+    /// Key-expression prefix (default: twinswarm/<world name>).
+    #[arg(long, value_name = "KEY")]
+    prefix: Option<String>,
+    /// Write the flown trajectory as CSV (one row per control step).
+    #[arg(long, value_name = "FILE.csv")]
+    track: Option<PathBuf>,
+    /// Print the summary as JSON.
+    #[arg(long)]
+    json: bool,
+}
+
+/// The latest virtual sonar readings (front, right, back, left; m) and when they came.
+type VirtualReading = ([f32; 4], Instant);
+
+/// What the loop shares with the telemetry senders.
+#[derive(Clone, Debug)]
+struct Snapshot {
+    state: StateMsg,
+    sensors: SensorsMsg,
+    setpoint: Setpoint,
+}
+
+/// The stand-in's summary.
+#[derive(Debug, serde::Serialize)]
+struct Summary {
+    ac_id: u8,
+    seed: u64,
+    simulated_s: f64,
+    steps: u64,
+    crashed: Option<String>,
+    final_pos_m: [f32; 3],
+    telemetry_sent: u64,
+    telemetry_lost: u64,
+    virtual_sonar_received: u64,
+    steps_with_virtual_sonar: u64,
+    overruns: u64,
+}
+
+fn parse_pair<const N: usize>(text: &str, what: &str) -> anyhow::Result<[f32; N]> {
+    let parts: Vec<&str> = text.split(',').map(str::trim).collect();
+    let bad = || BadInput(anyhow::anyhow!("{what}: expected {N} comma-separated numbers, got {text:?}"));
+    if parts.len() != N {
+        return Err(bad().into());
+    }
+    let mut out = [0.0; N];
+    for (o, p) in out.iter_mut().zip(&parts) {
+        *o = p.parse::<f32>().ok().filter(|v| v.is_finite()).ok_or_else(bad)?;
+    }
+    Ok(out)
+}
+
+/// The reality: the scene without virtual-only boxes and other copters, plus this copter.
+fn reality(args: &CopterArgs) -> anyhow::Result<(World, TelemetryPlan)> {
+    let (_, mut spec, _) = crate::load_scene(args.scene.as_deref())?;
+    let mixed =
+        crate::load_mixed(args.pairing.as_deref(), args.telemetry.as_deref(), args.telemetry_mode.as_deref(), 0.0)?;
+    let start = match &args.start {
+        Some(s) => {
+            let [x, y, yaw] = parse_pair::<3>(s, "--start")?;
+            StartSpec { pos_m: [x, y], z_m: None, yaw_deg: yaw }
+        }
+        None => {
+            let from_pairing = mixed.pairing.as_ref().and_then(|p| p.by_ac_id.get(&args.ac_id)).map(|a| StartSpec {
+                pos_m: [a.pose.x_m as f32, a.pose.y_m as f32],
+                z_m: None,
+                yaw_deg: a.pose.yaw_rad.to_degrees() as f32,
+            });
+            let from_scene = || spec.copters.iter().find(|c| c.ac_id == Some(args.ac_id)).map(|c| c.start.clone());
+            from_pairing.or_else(from_scene).ok_or_else(|| {
+                BadInput(anyhow::anyhow!(
+                    "no start pose for ac_id {}: give --start X,Y,YAW or a --pairing that twins it",
+                    args.ac_id
+                ))
+            })?
+        }
+    };
+    let velocity = args.velocity.as_deref().map(|v| parse_pair::<2>(v, "--velocity")).transpose()?;
+    if !(0.0..=1.0).contains(&args.loss) || !args.jitter_ms.is_finite() || args.jitter_ms < 0.0 {
+        return Err(BadInput(anyhow::anyhow!("--loss must be in [0, 1] and --jitter-ms >= 0")).into());
+    }
+    spec.boxes.retain(|b| !b.virtual_only);
+    spec.sim.seed = args.seed.unwrap_or(spec.sim.seed.wrapping_add(1000 + u64::from(args.ac_id)));
+    if let Some(d) = args.duration {
+        if !d.is_finite() || d <= 0.0 {
+            return Err(BadInput(anyhow::anyhow!("--duration must be a positive number of seconds, got {d}")).into());
+        }
+        spec.sim.duration_s = d;
+    }
+    spec.copters = vec![CopterSpec {
+        name: format!("ac_{}", args.ac_id),
+        kind: CopterKind::Virtual,
+        ac_id: Some(args.ac_id),
+        airframe: Default::default(),
+        start,
+        mode: FlightMode::WallAvoid,
+        command: CommandSpec { height_m: args.height, velocity_m_s: velocity, ..CommandSpec::default() },
+    }];
+    let world = scene::compile(&spec).map_err(|e| anyhow::Error::new(BadInput(e.into())))?;
+    Ok((world, mixed.plan))
+}
+
+/// Runs `twinswarm copter`.
+pub fn run(args: CopterArgs) -> anyhow::Result<()> {
+    let (world, plan) = reality(&args)?;
+    let stop = crate::logcmd::install_stop_flag()?;
+    let mut track = match &args.track {
+        Some(p) => {
+            let f = std::fs::File::create(p).with_context(|| format!("cannot create {}", p.display()))?;
+            let mut w = std::io::BufWriter::new(f);
+            writeln!(
+                w,
+                "t_s,x_m,y_m,z_m,roll_rad,pitch_rad,yaw_rad,sonar_front_m,sonar_right_m,sonar_back_m,sonar_left_m,\
+                 fused_front_m,fused_right_m,fused_back_m,fused_left_m,virtual_fresh"
+            )?;
+            Some(w)
+        }
+        None => None,
+    };
+    let virt: Arc<Mutex<Option<VirtualReading>>> = Arc::new(Mutex::new(None));
+    let received = Arc::new(AtomicU64::new(0));
+    let mut state = world.initial_state();
+    let mut inputs = world.initial_inputs();
+    let shared = Arc::new(Mutex::new(snapshot(&world, &state, &inputs)));
+
+    let bus = if args.no_bus {
+        None
+    } else {
+        let rt = tokio::runtime::Builder::new_multi_thread().worker_threads(2).enable_all().build()?;
+        let config = match &args.zenoh_config {
+            Some(_) => crate::runner::zenoh_config(&crate::runner::BusOptions {
+                zenoh_config: args.zenoh_config.clone(),
+                connect: args.connect.clone(),
+                ..Default::default()
+            })?,
+            None => {
+                let connect = if args.connect.is_empty() {
+                    vec![bridge::node::DEFAULT_LISTEN.to_owned()]
+                } else {
+                    args.connect.clone()
+                };
+                bridge::node::client_config(&connect)?
+            }
+        };
+        let prefix = args.prefix.clone().unwrap_or_else(|| bridge::node::default_prefix(&world));
+        let session = rt
+            .block_on(async { zenoh::open(config).await })
+            .map_err(|e| anyhow::anyhow!("{e}"))
+            .context("cannot open the Zenoh session")?;
+        let ivy = bridge::ivy::ZenohBus::new(session.clone(), prefix.clone());
+        let messages = Arc::new(bridge::pprz::project_messages());
+        {
+            let (virt, received, messages, ac_id) = (virt.clone(), received.clone(), messages.clone(), args.ac_id);
+            rt.block_on(ivy.bind(&format!(r"^ground VIRTUAL_SONAR {ac_id} "), move |d, _| {
+                let Ok(msg) = messages.decode(d.text) else { return };
+                if let Some((to, readings)) = virtual_sonar_readings(&msg)
+                    && to == ac_id
+                {
+                    received.fetch_add(1, Ordering::Relaxed);
+                    if let Ok(mut v) = virt.lock() {
+                        *v = Some((readings, Instant::now()));
+                    }
+                }
+            }))?;
+        }
+        Some((rt, session, ivy, messages, prefix))
+    };
+
+    // Telemetry senders, one task per message of the plan.
+    let sent = Arc::new(AtomicU64::new(0));
+    let lost = Arc::new(AtomicU64::new(0));
+    let done = Arc::new(AtomicBool::new(false));
+    let mut senders = Vec::new();
+    if let Some((rt, session, _, messages, prefix)) = &bus {
+        for (k, (name, period)) in plan.periods.iter().enumerate() {
+            if !TELEMETRY_MESSAGES.contains(&name.as_str()) {
+                tracing::warn!("the stand-in cannot send {name} (not modelled)");
+                continue;
+            }
+            let (session, messages, shared) = (session.clone(), messages.clone(), shared.clone());
+            let (sent, lost, done) = (sent.clone(), lost.clone(), done.clone());
+            let key = format!("{prefix}/pprz/{}/{name}", args.ac_id);
+            let (name, period) = (name.clone(), Duration::from_secs_f64(*period));
+            let (ac_id, jitter_s, loss) = (args.ac_id, args.jitter_ms / 1e3, args.loss as f32);
+            let mut rng = Rng32::new(world.params.seed, 0x7e1e_0000 + k as u64);
+            senders.push(rt.spawn(async move {
+                let start = tokio::time::Instant::now();
+                let mut n: u32 = 0;
+                while !done.load(Ordering::Relaxed) {
+                    n += 1;
+                    let due = start + period * n + Duration::from_secs_f64(jitter_s * f64::from(rng.uniform()));
+                    tokio::time::sleep_until(due).await;
+                    if rng.uniform() < loss {
+                        lost.fetch_add(1, Ordering::Relaxed);
+                        continue;
+                    }
+                    let text = {
+                        let Ok(s) = shared.lock() else { break };
+                        let src = TelemetrySource { state: &s.state, sensors: &s.sensors, setpoint: s.setpoint };
+                        telemetry_text(&messages, ac_id, &name, &src)
+                    };
+                    match text {
+                        Some(Ok(text)) => {
+                            if session.put(key.as_str(), text).await.is_ok() {
+                                sent.fetch_add(1, Ordering::Relaxed);
+                            }
+                        }
+                        Some(Err(e)) => {
+                            tracing::warn!("cannot encode {name}: {e}");
+                            break;
+                        }
+                        None => break,
+                    }
+                }
+            }));
+        }
+    }
+
+    // The flight.
+    let realtime = bus.is_some();
+    let dt = Duration::from_secs_f64(world.params.control_dt_s);
+    let ticks = world.default_ticks();
+    let started = Instant::now();
+    let (mut overruns, mut with_virtual) = (0u64, 0u64);
+    for k in 0..ticks {
+        if stop.load(Ordering::Relaxed) {
+            break;
+        }
+        let fresh = virt
+            .lock()
+            .ok()
+            .and_then(|v| *v)
+            .filter(|(_, at)| at.elapsed().as_secs_f64() <= VIRTUAL_STALE_S)
+            .map(|(r, _)| r);
+        inputs.commands[0].virtual_sonar_m = fresh;
+        with_virtual += u64::from(fresh.is_some());
+        sim_core::step(&world, &mut state, &inputs);
+        if let Ok(mut s) = shared.lock() {
+            *s = snapshot(&world, &state, &inputs);
+        }
+        if let Some(w) = &mut track {
+            let p = state.pose(0);
+            let r = &state.copters[0].sensors;
+            let row: Vec<String> = [state.time_s(&world) as f32]
+                .into_iter()
+                .chain(p.pos_m.to_array())
+                .chain(p.rpy_rad)
+                .chain(r.sonar_m)
+                .chain(r.sonar_fused_m)
+                .map(|v| format!("{v:.4}"))
+                .collect();
+            writeln!(w, "{},{}", row.join(","), u8::from(fresh.is_some()))?;
+        }
+        if state.copters[0].crash.is_some() {
+            break;
+        }
+        if realtime {
+            let deadline = started + dt * (k as u32 + 1);
+            let now = Instant::now();
+            if now > deadline {
+                overruns += 1;
+            } else {
+                std::thread::sleep(deadline - now);
+            }
+        }
+    }
+    done.store(true, Ordering::Relaxed);
+    if let Some(w) = &mut track {
+        w.flush()?;
+    }
+    if let Some((rt, session, ivy, _, _)) = bus {
+        rt.block_on(async {
+            for s in senders {
+                s.abort();
+            }
+            drop(ivy);
+            session.close().await
+        })
+        .map_err(|e| anyhow::anyhow!("{e}"))
+        .context("closing the Zenoh session")?;
+    }
+    let summary = Summary {
+        ac_id: args.ac_id,
+        seed: world.params.seed,
+        simulated_s: state.time_s(&world),
+        steps: state.tick,
+        crashed: state.copters[0].crash.map(|c| format!("{c:?}")),
+        final_pos_m: state.pose(0).pos_m.to_array(),
+        telemetry_sent: sent.load(Ordering::Relaxed),
+        telemetry_lost: lost.load(Ordering::Relaxed),
+        virtual_sonar_received: received.load(Ordering::Relaxed),
+        steps_with_virtual_sonar: with_virtual,
+        overruns,
+    };
+    if args.json {
+        outln!("{}", serde_json::to_string_pretty(&summary)?);
+    } else {
+        let [x, y, z] = summary.final_pos_m;
+        outln!(
+            "twinswarm copter: ac_id {} (seed {}), {:.1} s in {} steps, final position ({x:.2}, {y:.2}, {z:.2}) m, {}",
+            summary.ac_id,
+            summary.seed,
+            summary.simulated_s,
+            summary.steps,
+            summary.crashed.as_deref().unwrap_or("no crash")
+        );
+        outln!(
+            "  telemetry: {} sent, {} lost; virtual sonar: {} received, used in {} steps; {} overruns",
+            summary.telemetry_sent,
+            summary.telemetry_lost,
+            summary.virtual_sonar_received,
+            summary.steps_with_virtual_sonar,
+            summary.overruns
+        );
+    }
+    if summary.crashed.is_some() {
+        anyhow::bail!("the stand-in crashed: {}", summary.crashed.unwrap_or_default());
+    }
+    Ok(())
+}
+
+fn snapshot(world: &World, state: &State, inputs: &sim_core::Inputs) -> Snapshot {
+    Snapshot {
+        state: state_msg(world, state, inputs, 0),
+        sensors: sensors_msg(world, state, 0),
+        setpoint: state.copters[0].setpoint,
+    }
+}

@@ -1,0 +1,112 @@
+//! Mixed reality: what a twin's sonars see of the objects that exist only in the simulation.
+//!
+//! A real copter already sees the real lab with its own sonars. What it cannot see are the
+//! **virtual** copters and the scene's `virtual_only` boxes. Its twin, flying in the
+//! simulation at (about) the same pose, measures those for it; the real copter fuses them as
+//! `min(real, virtual)`. The arena walls and ordinary boxes are in both worlds and are left
+//! out here, and so are other twins (their real copters are physically there).
+//!
+//! The readings are noise-free distances (the real copter's sonar noise is its own), capped at
+//! the sonar's maximum range: `INFINITY` means "nothing virtual in range".
+
+use crate::math::Real;
+use crate::sensors::{SonarScene, sonar_cones};
+use crate::step::{GRID_CELL_M, copter_box};
+use crate::world::CopterKind;
+use crate::{State, World};
+
+/// Scratch for [`VirtualSonar::readings`]: the virtual-only geometry, gathered once per
+/// sensing step with [`VirtualSonar::prepare`]. Reuses its buffers.
+#[derive(Clone, Debug, Default)]
+pub struct VirtualSonar {
+    scene: SonarScene,
+    /// World copter id of each entry of `scene.copters`, ascending.
+    ids: Vec<usize>,
+}
+
+impl VirtualSonar {
+    /// Gathers the virtual-only boxes and the virtual copters of the current state.
+    pub fn prepare(&mut self, world: &World, state: &State) {
+        let scene = &mut self.scene;
+        scene.walls.clear();
+        scene.boxes.clear();
+        scene.boxes.extend(world.boxes.iter().filter(|b| b.virtual_only).map(|b| crate::geometry::OrientedBox {
+            center: b.center_m,
+            rotation: crate::math::Quat::from_rotation_z(b.yaw_rad),
+            half: b.half_extents_m,
+        }));
+        scene.copters.clear();
+        self.ids.clear();
+        for (i, def) in world.copters.iter().enumerate() {
+            if def.kind == CopterKind::Virtual {
+                scene.copters.push(copter_box(world, &state.physics, &state.copters, i));
+                self.ids.push(i);
+            }
+        }
+        scene.index_copters(GRID_CELL_M);
+    }
+
+    /// Noise-free distances (front, right, back, left) from copter `i`'s sonars to the nearest
+    /// virtual-only object in each cone, m; `INFINITY` when there is none within range. Call
+    /// [`VirtualSonar::prepare`] first in the same state.
+    pub fn readings(&self, world: &World, state: &State, i: usize) -> [Real; 4] {
+        let body = &state.physics.bodies[state.copters[i].body];
+        let cones = sonar_cones(&world.sensors, body.translation(), *body.rotation());
+        let range = world.sensors.spec.sonar.max_range_m;
+        // A twin is not in the scene; a virtual copter asking must not see itself.
+        let self_id = self.ids.binary_search(&i).unwrap_or(usize::MAX);
+        cones.map(|cone| self.scene.cone_distance(&cone, self_id, range))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    const SCENE: &str = r#"
+name = "mr"
+[arena]
+size_m = [4.0, 3.0]
+height_m = 2.5
+[[box]]
+name = "real_table"
+pos_m = [-1.0, 0.0]
+size_m = [0.4, 0.4, 1.0]
+[[box]]
+name = "ghost"
+pos_m = [1.0, 0.0]
+size_m = [0.4, 0.4, 1.0]
+virtual_only = true
+[[copter]]
+name = "twin"
+kind = "real"
+ac_id = 5
+start = { pos_m = [0.0, 0.0], z_m = 0.5 }
+[[copter]]
+name = "other"
+kind = "virtual"
+start = { pos_m = [0.0, 1.0], z_m = 0.5 }
+"#;
+
+    #[test]
+    fn a_twin_sees_virtual_boxes_and_virtual_copters_but_not_walls_or_real_boxes() {
+        let spec: crate::SceneSpec = toml::from_str(SCENE).unwrap();
+        let world = crate::compile(&spec).unwrap();
+        let state = world.initial_state();
+        let mut vs = VirtualSonar::default();
+        vs.prepare(&world, &state);
+        let [front, right, back, left] = vs.readings(&world, &state, 0);
+        // The ghost's near face is at x = 0.8; the sonar sits `mount_offset_m` ahead of the centre.
+        let off = world.sensors.spec.sonar.mount_offset_m;
+        assert!((front - (0.8 - off)).abs() < 1e-4, "front {front}");
+        // Behind: only the real table and the wall, neither of which is virtual.
+        assert!(back.is_infinite(), "back {back}");
+        // Right (−y): the wall only.
+        assert!(right.is_infinite(), "right {right}");
+        // Left (+y): the virtual copter 1 m away, minus its half width.
+        assert!(left.is_finite() && left < 1.0 && left > 0.7, "left {left}");
+        // A virtual copter asking does not see itself, nor the twin (a real copter is really there).
+        let other = vs.readings(&world, &state, 1);
+        assert!(other[1].is_infinite(), "the twin is not a virtual object: {other:?}");
+    }
+}
