@@ -55,6 +55,35 @@ def read_all(path):
     return summary, metadata, attachments, messages
 
 
+def test_paparazzi_traffic_is_logged_as_text_and_decoded(run_log):
+    """The default scene's virtual copters (ac_id 201, 202) publish telemetry: each message is
+    on /pprz/<sender>/<NAME> as Ivy text and on .../decoded as fields, one for one."""
+    _summary, _metadata, _attachments, messages = read_all(run_log)
+    texts, decoded = defaultdict(list), defaultdict(list)
+    for _schema, channel, msg in messages:
+        if channel.topic.startswith("/pprz/"):
+            body = json.loads(msg.data)
+            if channel.topic.endswith("/decoded"):
+                decoded[channel.topic[: -len("/decoded")]].append(body)
+            else:
+                texts[channel.topic].append(body)
+    senders = {t.split("/")[2] for t in texts}
+    assert {"201", "202"} <= senders, sorted(texts)
+    for name in ("ATTITUDE", "SONAR_ARRAY", "FINKEN_ACTUATORS_SET_POINT", "ROTORCRAFT_FP"):
+        assert f"/pprz/201/{name}" in texts, sorted(texts)
+    for topic, items in texts.items():
+        _, _, sender, name = topic.split("/")
+        assert len(decoded[topic]) == len(items), topic
+        for t, d in zip(items, decoded[topic]):
+            assert t["direction"] == "out" and t["text"].split(" ")[:2] == [sender, name]
+            assert d["sender"] == sender and d["name"] == name and d["fields"], d
+    # 10 s at the plan's periods, capped at the 20 Hz control rate.
+    assert len(texts["/pprz/201/ATTITUDE"]) == 200
+    assert len(texts["/pprz/201/ROTORCRAFT_FP"]) == 40
+    fp = decoded["/pprz/201/ROTORCRAFT_FP"][-1]["fields"]
+    assert 0.7 / 0.0039063 < fp["up"] < 0.9 / 0.0039063, "the copter holds 0.8 m"
+
+
 def validator(schema_json, registry=None):
     cls = jsonschema.validators.validator_for(schema_json, default=jsonschema.Draft202012Validator)
     cls.check_schema(schema_json)
@@ -81,7 +110,11 @@ def test_channels_counts_times_and_records(run_log):
         counts[channel.topic] += 1
         assert msg.log_time >= last.get(channel.topic, 0), f"{channel.topic}: log_time not monotonic"
         last[channel.topic] = msg.log_time
-        assert msg.publish_time == msg.log_time
+        if channel.topic == "/bus" or channel.topic.startswith("/pprz/"):
+            # Bus traffic: publish_time is the wall-clock send or receive time.
+            assert msg.publish_time >= int(metadata["twinswarm"]["epoch_unix_ns"]) - 10**9
+        else:
+            assert msg.publish_time == msg.log_time
     assert counts["/copters/state"] == steps * len(copters)
     assert counts["/tf"] == steps * len(copters)
     assert counts["/scene/copters"] == steps

@@ -592,9 +592,8 @@ fn handle(sh: &mut Shared, messages: &MessageSet, requests: &SyncSender<Request>
         let _ = requests.try_send(Request::Rejected { origin, reason: format!("telemetry gives {e}") });
         return;
     }
-    if cmd.is_none() && observed.is_none() && spawn.is_none() {
-        return;
-    }
+    // Sent even when it changes nothing (a fallback while the primary speaks): the loop logs
+    // every message it receives.
     if requests.try_send(Request::Twin { copter, spawn, cmd, observed_rpy: observed, origin }).is_err() {
         sh.stats.queue_full += 1;
     }

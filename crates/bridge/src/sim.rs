@@ -176,7 +176,7 @@ pub trait StepObserver: Send {
     /// Called for each Paparazzi text the loop sends.
     fn pprz_out(&mut self, _tick: u64, _out: &PprzOut) {}
     /// Called when a real aircraft's twin was spawned on its first telemetry.
-    fn paired(&mut self, _tick: u64, _ac_id: u8, _copter: &str) {}
+    fn paired(&mut self, _tick: u64, _ac_id: u8, _id: usize, _copter: &str) {}
 }
 
 /// No observer.
@@ -228,7 +228,7 @@ pub fn run_loop(
                     {
                         match spawn(&mut world, &mut state, &mut inputs, &spec, observer, &mut stats) {
                             Ok(()) => {
-                                observer.paired(state.tick, spec.ac_id.unwrap_or(0), &copter);
+                                observer.paired(state.tick, spec.ac_id.unwrap_or(0), world.copters.len() - 1, &copter);
                                 stats.twins.entry(copter.clone()).or_default().spawned = true;
                             }
                             Err(e) => tracing::warn!("cannot spawn twin `{copter}`: {e}"),

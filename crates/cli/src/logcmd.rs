@@ -169,9 +169,10 @@ pub fn info(path: &Path) -> anyhow::Result<()> {
         }
     }
     outln!("  {} messages on {} channels:", info.messages, info.channels.len());
-    outln!("    {:<18} {:<26} {:<8} {:>10}", "topic", "schema", "encoding", "messages");
+    let w = info.channels.iter().map(|c| c.topic.len()).max().unwrap_or(0).max(18);
+    outln!("    {:<w$} {:<26} {:<8} {:>10}", "topic", "schema", "encoding", "messages");
     for c in &info.channels {
-        outln!("    {:<18} {:<26} {:<8} {:>10}", c.topic, c.schema, c.encoding, c.messages);
+        outln!("    {:<w$} {:<26} {:<8} {:>10}", c.topic, c.schema, c.encoding, c.messages);
     }
     outln!("  attachments:");
     for (name, media, bytes) in &info.attachments {

@@ -490,6 +490,31 @@ impl bridge::sim::StepObserver for RunObserver {
         }
     }
 
+    fn pprz_out(&mut self, _tick: u64, out: &bridge::mixed::PprzOut) {
+        if let Some(log) = &mut self.log
+            && let Err(e) = log.log_bus_message(&out.key, false, &out.text, bridge::log::now_unix_ns())
+        {
+            self.log_error = Some(e.into());
+            self.log = None;
+        }
+    }
+
+    fn paired(&mut self, tick: u64, ac_id: u8, id: usize, copter: &str) {
+        if let Some(log) = &mut self.log {
+            let event = bridge::log::LogEvent {
+                tick,
+                kind: bridge::log::EventKind::Paired,
+                copter: Some(id),
+                detail: Some(serde_json::json!({ "ac_id": ac_id, "copter": copter, "spawned": true })),
+                message: format!("aircraft {ac_id} paired with its new twin {copter:?} (spawned on first telemetry)"),
+            };
+            if let Err(e) = log.log_event(event) {
+                self.log_error = Some(e.into());
+                self.log = None;
+            }
+        }
+    }
+
     fn overrun(&mut self, tick: u64, late_s: f64) {
         if let Err(e) = logcmd::log_overrun(&mut self.log, tick, late_s) {
             self.log_error = Some(e);

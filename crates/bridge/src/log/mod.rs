@@ -46,6 +46,7 @@
 mod capture;
 mod encode;
 mod msg;
+mod pprz;
 mod read;
 mod schemas;
 mod time;

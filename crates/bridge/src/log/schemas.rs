@@ -16,13 +16,15 @@ macro_rules! schema {
 }
 
 /// Every schema the logger writes.
-pub const SCHEMAS: [SchemaDef; 9] = [
+pub const SCHEMAS: [SchemaDef; 11] = [
     schema!("twinswarm.CopterState"),
     schema!("twinswarm.CopterSensors"),
     schema!("twinswarm.CopterCommand"),
     schema!("twinswarm.CopterControl"),
     schema!("twinswarm.Event"),
     schema!("twinswarm.BusMessage"),
+    schema!("twinswarm.PprzText"),
+    schema!("twinswarm.PprzDecoded"),
     schema!("foxglove.FrameTransform"),
     schema!("foxglove.SceneUpdate"),
     schema!("foxglove.Log"),

@@ -13,6 +13,7 @@ use sim_core::{Inputs, State, StepReport, World};
 
 use super::capture::StepFrame;
 use super::encode::{Encoder, LogEvent, Topic};
+use super::pprz::PprzChannels;
 use super::schemas::schema_for;
 use super::time::{format_utc_iso, now_unix_ns};
 
@@ -82,6 +83,8 @@ pub struct LogStats {
     pub messages: [u64; Topic::ALL.len()],
     /// Last tick logged.
     pub last_tick: u64,
+    /// Paparazzi messages on `/pprz/…` channels (each also on `/bus`).
+    pub pprz_messages: u64,
 }
 
 impl LogStats {
@@ -180,7 +183,9 @@ impl Logger {
             sequences: [0; Topic::ALL.len()],
             stats: LogStats { path: path.to_owned(), ..LogStats::default() },
             publish_override: None,
+            pprz: PprzChannels::new(),
         };
+        let dt_ns = encoder.control_dt_ns();
         encoder.encode_arena(world, &mut |topic, lt, data: &[u8]| state.write(topic, lt, data)).map_err(werr)?;
         state.out.flush().map_err(werr)?;
 
@@ -218,6 +223,12 @@ impl Logger {
                                 .encode_bus(tick, &key, direction, &text, &mut |t, lt, d: &[u8]| state.write(t, lt, d));
                             state.publish_override = None;
                             r.map_err(werr)?;
+                            let log_time = epoch_ns + tick * dt_ns;
+                            state
+                                .pprz
+                                .write(&mut state.out, tick, log_time, received_ns, &key, direction, &text)
+                                .map_err(werr)?;
+                            state.stats.pprz_messages = state.pprz.written;
                         }
                         Job::Flush => state.out.flush().map_err(werr)?,
                     }
@@ -342,6 +353,7 @@ struct WriterState {
     sequences: [u32; Topic::ALL.len()],
     stats: LogStats,
     publish_override: Option<u64>,
+    pprz: PprzChannels,
 }
 
 impl WriterState {

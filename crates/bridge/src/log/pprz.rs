@@ -1,0 +1,120 @@
+//! Paparazzi traffic in the log: each message's Ivy text on `/pprz/<sender>/<NAME>` and its
+//! decoded fields on `/pprz/<sender>/<NAME>/decoded`, one channel pair per sender and
+//! message, added on first use.
+
+use std::collections::BTreeMap;
+
+use mcap::McapError;
+use mcap::records::MessageHeader;
+use serde::Serialize;
+
+use super::schemas::schema_for;
+use crate::codec::split_header;
+use crate::keyexpr::is_valid_chunk;
+use crate::messages::MessageSet;
+use crate::value::Value;
+
+#[derive(Serialize)]
+struct TextMsg<'a> {
+    tick: u64,
+    direction: &'a str,
+    key: &'a str,
+    text: &'a str,
+}
+
+#[derive(Serialize)]
+struct DecodedMsg<'a> {
+    tick: u64,
+    direction: &'a str,
+    sender: &'a str,
+    name: &'a str,
+    class: &'a str,
+    fields: BTreeMap<&'a str, &'a Value>,
+}
+
+struct Pair {
+    text: u16,
+    decoded: u16,
+    seq: u32,
+}
+
+/// The `/pprz/…` channels of one log.
+pub(super) struct PprzChannels {
+    messages: MessageSet,
+    schemas: Option<(u16, u16)>,
+    pairs: BTreeMap<(String, String), Pair>,
+    /// Messages written (text and decoded count once each).
+    pub written: u64,
+    /// Texts that did not decode (their text is still logged).
+    pub undecodable: u64,
+}
+
+impl PprzChannels {
+    pub(super) fn new() -> Self {
+        Self {
+            messages: crate::pprz::project_messages(),
+            schemas: None,
+            pairs: BTreeMap::new(),
+            written: 0,
+            undecodable: 0,
+        }
+    }
+
+    /// Logs `text` if `key` is a Paparazzi key (`…/pprz/<sender>/<NAME>`); other keys are
+    /// ignored.
+    #[allow(clippy::too_many_arguments)]
+    pub(super) fn write<W: std::io::Write + std::io::Seek>(
+        &mut self,
+        out: &mut mcap::Writer<W>,
+        tick: u64,
+        log_time: u64,
+        publish_time: u64,
+        key: &str,
+        direction: &str,
+        text: &str,
+    ) -> Result<(), McapError> {
+        if !key.contains("/pprz/") {
+            return Ok(());
+        }
+        let Some((sender, name, _)) = split_header(text) else { return Ok(()) };
+        if !is_valid_chunk(sender) || !is_valid_chunk(name) {
+            return Ok(());
+        }
+        let (text_schema, decoded_schema) = match self.schemas {
+            Some(s) => s,
+            None => {
+                let mut add = |n: &str| {
+                    let json = schema_for(n).map_or("{}", |s| s.json);
+                    out.add_schema(n, "jsonschema", json.as_bytes())
+                };
+                let s = (add("twinswarm.PprzText")?, add("twinswarm.PprzDecoded")?);
+                self.schemas = Some(s);
+                s
+            }
+        };
+        let id = (sender.to_owned(), name.to_owned());
+        if !self.pairs.contains_key(&id) {
+            let topic = format!("/pprz/{sender}/{name}");
+            let text_ch = out.add_channel(text_schema, &topic, "json", &BTreeMap::new())?;
+            let decoded_ch = out.add_channel(decoded_schema, &format!("{topic}/decoded"), "json", &BTreeMap::new())?;
+            self.pairs.insert(id.clone(), Pair { text: text_ch, decoded: decoded_ch, seq: 0 });
+        }
+        let pair = self.pairs.get_mut(&id).expect("inserted above");
+        let seq = pair.seq;
+        pair.seq = seq.wrapping_add(1);
+        let header = |channel_id| MessageHeader { channel_id, sequence: seq, log_time, publish_time };
+        let body = serde_json::to_vec(&TextMsg { tick, direction, key, text }).unwrap_or_default();
+        out.write_to_known_channel(&header(pair.text), &body)?;
+        match self.messages.decode(text) {
+            Ok(msg) => {
+                let fields = msg.def.fields.iter().map(|f| f.name.as_str()).zip(msg.values.iter()).collect();
+                let decoded = DecodedMsg { tick, direction, sender, name, class: &msg.def.class_name, fields };
+                let body = serde_json::to_vec(&decoded).unwrap_or_default();
+                out.write_to_known_channel(&header(pair.decoded), &body)?;
+            }
+            Err(_) => self.undecodable += 1,
+        }
+        self.written += 1;
+        Ok(())
+    }
+}
