@@ -70,6 +70,12 @@ impl Sender {
         Sender::Agent("ground".to_owned())
     }
 
+    /// The `ground_dl` sender of datalink messages on the Ivy bus (the `link` agent forwards
+    /// them to the aircraft named in their `ac_id` field).
+    pub fn ground_dl() -> Sender {
+        Sender::Agent("ground_dl".to_owned())
+    }
+
     /// Parses a sender token: all-digit tokens are aircraft ids (0..=255),
     /// anything else without whitespace is an agent name.
     pub fn parse(token: &str) -> Result<Sender, CodecError> {

@@ -10,8 +10,8 @@
 //! - [`ZenohBus::bind_from`] restricts a binding to one aircraft (key and sender token).
 //! - [`ZenohBus::unbind`] works at runtime and drops the subscriber once no binding needs it.
 //! - [`ZenohBus::send`] publishes a text under `<prefix>/pprz/<sender>/<NAME>`: telemetry under
-//!   its aircraft id, datalink messages under `ground` (their destination is in their `ac_id`
-//!   field, as on the Ivy bus).
+//!   its aircraft id, datalink messages under `ground_dl` (their destination is in their
+//!   `ac_id` field, as on the Ivy bus).
 //!
 //! Like Ivy, a process does not receive its own messages (subscribers accept remote samples
 //! only). Handlers run on Zenoh's callback threads with the bus locked: keep them short, and

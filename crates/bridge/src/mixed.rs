@@ -253,7 +253,7 @@ impl Outbox {
                     }
                     let readings = self.virtual_sonar.readings(world, state, i);
                     match virtual_sonar_text(&self.opts.messages, ac_id, readings) {
-                        Ok(text) => out.push(PprzOut { key: self.key("ground", "VIRTUAL_SONAR"), text }),
+                        Ok(text) => out.push(PprzOut { key: self.key("ground_dl", "VIRTUAL_SONAR"), text }),
                         Err(e) => self.fail("VIRTUAL_SONAR", &e.to_string()),
                     }
                 }

@@ -85,7 +85,7 @@ fn cm(m: f32) -> u16 {
 pub fn virtual_sonar_text(messages: &MessageSet, ac_id: u8, readings_m: [f32; 4]) -> Result<String, CodecError> {
     let mut values = vec![Value::U8(ac_id)];
     values.extend(readings_m.iter().map(|&m| Value::U16(cm(m))));
-    messages.encode(&Sender::ground(), "VIRTUAL_SONAR", &values)
+    messages.encode(&Sender::ground_dl(), "VIRTUAL_SONAR", &values)
 }
 
 /// Reads a `VIRTUAL_SONAR` message back into metres (`INFINITY` for no obstacle).
@@ -282,7 +282,7 @@ mod tests {
     fn virtual_sonar_round_trips_through_its_ivy_text() {
         let m = project_messages();
         let text = virtual_sonar_text(&m, 7, [1.234, f32::INFINITY, 0.5, 3.0]).unwrap();
-        assert_eq!(text, "ground VIRTUAL_SONAR 7 123 65535 50 300");
+        assert_eq!(text, "ground_dl VIRTUAL_SONAR 7 123 65535 50 300");
         let (ac, back) = virtual_sonar_readings(&m.decode(&text).unwrap()).unwrap();
         assert_eq!(ac, 7);
         assert_eq!(back, [1.23, f32::INFINITY, 0.5, 3.0]);

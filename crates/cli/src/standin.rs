@@ -233,7 +233,7 @@ pub fn run(args: CopterArgs) -> anyhow::Result<()> {
         let messages = Arc::new(bridge::pprz::project_messages());
         {
             let (virt, received, messages, ac_id) = (virt.clone(), received.clone(), messages.clone(), args.ac_id);
-            rt.block_on(ivy.bind(&format!(r"^ground VIRTUAL_SONAR {ac_id} "), move |d, _| {
+            rt.block_on(ivy.bind(&format!(r"^ground_dl VIRTUAL_SONAR {ac_id} "), move |d, _| {
                 let Ok(msg) = messages.decode(d.text) else { return };
                 if let Some((to, readings)) = virtual_sonar_readings(&msg)
                     && to == ac_id
