@@ -2,33 +2,14 @@
 //! `unbind` at runtime, and key-expression narrowing (texts on non-matching keys never reach
 //! the subscribing process). Every await is under a timeout.
 
+mod net;
+
 use std::sync::{Arc, Mutex};
 use std::time::Duration;
 
 use bridge::ivy::ZenohBus;
 use bridge::node;
-
-const T: Duration = Duration::from_secs(10);
-
-fn free_port() -> u16 {
-    std::net::TcpListener::bind("127.0.0.1:0").and_then(|l| l.local_addr()).map(|a| a.port()).unwrap_or(17448)
-}
-
-async fn within<F: std::future::IntoFuture>(what: &str, f: F) -> F::Output {
-    match tokio::time::timeout(T, f.into_future()).await {
-        Ok(v) => v,
-        Err(_) => panic!("timed out: {what}"),
-    }
-}
-
-async fn eventually(what: &str, mut cond: impl FnMut() -> bool) {
-    within(what, async {
-        while !cond() {
-            tokio::time::sleep(Duration::from_millis(10)).await;
-        }
-    })
-    .await
-}
+use net::{eventually, free_port, within};
 
 type Log = Arc<Mutex<Vec<Vec<String>>>>;
 

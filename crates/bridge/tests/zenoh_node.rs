@@ -1,37 +1,16 @@
 //! The simulator's Zenoh node against a real client session on loopback. Every await is under
 //! a timeout, so a hang fails fast.
 
+mod net;
+
 use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, Ordering};
-use std::time::Duration;
 
 use bridge::node::{self, Node};
 use bridge::sim::{self, Frame, LoopOptions, Request};
 use bridge::wire::{CopterListEntry, StateMsg};
+use net::{eventually, free_port, within};
 use zenoh::Wait;
-
-const T: Duration = Duration::from_secs(10);
-
-fn free_port() -> u16 {
-    std::net::TcpListener::bind("127.0.0.1:0").and_then(|l| l.local_addr()).map(|a| a.port()).unwrap_or(17447)
-}
-
-async fn within<F: std::future::IntoFuture>(what: &str, f: F) -> F::Output {
-    match tokio::time::timeout(T, f.into_future()).await {
-        Ok(v) => v,
-        Err(_) => panic!("timed out: {what}"),
-    }
-}
-
-/// Waits until `cond` holds, polling every 20 ms.
-async fn eventually(what: &str, mut cond: impl FnMut() -> bool) {
-    within(what, async {
-        while !cond() {
-            tokio::time::sleep(Duration::from_millis(20)).await;
-        }
-    })
-    .await
-}
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn commands_queryables_spawn_liveliness_and_bad_payloads() {
