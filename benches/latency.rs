@@ -73,6 +73,7 @@ fn main() {
             plan: TelemetryPlan::project_default(),
             virtual_sonar_period_s: 0.0,
         }),
+        sync: Some(bridge::sync::SyncOptions::default()),
     };
     let loop_thread = std::thread::spawn(move || {
         let (state, inputs) = (world.initial_state(), world.initial_inputs());

@@ -40,6 +40,7 @@ pub mod node;
 pub mod pairing;
 pub mod pprz;
 pub mod sim;
+pub mod sync;
 pub mod telemetry;
 pub mod value;
 pub mod wire;

@@ -403,11 +403,15 @@ pub struct GatewayStats {
     pub spawned: Vec<String>,
 }
 
-struct Shared {
+/// Turns telemetry texts into loop requests: decoding, routing by aircraft, primary and
+/// fallback sources, validation. The [`Gateway`] runs one under a mutex; an evaluation can run
+/// one directly, in simulated time.
+#[derive(Debug)]
+pub struct Interpreter {
     router: Router,
     stats: GatewayStats,
-    /// Per aircraft: when the primary attitude and height sources were last heard.
-    last_primary: BTreeMap<AcId, [Option<Instant>; 2]>,
+    /// Per aircraft: when the primary attitude, height and sonar sources were last heard.
+    last_primary: BTreeMap<AcId, [Option<Instant>; 3]>,
     world: Arc<World>,
     attitude: TwinAttitude,
 }
@@ -427,13 +431,13 @@ pub enum TwinAttitude {
 }
 
 /// The telemetry the gateway binds, with the regex it binds it with.
-pub const BOUND_TELEMETRY: [&str; 5] =
-    ["FINKEN_ACTUATORS_SET_POINT", "FINKEN_IR_ADC", "FINKEN_SENSOR_MODEL", "ATTITUDE", "ROTORCRAFT_FP"];
+pub const BOUND_TELEMETRY: [&str; 6] =
+    ["FINKEN_ACTUATORS_SET_POINT", "FINKEN_IR_ADC", "FINKEN_SENSOR_MODEL", "ATTITUDE", "ROTORCRAFT_FP", "SONAR_ARRAY"];
 
 /// The tokio side of mixed reality (see the module docs).
 pub struct Gateway {
     bus: ZenohBus,
-    shared: Arc<Mutex<Shared>>,
+    shared: Arc<Mutex<Interpreter>>,
 }
 
 impl std::fmt::Debug for Gateway {
@@ -458,13 +462,7 @@ impl Gateway {
         attitude: TwinAttitude,
     ) -> Result<Self, IvyError> {
         let bus = ZenohBus::new(session, prefix);
-        let shared = Arc::new(Mutex::new(Shared {
-            router: Router::new(&world, pairing),
-            stats: GatewayStats::default(),
-            last_primary: BTreeMap::new(),
-            world,
-            attitude,
-        }));
+        let shared = Arc::new(Mutex::new(Interpreter::new(world, pairing, attitude)));
         for name in BOUND_TELEMETRY {
             let (shared, messages, requests) = (shared.clone(), messages.clone(), requests.clone());
             bus.bind(&format!(r"^(\d+) {name} "), move |d, _| {
@@ -472,7 +470,11 @@ impl Gateway {
                 let origin =
                     BusInput { key: d.key.to_owned(), text: d.text.to_owned(), received_unix_ns: unix_now_ns() };
                 let Ok(mut sh) = shared.lock() else { return };
-                handle(&mut sh, &messages, &requests, origin, received);
+                if let Some(request) = sh.interpret(&messages, origin, received)
+                    && requests.try_send(request).is_err()
+                {
+                    sh.stats.queue_full += 1;
+                }
             })
             .await?;
         }
@@ -481,16 +483,44 @@ impl Gateway {
 
     /// Tells the gateway about the world after a spawn (for command validation).
     pub fn set_world(&self, world: &Arc<World>) {
-        if let Ok(mut sh) = self.shared.lock()
-            && !Arc::ptr_eq(&sh.world, world)
-        {
-            sh.world = world.clone();
+        if let Ok(mut sh) = self.shared.lock() {
+            sh.set_world(world);
         }
     }
 
     /// A copy of the statistics so far, and of the router's counters.
     pub fn report(&self) -> GatewayReport {
-        let Ok(sh) = self.shared.lock() else { return GatewayReport::default() };
+        self.shared.lock().map(|sh| sh.report()).unwrap_or_default()
+    }
+
+    /// The Ivy bus the gateway uses (for counters).
+    pub fn bus(&self) -> &ZenohBus {
+        &self.bus
+    }
+}
+
+impl Interpreter {
+    /// An interpreter for `world`'s copters and the optional pairing.
+    pub fn new(world: Arc<World>, pairing: Option<ResolvedPairing>, attitude: TwinAttitude) -> Self {
+        Self {
+            router: Router::new(&world, pairing),
+            stats: GatewayStats::default(),
+            last_primary: BTreeMap::new(),
+            world,
+            attitude,
+        }
+    }
+
+    /// The world after a spawn (for command validation).
+    pub fn set_world(&mut self, world: &Arc<World>) {
+        if !Arc::ptr_eq(&self.world, world) {
+            self.world = world.clone();
+        }
+    }
+
+    /// A copy of the statistics so far, and of the router's counters.
+    pub fn report(&self) -> GatewayReport {
+        let sh = self;
         let arrivals = sh
             .stats
             .arrivals
@@ -513,89 +543,108 @@ impl Gateway {
         }
     }
 
-    /// The Ivy bus the gateway uses (for counters).
-    pub fn bus(&self) -> &ZenohBus {
-        &self.bus
+    /// The request for one telemetry text that arrived at `received`: a twin input, a
+    /// rejection (undecodable, out of range), or nothing (not for a twin: counted).
+    pub fn interpret(&mut self, messages: &MessageSet, origin: BusInput, received: Instant) -> Option<Request> {
+        let sh = self;
+        let msg = match messages.decode(&origin.text) {
+            Ok(m) => m,
+            Err(e) => {
+                sh.stats.decode_errors += 1;
+                let reason = format!("undecodable telemetry: {e}");
+                return Some(Request::Rejected { origin, reason });
+            }
+        };
+        sh.interpret_message(&msg, origin, received)
     }
-}
 
-fn handle(sh: &mut Shared, messages: &MessageSet, requests: &SyncSender<Request>, origin: BusInput, received: Instant) {
-    let msg = match messages.decode(&origin.text) {
-        Ok(m) => m,
-        Err(e) => {
-            sh.stats.decode_errors += 1;
-            let reason = format!("undecodable telemetry: {e}");
-            let _ = requests.try_send(Request::Rejected { origin, reason });
-            return;
-        }
-    };
-    let Some(ac_id) = msg.sender.ac_id() else { return };
-    let name = msg.def.name.clone();
-    sh.stats.arrivals.entry((ac_id, name.clone())).or_default().record(received);
-    let (copter, spawn) = match sh.router.route(ac_id) {
-        Decision::Twin(c) => (c, None),
-        Decision::SpawnTwin(spec) => {
-            sh.stats.spawned.push(spec.name.clone());
-            tracing::info!("aircraft {ac_id}: spawning its twin `{}`", spec.name);
-            (spec.name.clone(), Some(spec))
-        }
-        Decision::OwnVirtual | Decision::Unknown => return,
-    };
-    // Primary and fallback sources.
-    let last = sh.last_primary.entry(ac_id).or_default();
-    let silent = |t: Option<Instant>| t.is_none_or(|t| (received - t).as_secs_f64() > FALLBACK_AFTER_S);
-    let mut cmd = twin_command(&msg);
-    let mut observed = None;
-    let (primary_attitude, fallback_attitude) = match sh.attitude {
-        TwinAttitude::Setpoint => ("FINKEN_ACTUATORS_SET_POINT", "ATTITUDE"),
-        TwinAttitude::Measured => ("ATTITUDE", "FINKEN_ACTUATORS_SET_POINT"),
-    };
-    match name.as_str() {
-        n if n == primary_attitude => {
-            last[0] = Some(received);
-            if n == "ATTITUDE"
-                && let Some(c) = &cmd
-            {
-                observed = Some([c.roll.unwrap_or(0.0), c.pitch.unwrap_or(0.0), c.yaw.unwrap_or(0.0)]);
+    fn interpret_message(
+        &mut self,
+        msg: &crate::codec::Message<'_>,
+        origin: BusInput,
+        received: Instant,
+    ) -> Option<Request> {
+        let sh = self;
+        let ac_id = msg.sender.ac_id()?;
+        let name = msg.def.name.clone();
+        sh.stats.arrivals.entry((ac_id, name.clone())).or_default().record(received);
+        let (copter, spawn) = match sh.router.route(ac_id) {
+            Decision::Twin(c) => (c, None),
+            Decision::SpawnTwin(spec) => {
+                sh.stats.spawned.push(spec.name.clone());
+                tracing::info!("aircraft {ac_id}: spawning its twin `{}`", spec.name);
+                (spec.name.clone(), Some(spec))
             }
-        }
-        n if n == fallback_attitude => {
-            if n == "ATTITUDE"
-                && let Some(c) = &cmd
-            {
-                observed = Some([c.roll.unwrap_or(0.0), c.pitch.unwrap_or(0.0), c.yaw.unwrap_or(0.0)]);
+            Decision::OwnVirtual | Decision::Unknown => return None,
+        };
+        // Primary and fallback sources.
+        let last = sh.last_primary.entry(ac_id).or_default();
+        let silent = |t: Option<Instant>| t.is_none_or(|t| (received - t).as_secs_f64() > FALLBACK_AFTER_S);
+        let mut cmd = twin_command(msg);
+        let mut observed = None;
+        let mut sonar = None;
+        let mut yaw = None;
+        let (primary_attitude, fallback_attitude) = match sh.attitude {
+            TwinAttitude::Setpoint => ("FINKEN_ACTUATORS_SET_POINT", "ATTITUDE"),
+            TwinAttitude::Measured => ("ATTITUDE", "FINKEN_ACTUATORS_SET_POINT"),
+        };
+        match name.as_str() {
+            n if n == primary_attitude => {
+                last[0] = Some(received);
+                if n == "ATTITUDE"
+                    && let Some(c) = &cmd
+                {
+                    observed = Some([c.roll.unwrap_or(0.0), c.pitch.unwrap_or(0.0), c.yaw.unwrap_or(0.0)]);
+                    yaw = c.yaw;
+                }
             }
-            if !silent(last[0])
-                && let Some(c) = cmd.as_mut()
-            {
-                (c.roll, c.pitch, c.yaw) = (None, None, None);
-            }
-        }
-        "FINKEN_IR_ADC" | "FINKEN_SENSOR_MODEL" => last[1] = Some(received),
-        "ROTORCRAFT_FP" => {
-            if let Some(c) = cmd.as_mut() {
-                if !silent(last[0]) {
+            n if n == fallback_attitude => {
+                if n == "ATTITUDE"
+                    && let Some(c) = &cmd
+                {
+                    observed = Some([c.roll.unwrap_or(0.0), c.pitch.unwrap_or(0.0), c.yaw.unwrap_or(0.0)]);
+                    yaw = c.yaw;
+                }
+                if !silent(last[0])
+                    && let Some(c) = cmd.as_mut()
+                {
                     (c.roll, c.pitch, c.yaw) = (None, None, None);
                 }
-                if !silent(last[1]) {
-                    c.height = None;
+            }
+            "FINKEN_IR_ADC" => last[1] = Some(received),
+            "FINKEN_SENSOR_MODEL" => {
+                last[1] = Some(received);
+                yaw = crate::pprz::real_yaw(msg);
+                if silent(last[2]) {
+                    sonar = crate::pprz::real_sonar(msg);
                 }
             }
+            "SONAR_ARRAY" => {
+                last[2] = Some(received);
+                sonar = crate::pprz::real_sonar(msg);
+            }
+            "ROTORCRAFT_FP" => {
+                if let Some(c) = cmd.as_mut() {
+                    if !silent(last[0]) {
+                        (c.roll, c.pitch, c.yaw) = (None, None, None);
+                    }
+                    if !silent(last[1]) {
+                        c.height = None;
+                    }
+                }
+            }
+            _ => {}
         }
-        _ => {}
-    }
-    let cmd = cmd.filter(|c| *c != CommandMsg::default());
-    if let Some(c) = &cmd
-        && let Err(e) = c.validate(&sh.world)
-    {
-        sh.stats.rejected += 1;
-        let _ = requests.try_send(Request::Rejected { origin, reason: format!("telemetry gives {e}") });
-        return;
-    }
-    // Sent even when it changes nothing (a fallback while the primary speaks): the loop logs
-    // every message it receives.
-    if requests.try_send(Request::Twin { copter, spawn, cmd, observed_rpy: observed, origin }).is_err() {
-        sh.stats.queue_full += 1;
+        let cmd = cmd.filter(|c| *c != CommandMsg::default());
+        if let Some(c) = &cmd
+            && let Err(e) = c.validate(&sh.world)
+        {
+            sh.stats.rejected += 1;
+            return Some(Request::Rejected { origin, reason: format!("telemetry gives {e}") });
+        }
+        // Sent even when it changes nothing (a fallback while the primary speaks): the loop logs
+        // every message it receives.
+        Some(Request::Twin { copter, spawn, cmd, observed_rpy: observed, sonar_m: sonar, yaw_rad: yaw, origin })
     }
 }
 

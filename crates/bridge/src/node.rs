@@ -9,6 +9,7 @@
 //! | `…/copters/<name>/state` | out, every control step | [`StateMsg`](crate::wire::StateMsg) |
 //! | `…/copters/<name>/sensors` | out, at the sonar rate | [`SensorsMsg`](crate::wire::SensorsMsg) |
 //! | `…/copters/<name>/cmd` | in | [`CommandMsg`] |
+//! | `…/copters/<name>/tracking` | in | [`TrackingMsg`](crate::wire::TrackingMsg) |
 //! | `…/pprz/<ac_id>/<MSG_NAME>` | both | Paparazzi Ivy text |
 //! | `…/scene` | queryable | the scene as JSON |
 //! | `…/copters` | queryable | [`CopterListEntry`] list |
@@ -126,6 +127,7 @@ pub struct Node {
     pub clients: Arc<Mutex<BTreeSet<String>>>,
     _token: zenoh::liveliness::LivelinessToken,
     _cmd_sub: zenoh::pubsub::Subscriber<()>,
+    _tracking_sub: zenoh::pubsub::Subscriber<()>,
     _alive_sub: zenoh::pubsub::Subscriber<()>,
     _queryables: Vec<zenoh::query::Queryable<()>>,
     publishers: Vec<(zenoh::pubsub::Publisher<'static>, zenoh::pubsub::Publisher<'static>)>,
@@ -204,6 +206,36 @@ impl Node {
                             let _ = requests.try_send(Request::Rejected { origin, reason: e.to_string() });
                         }
                     }
+                })
+                .await
+                .map_err(zerr)?
+        };
+
+        // Tracking poses of real copters (e.g. a camera system), for twin synchronisation.
+        let tracking_sub = {
+            let (counters, requests, limiter) = (counters.clone(), requests.clone(), limiter.clone());
+            let prefix_len = prefix.len();
+            session
+                .declare_subscriber(format!("{prefix}/copters/*/tracking"))
+                .callback(move |sample| {
+                    let key = sample.key_expr().as_str();
+                    let name =
+                        key[prefix_len..].trim_start_matches("/copters/").trim_end_matches("/tracking").to_owned();
+                    let payload = sample.payload().to_bytes();
+                    let origin = crate::sim::BusInput {
+                        key: key.to_owned(),
+                        text: String::from_utf8_lossy(&payload).into_owned(),
+                        received_unix_ns: unix_now_ns(),
+                    };
+                    let request = match crate::wire::TrackingMsg::parse(&payload) {
+                        Ok(t) => Request::Tracking { copter: name, pos_m: [t.pos_m[0], t.pos_m[1]], origin },
+                        Err(e) => {
+                            counters.commands_rejected.fetch_add(1, Ordering::Relaxed);
+                            limiter.warn(&format!("rejected tracking pose on {key}: {e}"));
+                            Request::Rejected { origin, reason: e.to_string() }
+                        }
+                    };
+                    let _ = requests.try_send(request);
                 })
                 .await
                 .map_err(zerr)?
@@ -328,6 +360,7 @@ impl Node {
             clients,
             _token: token,
             _cmd_sub: cmd_sub,
+            _tracking_sub: tracking_sub,
             _alive_sub: alive_sub,
             _queryables: queryables,
             publishers: Vec::new(),
@@ -398,8 +431,9 @@ impl Node {
 
     /// Undeclares everything and closes the session.
     pub async fn close(self) -> Result<(), NodeError> {
-        let Node { session, _token, _cmd_sub, _alive_sub, _queryables, publishers, clock_pub, .. } = self;
-        drop((_cmd_sub, _alive_sub, _queryables, publishers, clock_pub));
+        let Node { session, _token, _cmd_sub, _tracking_sub, _alive_sub, _queryables, publishers, clock_pub, .. } =
+            self;
+        drop((_cmd_sub, _tracking_sub, _alive_sub, _queryables, publishers, clock_pub));
         _token.undeclare().await.map_err(zerr)?;
         session.close().await.map_err(zerr)
     }

@@ -27,6 +27,36 @@ pub fn project_messages() -> MessageSet {
     }
 }
 
+/// A real copter's own sonar readings (front, right, back, left), m, from `SONAR_ARRAY` or
+/// `FINKEN_SENSOR_MODEL` (whose field for the right sonar is spelled `distance_d_rigth`);
+/// `u16::MAX` (no echo) is `INFINITY`.
+pub fn real_sonar(msg: &Message<'_>) -> Option<[f32; 4]> {
+    let names: [&str; 4] = match msg.def.name.as_str() {
+        "SONAR_ARRAY" => ["sonar_front", "sonar_right", "sonar_back", "sonar_left"],
+        "FINKEN_SENSOR_MODEL" => ["distance_d_front", "distance_d_rigth", "distance_d_back", "distance_d_left"],
+        _ => return None,
+    };
+    let mut out = [f32::INFINITY; 4];
+    for (o, n) in out.iter_mut().zip(names) {
+        let cm = msg.get(n).and_then(Value::as_f64)?;
+        if cm < f64::from(NO_OBSTACLE_CM) {
+            *o = cm as f32 / 100.0;
+        }
+    }
+    Some(out)
+}
+
+/// A real copter's yaw estimate in the simulator's frame (counter-clockwise from +x), rad,
+/// from `ATTITUDE.psi` or `FINKEN_SENSOR_MODEL.pos_yaw` (both NED, clockwise).
+pub fn real_yaw(msg: &Message<'_>) -> Option<f32> {
+    let field = match msg.def.name.as_str() {
+        "ATTITUDE" => "psi",
+        "FINKEN_SENSOR_MODEL" => "pos_yaw",
+        _ => return None,
+    };
+    f(msg, field).map(|p| wrap(-p))
+}
+
 /// Sonar value meaning "no virtual obstacle in range" in `VIRTUAL_SONAR`.
 pub const NO_OBSTACLE_CM: u16 = u16::MAX;
 

@@ -17,6 +17,7 @@ use sim_core::scene::CopterSpec;
 use sim_core::{Inputs, State, StepReport, World, step};
 
 use crate::mixed::{Outbox, OutboxOptions, PprzOut, Summary};
+use crate::sync::{SyncOptions, SyncStats, TwinSync};
 use crate::wire::{CommandMsg, SensorsMsg, StateMsg, sensors_msg, state_msg};
 
 /// What can be asked of the step loop.
@@ -55,7 +56,20 @@ pub enum Request {
         cmd: Option<CommandMsg>,
         /// The real copter's attitude (roll, pitch, yaw), rad, simulator frame.
         observed_rpy: Option<[f32; 3]>,
+        /// The real copter's own sonar readings (front, right, back, left), m.
+        sonar_m: Option<[f32; 4]>,
+        /// The real copter's yaw estimate, rad, simulator frame.
+        yaw_rad: Option<f32>,
         /// The telemetry text, its key and arrival time.
+        origin: BusInput,
+    },
+    /// An external tracking pose of a twin's real copter (see [`crate::sync`]).
+    Tracking {
+        /// The twin's name.
+        copter: String,
+        /// Position (x, y), m, world frame.
+        pos_m: [f32; 2],
+        /// The message, its key and arrival time.
         origin: BusInput,
     },
     /// Finish after the current step.
@@ -103,6 +117,8 @@ pub struct LoopOptions {
     pub ticks: u64,
     /// Mixed reality: send virtual sonar and virtual telemetry (see [`crate::mixed`]).
     pub outbox: Option<OutboxOptions>,
+    /// Keep twins where their real copters are (see [`crate::sync`]).
+    pub sync: Option<SyncOptions>,
 }
 
 /// How well a twin follows its real copter.
@@ -158,6 +174,8 @@ pub struct LoopStats {
     pub twins: BTreeMap<String, TwinStats>,
     /// Paparazzi texts produced.
     pub pprz_sent: u64,
+    /// Position synchronisation per twin name.
+    pub sync: BTreeMap<String, SyncStats>,
 }
 
 /// Observes every step from inside the loop (e.g. a logger). Runs on the loop's thread: keep
@@ -202,6 +220,13 @@ pub fn run_loop(
     let start = Instant::now();
     let sonar_period = world.sensors.spec.sonar.period_steps.max(1) as u64;
     let mut outbox = opts.outbox.clone().map(Outbox::new);
+    let mut sync = opts.sync.clone().and_then(|o| match TwinSync::new(&world, o) {
+        Ok(s) => Some(s),
+        Err(e) => {
+            tracing::warn!("twin synchronisation is off: {e}");
+            None
+        }
+    });
     for k in 0..opts.ticks {
         // Requests, applied before this step.
         loop {
@@ -222,7 +247,18 @@ pub fn run_loop(
                     let answer = spawn(&mut world, &mut state, &mut inputs, &spec, observer, &mut stats);
                     let _ = reply.send(answer.map(|_| spec.name.clone()));
                 }
-                Ok(Request::Twin { copter, spawn: spec, cmd, observed_rpy, origin }) => {
+                Ok(Request::Tracking { copter, pos_m, origin }) => {
+                    let Some(id) = world.copter_id(&copter) else {
+                        observer.input_rejected(state.tick, &origin, &format!("no copter named {copter:?}"));
+                        continue;
+                    };
+                    observer.bus_input(&origin);
+                    if let Some(sync) = sync.as_mut() {
+                        let t = state.time_s(&world);
+                        sync.on_tracking(&world, &state, id, t, pos_m);
+                    }
+                }
+                Ok(Request::Twin { copter, spawn: spec, cmd, observed_rpy, sonar_m, yaw_rad, origin }) => {
                     if world.copter_id(&copter).is_none()
                         && let Some(spec) = spec
                     {
@@ -240,6 +276,7 @@ pub fn run_loop(
                     };
                     observer.bus_input(&origin);
                     let twin = stats.twins.entry(copter).or_default();
+                    let cmd_attitude = cmd.as_ref().map(|c| [c.pitch, c.roll, c.yaw]);
                     if let Some(cmd) = cmd {
                         cmd.apply(&mut inputs.commands[id]);
                         twin.inputs_applied += 1;
@@ -253,6 +290,18 @@ pub fn run_loop(
                     if let Some(rpy) = observed_rpy {
                         twin.observed = Some((rpy, Instant::now()));
                     }
+                    if let Some(sync) = sync.as_mut() {
+                        if let Some([p, r, y]) = cmd_attitude {
+                            sync.on_command(&world, &state, id, p, r, y);
+                        }
+                        if let Some(y) = yaw_rad {
+                            let t = state.time_s(&world);
+                            sync.on_yaw(&world, &state, id, t, y);
+                        }
+                        if let Some(r) = sonar_m {
+                            sync.on_sonar(&world, &state, id, r);
+                        }
+                    }
                 }
                 Ok(Request::Stop) => {
                     stats.stopped_early = true;
@@ -265,10 +314,16 @@ pub fn run_loop(
             break;
         }
         let sensed = state.tick.is_multiple_of(sonar_period);
+        if let Some(sync) = &sync {
+            sync.adjust_commands(&mut inputs);
+        }
         let report = step(&world, &mut state, &inputs);
         observer.after_step(&world, &state, &inputs, &report);
         stats.steps += 1;
         track_twins(&world, &state, &mut stats.twins);
+        if let Some(sync) = sync.as_mut() {
+            sync.after_step(&world, &mut state, &inputs);
+        }
         hold_silent_twins(&world, &mut inputs, &mut stats.twins);
         let mut pprz_out = Vec::new();
         if let Some(outbox) = outbox.as_mut() {
@@ -304,6 +359,9 @@ pub fn run_loop(
                 std::thread::sleep(deadline - now);
             }
         }
+    }
+    if let Some(sync) = &sync {
+        stats.sync = sync.stats().into_iter().map(|(id, s)| (world.copters[id].name.clone(), s)).collect();
     }
     for t in stats.twins.values_mut() {
         t.input_latency_ms = Summary::of(&t.latencies_ms);

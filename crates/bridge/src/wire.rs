@@ -271,6 +271,37 @@ impl CommandMsg {
     }
 }
 
+/// `…/copters/<name>/tracking`: an external pose of a twin's real copter (e.g. from a camera
+/// system), world frame. It describes the copter a configured lag ago (see [`crate::sync`]).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct TrackingMsg {
+    /// Position, m: `[x, y]` or `[x, y, z]` (z is not used).
+    pub pos_m: Vec<f32>,
+    /// Heading, rad (not used yet).
+    #[serde(default)]
+    pub yaw_rad: Option<f32>,
+}
+
+impl TrackingMsg {
+    /// Parses and checks a tracking payload: 2 or 3 finite coordinates within 100 m.
+    pub fn parse(payload: &[u8]) -> Result<Self, CommandError> {
+        let t: TrackingMsg = serde_json::from_slice(payload).map_err(|e| CommandError::Malformed(e.to_string()))?;
+        if !(2..=3).contains(&t.pos_m.len()) {
+            return Err(CommandError::Malformed(format!("pos_m has {} values, expected 2 or 3", t.pos_m.len())));
+        }
+        for &v in &t.pos_m {
+            if !v.is_finite() {
+                return Err(CommandError::NotFinite("pos_m"));
+            }
+            if v.abs() > 100.0 {
+                return Err(CommandError::OutOfRange { field: "pos_m", value: v, min: -100.0, max: 100.0 });
+            }
+        }
+        Ok(t)
+    }
+}
+
 /// One entry of the `…/copters` queryable's reply.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct CopterListEntry {

@@ -26,10 +26,7 @@
 use std::time::Instant;
 
 use anyhow::Context;
-use medusa::{
-    Arena, BoxObstacle, FilterConfig, FilterEstimate, Medusa, MedusaFilter, MotionInput, SensorLayout, SensorModel,
-    SensorSpec as MedusaSensor, World as MedusaWorld, YawEstimate,
-};
+use medusa::{FilterEstimate, Medusa, MedusaFilter, MotionInput, YawEstimate};
 use nalgebra::Vector2;
 use serde::Serialize;
 use sim_core::control::FlightMode;
@@ -62,9 +59,6 @@ pub const SLOT_NAMES: [&str; 8] =
     ["front", "right", "back", "left", "front-left", "front-right", "back-right", "back-left"];
 /// The evaluated sensor sets, as slot indices.
 pub const SENSOR_SETS: [&[usize]; 3] = [&[0, 1], &[0, 1, 2, 3], &[0, 1, 2, 3, 4, 5, 6, 7]];
-/// Boxes are given to MEDUSA when their top is at least this high: lower ones are under the
-/// sonar cones most of the time (seen only from afar through the cone's lower edge).
-pub const MIN_BOX_TOP_M: Real = FLIGHT_HEIGHT_M - 0.1;
 
 /// Which world to fly in.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum, Serialize)]
@@ -99,6 +93,21 @@ pub struct LocalizeArgs {
     /// Keep the start heading for the whole flight instead of a new random heading every leg.
     #[arg(long)]
     pub hold_yaw: bool,
+    /// Evaluate twin synchronisation end to end: a real-copter stand-in's telemetry drives
+    /// a twin, with correction off, with MEDUSA, and (with `--tracking-dropout`) with MEDUSA
+    /// and a tracking pose that drops out.
+    #[arg(long, conflicts_with = "eval")]
+    pub sync_eval: bool,
+    /// `--sync-eval`: telemetry delay jitter, ms (uniform).
+    #[arg(long, value_name = "MS", default_value_t = 10.0)]
+    pub jitter_ms: f64,
+    /// `--sync-eval`: probability that a telemetry message is lost.
+    #[arg(long, value_name = "P", default_value_t = 0.05)]
+    pub loss: f64,
+    /// `--sync-eval`: also fly with a tracking pose (0.2 s lag) that is silent from START to
+    /// END simulated seconds.
+    #[arg(long, value_name = "START,END")]
+    pub tracking_dropout: Option<String>,
     /// Print JSON instead of a table.
     #[arg(long)]
     pub json: bool,
@@ -211,14 +220,17 @@ pub struct EvalReport {
 
 /// Runs the subcommand.
 pub fn run(args: LocalizeArgs) -> anyhow::Result<()> {
-    if !args.eval {
+    if !args.eval && !args.sync_eval {
         return Err(BadInput(anyhow::anyhow!(
-            "localize: only `--eval` is implemented; try `twinswarm localize --eval`"
+            "localize: give `--eval` (MEDUSA accuracy) or `--sync-eval` (twin synchronisation)"
         ))
         .into());
     }
     if !(args.minutes.is_finite() && args.minutes > 0.0 && args.minutes <= 24.0 * 60.0) {
         return Err(BadInput(anyhow::anyhow!("--minutes must be in (0, 1440], got {}", args.minutes)).into());
+    }
+    if args.sync_eval {
+        return run_sync_eval(&args);
     }
     let worlds: &[WorldChoice] = match args.world {
         WorldChoice::Both => &[WorldChoice::Empty, WorldChoice::Lab],
@@ -231,6 +243,61 @@ pub fn run(args: LocalizeArgs) -> anyhow::Result<()> {
     }
     let walk = eval_scene(WorldChoice::Empty, args.minutes, args.seed, 1)?.sensors.imu.yaw_bias_walk_deg_per_sqrt_s;
     let report = EvalReport::new(flights, f64::from(walk));
+    if args.json {
+        outln!("{}", serde_json::to_string_pretty(&report)?);
+    } else {
+        out!("{}", report.to_text());
+    }
+    Ok(())
+}
+
+fn run_sync_eval(args: &LocalizeArgs) -> anyhow::Result<()> {
+    use crate::synceval::{Link, SyncEvalReport, Variant, run_variant};
+    use bridge::mixed::TwinAttitude;
+    use bridge::sync::SyncOptions;
+    let bad = |m: String| anyhow::Error::new(BadInput(anyhow::anyhow!(m)));
+    if !((0.0..=1.0).contains(&args.loss) && args.jitter_ms.is_finite() && args.jitter_ms >= 0.0) {
+        return Err(bad("--loss must be in [0, 1] and --jitter-ms >= 0".into()));
+    }
+    let choice = if args.world == WorldChoice::Both { WorldChoice::Empty } else { args.world };
+    let link = Link { jitter_ms: args.jitter_ms, loss: args.loss };
+    let medusa_only = SyncOptions { tracking: false, ..SyncOptions::default() };
+    let variant = |label: &str, sync: Option<SyncOptions>, attitude| Variant {
+        label: label.into(),
+        sync,
+        tracking: false,
+        tracking_dropout_s: None,
+        attitude,
+    };
+    let mut variants = vec![
+        variant("correction off", None, TwinAttitude::Measured),
+        variant("MEDUSA", Some(medusa_only.clone()), TwinAttitude::Measured),
+        variant("MEDUSA, set-point attitude", Some(medusa_only), TwinAttitude::Setpoint),
+    ];
+    if let Some(d) = &args.tracking_dropout {
+        let v: Vec<f64> = d
+            .split(',')
+            .map(|x| x.trim().parse::<f64>())
+            .collect::<Result<_, _>>()
+            .map_err(|_| bad(format!("--tracking-dropout: expected START,END in seconds, got {d:?}")))?;
+        let [a, b] = v[..] else { return Err(bad(format!("--tracking-dropout: expected START,END, got {d:?}"))) };
+        if !(a.is_finite() && b.is_finite() && 0.0 <= a && a < b) {
+            return Err(bad(format!("--tracking-dropout: expected 0 <= START < END, got {d:?}")));
+        }
+        variants.push(Variant {
+            label: format!("MEDUSA + tracking, off {a}-{b} s"),
+            sync: Some(SyncOptions::default()),
+            tracking: true,
+            tracking_dropout_s: Some([a, b]),
+            attitude: TwinAttitude::Measured,
+        });
+    }
+    let runs = variants
+        .into_iter()
+        .map(|v| run_variant(choice, args.minutes, args.seed, link, v))
+        .collect::<anyhow::Result<Vec<_>>>()?;
+    let seed = eval_scene(choice, args.minutes, args.seed, 1)?.sim.seed;
+    let report = SyncEvalReport { minutes: args.minutes, seed, link, runs };
     if args.json {
         outln!("{}", serde_json::to_string_pretty(&report)?);
     } else {
@@ -386,46 +453,50 @@ struct CopterEval {
     y_range: [f64; 2],
     max_bias: f64,
     diag_rng: Rng32,
-    cruise_rng: Rng32,
-    next_leg_tick: u64,
-    heading_target_rad: Real,
+    cruise: Cruise,
     stopped: bool,
 }
 
-fn medusa_for(world: &World, slots: &[usize], boxes: &[BoxObstacle]) -> anyhow::Result<Medusa> {
-    let sonar = &world.sensors.spec.sonar;
-    let sensors = slots
-        .iter()
-        .map(|&k| {
-            let a = SLOT_ANGLES_DEG[k].to_radians();
-            MedusaSensor {
-                angle_in_body_rad: a,
-                offset_in_body_m: Vector2::new(a.cos(), a.sin()) * f64::from(sonar.mount_offset_m),
-                max_range_m: f64::from(sonar.cap_m),
-            }
-        })
-        .collect();
-    let layout = SensorLayout::new(sensors)?;
-    let (w, h) = (f64::from(world.arena.size_m[0]), f64::from(world.arena.size_m[1]));
-    let mworld = MedusaWorld::new(Arena::new(w, h)?, boxes.to_vec())?;
-    let model = SensorModel {
-        noise_sigma_m: f64::from(sonar.noise_sigma_m),
-        cone_half_angle_rad: f64::from(world.sensors.sonar_half_angle_rad),
-        ..SensorModel::default()
-    };
-    Ok(Medusa::new(mworld, layout, model)?)
+/// The evaluation's pilot: Wall-Avoid only pushes away from walls, so it commands a cruise
+/// velocity whose direction (and heading) changes every 3–8 s (seeded); the heading command
+/// turns towards its target at a bounded rate.
+#[derive(Clone, Debug)]
+pub struct Cruise {
+    rng: Rng32,
+    next_leg_tick: u64,
+    heading_target_rad: Real,
 }
 
-/// The filter configuration used by the evaluation.
-pub fn filter_config(world: &World, copter: usize) -> FilterConfig {
-    let af = &world.airframes[world.copters[copter].airframe];
-    FilterConfig {
-        seed: world.params.seed ^ (0x4d45_4455_5341 + copter as u64),
-        // The motion model's drag is the airframe's linear damping (the same law:
-        // `g tan(tilt) = damping * v` at steady state).
-        drag_per_s: f64::from(af.spec.linear_damping),
-        ..FilterConfig::default()
+impl Cruise {
+    /// The pilot of copter `id`, starting at heading `yaw_rad`.
+    pub fn new(seed: u64, id: usize, yaw_rad: Real) -> Self {
+        Self { rng: Rng32::new(seed ^ 0xc401_5e00, 2000 + id as u64), next_leg_tick: 0, heading_target_rad: yaw_rad }
     }
+
+    /// Updates `cmd` before the step at `tick`.
+    pub fn steer(&mut self, cmd: &mut sim_core::Command, tick: u64, dt: f64, hold_yaw: bool) {
+        if tick >= self.next_leg_tick {
+            let a = self.rng.uniform() * std::f32::consts::TAU;
+            cmd.velocity_m_s = Some([CRUISE_SPEED_M_S * a.cos(), CRUISE_SPEED_M_S * a.sin()]);
+            if !hold_yaw {
+                self.heading_target_rad = wrap_angle_rad(self.rng.uniform() * std::f32::consts::TAU);
+            }
+            let leg_s = 3.0 + 5.0 * f64::from(self.rng.uniform());
+            self.next_leg_tick = tick + (leg_s / dt).round().max(1.0) as u64;
+        }
+        if !hold_yaw {
+            let max_turn = TURN_RATE_DEG_S.to_radians() * dt as Real;
+            let turn = wrap_angle_rad(self.heading_target_rad - cmd.yaw_rad).clamp(-max_turn, max_turn);
+            cmd.yaw_rad = wrap_angle_rad(cmd.yaw_rad + turn);
+        }
+    }
+}
+
+/// MEDUSA for one sensor set (slot indices into [`SLOT_ANGLES_DEG`]), over the lab's real
+/// geometry ([`bridge::sync::medusa_for`]).
+fn medusa_for(world: &World, slots: &[usize]) -> anyhow::Result<Medusa> {
+    let angles: Vec<f64> = slots.iter().map(|&k| SLOT_ANGLES_DEG[k].to_radians()).collect();
+    Ok(bridge::sync::medusa_for(world, &angles)?)
 }
 
 /// The sonar scene exactly as sim-core's `sense` builds it, from the current state.
@@ -477,18 +548,11 @@ pub fn evaluate(
     let spec = eval_scene(choice, minutes, seed, copters)?;
     let world = scene::compile(&spec).context("compiling the evaluation scene")?;
     let started = Instant::now();
+    // The boxes MEDUSA knows: those whose top reaches the sonars (see `bridge::sync::real_boxes`).
     let known: Vec<usize> = (0..world.boxes.len())
-        .filter(|&b| world.boxes[b].center_m.z + world.boxes[b].half_extents_m.z >= MIN_BOX_TOP_M)
-        .collect();
-    let boxes: Vec<BoxObstacle> = known
-        .iter()
-        .map(|&b| {
+        .filter(|&b| {
             let sb = &world.boxes[b];
-            BoxObstacle::new(
-                Vector2::new(f64::from(sb.center_m.x), f64::from(sb.center_m.y)),
-                Vector2::new(f64::from(sb.half_extents_m.x), f64::from(sb.half_extents_m.y)),
-                f64::from(sb.yaw_rad),
-            )
+            !sb.virtual_only && sb.center_m.z + sb.half_extents_m.z >= bridge::sync::MIN_BOX_TOP_M
         })
         .collect();
 
@@ -497,8 +561,8 @@ pub fn evaluate(
     for id in 0..world.copters.len() {
         let mut trackers = Vec::new();
         for slots in SENSOR_SETS {
-            let medusa = medusa_for(&world, slots, &boxes)?;
-            let filter = MedusaFilter::new(medusa, filter_config(&world, id))?;
+            let medusa = medusa_for(&world, slots)?;
+            let filter = MedusaFilter::new(medusa, bridge::sync::filter_config(&world, id))?;
             trackers.push(Tracker {
                 slots,
                 filter,
@@ -525,9 +589,7 @@ pub fn evaluate(
             y_range: [f64::INFINITY, f64::NEG_INFINITY],
             max_bias: 0.0,
             diag_rng: Rng32::new(seed ^ 0x5eed_d1a6, 1000 + id as u64),
-            cruise_rng: Rng32::new(seed ^ 0xc401_5e00, 2000 + id as u64),
-            next_leg_tick: 0,
-            heading_target_rad: world.copters[id].initial_command.yaw_rad,
+            cruise: Cruise::new(seed, id, world.copters[id].initial_command.yaw_rad),
             stopped: false,
         });
     }
@@ -539,24 +601,8 @@ pub fn evaluate(
     let mut scene_buf = SonarScene::default();
     let cap = f64::from(world.sensors.spec.sonar.cap_m);
     for _ in 0..ticks {
-        // Cruise legs: a new commanded direction (and heading) every 3-8 s; the heading
-        // command turns towards its target at a bounded rate.
         for e in &mut evals {
-            let cmd = &mut inputs.commands[e.id];
-            if state.tick >= e.next_leg_tick {
-                let a = e.cruise_rng.uniform() * std::f32::consts::TAU;
-                cmd.velocity_m_s = Some([CRUISE_SPEED_M_S * a.cos(), CRUISE_SPEED_M_S * a.sin()]);
-                if !hold_yaw {
-                    e.heading_target_rad = wrap_angle_rad(e.cruise_rng.uniform() * std::f32::consts::TAU);
-                }
-                let leg_s = 3.0 + 5.0 * f64::from(e.cruise_rng.uniform());
-                e.next_leg_tick = state.tick + (leg_s / dt).round().max(1.0) as u64;
-            }
-            if !hold_yaw {
-                let max_turn = TURN_RATE_DEG_S.to_radians() * dt as Real;
-                let turn = wrap_angle_rad(e.heading_target_rad - cmd.yaw_rad).clamp(-max_turn, max_turn);
-                cmd.yaw_rad = wrap_angle_rad(cmd.yaw_rad + turn);
-            }
+            e.cruise.steer(&mut inputs.commands[e.id], state.tick, dt, hold_yaw);
         }
         // Ground truth and the synthetic diagonals at the instant sim-core senses.
         sonar_scene(&world, &state, &mut scene_buf);

@@ -26,6 +26,7 @@ mod replay;
 mod report;
 mod runner;
 mod standin;
+mod synceval;
 
 use std::io::IsTerminal;
 use std::path::PathBuf;
@@ -164,6 +165,34 @@ struct RunArgs {
     /// what the real copter asks for) or `measured` (ATTITUDE, what it does).
     #[arg(long, value_name = "SOURCE", default_value = "setpoint", value_parser = parse_twin_attitude)]
     twin_attitude: bridge::mixed::TwinAttitude,
+    /// How twins are kept where their real copters are: `medusa` (the real copter's sonars and
+    /// yaw), `tracking` (poses on …/copters/<name>/tracking), both, or `off` (command
+    /// prediction only).
+    #[arg(long, value_name = "SOURCES", default_value = "medusa,tracking")]
+    sync: String,
+    /// Lag of the tracking poses, s.
+    #[arg(long, value_name = "S", default_value_t = 0.2)]
+    tracking_lag: f64,
+}
+
+/// `--sync` and `--tracking-lag` as options (`None`: off).
+pub(crate) fn parse_sync(sources: &str, tracking_lag_s: f64) -> anyhow::Result<Option<bridge::sync::SyncOptions>> {
+    let bad = |m: String| anyhow::Error::new(BadInput(anyhow::anyhow!(m)));
+    if !tracking_lag_s.is_finite() || !(0.0..=2.5).contains(&tracking_lag_s) {
+        return Err(bad(format!("--tracking-lag must be in [0, 2.5] s, got {tracking_lag_s}")));
+    }
+    let mut o = bridge::sync::SyncOptions { tracking_lag_s, ..bridge::sync::SyncOptions::off() };
+    for part in sources.split(',').map(str::trim) {
+        match part {
+            "medusa" => o.medusa = true,
+            "tracking" => o.tracking = true,
+            "off" | "none" => {}
+            other => {
+                return Err(bad(format!("--sync: unknown source `{other}` (use medusa, tracking or off)")));
+            }
+        }
+    }
+    Ok((o.medusa || o.tracking).then_some(o))
 }
 
 fn parse_twin_attitude(s: &str) -> Result<bridge::mixed::TwinAttitude, String> {
@@ -302,7 +331,11 @@ fn run(args: RunArgs) -> anyhow::Result<()> {
         args.telemetry_mode.as_deref(),
         args.virtual_sonar_period,
     )?;
-    let mixed = runner::MixedOptions { twin_attitude: args.twin_attitude, ..mixed };
+    let mixed = runner::MixedOptions {
+        twin_attitude: args.twin_attitude,
+        sync: parse_sync(&args.sync, args.tracking_lag)?,
+        ..mixed
+    };
     if let (Some(p), Some(path)) = (&mixed.pairing, &args.pairing) {
         bridge::mixed::apply_pairing(&mut spec, p).map_err(|e| BadInput(anyhow::anyhow!("{}: {e}", path.display())))?;
     }
@@ -355,6 +388,7 @@ fn run(args: RunArgs) -> anyhow::Result<()> {
         json["bus"] = serde_json::to_value(&outcome.bus)?;
         json["frames_dropped"] = outcome.stats.frames_dropped.into();
         json["twins"] = serde_json::to_value(&outcome.stats.twins)?;
+        json["sync"] = serde_json::to_value(&outcome.stats.sync)?;
         json["pprz_sent"] = outcome.stats.pprz_sent.into();
         outln!("{}", serde_json::to_string_pretty(&json)?);
     } else {
@@ -394,6 +428,16 @@ fn run(args: RunArgs) -> anyhow::Result<()> {
                     t.rejected
                 );
             }
+        }
+        for (name, s) in &outcome.stats.sync {
+            outln!(
+                "  sync {name}: {} MEDUSA updates ({} not used), {} tracking poses; moved {:.2} m in {} steps",
+                s.medusa_updates,
+                s.medusa_rejected,
+                s.tracking_updates,
+                s.corrected_m,
+                s.corrected_steps
+            );
         }
         for (name, t) in &outcome.stats.twins {
             outln!(

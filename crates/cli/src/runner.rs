@@ -12,6 +12,7 @@ use bridge::mixed::{Gateway, GatewayReport, OutboxOptions, TelemetryPlan, TwinAt
 use bridge::node::{self, Node};
 use bridge::pairing::ResolvedPairing;
 use bridge::sim::{self, LoopOptions, LoopStats, Request, StepObserver};
+use bridge::sync::SyncOptions;
 use sim_core::{State, World};
 
 /// Bus options from the command line.
@@ -42,6 +43,8 @@ pub struct MixedOptions {
     pub virtual_sonar_period_s: f64,
     /// Which telemetry sets twins' attitude targets.
     pub twin_attitude: TwinAttitude,
+    /// How twins are kept where their real copters are (`None`: not at all).
+    pub sync: Option<SyncOptions>,
 }
 
 impl Default for MixedOptions {
@@ -51,6 +54,7 @@ impl Default for MixedOptions {
             plan: TelemetryPlan::project_default(),
             virtual_sonar_period_s: 0.0,
             twin_attitude: TwinAttitude::default(),
+            sync: Some(SyncOptions::default()),
         }
     }
 }
@@ -108,7 +112,7 @@ pub fn run(
 ) -> anyhow::Result<RunOutcome> {
     let state = world.initial_state();
     let inputs = world.initial_inputs();
-    let mut opts = LoopOptions { realtime, ticks, outbox: None };
+    let mut opts = LoopOptions { realtime, ticks, outbox: None, sync: None };
     let (req_tx, req_rx) = std::sync::mpsc::sync_channel::<Request>(1024);
 
     if bus.no_bus {
@@ -136,6 +140,7 @@ pub fn run(
             bus.mixed.twin_attitude,
         ))
         .context("cannot bind the Paparazzi telemetry")?;
+    opts.sync = bus.mixed.sync.clone();
     opts.outbox = Some(OutboxOptions {
         prefix: prefix.clone(),
         messages,

@@ -175,6 +175,20 @@ impl State {
         }
     }
 
+    /// Moves copter `id` horizontally by `delta_m` (x, y), keeping its velocity and attitude:
+    /// how a bridge corrects a twin's position (bounded steps, never teleports). Explicit, so
+    /// determinism holds: the same shifts give the same run.
+    pub fn shift_copter(&mut self, id: usize, delta_m: [Real; 2]) {
+        let Some(c) = self.copters.get(id) else { return };
+        if !delta_m.iter().all(|v| v.is_finite()) {
+            return;
+        }
+        if let Some(b) = self.physics.bodies.get_mut(c.body) {
+            let p = b.translation();
+            b.set_translation(Vec3::new(p.x + delta_m[0], p.y + delta_m[1], p.z), true);
+        }
+    }
+
     /// Simulated time, s.
     pub fn time_s(&self, world: &World) -> f64 {
         world.time_at(self.tick)

@@ -1,0 +1,330 @@
+//! `twinswarm localize --sync-eval`: how well a twin stays where its real copter is, end to
+//! end, in simulated time.
+//!
+//! The pieces are those of a live mixed-reality run, stepped in lockstep instead of against the
+//! wall clock:
+//! - the **reality**: the stand-in's world (the lab arena, one FINken in Wall-Avoid at 0.8 m
+//!   flying the localization evaluation's cruise legs, σ = 5 cm sonar noise, 2° AHRS yaw noise
+//!   plus the yaw-bias random walk, its own seed);
+//! - its **telemetry**: every message of the telemetry plan (22 ms for
+//!   `FINKEN_ACTUATORS_SET_POINT` and `ATTITUDE`, 50 ms for `SONAR_ARRAY`, …), each delayed by a
+//!   uniform jitter and lost with a probability, encoded to Ivy text and decoded again;
+//! - the **simulation**: `bridge::sim::run_loop` with the twin, fed by the gateway's
+//!   [`Interpreter`] through the loop's request queue, with [`TwinSync`](bridge::sync::TwinSync)
+//!   on or off, and optionally a tracking pose that lags and drops out.
+//!
+//! After every control step the twin's position is compared with the real copter's at the same
+//! simulated time.
+
+use std::sync::Arc;
+use std::sync::atomic::AtomicBool;
+use std::sync::mpsc::SyncSender;
+use std::time::{Duration, Instant};
+
+use anyhow::Context;
+use bridge::messages::MessageSet;
+use bridge::mixed::{Interpreter, TelemetryPlan, TwinAttitude};
+use bridge::pprz::{TelemetrySource, telemetry_text};
+use bridge::sim::{BusInput, LoopOptions, Request, StepObserver};
+use bridge::sync::{SyncOptions, SyncStats};
+use bridge::wire::{sensors_msg, state_msg};
+use serde::Serialize;
+use sim_core::rng::Rng32;
+use sim_core::scene;
+use sim_core::{CopterKind, FlightMode, Inputs, State, StepReport, World};
+
+use crate::localize::{Cruise, SETTLE_S, WorldChoice, eval_scene};
+
+/// The aircraft id of the evaluated real copter.
+const AC_ID: u8 = 5;
+
+/// One configuration to evaluate.
+#[derive(Clone, Debug, Serialize)]
+pub struct Variant {
+    /// Its label.
+    pub label: String,
+    /// Synchronisation (`None`: off, command prediction only).
+    pub sync: Option<SyncOptions>,
+    /// Publish a tracking pose every control step.
+    pub tracking: bool,
+    /// The tracking source is silent between these simulated times, s.
+    pub tracking_dropout_s: Option<[f64; 2]>,
+    /// Which telemetry sets the twin's attitude targets.
+    pub attitude: TwinAttitude,
+}
+
+/// Telemetry conditions.
+#[derive(Clone, Copy, Debug, Serialize)]
+pub struct Link {
+    /// Each message is delayed by up to this, uniformly, ms.
+    pub jitter_ms: f64,
+    /// Probability that a message is lost.
+    pub loss: f64,
+}
+
+/// Error statistics, cm.
+#[derive(Clone, Debug, Default, Serialize)]
+pub struct ErrorCm {
+    /// Median.
+    pub median: f64,
+    /// 95th percentile.
+    pub p95: f64,
+    /// Maximum.
+    pub max: f64,
+}
+
+/// The result of one variant.
+#[derive(Clone, Debug, Serialize)]
+pub struct SyncRun {
+    /// The variant.
+    pub variant: Variant,
+    /// Twin-versus-truth horizontal error from 5 s after take-off on.
+    pub error_cm: ErrorCm,
+    /// The same during the tracking dropout (if any).
+    pub error_in_dropout_cm: Option<ErrorCm>,
+    /// Error at the end, cm.
+    pub final_error_cm: f64,
+    /// Steps in which the twin's centre was outside the arena.
+    pub steps_outside_arena: u64,
+    /// Steps compared.
+    pub samples: usize,
+    /// Whether (and when) the twin crashed.
+    pub twin_crash: Option<String>,
+    /// Whether the real copter crashed.
+    pub real_crash: Option<String>,
+    /// Telemetry messages sent and lost.
+    pub telemetry_sent: u64,
+    /// Lost.
+    pub telemetry_lost: u64,
+    /// What synchronisation did.
+    pub sync: Option<SyncStats>,
+    /// Wall time of the run, s.
+    pub wall_s: f64,
+}
+
+/// The whole evaluation.
+#[derive(Clone, Debug, Serialize)]
+pub struct SyncEvalReport {
+    /// Simulated minutes per run.
+    pub minutes: f64,
+    /// Seed of the reality.
+    pub seed: u64,
+    /// Telemetry conditions.
+    pub link: Link,
+    /// One run per variant.
+    pub runs: Vec<SyncRun>,
+}
+
+impl SyncEvalReport {
+    /// A table.
+    pub fn to_text(&self) -> String {
+        let mut s = format!(
+            "twin synchronisation, {:.1} simulated minutes, reality seed {}, telemetry jitter {} ms, loss {:.0} %\n",
+            self.minutes,
+            self.seed,
+            self.link.jitter_ms,
+            self.link.loss * 100.0
+        );
+        s += "  variant                              median    p95     max   final  outside  crash\n";
+        for r in &self.runs {
+            s += &format!(
+                "  {:<34} {:>6.1} {:>6.1} {:>7.1} {:>7.1} {:>8}  {}\n",
+                r.variant.label,
+                r.error_cm.median,
+                r.error_cm.p95,
+                r.error_cm.max,
+                r.final_error_cm,
+                r.steps_outside_arena,
+                r.twin_crash.as_deref().unwrap_or("-")
+            );
+            if let Some(d) = &r.error_in_dropout_cm {
+                s += &format!(
+                    "  {:<34} {:>6.1} {:>6.1} {:>7.1}   (during the tracking dropout)\n",
+                    "", d.median, d.p95, d.max
+                );
+            }
+        }
+        s += "  (errors in cm, twin versus real copter, horizontal)\n";
+        s
+    }
+}
+
+/// Steps the reality and plays its telemetry into the loop, after each simulation step.
+struct Harness {
+    world: World,
+    state: State,
+    inputs: Inputs,
+    cruise: Cruise,
+    plan: TelemetryPlan,
+    next_due_s: Vec<f64>,
+    messages: Arc<MessageSet>,
+    interpreter: Interpreter,
+    requests: SyncSender<Request>,
+    rng: Rng32,
+    link: Link,
+    base: Instant,
+    prefix: String,
+    variant: Variant,
+    /// The real copter's recent positions, for the lagging tracking pose.
+    history: std::collections::VecDeque<(f64, [f32; 2])>,
+    errors: Vec<f64>,
+    dropout_errors: Vec<f64>,
+    outside: u64,
+    sent: u64,
+    lost: u64,
+    last_error: f64,
+}
+
+impl StepObserver for Harness {
+    fn after_step(&mut self, world: &World, state: &State, _inputs: &Inputs, _report: &StepReport) {
+        let dt = self.world.params.control_dt_s;
+        // The reality steps in lockstep with the simulation.
+        self.cruise.steer(&mut self.inputs.commands[0], self.state.tick, dt, false);
+        sim_core::step(&self.world, &mut self.state, &self.inputs);
+        let t = self.state.time_s(&self.world);
+        let real = self.state.pose(0).pos_m;
+        self.history.push_back((t, [real.x, real.y]));
+        while self.history.front().is_some_and(|(ht, _)| t - ht > 3.0) {
+            self.history.pop_front();
+        }
+
+        // Compare (the twin is copter 0 of the simulation).
+        let twin = state.pose(0).pos_m;
+        let err = f64::from(((twin.x - real.x).powi(2) + (twin.y - real.y).powi(2)).sqrt());
+        self.last_error = err;
+        let settled =
+            self.state.copters[0].took_off_tick.is_some_and(|k| (self.state.tick as f64 - k as f64) * dt >= SETTLE_S);
+        if settled {
+            self.errors.push(err);
+            if self.in_dropout(t) {
+                self.dropout_errors.push(err);
+            }
+            let [hx, hy] = world.arena.size_m.map(|v| v / 2.0);
+            if twin.x.abs() > hx || twin.y.abs() > hy {
+                self.outside += 1;
+            }
+        }
+
+        // Telemetry due in this step, from the reality's state after it.
+        let st = state_msg(&self.world, &self.state, &self.inputs, 0);
+        let se = sensors_msg(&self.world, &self.state, 0);
+        let src = TelemetrySource { state: &st, sensors: &se, setpoint: self.state.copters[0].setpoint };
+        for k in 0..self.plan.periods.len() {
+            let (name, period) = (&self.plan.periods[k].0, self.plan.periods[k].1);
+            while self.next_due_s[k] <= t + 1e-9 {
+                let sent_at = self.next_due_s[k] + self.link.jitter_ms / 1e3 * f64::from(self.rng.uniform());
+                self.next_due_s[k] += period;
+                if f64::from(self.rng.uniform()) < self.link.loss {
+                    self.lost += 1;
+                    continue;
+                }
+                let Some(Ok(text)) = telemetry_text(&self.messages, AC_ID, name, &src) else { continue };
+                self.sent += 1;
+                let origin = BusInput {
+                    key: format!("{}/pprz/{AC_ID}/{name}", self.prefix),
+                    text,
+                    received_unix_ns: (sent_at * 1e9) as u64,
+                };
+                let received = self.base + Duration::from_secs_f64(sent_at);
+                if let Some(r) = self.interpreter.interpret(&self.messages, origin, received) {
+                    let _ = self.requests.try_send(r);
+                }
+            }
+        }
+        // The tracking pose, `lag` old.
+        if self.variant.tracking && !self.in_dropout(t) {
+            let lag = self.variant.sync.as_ref().map_or(0.2, |s| s.tracking_lag_s);
+            if let Some((_, p)) = self.history.iter().rev().find(|(ht, _)| *ht <= t - lag + 1e-9) {
+                let origin = BusInput {
+                    key: format!("{}/copters/twin/tracking", self.prefix),
+                    text: format!("{{\"pos_m\":[{},{}]}}", p[0], p[1]),
+                    received_unix_ns: (t * 1e9) as u64,
+                };
+                let _ = self.requests.try_send(Request::Tracking { copter: "twin".into(), pos_m: *p, origin });
+            }
+        }
+    }
+}
+
+impl Harness {
+    fn in_dropout(&self, t: f64) -> bool {
+        self.variant.tracking_dropout_s.is_some_and(|[a, b]| t >= a && t < b)
+    }
+}
+
+fn error_cm(v: &[f64]) -> ErrorCm {
+    let mut s = v.to_vec();
+    s.sort_by(f64::total_cmp);
+    let q = |p: f64| if s.is_empty() { f64::NAN } else { s[((s.len() - 1) as f64 * p).round() as usize] * 100.0 };
+    ErrorCm { median: q(0.5), p95: q(0.95), max: q(1.0) }
+}
+
+/// Runs one variant.
+pub fn run_variant(
+    choice: WorldChoice,
+    minutes: f64,
+    seed: Option<u64>,
+    link: Link,
+    variant: Variant,
+) -> anyhow::Result<SyncRun> {
+    let started = Instant::now();
+    // The reality: one Wall-Avoid FINken with the localization evaluation's noise.
+    let mut reality_spec = eval_scene(choice, minutes, seed, 1)?;
+    reality_spec.sim.seed = reality_spec.sim.seed.wrapping_add(1000 + u64::from(AC_ID));
+    reality_spec.copters[0].ac_id = Some(AC_ID);
+    let reality = scene::compile(&reality_spec).context("compiling the reality")?;
+    // The simulation: the same arena with the twin at the real copter's start.
+    let mut sim_spec = eval_scene(choice, minutes, seed, 1)?;
+    let c = &mut sim_spec.copters[0];
+    c.name = "twin".into();
+    c.kind = CopterKind::Real;
+    c.ac_id = Some(AC_ID);
+    c.mode = FlightMode::Manual;
+    c.command = Default::default();
+    let world = scene::compile(&sim_spec).context("compiling the simulation")?;
+
+    let (tx, rx) = std::sync::mpsc::sync_channel::<Request>(4096);
+    let plan = TelemetryPlan::project_default();
+    let messages = Arc::new(bridge::pprz::project_messages());
+    let mut harness = Harness {
+        state: reality.initial_state(),
+        inputs: reality.initial_inputs(),
+        cruise: Cruise::new(reality.params.seed, 0, reality.copters[0].initial_command.yaw_rad),
+        next_due_s: vec![0.0; plan.periods.len()],
+        plan,
+        messages,
+        interpreter: Interpreter::new(Arc::new(world.clone()), None, variant.attitude),
+        requests: tx,
+        rng: Rng32::new(reality.params.seed, 0x7e1e_0000),
+        link,
+        base: Instant::now(),
+        prefix: "twinswarm/sync-eval".into(),
+        variant: variant.clone(),
+        history: Default::default(),
+        errors: Vec::new(),
+        dropout_errors: Vec::new(),
+        outside: 0,
+        sent: 0,
+        lost: 0,
+        last_error: 0.0,
+        world: reality,
+    };
+    let opts = LoopOptions { realtime: false, ticks: world.default_ticks(), outbox: None, sync: variant.sync.clone() };
+    let stop = AtomicBool::new(false);
+    let (state, inputs) = (world.initial_state(), world.initial_inputs());
+    let (world, state, stats) = bridge::sim::run_loop(world, state, inputs, rx, None, &mut harness, &stop, &opts);
+    Ok(SyncRun {
+        error_cm: error_cm(&harness.errors),
+        error_in_dropout_cm: variant.tracking_dropout_s.map(|_| error_cm(&harness.dropout_errors)),
+        final_error_cm: harness.last_error * 100.0,
+        steps_outside_arena: harness.outside,
+        samples: harness.errors.len(),
+        twin_crash: state.copters[0].crash.map(|c| format!("{c:?}")),
+        real_crash: harness.state.copters[0].crash.map(|c| format!("{c:?}")),
+        telemetry_sent: harness.sent,
+        telemetry_lost: harness.lost,
+        sync: stats.sync.get(&world.copters[0].name).cloned(),
+        wall_s: started.elapsed().as_secs_f64(),
+        variant,
+    })
+}
