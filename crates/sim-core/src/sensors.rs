@@ -443,11 +443,13 @@ impl SonarScene {
                 return;
             }
             if dist > r {
+                // Outside the cone widened by the sphere's angular radius β: the angle to the
+                // centre exceeds h + β, i.e. cos(angle) < cos(h + β) (no trigonometric calls;
+                // a small slack keeps the test conservative under rounding).
                 let cos_to = to.dot(cone.axis) / dist;
-                let sin_r = r / dist;
-                // Outside the cone widened by the sphere's angular radius.
-                let ang = cos_to.clamp(-1.0, 1.0).acos() - sin_r.asin();
-                if ang > cone.sin_h.atan2(cone.cos_h) {
+                let sin_b = r / dist;
+                let cos_b = (1.0 - sin_b * sin_b).max(0.0).sqrt();
+                if cos_to < cone.cos_h * cos_b - cone.sin_h * sin_b - 1e-5 {
                     return;
                 }
             }
@@ -487,12 +489,24 @@ impl SonarScene {
                 best = best.min(t);
             }
         }
-        for (id, b) in self.copters.iter().enumerate() {
+        let consider = |id: usize, b: &OrientedBox, best: &mut Real| {
             if id != self_id
-                && (b.center - origin).length() - b.bounding_radius() < best
+                && (b.center - origin).length() - b.bounding_radius() < *best
                 && let Some(t) = ray_box(origin, dir, b)
             {
-                best = best.min(t);
+                *best = best.min(t);
+            }
+        };
+        if self.grid.built_for == self.copters.len() && !self.copters.is_empty() && best.is_finite() {
+            // Only copters whose bounding sphere is within `best` of the origin can be hit:
+            // the grid visits exactly those rings (the minimum does not depend on the order).
+            self.grid.visit_near(origin, best, |id| {
+                consider(id, &self.copters[id], &mut best);
+                best
+            });
+        } else {
+            for (id, b) in self.copters.iter().enumerate() {
+                consider(id, b, &mut best);
             }
         }
         best
