@@ -229,6 +229,8 @@ pub(crate) struct Scratch {
     pub(crate) sphere_grid: CopterGrid,
     /// cos of each airframe's crash tilt.
     pub(crate) crash_cos_tilt: Vec<Real>,
+    /// Each airframe's motor-lag blend factor for one physics step.
+    pub(crate) motor_alpha: Vec<Real>,
     /// Worker threads (`World::params.threads` > 1), built on first use.
     pub(crate) pool: Option<rayon::ThreadPool>,
 }

@@ -149,12 +149,17 @@ fn step_on(world: &World, state: &mut State, inputs: &Inputs, parallel: bool) ->
     scratch.vel_before.resize(n, Vec3::ZERO);
     scratch.crash_cos_tilt.clear();
     scratch.crash_cos_tilt.extend(world.airframes.iter().map(|af| af.spec.crash_tilt_deg.to_radians().cos()));
+    scratch.motor_alpha.clear();
+    scratch.motor_alpha.extend(world.airframes.iter().map(|af| motor_alpha(af, dt)));
     for _ in 0..world.params.substeps {
         // Inner loops and rotors of every copter; free copters also move.
-        for_each_lane(parallel, &mut state.copters, &mut state.scratch.lanes, |i, c, lane| {
-            let af = &world.airframes[world.copters[i].airframe];
+        let scratch = &mut state.scratch;
+        let alphas = &scratch.motor_alpha;
+        for_each_lane(parallel, &mut state.copters, &mut scratch.lanes, |i, c, lane| {
+            let airframe = world.copters[i].airframe;
+            let af = &world.airframes[airframe];
             let (thrust_n, torque_body_n_m) =
-                if c.crash.is_some() { (0.0, Vec3::ZERO) } else { inner_loop(af, c, lane, dt) };
+                if c.crash.is_some() { (0.0, Vec3::ZERO) } else { inner_loop(af, c, lane, dt, alphas[airframe]) };
             if lane.free {
                 integrate_free(af, lane, thrust_n, torque_body_n_m, dt);
             } else {
@@ -279,7 +284,7 @@ fn reserve_free_flight(world: &World, state: &mut State, parallel: bool) {
 /// Attitude PIDs, height hold, mixer and rotor model of a flying copter. Returns the total
 /// thrust along body z, N, and the torque in the body frame, N·m.
 #[inline]
-fn inner_loop(af: &Airframe, c: &mut CopterState, lane: &Lane, dt: Real) -> (Real, Vec3) {
+fn inner_loop(af: &Airframe, c: &mut CopterState, lane: &Lane, dt: Real, alpha: Real) -> (Real, Vec3) {
     let rot = lane.rot;
     let rate_body = rot.inverse() * lane.angvel_rad_s;
     let rpy = euler_from_quat(rot);
@@ -288,7 +293,7 @@ fn inner_loop(af: &Airframe, c: &mut CopterState, lane: &Lane, dt: Real) -> (Rea
     let collective = control::collective_thrust_n(af, &c.setpoint, lane.pos_m.z, lane.vel_m_s.z, cos_tilt);
     let torque = control::attitude_torque(af, &mut c.pids, &c.setpoint, rpy_est, rate_body, dt);
     let wanted = control::mix(af, collective, torque);
-    let yaw_torque = rotor_model(af, c, wanted, dt);
+    let yaw_torque = rotor_model(af, c, wanted, dt, alpha);
     let mut thrust = 0.0;
     let mut torque_body = Vec3::new(0.0, 0.0, yaw_torque);
     for r in 0..4 {
@@ -301,7 +306,7 @@ fn inner_loop(af: &Airframe, c: &mut CopterState, lane: &Lane, dt: Real) -> (Rea
 
 /// One physics step of a free-flying copter in closed form: gravity, thrust, torque, Rapier's
 /// linear and angular damping (`v / (1 + c dt)`) and its explicit, momentum-preserving
-/// gyroscopic term; semi-implicit Euler.
+/// gyroscopic term; semi-implicit Euler (velocities first, then pose with the new ones).
 #[inline]
 fn integrate_free(af: &Airframe, lane: &mut Lane, thrust_n: Real, torque_body_n_m: Vec3, dt: Real) {
     let rot = lane.rot;
@@ -319,15 +324,16 @@ fn integrate_free(af: &Airframe, lane: &mut Lane, thrust_n: Real, torque_body_n_
     lane.vel_m_s = vel;
     lane.angvel_rad_s = w;
     lane.pos_m += vel * dt;
-    lane.rot = (Quat::from_scaled_axis(w * dt) * rot).normalize();
+    // q̇ = ½ ω q, one explicit step, renormalised (|ω| dt is a few milliradians).
+    let half_w = w * (0.5 * dt);
+    let dq = Quat::from_xyzw(half_w.x, half_w.y, half_w.z, 0.0) * rot;
+    lane.rot = (rot + dq).normalize();
 }
 
 /// Motor lag, saturation, tolerance and particle noise. Writes the rotor speeds and thrusts;
 /// returns the yaw drag torque about body z, N·m.
 #[inline]
-fn rotor_model(af: &Airframe, c: &mut CopterState, wanted_n: [Real; 4], dt: Real) -> Real {
-    let tau = af.spec.motor_time_constant_s;
-    let alpha = if tau > 0.0 { 1.0 - (-dt / tau).exp() } else { 1.0 };
+fn rotor_model(af: &Airframe, c: &mut CopterState, wanted_n: [Real; 4], dt: Real, alpha: Real) -> Real {
     let mut yaw = 0.0;
     for r in 0..4 {
         let omega_cmd = (wanted_n[r].max(0.0) / af.k_n_s2).sqrt().min(af.omega_max_rad_s);
@@ -350,6 +356,12 @@ fn rotor_model(af: &Airframe, c: &mut CopterState, wanted_n: [Real; 4], dt: Real
         yaw += ROTOR_YAW_SIGN[r] * tol * af.d_n_m_s2 * omega * omega;
     }
     yaw
+}
+
+/// The motor lag's blend factor for one physics step, `1 − exp(−dt / τ)`.
+fn motor_alpha(af: &Airframe, dt: Real) -> Real {
+    let tau = af.spec.motor_time_constant_s;
+    if tau > 0.0 { 1.0 - (-dt / tau).exp() } else { 1.0 }
 }
 
 /// The flight mode's outer loop.
@@ -440,7 +452,11 @@ pub fn fill_sonar_scene(world: &World, physics: &PhysicsWorld, copters: &[Copter
             half: Vec3::new(half_xy, half_xy, af.spec.body_size_m[2] / 2.0 + 0.01),
         });
     }
-    scene.index_copters(GRID_CELL_M);
+    // About one copter per cell: sparse swarms visit fewer empty cells (any cell size gives
+    // the same readings).
+    let area_m2 = world.arena.size_m[0] * world.arena.size_m[1];
+    let cell_m = (area_m2 / copters.len().max(1) as Real).sqrt().clamp(GRID_CELL_M, 4.0 * GRID_CELL_M);
+    scene.index_copters(cell_m);
 }
 
 /// Samples every copter's sensors from the current state (the lanes hold each copter's
@@ -468,8 +484,8 @@ fn sense(world: &World, state: &mut State, inputs: &Inputs, sonar_due: bool, par
         if sonar_due {
             let cones = sonar_cones(params, pos, rot);
             r.sonar_tick = tick;
-            for (s, cone) in cones.iter().enumerate() {
-                let truth = scene.cone_distance(cone, i, spec.sonar.max_range_m);
+            let truths = scene.cone_distances(&cones, pos, i, spec.sonar.max_range_m);
+            for (s, &truth) in truths.iter().enumerate() {
                 let nz = if noise { spec.sonar.noise_sigma_m * c.rng.normal() } else { 0.0 };
                 r.sonar_truth_m[s] = truth.min(spec.sonar.cap_m);
                 r.sonar_m[s] = sonar_reading(&spec.sonar, truth, nz);
