@@ -1,56 +1,62 @@
-//! The cost of MCAP logging: one 50 ms control step of N = 100 hovering FINkens with sensors
-//! on, logging off versus on (every state, sensor reading, command, controller output,
-//! transform and 3D view, to a file in a temporary directory). Target: logging adds at most
-//! 20 % to the step time.
+//! The cost of MCAP logging: one 50 ms control step of N hovering FINkens with sensors on,
+//! logging off versus on (every state, sensor reading, command, controller output, transform
+//! and 3D view, to a file in a temporary directory), N = 100, 1000 and 10 000, on 1 and 2
+//! threads (the logger itself runs on the caller's thread).
 //!
 //! `cargo bench -p twinswarm --bench log`
 
-use criterion::{Criterion, criterion_group, criterion_main};
+use criterion::{BenchmarkId, Criterion, criterion_group, criterion_main};
 use sim_core::{scene, step};
 
 fn bench_log(c: &mut Criterion) {
     let mut group = c.benchmark_group("log_step_50ms");
-    group.sample_size(30);
-    let n = 100;
-    let spec = scene::grid_swarm(n, 2.0, 0.8, true);
-    let world = match scene::compile(&spec) {
-        Ok(w) => w,
-        Err(e) => panic!("{e}"),
-    };
     let dir = std::env::temp_dir().join(format!("twinswarm-bench-log-{}", std::process::id()));
     if let Err(e) = std::fs::create_dir_all(&dir) {
         panic!("cannot create {}: {e}", dir.display());
     }
-    let inputs = world.initial_inputs();
-    for logging in [false, true] {
-        let mut state = world.initial_state();
-        for _ in 0..20 {
-            step(&world, &mut state, &inputs);
-        }
-        let label = if logging { "swarm_100_log_on" } else { "swarm_100_log_off" };
-        if logging {
-            let path = dir.join("bench.mcap");
-            let meta = bridge::log::LogMeta::default();
-            let mut log = match bridge::log::Logger::create(&path, &world, "", meta) {
-                Ok(l) => l,
+    for threads in [1usize, 2] {
+        for n in [100usize, 1000, 10_000] {
+            let mut spec = scene::grid_swarm(n, 2.0, 0.8, true);
+            spec.sim.threads = threads;
+            let world = match scene::compile(&spec) {
+                Ok(w) => w,
                 Err(e) => panic!("{e}"),
             };
-            group.bench_function(label, |b| {
-                b.iter(|| {
-                    let r = step(&world, &mut state, &inputs);
-                    if let Err(e) = log.log_step(&world, &state, &inputs, &r) {
+            group.sample_size(if n >= 1000 { 10 } else { 30 });
+            let inputs = world.initial_inputs();
+            for logging in [false, true] {
+                let mut state = world.initial_state();
+                for _ in 0..20 {
+                    step(&world, &mut state, &inputs);
+                }
+                let label = format!("{}_{threads}t", if logging { "log_on" } else { "log_off" });
+                if logging {
+                    let path = dir.join("bench.mcap");
+                    let meta = bridge::log::LogMeta::default();
+                    let mut log = match bridge::log::Logger::create(&path, &world, "", meta) {
+                        Ok(l) => l,
+                        Err(e) => panic!("{e}"),
+                    };
+                    group.bench_with_input(BenchmarkId::new(label, n), &n, |b, _| {
+                        b.iter(|| {
+                            let r = step(&world, &mut state, &inputs);
+                            if let Err(e) = log.log_step(&world, &state, &inputs, &r) {
+                                panic!("{e}");
+                            }
+                        })
+                    });
+                    if let Err(e) = log.finish() {
                         panic!("{e}");
                     }
-                })
-            });
-            if let Err(e) = log.finish() {
-                panic!("{e}");
+                } else {
+                    group.bench_with_input(BenchmarkId::new(label, n), &n, |b, _| {
+                        b.iter(|| step(&world, &mut state, &inputs))
+                    });
+                }
+                let crashed = state.copters.iter().filter(|c| c.crash.is_some()).count();
+                assert_eq!(crashed, 0, "copters crashed during the benchmark: the numbers would be wrong");
             }
-        } else {
-            group.bench_function(label, |b| b.iter(|| step(&world, &mut state, &inputs)));
         }
-        let crashed = state.copters.iter().filter(|c| c.crash.is_some()).count();
-        assert_eq!(crashed, 0, "copters crashed during the benchmark: the numbers would be wrong");
     }
     group.finish();
     let _ = std::fs::remove_dir_all(&dir);

@@ -19,6 +19,9 @@ pub const GRAVITY_M_S2: Real = 9.81;
 #[inline]
 pub fn wrap_angle_rad(a: Real) -> Real {
     use std::f32::consts::{PI, TAU};
+    if a > -PI && a <= PI {
+        return a; // already wrapped: the common case, exact and cheap
+    }
     let mut w = a.rem_euclid(TAU);
     if w > PI {
         w -= TAU;

@@ -65,11 +65,15 @@ pub struct SimSpec {
     pub seed: u64,
     /// Default run length, s.
     pub duration_s: f64,
+    /// Worker threads for one step (sensing, control and free flight run across copters in
+    /// parallel and merge in id order): `1` (the default) steps on the caller's thread only.
+    /// The results are the same bits for any value; only the wall-clock time changes.
+    pub threads: usize,
 }
 
 impl Default for SimSpec {
     fn default() -> Self {
-        Self { physics_dt_s: 0.005, control_dt_s: 0.05, seed: 1, duration_s: 90.0 }
+        Self { physics_dt_s: 0.005, control_dt_s: 0.05, seed: 1, duration_s: 90.0, threads: 1 }
     }
 }
 
@@ -406,12 +410,16 @@ pub fn compile(spec: &SceneSpec) -> Result<World, SceneError> {
             ),
         ));
     }
+    if !(1..=256).contains(&sim.threads) {
+        return Err(SceneError::invalid(p.clone().key("threads"), format!("must be 1 to 256, got {}", sim.threads)));
+    }
     let params = SimParams {
         physics_dt_s: sim.physics_dt_s,
         control_dt_s: sim.control_dt_s,
         substeps: substeps as u32,
         seed: sim.seed,
         duration_s: sim.duration_s,
+        threads: sim.threads,
     };
 
     // [arena]

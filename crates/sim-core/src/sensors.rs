@@ -424,6 +424,78 @@ impl SonarScene {
     /// Distance from a sonar to the nearest object in its cone, ignoring copter `self_id`.
     /// `f32::INFINITY` if nothing is inside the cone within `max_range_m`.
     pub fn cone_distance(&self, cone: &Cone, self_id: usize, max_range_m: Real) -> Real {
+        let (mut best, mut hit) = self.static_cone_distance(cone, max_range_m);
+        if self.grid.built_for == self.copters.len() && !self.copters.is_empty() {
+            self.grid.visit_near(cone.apex, best, |id| {
+                if id != self_id {
+                    consider_box(cone, &self.copters[id], &mut best, &mut hit);
+                }
+                best
+            });
+        } else {
+            for (id, b) in self.copters.iter().enumerate() {
+                if id != self_id {
+                    consider_box(cone, b, &mut best, &mut hit);
+                }
+            }
+        }
+        if hit { best } else { Real::INFINITY }
+    }
+
+    /// [`SonarScene::cone_distance`] for a copter's four sonars at once, with the same bits:
+    /// one pass over the copter grid around `origin` (the copter's centre) serves all four
+    /// cones. Each neighbour is tested against the cone with its apex moved back to `origin`
+    /// (which contains the sonar's cone) and its bounding sphere; only the cones it can enter
+    /// get the exact test. Each apex must lie on its own axis ahead of `origin` (`origin + t
+    /// axis`, `t >= 0`), as [`sonar_cones`] places them.
+    pub fn cone_distances(&self, cones: &[Cone; 4], origin: Vec3, self_id: usize, max_range_m: Real) -> [Real; 4] {
+        let mut out = [Real::INFINITY; 4];
+        if self.grid.built_for != self.copters.len() || self.copters.is_empty() {
+            for (o, cone) in out.iter_mut().zip(cones) {
+                *o = self.cone_distance(cone, self_id, max_range_m);
+            }
+            return out;
+        }
+        let mut best = [max_range_m; 4];
+        let mut hit = [false; 4];
+        for k in 0..4 {
+            (best[k], hit[k]) = self.static_cone_distance(&cones[k], max_range_m);
+        }
+        let off = cones.iter().map(|c| (c.apex - origin).length()).fold(0.0, Real::max);
+        let radius = |best: &[Real; 4]| best.iter().copied().fold(0.0, Real::max) + off;
+        self.grid.visit_near(origin, radius(&best), |id| {
+            if id == self_id {
+                return radius(&best);
+            }
+            let b = &self.copters[id];
+            let d = b.center - origin;
+            let l = d.length();
+            let r = b.bounding_radius();
+            // cos(h + β) with sin β = r / l; inside the sphere every cone is possible.
+            let (sin_b, cos_b) = if l > r { (r / l, (1.0 - (r / l) * (r / l)).max(0.0).sqrt()) } else { (1.0, 0.0) };
+            for k in 0..4 {
+                let cone = &cones[k];
+                if l - r - off >= best[k] {
+                    continue;
+                }
+                if l > r && d.dot(cone.axis) < l * (cone.cos_h * cos_b - cone.sin_h * sin_b) - 1e-4 * l {
+                    continue;
+                }
+                consider_box(cone, b, &mut best[k], &mut hit[k]);
+            }
+            radius(&best)
+        });
+        for k in 0..4 {
+            if hit[k] {
+                out[k] = best[k];
+            }
+        }
+        out
+    }
+
+    /// The walls and boxes part of a cone distance: `(best, hit)` with `best` starting at
+    /// `max_range_m`.
+    fn static_cone_distance(&self, cone: &Cone, max_range_m: Real) -> (Real, bool) {
         let mut best = max_range_m;
         let mut hit = false;
         for &(n, c) in &self.walls {
@@ -434,48 +506,10 @@ impl SonarScene {
                 hit = true;
             }
         }
-        let consider = |b: &OrientedBox, best: &mut Real, hit: &mut bool| {
-            // Cheap rejection on the bounding sphere.
-            let to = b.center - cone.apex;
-            let dist = to.length();
-            let r = b.bounding_radius();
-            if dist - r >= *best {
-                return;
-            }
-            if dist > r {
-                let cos_to = to.dot(cone.axis) / dist;
-                let sin_r = r / dist;
-                // Outside the cone widened by the sphere's angular radius.
-                let ang = cos_to.clamp(-1.0, 1.0).acos() - sin_r.asin();
-                if ang > cone.sin_h.atan2(cone.cos_h) {
-                    return;
-                }
-            }
-            if let Some(d) = cone_box_distance(cone, b)
-                && d < *best
-            {
-                *best = d;
-                *hit = true;
-            }
-        };
         for b in &self.boxes {
-            consider(b, &mut best, &mut hit);
+            consider_box(cone, b, &mut best, &mut hit);
         }
-        if self.grid.built_for == self.copters.len() && !self.copters.is_empty() {
-            self.grid.visit_near(cone.apex, best, |id| {
-                if id != self_id {
-                    consider(&self.copters[id], &mut best, &mut hit);
-                }
-                best
-            });
-        } else {
-            for (id, b) in self.copters.iter().enumerate() {
-                if id != self_id {
-                    consider(b, &mut best, &mut hit);
-                }
-            }
-        }
-        if hit { best } else { Real::INFINITY }
+        (best, hit)
     }
 
     /// IR ray cast down the body's −z axis against the floor and the boxes (other copters
@@ -487,15 +521,56 @@ impl SonarScene {
                 best = best.min(t);
             }
         }
-        for (id, b) in self.copters.iter().enumerate() {
+        let consider = |id: usize, b: &OrientedBox, best: &mut Real| {
             if id != self_id
-                && (b.center - origin).length() - b.bounding_radius() < best
+                && (b.center - origin).length() - b.bounding_radius() < *best
                 && let Some(t) = ray_box(origin, dir, b)
             {
-                best = best.min(t);
+                *best = best.min(t);
+            }
+        };
+        if self.grid.built_for == self.copters.len() && !self.copters.is_empty() && best.is_finite() {
+            // Only copters whose bounding sphere is within `best` of the origin can be hit:
+            // the grid visits exactly those rings (the minimum does not depend on the order).
+            self.grid.visit_near(origin, best, |id| {
+                consider(id, &self.copters[id], &mut best);
+                best
+            });
+        } else {
+            for (id, b) in self.copters.iter().enumerate() {
+                consider(id, b, &mut best);
             }
         }
         best
+    }
+}
+
+/// Lowers `best` to the cone's exact distance to the box when that is closer (and sets `hit`).
+/// A cheap bounding-sphere test comes first.
+#[inline]
+fn consider_box(cone: &Cone, b: &OrientedBox, best: &mut Real, hit: &mut bool) {
+    let to = b.center - cone.apex;
+    let dist = to.length();
+    let r = b.bounding_radius();
+    if dist - r >= *best {
+        return;
+    }
+    if dist > r {
+        // Outside the cone widened by the sphere's angular radius β: the angle to the centre
+        // exceeds h + β, i.e. cos(angle) < cos(h + β) (no trigonometric calls; a small slack
+        // keeps the test conservative under rounding).
+        let cos_to = to.dot(cone.axis) / dist;
+        let sin_b = r / dist;
+        let cos_b = (1.0 - sin_b * sin_b).max(0.0).sqrt();
+        if cos_to < cone.cos_h * cos_b - cone.sin_h * sin_b - 1e-5 {
+            return;
+        }
+    }
+    if let Some(d) = cone_box_distance(cone, b)
+        && d < *best
+    {
+        *best = d;
+        *hit = true;
     }
 }
 
@@ -608,6 +683,47 @@ mod tests {
             }
         }
         assert!(hits > 100, "the layout must exercise hits: {hits}");
+    }
+
+    #[test]
+    fn four_cones_at_once_give_the_same_bits_as_one_at_a_time() {
+        let mut x: u32 = 7;
+        let mut rnd = || {
+            x ^= x << 13;
+            x ^= x >> 17;
+            x ^= x << 5;
+            x as Real / u32::MAX as Real
+        };
+        let mut scene = SonarScene {
+            walls: vec![(Vec3::X, 15.0), (Vec3::X, -15.0), (Vec3::Y, 10.0), (Vec3::Y, -10.0)],
+            ..SonarScene::default()
+        };
+        scene.boxes.push(OrientedBox {
+            center: Vec3::new(3.0, 2.0, 1.0),
+            rotation: Quat::from_rotation_z(0.4),
+            half: Vec3::new(0.5, 0.3, 1.0),
+        });
+        for _ in 0..600 {
+            scene.copters.push(OrientedBox {
+                center: Vec3::new(rnd() * 30.0 - 15.0, rnd() * 20.0 - 10.0, 0.5 + rnd()),
+                rotation: Quat::from_rotation_z(rnd() * 6.0) * Quat::from_rotation_x(rnd() * 0.3 - 0.15),
+                half: Vec3::new(0.134, 0.134, 0.03),
+            });
+        }
+        scene.index_copters(1.0);
+        let params = SensorSpec::default().compile(&FieldPath::default()).unwrap();
+        let mut hits = 0;
+        for id in 0..scene.copters.len() {
+            let c = scene.copters[id];
+            let cones = sonar_cones(&params, c.center, c.rotation);
+            let all = scene.cone_distances(&cones, c.center, id, 7.65);
+            for k in 0..4 {
+                let one = scene.cone_distance(&cones[k], id, 7.65);
+                assert_eq!(all[k].to_bits(), one.to_bits(), "copter {id} sonar {k}: {} vs {one}", all[k]);
+                hits += usize::from(one < 7.0);
+            }
+        }
+        assert!(hits > 500, "the layout must exercise hits: {hits}");
     }
 
     #[test]

@@ -9,9 +9,10 @@ use rapier3d::prelude::{
 use serde::{Deserialize, Serialize};
 
 use crate::control::{PidState, Setpoint, WallAvoidState};
-use crate::math::{Real, Vec3, euler_from_quat};
+use crate::geometry::OrientedBox;
+use crate::math::{Quat, Real, Vec3, euler_from_quat};
 use crate::rng::Rng32;
-use crate::sensors::{SensorReadings, SonarScene};
+use crate::sensors::{CopterGrid, SensorReadings, SonarScene};
 use crate::world::World;
 
 /// The mutable state of a run: physics sets, controller integrators, rotor states, sensor
@@ -237,4 +238,40 @@ pub(crate) struct Scratch {
     pub(crate) vel_before: Vec<Vec3>,
     pub(crate) sonar_scene: SonarScene,
     pub(crate) near: Vec<usize>,
+    /// One lane per copter: its motion during the step and its free-flight reservation.
+    pub(crate) lanes: Vec<Lane>,
+    /// Reserved spheres of all copters (radius in `half.x`), for the free-flight test.
+    pub(crate) spheres: Vec<OrientedBox>,
+    /// A grid over `spheres`.
+    pub(crate) sphere_grid: CopterGrid,
+    /// cos of each airframe's crash tilt.
+    pub(crate) crash_cos_tilt: Vec<Real>,
+    /// Each airframe's motor-lag blend factor for one physics step.
+    pub(crate) motor_alpha: Vec<Real>,
+    /// Worker threads (`World::params.threads` > 1), built on first use.
+    pub(crate) pool: Option<rayon::ThreadPool>,
+}
+
+/// A copter's motion during one control step, and whether it flies free of Rapier.
+#[derive(Clone, Copy, Debug, Default)]
+pub(crate) struct Lane {
+    /// Centre of mass, world frame, m.
+    pub(crate) pos_m: Vec3,
+    /// World-from-body rotation.
+    pub(crate) rot: Quat,
+    /// Velocity, world frame, m/s.
+    pub(crate) vel_m_s: Vec3,
+    /// Angular velocity, world frame, rad/s.
+    pub(crate) angvel_rad_s: Vec3,
+    /// Force and torque (world frame) for Rapier to apply this substep, N and N·m.
+    pub(crate) force_n: Vec3,
+    pub(crate) torque_n_m: Vec3,
+    /// Flies free this control step: integrated in closed form, its Rapier body asleep.
+    pub(crate) free: bool,
+    /// Centre of the reservation at the start of the step, m.
+    pub(crate) anchor_m: Vec3,
+    /// How far the centre may move during the step and stay free, m.
+    pub(crate) reach_m: Real,
+    /// Bounding radius of the copter's colliders plus `reach_m`, m.
+    pub(crate) reserved_m: Real,
 }

@@ -15,11 +15,11 @@ use serde::Serialize;
 use crate::airframe::{Airframe, ParticleNoise, ROTOR_YAW_SIGN};
 use crate::control::{self, Command, FlightMode, Inputs, Setpoint};
 use crate::geometry::OrientedBox;
-use crate::math::{GRAVITY_M_S2, Real, Vec3, euler_from_quat, wrap_angle_rad};
+use crate::math::{GRAVITY_M_S2, Quat, Real, Vec3, euler_from_quat, wrap_angle_rad};
 use crate::sensors::{
     self, SensorParams, SonarScene, crosstalk_eligible, crosstalk_reading, sonar_cones, sonar_reading,
 };
-use crate::state::{CopterState, CrashCause, State};
+use crate::state::{CopterState, CrashCause, Lane, State};
 use crate::world::{ColliderTag, CopterKind, World};
 use rapier3d::prelude::PhysicsWorld;
 
@@ -56,76 +56,162 @@ pub(crate) const GRID_CELL_M: Real = 1.0;
 /// Height above the rest height that counts as airborne, m.
 const TAKEOFF_MARGIN_M: Real = 0.05;
 
+/// Extra clearance a free copter's reservation keeps from everything else, m.
+const FREE_GAP_M: Real = 0.05;
+
+/// Headroom on the thrust-limited acceleration when bounding a free copter's motion (covers
+/// rotor tolerance and particle noise; a copter that still leaves its reservation is handed
+/// back to Rapier at once).
+const FREE_ACCEL_HEADROOM: Real = 2.0;
+
 /// Advances the state by one control step. Never writes `inputs`. Copters without a command
 /// in `inputs` keep their initial command.
+///
+/// With `world.params.threads > 1`, per-copter work (sensing, control, free flight) runs on a
+/// thread pool owned by the state; everything is merged in id order, so the result is the
+/// same bits for any thread count.
 pub fn step(world: &World, state: &mut State, inputs: &Inputs) -> StepReport {
+    let threads = world.params.threads.max(1);
+    if threads == 1 {
+        return step_on(world, state, inputs, false);
+    }
+    let pool = match state.scratch.pool.take() {
+        Some(pool) if pool.current_num_threads() == threads => Some(pool),
+        _ => rayon::ThreadPoolBuilder::new().num_threads(threads).thread_name(|i| format!("sim-core-{i}")).build().ok(),
+    };
+    match pool {
+        Some(pool) => {
+            let report = pool.install(|| step_on(world, state, inputs, true));
+            state.scratch.pool = Some(pool);
+            report
+        }
+        // No threads to be had: the same step, on this thread.
+        None => step_on(world, state, inputs, false),
+    }
+}
+
+/// Runs `f` for every copter with its lane, in parallel chunks or in order. `f` must only
+/// touch its own copter and lane: then the result does not depend on the chunking.
+fn for_each_lane<F>(parallel: bool, copters: &mut [CopterState], lanes: &mut [Lane], f: F)
+where
+    F: Fn(usize, &mut CopterState, &mut Lane) + Sync + Send,
+{
+    if parallel && copters.len() > 64 {
+        use rayon::prelude::*;
+        let chunk = (copters.len() / 32).max(32);
+        copters.par_chunks_mut(chunk).zip(lanes.par_chunks_mut(chunk)).enumerate().for_each(|(k, (cs, ls))| {
+            for (j, (c, l)) in cs.iter_mut().zip(ls.iter_mut()).enumerate() {
+                f(k * chunk + j, c, l);
+            }
+        });
+    } else {
+        for (i, (c, l)) in copters.iter_mut().zip(lanes.iter_mut()).enumerate() {
+            f(i, c, l);
+        }
+    }
+}
+
+fn step_on(world: &World, state: &mut State, inputs: &Inputs, parallel: bool) -> StepReport {
     let mut report = StepReport::default();
     let n = world.copters.len();
     let command = |i: usize| -> &Command { inputs.commands.get(i).unwrap_or(&world.copters[i].initial_command) };
 
+    // Every copter's motion at the start of the step.
+    let lanes = &mut state.scratch.lanes;
+    lanes.resize(n, Lane::default());
+    for (lane, c) in lanes.iter_mut().zip(&state.copters) {
+        let body = &state.physics.bodies[c.body];
+        lane.pos_m = body.translation();
+        lane.rot = *body.rotation();
+        lane.vel_m_s = body.linvel();
+        lane.angvel_rad_s = body.angvel();
+    }
+
     let sonar_period = world.sensors.spec.sonar.period_steps.max(1) as u64;
     if world.sensors.spec.enabled {
-        sense(world, state, inputs, state.tick.is_multiple_of(sonar_period));
+        sense(world, state, inputs, state.tick.is_multiple_of(sonar_period), parallel);
     }
 
     // Outer loop.
     let dt_control = world.params.control_dt_s as Real;
-    for i in 0..n {
-        let pose = state.pose(i);
-        let cmd = command(i);
+    let tick = state.tick;
+    for_each_lane(parallel, &mut state.copters, &mut state.scratch.lanes, |i, c, lane| {
         let af = &world.airframes[world.copters[i].airframe];
-        let c = &mut state.copters[i];
-        c.setpoint = outer_loop(world, af, c, cmd, pose.pos_m, pose.vel_m_s, pose.rpy_rad[2], dt_control, state.tick);
-    }
+        let yaw = euler_from_quat(lane.rot)[2];
+        c.setpoint = outer_loop(world, af, c, command(i), lane.pos_m, lane.vel_m_s, yaw, dt_control, tick);
+    });
+
+    reserve_free_flight(world, state, parallel);
 
     // Physics substeps.
     let dt = world.physics_dt();
+    let scratch = &mut state.scratch;
+    scratch.vel_before.resize(n, Vec3::ZERO);
+    scratch.crash_cos_tilt.clear();
+    scratch.crash_cos_tilt.extend(world.airframes.iter().map(|af| af.spec.crash_tilt_deg.to_radians().cos()));
+    scratch.motor_alpha.clear();
+    scratch.motor_alpha.extend(world.airframes.iter().map(|af| motor_alpha(af, dt)));
     for _ in 0..world.params.substeps {
-        state.scratch.vel_before.clear();
-        for i in 0..n {
-            let c = &mut state.copters[i];
-            let af = &world.airframes[world.copters[i].airframe];
-            let body = &mut state.physics.bodies[c.body];
-            state.scratch.vel_before.push(body.linvel());
-            body.reset_forces(false);
-            body.reset_torques(false);
-            if c.crash.is_some() {
+        // Inner loops and rotors of every copter; free copters also move.
+        let scratch = &mut state.scratch;
+        let alphas = &scratch.motor_alpha;
+        for_each_lane(parallel, &mut state.copters, &mut scratch.lanes, |i, c, lane| {
+            let airframe = world.copters[i].airframe;
+            let af = &world.airframes[airframe];
+            let (thrust_n, torque_body_n_m) =
+                if c.crash.is_some() { (0.0, Vec3::ZERO) } else { inner_loop(af, c, lane, dt, alphas[airframe]) };
+            if lane.free {
+                integrate_free(af, lane, thrust_n, torque_body_n_m, dt);
+            } else {
+                lane.force_n = lane.rot * Vec3::new(0.0, 0.0, thrust_n);
+                lane.torque_n_m = lane.rot * torque_body_n_m;
+            }
+        });
+        // The others go through Rapier.
+        let scratch = &mut state.scratch;
+        let mut any_near = false;
+        for (i, c) in state.copters.iter().enumerate() {
+            let lane = &scratch.lanes[i];
+            scratch.vel_before[i] = lane.vel_m_s;
+            if lane.free {
                 continue;
             }
-            let pos = body.translation();
-            let rot = *body.rotation();
-            let linvel = body.linvel();
-            let rate_body = rot.inverse() * body.angvel();
-            let rpy = euler_from_quat(rot);
-            let rpy_est = [rpy[0], rpy[1], wrap_angle_rad(rpy[2] + c.yaw_bias_rad)];
-            let cos_tilt = (rot * Vec3::Z).z;
-            let collective = control::collective_thrust_n(af, &c.setpoint, pos.z, linvel.z, cos_tilt);
-            let torque = control::attitude_torque(af, &mut c.pids, &c.setpoint, rpy_est, rate_body, dt);
-            let wanted = control::mix(af, collective, torque);
-            let yaw_torque = rotor_model(af, c, wanted, dt);
-            for r in 0..4 {
-                let f = rot * Vec3::new(0.0, 0.0, c.rotor_thrust_n[r]);
-                let p = pos + rot * af.rotor_pos_in_body_m[r];
-                body.add_force_at_point(f, p, false);
+            any_near = true;
+            let body = &mut state.physics.bodies[c.body];
+            body.reset_forces(false);
+            body.reset_torques(false);
+            if c.crash.is_none() {
+                body.add_force(lane.force_n, false);
+                body.add_torque(lane.torque_n_m, false);
             }
-            body.add_torque(rot * Vec3::new(0.0, 0.0, yaw_torque), false);
         }
-        let scratch = &mut state.scratch;
-        state.physics.step_with_events(&(), &scratch.collisions);
-        if let Ok(mut started) = scratch.collisions.started.lock() {
-            std::mem::swap(&mut *started, &mut scratch.started);
-        }
-        detect_crashes(world, state, &mut report);
-        for i in 0..n {
-            let c = &mut state.copters[i];
-            if c.took_off_tick.is_none() && c.crash.is_none() {
-                let z = state.physics.bodies[c.body].translation().z;
-                let rest = world.airframes[world.copters[i].airframe].rest_height_m;
-                if z > rest + TAKEOFF_MARGIN_M {
-                    c.took_off_tick = Some(state.tick);
-                    report.events.push(crate::step::Event::TookOff { copter: i });
+        if any_near {
+            state.physics.step_with_events(&(), &scratch.collisions);
+            if let Ok(mut started) = scratch.collisions.started.lock() {
+                std::mem::swap(&mut *started, &mut scratch.started);
+            }
+            for (lane, c) in scratch.lanes.iter_mut().zip(&state.copters) {
+                if !lane.free {
+                    let body = &state.physics.bodies[c.body];
+                    lane.pos_m = body.translation();
+                    lane.rot = *body.rotation();
+                    lane.vel_m_s = body.linvel();
+                    lane.angvel_rad_s = body.angvel();
                 }
             }
+            detect_collision_crashes(world, state, &mut report);
+        }
+        detect_tilt_and_takeoff(world, state, &mut report);
+    }
+
+    // Free copters' bodies catch up with their motion (they stay asleep in Rapier).
+    for (lane, c) in state.scratch.lanes.iter().zip(&state.copters) {
+        if lane.free {
+            let body = &mut state.physics.bodies[c.body];
+            body.set_translation(lane.pos_m, false);
+            body.set_rotation(lane.rot, false);
+            body.set_linvel(lane.vel_m_s, false);
+            body.set_angvel(lane.angvel_rad_s, false);
         }
     }
     state.tick += 1;
@@ -133,12 +219,121 @@ pub fn step(world: &World, state: &mut State, inputs: &Inputs) -> StepReport {
     report
 }
 
+/// Decides which copters fly free of Rapier for this control step.
+///
+/// A copter flies free when the sphere it can reach within the step (its colliders' bounding
+/// radius plus `|v| T + a_max T² / 2`, with `a_max` from its maximum thrust with headroom and
+/// gravity) keeps [`FREE_GAP_M`] from the floor, the walls, the ceiling, the boxes and every
+/// other copter's reachable sphere. Nothing can then touch it during the step, so Rapier has
+/// nothing to do for it: its body sleeps and it is integrated in closed form (semi-implicit
+/// Euler, Rapier's damping and gyroscopic terms). Crashed copters always stay with Rapier.
+fn reserve_free_flight(world: &World, state: &mut State, parallel: bool) {
+    let t = world.params.control_dt_s as Real;
+    let scratch = &mut state.scratch;
+    scratch.spheres.clear();
+    for (i, (lane, c)) in scratch.lanes.iter_mut().zip(&state.copters).enumerate() {
+        let af = &world.airframes[world.copters[i].airframe];
+        let tol = c.rotor_tolerance.iter().copied().fold(1.0, Real::max);
+        let a_max = FREE_ACCEL_HEADROOM * 4.0 * af.max_thrust_per_rotor_n * tol / af.mass_kg + GRAVITY_M_S2;
+        lane.anchor_m = lane.pos_m;
+        lane.reach_m = lane.vel_m_s.length() * t + 0.5 * a_max * t * t;
+        let radius = af.radius_m.hypot(af.spec.body_size_m[2] / 2.0) + 0.01;
+        lane.reserved_m = radius + lane.reach_m;
+        scratch.spheres.push(OrientedBox {
+            center: lane.pos_m,
+            rotation: crate::math::Quat::IDENTITY,
+            half: Vec3::new(lane.reserved_m, 0.0, 0.0),
+        });
+    }
+    scratch.sphere_grid.build(&scratch.spheres, GRID_CELL_M);
+    let spheres = &scratch.spheres;
+    let grid = &scratch.sphere_grid;
+    let arena = &world.arena;
+    let (hx, hy) = (arena.size_m[0] / 2.0, arena.size_m[1] / 2.0);
+    for_each_lane(parallel, &mut state.copters, &mut scratch.lanes, |i, c, lane| {
+        let (p, r) = (lane.pos_m, lane.reserved_m + FREE_GAP_M);
+        let mut free = c.crash.is_none() && p.z > r;
+        if free && arena.walls {
+            free = p.x.abs() + r < hx && p.y.abs() + r < hy && p.z + r < arena.height_m;
+        }
+        if free {
+            free = world.boxes.iter().all(|b| b.distance_to_point(p) > r);
+        }
+        if free {
+            grid.visit_near(p, r, |j| {
+                if j != i && (spheres[j].center - p).length() <= r + spheres[j].half.x {
+                    free = false;
+                }
+                if free { r } else { -1.0 }
+            });
+        }
+        lane.free = free;
+    });
+    for (lane, c) in state.scratch.lanes.iter().zip(&state.copters) {
+        let body = &mut state.physics.bodies[c.body];
+        if lane.free && !body.is_sleeping() {
+            body.sleep();
+        } else if !lane.free && body.is_sleeping() {
+            body.wake_up(true);
+            body.set_linvel(lane.vel_m_s, false);
+            body.set_angvel(lane.angvel_rad_s, false);
+        }
+    }
+}
+
+/// Attitude PIDs, height hold, mixer and rotor model of a flying copter. Returns the total
+/// thrust along body z, N, and the torque in the body frame, N·m.
+#[inline]
+fn inner_loop(af: &Airframe, c: &mut CopterState, lane: &Lane, dt: Real, alpha: Real) -> (Real, Vec3) {
+    let rot = lane.rot;
+    let rate_body = rot.inverse() * lane.angvel_rad_s;
+    let rpy = euler_from_quat(rot);
+    let rpy_est = [rpy[0], rpy[1], wrap_angle_rad(rpy[2] + c.yaw_bias_rad)];
+    let cos_tilt = (rot * Vec3::Z).z;
+    let collective = control::collective_thrust_n(af, &c.setpoint, lane.pos_m.z, lane.vel_m_s.z, cos_tilt);
+    let torque = control::attitude_torque(af, &mut c.pids, &c.setpoint, rpy_est, rate_body, dt);
+    let wanted = control::mix(af, collective, torque);
+    let yaw_torque = rotor_model(af, c, wanted, dt, alpha);
+    let mut thrust = 0.0;
+    let mut torque_body = Vec3::new(0.0, 0.0, yaw_torque);
+    for r in 0..4 {
+        let f = c.rotor_thrust_n[r];
+        thrust += f;
+        torque_body += af.rotor_pos_in_body_m[r].cross(Vec3::new(0.0, 0.0, f));
+    }
+    (thrust, torque_body)
+}
+
+/// One physics step of a free-flying copter in closed form: gravity, thrust, torque, Rapier's
+/// linear and angular damping (`v / (1 + c dt)`) and its explicit, momentum-preserving
+/// gyroscopic term; semi-implicit Euler (velocities first, then pose with the new ones).
+#[inline]
+fn integrate_free(af: &Airframe, lane: &mut Lane, thrust_n: Real, torque_body_n_m: Vec3, dt: Real) {
+    let rot = lane.rot;
+    let acc = rot * Vec3::new(0.0, 0.0, thrust_n / af.mass_kg) - Vec3::new(0.0, 0.0, GRAVITY_M_S2);
+    let vel = (lane.vel_m_s + acc * dt) * (1.0 / (1.0 + dt * af.spec.linear_damping));
+    let inertia = Vec3::from(af.inertia_kg_m2);
+    let mut w_b = rot.inverse() * lane.angvel_rad_s + torque_body_n_m / inertia * dt;
+    let l = inertia * w_b;
+    let l_gyro = l - w_b.cross(l) * dt;
+    let n2 = l_gyro.length_squared();
+    if n2 > 0.0 {
+        w_b = l_gyro * (l.length_squared() / n2).sqrt() / inertia;
+    }
+    let w = rot * (w_b * (1.0 / (1.0 + dt * af.spec.angular_damping)));
+    lane.vel_m_s = vel;
+    lane.angvel_rad_s = w;
+    lane.pos_m += vel * dt;
+    // q̇ = ½ ω q, one explicit step, renormalised (|ω| dt is a few milliradians).
+    let half_w = w * (0.5 * dt);
+    let dq = Quat::from_xyzw(half_w.x, half_w.y, half_w.z, 0.0) * rot;
+    lane.rot = (rot + dq).normalize();
+}
+
 /// Motor lag, saturation, tolerance and particle noise. Writes the rotor speeds and thrusts;
 /// returns the yaw drag torque about body z, N·m.
 #[inline]
-fn rotor_model(af: &Airframe, c: &mut CopterState, wanted_n: [Real; 4], dt: Real) -> Real {
-    let tau = af.spec.motor_time_constant_s;
-    let alpha = if tau > 0.0 { 1.0 - (-dt / tau).exp() } else { 1.0 };
+fn rotor_model(af: &Airframe, c: &mut CopterState, wanted_n: [Real; 4], dt: Real, alpha: Real) -> Real {
     let mut yaw = 0.0;
     for r in 0..4 {
         let omega_cmd = (wanted_n[r].max(0.0) / af.k_n_s2).sqrt().min(af.omega_max_rad_s);
@@ -161,6 +356,12 @@ fn rotor_model(af: &Airframe, c: &mut CopterState, wanted_n: [Real; 4], dt: Real
         yaw += ROTOR_YAW_SIGN[r] * tol * af.d_n_m_s2 * omega * omega;
     }
     yaw
+}
+
+/// The motor lag's blend factor for one physics step, `1 − exp(−dt / τ)`.
+fn motor_alpha(af: &Airframe, dt: Real) -> Real {
+    let tau = af.spec.motor_time_constant_s;
+    if tau > 0.0 { 1.0 - (-dt / tau).exp() } else { 1.0 }
 }
 
 /// The flight mode's outer loop.
@@ -242,7 +443,11 @@ pub fn fill_sonar_scene(world: &World, physics: &PhysicsWorld, copters: &[Copter
     }));
     scene.copters.clear();
     scene.copters.extend((0..copters.len()).map(|i| copter_box(world, physics, copters, i)));
-    scene.index_copters(GRID_CELL_M);
+    // About one copter per cell: sparse swarms visit fewer empty cells (any cell size gives
+    // the same readings).
+    let area_m2 = world.arena.size_m[0] * world.arena.size_m[1];
+    let cell_m = (area_m2 / copters.len().max(1) as Real).sqrt().clamp(GRID_CELL_M, 4.0 * GRID_CELL_M);
+    scene.index_copters(cell_m);
 }
 
 /// The box a sonar sees of copter `i`: its rotor disc square and body height.
@@ -257,28 +462,33 @@ pub fn copter_box(world: &World, physics: &PhysicsWorld, copters: &[CopterState]
     }
 }
 
-/// Samples every copter's sensors from the current state.
-fn sense(world: &World, state: &mut State, inputs: &Inputs, sonar_due: bool) {
+/// Samples every copter's sensors from the current state (the lanes hold each copter's
+/// motion at the start of the step).
+fn sense(world: &World, state: &mut State, inputs: &Inputs, sonar_due: bool, parallel: bool) {
     let params: &SensorParams = &world.sensors;
     let spec = &params.spec;
     let n = world.copters.len();
     let dt_control = world.params.control_dt_s as Real;
+    let tick = state.tick;
 
     // What the sonars can see, gathered once.
-    let scene = &mut state.scratch.sonar_scene;
-    fill_sonar_scene(world, &state.physics, &state.copters, scene);
+    let scratch = &mut state.scratch;
+    fill_sonar_scene(world, &state.physics, &state.copters, &mut scratch.sonar_scene);
+    let scene = &scratch.sonar_scene;
 
     let noise = spec.noise;
-    for i in 0..n {
-        let body = &state.physics.bodies[state.copters[i].body];
-        let (pos, rot, vel, angvel) = (body.translation(), *body.rotation(), body.linvel(), body.angvel());
-        let c = &mut state.copters[i];
+    let walk = spec.imu.yaw_bias_walk_deg_per_sqrt_s.to_radians() * dt_control.sqrt();
+    let att_sigma = spec.imu.attitude_noise_deg.to_radians();
+    let yaw_sigma = spec.imu.yaw_noise_deg.to_radians();
+    let rate_sigma = spec.imu.rate_noise_deg_s.to_radians();
+    for_each_lane(parallel, &mut state.copters, &mut scratch.lanes, |i, c, lane| {
+        let (pos, rot, vel, angvel) = (lane.pos_m, lane.rot, lane.vel_m_s, lane.angvel_rad_s);
         let r = &mut c.sensors;
         if sonar_due {
             let cones = sonar_cones(params, pos, rot);
-            r.sonar_tick = state.tick;
-            for (s, cone) in cones.iter().enumerate() {
-                let truth = scene.cone_distance(cone, i, spec.sonar.max_range_m);
+            r.sonar_tick = tick;
+            let truths = scene.cone_distances(&cones, pos, i, spec.sonar.max_range_m);
+            for (s, &truth) in truths.iter().enumerate() {
                 let nz = if noise { spec.sonar.noise_sigma_m * c.rng.normal() } else { 0.0 };
                 r.sonar_truth_m[s] = truth.min(spec.sonar.cap_m);
                 r.sonar_m[s] = sonar_reading(&spec.sonar, truth, nz);
@@ -300,12 +510,9 @@ fn sense(world: &World, state: &mut State, inputs: &Inputs, sonar_due: bool) {
         // noise or a drifting yaw of its own would only add to its error.
         let noise = noise && world.copters[i].kind != CopterKind::Real;
         let rpy = euler_from_quat(rot);
-        let walk = spec.imu.yaw_bias_walk_deg_per_sqrt_s.to_radians() * dt_control.sqrt();
         if noise {
             c.yaw_bias_rad = wrap_angle_rad(c.yaw_bias_rad + walk * c.rng.normal());
         }
-        let att_sigma = spec.imu.attitude_noise_deg.to_radians();
-        let yaw_sigma = spec.imu.yaw_noise_deg.to_radians();
         let mut nrm = |sigma: Real| if noise { sigma * c.rng.normal() } else { 0.0 };
         r.attitude_rad = [
             rpy[0] + nrm(att_sigma),
@@ -313,15 +520,15 @@ fn sense(world: &World, state: &mut State, inputs: &Inputs, sonar_due: bool) {
             wrap_angle_rad(rpy[2] + c.yaw_bias_rad + nrm(yaw_sigma)),
         ];
         r.yaw_bias_rad = c.yaw_bias_rad;
-        let rate_sigma = spec.imu.rate_noise_deg_s.to_radians();
         let rate_b = rot.inverse() * angvel;
         r.rate_body_rad_s = [rate_b.x + nrm(rate_sigma), rate_b.y + nrm(rate_sigma), rate_b.z + nrm(rate_sigma)];
-        let acc_world = if state.tick == 0 { Vec3::ZERO } else { (vel - c.prev_vel_m_s) / dt_control };
+        let acc_world = if tick == 0 { Vec3::ZERO } else { (vel - c.prev_vel_m_s) / dt_control };
         let specific = rot.inverse() * (acc_world + Vec3::new(0.0, 0.0, GRAVITY_M_S2));
         let a_sigma = spec.imu.accel_noise_m_s2;
         r.accel_body_m_s2 = [specific.x + nrm(a_sigma), specific.y + nrm(a_sigma), specific.z + nrm(a_sigma)];
         c.prev_vel_m_s = vel;
-    }
+    });
+    let scene = &state.scratch.sonar_scene;
 
     // Cross-talk: copter A's pings heard by copter B's sonars, for B in id order, with B's
     // random stream.
@@ -375,8 +582,8 @@ fn sense(world: &World, state: &mut State, inputs: &Inputs, sonar_due: bool) {
     }
 }
 
-/// Turns collision starts into crashes, and checks tilt.
-fn detect_crashes(world: &World, state: &mut State, report: &mut StepReport) {
+/// Turns collision starts into crashes.
+fn detect_collision_crashes(world: &World, state: &mut State, report: &mut StepReport) {
     let started = std::mem::take(&mut state.scratch.started);
     for &(h1, h2) in &started {
         let t1 = state.physics.colliders.get(h1).and_then(|c| ColliderTag::decode(c.user_data));
@@ -409,15 +616,40 @@ fn detect_crashes(world: &World, state: &mut State, report: &mut StepReport) {
     }
     state.scratch.started = started;
     state.scratch.started.clear();
+}
+
+/// Checks tilt crashes and take-offs, in id order, and hands a free copter that left its
+/// reservation back to Rapier.
+fn detect_tilt_and_takeoff(world: &World, state: &mut State, report: &mut StepReport) {
     for i in 0..world.copters.len() {
-        if state.copters[i].crash.is_some() {
-            continue;
+        let lane = state.scratch.lanes[i];
+        let airframe = world.copters[i].airframe;
+        if state.copters[i].crash.is_none() {
+            let cos_tilt = (lane.rot * Vec3::Z).z.clamp(-1.0, 1.0);
+            if cos_tilt < state.scratch.crash_cos_tilt[airframe] {
+                let tilt_deg = cos_tilt.acos().to_degrees();
+                crash(state, i, CrashCause::Tilt { tilt_deg }, report);
+            }
         }
-        let af = &world.airframes[world.copters[i].airframe];
-        let rot = *state.physics.bodies[state.copters[i].body].rotation();
-        let tilt = (rot * Vec3::Z).z.clamp(-1.0, 1.0).acos().to_degrees();
-        if tilt > af.spec.crash_tilt_deg {
-            crash(state, i, CrashCause::Tilt { tilt_deg: tilt }, report);
+        if lane.free && (lane.pos_m - lane.anchor_m).length() > lane.reach_m {
+            let body = &mut state.physics.bodies[state.copters[i].body];
+            body.set_translation(lane.pos_m, false);
+            body.set_rotation(lane.rot, false);
+            body.set_linvel(lane.vel_m_s, false);
+            body.set_angvel(lane.angvel_rad_s, false);
+            body.wake_up(true);
+            state.scratch.lanes[i].free = false;
+        }
+    }
+    for i in 0..world.copters.len() {
+        let c = &mut state.copters[i];
+        if c.took_off_tick.is_none() && c.crash.is_none() {
+            let z = state.scratch.lanes[i].pos_m.z;
+            let rest = world.airframes[world.copters[i].airframe].rest_height_m;
+            if z > rest + TAKEOFF_MARGIN_M {
+                c.took_off_tick = Some(state.tick);
+                report.events.push(crate::step::Event::TookOff { copter: i });
+            }
         }
     }
 }

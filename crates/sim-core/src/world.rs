@@ -34,6 +34,9 @@ pub struct SimParams {
     pub seed: u64,
     /// Default run length, s.
     pub duration_s: f64,
+    /// Worker threads for one step (`[sim] threads`); any value gives the same bits. A
+    /// caller may change it between steps (e.g. from a command-line flag).
+    pub threads: usize,
 }
 
 /// The arena: a floor rectangle centred on the origin, walls and a ceiling.

@@ -1,0 +1,241 @@
+//! Real-time factor of a swarm: N FINkens flying Wall-Avoid on their own sensors (4 sonar
+//! cones, IR, IMU noise), 50 ms control steps of 10 × 5 ms physics substeps, one copter per
+//! 2 m × 2 m cell, each heading its own way at 0.3 m/s. Prints one JSON line per run, in the
+//! spirit of `peer_pybullet.py bench`, so `scripts/bench-peers.sh` can put them side by side.
+//!
+//! ```text
+//! cargo bench -p twinswarm --bench swarm_rt -- --n 100 1000 --threads 1 2 [--log] [--sim-seconds S]
+//! cargo bench -p twinswarm --bench swarm_rt -- --plot docs/img/scaling.png
+//! ```
+//!
+//! `rtf_wallclock` is simulated time over elapsed time; `rtf_cpu` (one thread only) is
+//! simulated time over the CPU time of the stepping thread, which a busy machine inflates
+//! less (the peer script reports the same two numbers).
+
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+use plotters::prelude::*;
+use sim_core::control::FlightMode;
+use sim_core::{World, scene, step};
+
+/// One measured run.
+#[derive(Debug)]
+struct Run {
+    n: usize,
+    threads: usize,
+    log: bool,
+    sim_s: f64,
+    wall_s: f64,
+    cpu_s: Option<f64>,
+    crashed: usize,
+}
+
+impl Run {
+    fn us_per_copter_step(&self) -> f64 {
+        let steps = self.sim_s / 0.05;
+        1e6 * self.wall_s / (steps * self.n as f64)
+    }
+
+    fn json(&self) -> String {
+        let steps = self.sim_s / 0.05;
+        let cpu = |v: Option<f64>| v.map_or("null".to_string(), |v| format!("{v:.4}"));
+        format!(
+            "{{\"sim\": \"twinswarm\", \"scenario\": \"wall_avoid_sensors_on\", \"N\": {}, \"threads\": {}, \"log\": {}, \
+             \"sim_s\": {:.2}, \"wall_clock_s\": {:.4}, \"cpu_s\": {}, \"rtf_wallclock\": {:.3}, \"rtf_cpu\": {}, \
+             \"ms_per_step\": {:.4}, \"us_per_copter_step\": {:.4}, \"crashed\": {}}}",
+            self.n,
+            self.threads,
+            self.log,
+            self.sim_s,
+            self.wall_s,
+            cpu(self.cpu_s),
+            self.sim_s / self.wall_s,
+            cpu(self.cpu_s.map(|c| self.sim_s / c)),
+            1e3 * self.wall_s / steps,
+            self.us_per_copter_step(),
+            self.crashed,
+        )
+    }
+}
+
+/// CPU time of the calling thread, s (Linux: `/proc/thread-self/schedstat`).
+fn thread_cpu_s() -> Option<f64> {
+    let text = std::fs::read_to_string("/proc/thread-self/schedstat").ok()?;
+    let ns: f64 = text.split_whitespace().next()?.parse().ok()?;
+    Some(ns * 1e-9)
+}
+
+/// The swarm: `grid_swarm` with every copter in Wall-Avoid, 0.3 m/s forward, headings spread
+/// by the golden angle.
+fn world(n: usize, threads: usize) -> World {
+    let mut spec = scene::grid_swarm(n, 2.0, 0.8, true);
+    spec.sim.threads = threads;
+    for (i, c) in spec.copters.iter_mut().enumerate() {
+        c.mode = FlightMode::WallAvoid;
+        c.start.yaw_deg = (i as f32 * 137.508) % 360.0;
+        c.command.target_m = None;
+        c.command.yaw_deg = Some(c.start.yaw_deg);
+        c.command.velocity_m_s = Some([0.3, 0.0]);
+    }
+    match scene::compile(&spec) {
+        Ok(w) => w,
+        Err(e) => panic!("{e}"),
+    }
+}
+
+fn run(n: usize, threads: usize, log: bool, sim_s: f64, dir: &Path) -> Run {
+    let world = world(n, threads);
+    let mut state = world.initial_state();
+    let inputs = world.initial_inputs();
+    // Warm-up (1 s): buffers grow, the thread pool starts.
+    for _ in 0..20 {
+        step(&world, &mut state, &inputs);
+    }
+    let steps = (sim_s / world.params.control_dt_s).round().max(1.0) as usize;
+    let mut logger = log.then(|| {
+        let path = dir.join(format!("swarm_rt_{n}_{threads}.mcap"));
+        match bridge::log::Logger::create(&path, &world, "", bridge::log::LogMeta::default()) {
+            Ok(l) => l,
+            Err(e) => panic!("{e}"),
+        }
+    });
+    let cpu0 = thread_cpu_s();
+    let t0 = Instant::now();
+    for _ in 0..steps {
+        let report = step(&world, &mut state, &inputs);
+        if let Some(l) = logger.as_mut()
+            && let Err(e) = l.log_step(&world, &state, &inputs, &report)
+        {
+            panic!("{e}");
+        }
+    }
+    let wall_s = t0.elapsed().as_secs_f64();
+    let cpu_s = match (threads, cpu0, thread_cpu_s()) {
+        (1, Some(a), Some(b)) => Some(b - a),
+        _ => None,
+    };
+    if let Some(l) = logger
+        && let Err(e) = l.finish()
+    {
+        panic!("{e}");
+    }
+    let crashed = state.copters.iter().filter(|c| c.crash.is_some()).count();
+    Run { n, threads, log, sim_s: steps as f64 * world.params.control_dt_s, wall_s, cpu_s, crashed }
+}
+
+/// Default simulated time: long enough for stable numbers, short for big swarms.
+fn default_sim_s(n: usize) -> f64 {
+    (2000.0 / n as f64).clamp(1.0, 20.0)
+}
+
+fn plot(out: &Path, runs: &[Run]) -> Result<(), Box<dyn std::error::Error>> {
+    plotters::style::register_font("sans-serif", FontStyle::Normal, dejavu::sans::regular())
+        .map_err(|_| "the embedded font could not be loaded")?;
+    if let Some(dir) = out.parent().filter(|d| !d.as_os_str().is_empty()) {
+        std::fs::create_dir_all(dir)?;
+    }
+    let root = BitMapBackend::new(out, (900, 600)).into_drawing_area();
+    root.fill(&WHITE)?;
+    let y_max = runs.iter().map(Run::us_per_copter_step).fold(1.0, f64::max) * 2.0;
+    let y_min = runs.iter().map(Run::us_per_copter_step).fold(f64::MAX, f64::min) / 2.0;
+    let mut chart = ChartBuilder::on(&root)
+        .caption("Twinswarm: one 50 ms step (10 × 5 ms physics), Wall-Avoid, sensors on", ("sans-serif", 20))
+        .margin(15)
+        .x_label_area_size(45)
+        .y_label_area_size(70)
+        .build_cartesian_2d((0.7f64..15000.0).log_scale(), (y_min..y_max).log_scale())?;
+    chart
+        .configure_mesh()
+        .x_desc("N copters")
+        .y_desc("µs per copter-step (wall clock)")
+        .label_style(("sans-serif", 14))
+        .draw()?;
+    // The 10× real-time budget at N = 1000: 5 ms per step = 5 µs per copter-step.
+    chart
+        .draw_series(LineSeries::new([(0.7, 5.0), (15000.0, 5.0)], BLACK.mix(0.4).stroke_width(1)))?
+        .label("5 µs: 10× real time at N = 1000")
+        .legend(|(x, y)| PathElement::new([(x, y), (x + 20, y)], BLACK.mix(0.4)));
+    for (threads, color) in [(1, RGBColor(31, 119, 180)), (2, RGBColor(214, 39, 40))] {
+        let pts: Vec<(f64, f64)> =
+            runs.iter().filter(|r| r.threads == threads).map(|r| (r.n as f64, r.us_per_copter_step())).collect();
+        chart
+            .draw_series(LineSeries::new(pts.clone(), color.stroke_width(2)))?
+            .label(format!("{threads} thread{}", if threads > 1 { "s" } else { "" }))
+            .legend(move |(x, y)| PathElement::new([(x, y), (x + 20, y)], color.stroke_width(2)));
+        chart.draw_series(pts.iter().map(|&p| Circle::new(p, 4, color.filled())))?;
+    }
+    chart
+        .configure_series_labels()
+        .position(SeriesLabelPosition::UpperLeft)
+        .label_font(("sans-serif", 14))
+        .background_style(WHITE.mix(0.9))
+        .border_style(BLACK.mix(0.3))
+        .draw()?;
+    root.present()?;
+    Ok(())
+}
+
+fn main() {
+    let mut ns = Vec::new();
+    let mut threads = Vec::new();
+    let mut log = false;
+    let mut sim_s = None;
+    let mut plot_to: Option<PathBuf> = None;
+    let mut args = std::env::args().skip(1).peekable();
+    let mut list = None;
+    while let Some(a) = args.next() {
+        match a.as_str() {
+            "--n" => list = Some(0),
+            "--threads" => list = Some(1),
+            "--log" => (log, list) = (true, None),
+            "--sim-seconds" => (sim_s, list) = (args.next().and_then(|v| v.parse::<f64>().ok()), None),
+            "--plot" => (plot_to, list) = (args.next().map(PathBuf::from), None),
+            // `cargo bench` passes `--bench`; other flags are not ours.
+            s if s.starts_with("--") => list = None,
+            s => match (list, s.parse::<usize>()) {
+                (Some(0), Ok(v)) => ns.push(v),
+                (Some(1), Ok(v)) => threads.push(v),
+                _ => panic!("unexpected argument {s:?}"),
+            },
+        }
+    }
+    let dir = std::env::temp_dir().join(format!("twinswarm-swarm-rt-{}", std::process::id()));
+    if let Err(e) = std::fs::create_dir_all(&dir) {
+        panic!("cannot create {}: {e}", dir.display());
+    }
+    if let Some(out) = plot_to {
+        let mut runs = Vec::new();
+        for t in [1, 2] {
+            for n in [1, 10, 100, 1000, 10_000] {
+                let r = run(n, t, false, sim_s.unwrap_or(default_sim_s(n) / 2.0), &dir);
+                println!("{}", r.json());
+                runs.push(r);
+            }
+        }
+        if let Err(e) = plot(&out, &runs) {
+            panic!("cannot draw {}: {e}", out.display());
+        }
+        let csv: String = std::iter::once("n,threads,us_per_copter_step\n".to_string())
+            .chain(runs.iter().map(|r| format!("{},{},{:.4}\n", r.n, r.threads, r.us_per_copter_step())))
+            .collect();
+        let csv_path = out.with_extension("csv");
+        if let Err(e) = std::fs::write(&csv_path, csv) {
+            panic!("cannot write {}: {e}", csv_path.display());
+        }
+        eprintln!("wrote {} and {}", out.display(), csv_path.display());
+    } else {
+        if ns.is_empty() {
+            ns = vec![100, 1000];
+        }
+        if threads.is_empty() {
+            threads = vec![1];
+        }
+        for &t in &threads {
+            for &n in &ns {
+                println!("{}", run(n, t, log, sim_s.unwrap_or(default_sim_s(n)), &dir).json());
+            }
+        }
+    }
+    let _ = std::fs::remove_dir_all(&dir);
+}
