@@ -122,6 +122,10 @@ struct RunArgs {
     /// Pace control steps against the wall clock (1 simulated second per second).
     #[arg(long)]
     realtime: bool,
+    /// Worker threads of a step (default: the scene's `sim.threads`); results are the same
+    /// bits for any count.
+    #[arg(long, value_name = "N")]
+    threads: Option<usize>,
     /// Print the summary as JSON on stdout.
     #[arg(long)]
     json: bool,
@@ -318,6 +322,12 @@ fn run(args: RunArgs) -> anyhow::Result<()> {
     let (origin, mut spec, _) = load_scene(args.scene.as_deref())?;
     if let Some(seed) = args.seed {
         spec.sim.seed = seed;
+    }
+    if let Some(n) = args.threads {
+        if !(1..=256).contains(&n) {
+            return Err(BadInput(anyhow::anyhow!("--threads must be 1 to 256, got {n}")).into());
+        }
+        spec.sim.threads = n;
     }
     if let Some(d) = args.duration {
         if !d.is_finite() || d <= 0.0 {
