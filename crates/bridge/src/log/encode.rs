@@ -191,6 +191,11 @@ const SONAR_Z_TO_AXIS: [Q; 4] = {
 };
 const SONAR_AXES: [[f32; 3]; 4] = [[1.0, 0.0, 0.0], [0.0, -1.0, 0.0], [-1.0, 0.0, 0.0], [0.0, 1.0, 0.0]];
 
+/// `/scene/copters` (bodies and sonar cones for Foxglove) is written at most this often, s:
+/// the cones are for the eye; the readings themselves are on `/copters/sensors` every step.
+/// At every 50 ms step it was about half the bytes of a log.
+pub const SCENE_COPTERS_PERIOD_S: f64 = 0.2;
+
 /// Encodes messages into a reused buffer. Built once per run from the [`World`].
 #[derive(Debug)]
 pub struct Encoder {
@@ -199,6 +204,7 @@ pub struct Encoder {
     copters: Vec<CopterInfo>,
     sonar: SonarGeometry,
     buf: Vec<u8>,
+    scene_every: u64,
 }
 
 /// A sink for encoded messages: topic, log time (ns), JSON bytes.
@@ -238,7 +244,13 @@ impl Encoder {
                 safety_m: s.wall_avoid.safety_distance_m,
             },
             buf: Vec::with_capacity(64 * 1024),
+            scene_every: ((SCENE_COPTERS_PERIOD_S / world.params.control_dt_s).round() as u64).max(1),
         }
+    }
+
+    /// `/scene/copters` goes out on ticks that are multiples of this.
+    pub fn scene_every_ticks(&self) -> u64 {
+        self.scene_every
     }
 
     /// Log time of a tick, ns.
@@ -341,11 +353,13 @@ impl Encoder {
                 };
                 self.emit(Topic::Tf, lt, &tf, sink)?;
             }
-            let update = SceneUpdate {
-                deletions: [],
-                entities: CopterEntities { copters: &copters, frame, sonar: self.sonar, time: Time::from_ns(lt) },
-            };
-            self.emit(Topic::SceneCopters, lt, &update, sink)?;
+            if tick.is_multiple_of(self.scene_every) {
+                let update = SceneUpdate {
+                    deletions: [],
+                    entities: CopterEntities { copters: &copters, frame, sonar: self.sonar, time: Time::from_ns(lt) },
+                };
+                self.emit(Topic::SceneCopters, lt, &update, sink)?;
+            }
             Ok(())
         })();
         self.copters = copters;
