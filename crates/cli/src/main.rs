@@ -109,7 +109,7 @@ enum LogCommand {
     },
 }
 
-#[derive(Debug, clap::Args, Default)]
+#[derive(Debug, clap::Args)]
 struct RunArgs {
     /// The scene file (TOML); default: the embedded FINken lab.
     scene: Option<PathBuf>,
@@ -267,7 +267,18 @@ fn main() -> ExitCode {
         .with_env_filter(tracing_subscriber::EnvFilter::try_from_env("TWINSWARM_LOG").unwrap_or_else(|_| "warn".into()))
         .with_writer(std::io::stderr)
         .init();
-    let result = match cli.command.unwrap_or(Command::Run(RunArgs::default())) {
+    // No subcommand: `run` with its defaults (parsed, so every default is clap's).
+    let command = match cli.command {
+        Some(c) => c,
+        None => match Cli::try_parse_from(["twinswarm", "run"]).map(|c| c.command) {
+            Ok(Some(c)) => c,
+            _ => {
+                eprintln!("error: cannot build the default `run` command");
+                return ExitCode::from(1);
+            }
+        },
+    };
+    let result = match command {
         Command::Run(args) => run(args),
         Command::Copter(args) => standin::run(args),
         Command::Check { scene } => check(&scene),
