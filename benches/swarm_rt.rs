@@ -16,7 +16,6 @@ use std::path::{Path, PathBuf};
 use std::time::Instant;
 
 use plotters::prelude::*;
-use sim_core::control::FlightMode;
 use sim_core::{World, scene, step};
 
 /// One measured run.
@@ -66,18 +65,10 @@ fn thread_cpu_s() -> Option<f64> {
     Some(ns * 1e-9)
 }
 
-/// The swarm: `grid_swarm` with every copter in Wall-Avoid, 0.3 m/s forward, headings spread
-/// by the golden angle.
+/// The swarm: `scene::cruising_swarm` (Wall-Avoid, 0.3 m/s forward, headings spread by the
+/// golden angle).
 fn world(n: usize, threads: usize) -> World {
-    let mut spec = scene::grid_swarm(n, 2.0, 0.8, true);
-    spec.sim.threads = threads;
-    for (i, c) in spec.copters.iter_mut().enumerate() {
-        c.mode = FlightMode::WallAvoid;
-        c.start.yaw_deg = (i as f32 * 137.508) % 360.0;
-        c.command.target_m = None;
-        c.command.yaw_deg = Some(c.start.yaw_deg);
-        c.command.velocity_m_s = Some([0.3, 0.0]);
-    }
+    let spec = scene::cruising_swarm(n, threads);
     match scene::compile(&spec) {
         Ok(w) => w,
         Err(e) => panic!("{e}"),

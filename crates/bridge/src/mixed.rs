@@ -446,10 +446,6 @@ impl std::fmt::Debug for Gateway {
     }
 }
 
-fn unix_now_ns() -> u64 {
-    std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).map_or(0, |d| d.as_nanos() as u64)
-}
-
 impl Gateway {
     /// Binds the FINken telemetry under `prefix` on `session`; requests go to the loop.
     pub async fn start(
@@ -467,8 +463,11 @@ impl Gateway {
             let (shared, messages, requests) = (shared.clone(), messages.clone(), requests.clone());
             bus.bind(&format!(r"^(\d+) {name} "), move |d, _| {
                 let received = Instant::now();
-                let origin =
-                    BusInput { key: d.key.to_owned(), text: d.text.to_owned(), received_unix_ns: unix_now_ns() };
+                let origin = BusInput {
+                    key: d.key.to_owned(),
+                    text: d.text.to_owned(),
+                    received_unix_ns: crate::log::now_unix_ns(),
+                };
                 let Ok(mut sh) = shared.lock() else { return };
                 if let Some(request) = sh.interpret(&messages, origin, received)
                     && requests.try_send(request).is_err()

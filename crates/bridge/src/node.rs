@@ -141,9 +141,22 @@ impl std::fmt::Debug for Node {
     }
 }
 
-/// Wall-clock time, ns since the Unix epoch (0 if the clock is before it).
-fn unix_now_ns() -> u64 {
-    std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).map_or(0, |d| d.as_nanos() as u64)
+/// A sample on `<prefix>/copters/<name><suffix>`: the copter's name, the payload, and the
+/// sample as a bus input (key, text, arrival time) for the log.
+fn copter_sample(
+    sample: &zenoh::sample::Sample,
+    prefix_len: usize,
+    suffix: &str,
+) -> (String, Vec<u8>, crate::sim::BusInput) {
+    let key = sample.key_expr().as_str();
+    let name = key[prefix_len..].trim_start_matches("/copters/").trim_end_matches(suffix).to_owned();
+    let payload = sample.payload().to_bytes().into_owned();
+    let origin = crate::sim::BusInput {
+        key: key.to_owned(),
+        text: String::from_utf8_lossy(&payload).into_owned(),
+        received_unix_ns: crate::log::now_unix_ns(),
+    };
+    (name, payload, origin)
 }
 
 /// The default key-expression prefix of a world.
@@ -173,14 +186,8 @@ impl Node {
             session
                 .declare_subscriber(format!("{prefix}/copters/*/cmd"))
                 .callback(move |sample| {
-                    let key = sample.key_expr().as_str();
-                    let name = key[prefix_len..].trim_start_matches("/copters/").trim_end_matches("/cmd").to_owned();
-                    let payload = sample.payload().to_bytes();
-                    let origin = crate::sim::BusInput {
-                        key: key.to_owned(),
-                        text: String::from_utf8_lossy(&payload).into_owned(),
-                        received_unix_ns: unix_now_ns(),
-                    };
+                    let (name, payload, origin) = copter_sample(&sample, prefix_len, "/cmd");
+                    let key = origin.key.as_str();
                     let world = match world_cell.lock() {
                         Ok(w) => w.clone(),
                         Err(_) => return,
@@ -218,20 +225,12 @@ impl Node {
             session
                 .declare_subscriber(format!("{prefix}/copters/*/tracking"))
                 .callback(move |sample| {
-                    let key = sample.key_expr().as_str();
-                    let name =
-                        key[prefix_len..].trim_start_matches("/copters/").trim_end_matches("/tracking").to_owned();
-                    let payload = sample.payload().to_bytes();
-                    let origin = crate::sim::BusInput {
-                        key: key.to_owned(),
-                        text: String::from_utf8_lossy(&payload).into_owned(),
-                        received_unix_ns: unix_now_ns(),
-                    };
+                    let (name, payload, origin) = copter_sample(&sample, prefix_len, "/tracking");
                     let request = match crate::wire::TrackingMsg::parse(&payload) {
                         Ok(t) => Request::Tracking { copter: name, pos_m: [t.pos_m[0], t.pos_m[1]], origin },
                         Err(e) => {
                             counters.commands_rejected.fetch_add(1, Ordering::Relaxed);
-                            limiter.warn(&format!("rejected tracking pose on {key}: {e}"));
+                            limiter.warn(&format!("rejected tracking pose on {}: {e}", origin.key));
                             Request::Rejected { origin, reason: e.to_string() }
                         }
                     };

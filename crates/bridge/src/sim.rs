@@ -282,7 +282,7 @@ pub fn run_loop(
                         twin.inputs_applied += 1;
                         twin.last_input = Some(Instant::now());
                         twin.holding = false;
-                        let now = unix_now_ns();
+                        let now = crate::log::now_unix_ns();
                         if twin.latencies_ms.len() < 1_000_000 {
                             twin.latencies_ms.push(now.saturating_sub(origin.received_unix_ns) as f32 / 1e6);
                         }
@@ -424,8 +424,4 @@ fn hold_silent_twins(world: &World, inputs: &mut Inputs, twins: &mut BTreeMap<St
         t.link_lost += 1;
         tracing::warn!("twin {name}: no telemetry for {TWIN_LINK_TIMEOUT_S} s; levelling out, holding its height");
     }
-}
-
-fn unix_now_ns() -> u64 {
-    std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).map_or(0, |d| d.as_nanos() as u64)
 }

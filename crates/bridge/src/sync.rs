@@ -191,7 +191,7 @@ pub fn real_boxes(world: &World) -> Vec<BoxObstacle> {
     world
         .boxes
         .iter()
-        .filter(|b| !b.virtual_only && b.center_m.z + b.half_extents_m.z >= MIN_BOX_TOP_M)
+        .filter(|b| is_real_box(b))
         .map(|b| {
             BoxObstacle::new(
                 Vector2::new(f64::from(b.center_m.x), f64::from(b.center_m.y)),
@@ -200,6 +200,12 @@ pub fn real_boxes(world: &World) -> Vec<BoxObstacle> {
             )
         })
         .collect()
+}
+
+/// Whether a real copter's sonars see box `b`: not `virtual_only`, top at least
+/// [`MIN_BOX_TOP_M`].
+pub fn is_real_box(b: &sim_core::world::StaticBox) -> bool {
+    !b.virtual_only && b.center_m.z + b.half_extents_m.z >= MIN_BOX_TOP_M
 }
 
 /// The MEDUSA filter configuration for copter `id` of `world`: the motion model's drag is the

@@ -519,7 +519,7 @@ fn diagonal_readings(world: &World, state: &State, scene: &SonarScene, id: usize
     })
 }
 
-fn percentile(sorted: &[f64], q: f64) -> f64 {
+pub(crate) fn percentile(sorted: &[f64], q: f64) -> f64 {
     if sorted.is_empty() {
         return f64::NAN;
     }
@@ -549,12 +549,7 @@ pub fn evaluate(
     let world = scene::compile(&spec).context("compiling the evaluation scene")?;
     let started = Instant::now();
     // The boxes MEDUSA knows: those whose top reaches the sonars (see `bridge::sync::real_boxes`).
-    let known: Vec<usize> = (0..world.boxes.len())
-        .filter(|&b| {
-            let sb = &world.boxes[b];
-            !sb.virtual_only && sb.center_m.z + sb.half_extents_m.z >= bridge::sync::MIN_BOX_TOP_M
-        })
-        .collect();
+    let known: Vec<usize> = (0..world.boxes.len()).filter(|&b| bridge::sync::is_real_box(&world.boxes[b])).collect();
 
     let seed = world.params.seed;
     let mut evals = Vec::new();

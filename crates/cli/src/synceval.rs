@@ -255,7 +255,7 @@ impl Harness {
 fn error_cm(v: &[f64]) -> ErrorCm {
     let mut s = v.to_vec();
     s.sort_by(f64::total_cmp);
-    let q = |p: f64| if s.is_empty() { f64::NAN } else { s[((s.len() - 1) as f64 * p).round() as usize] * 100.0 };
+    let q = |p: f64| crate::localize::percentile(&s, p) * 100.0;
     ErrorCm { median: q(0.5), p95: q(0.95), max: q(1.0) }
 }
 

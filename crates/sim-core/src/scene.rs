@@ -822,3 +822,19 @@ pub fn grid_swarm(n: usize, spacing_m: Real, height_m: Real, sensors: bool) -> S
         copters,
     }
 }
+
+/// [`grid_swarm`] with sensors, every copter flying Wall-Avoid at 0.3 m/s forward, headings
+/// spread by the golden angle, on `threads` threads: the swarm of the real-time benchmark and
+/// of the allocation and thread tests.
+pub fn cruising_swarm(n: usize, threads: usize) -> SceneSpec {
+    let mut spec = grid_swarm(n, 2.0, 0.8, true);
+    spec.sim.threads = threads;
+    for (i, c) in spec.copters.iter_mut().enumerate() {
+        c.mode = FlightMode::WallAvoid;
+        c.start.yaw_deg = (i as Real * 137.508) % 360.0;
+        c.command.target_m = None;
+        c.command.yaw_deg = Some(c.start.yaw_deg);
+        c.command.velocity_m_s = Some([0.3, 0.0]);
+    }
+    spec
+}

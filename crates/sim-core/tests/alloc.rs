@@ -10,7 +10,6 @@
 use std::alloc::{GlobalAlloc, Layout, System};
 use std::sync::atomic::{AtomicU64, Ordering};
 
-use sim_core::control::FlightMode;
 use sim_core::{World, scene, step};
 
 struct Counting;
@@ -48,15 +47,7 @@ fn lab(threads: usize) -> World {
 
 /// 300 copters in Wall-Avoid, each heading its own way at 0.3 m/s.
 fn swarm(threads: usize) -> World {
-    let mut spec = scene::grid_swarm(300, 2.0, 0.8, true);
-    spec.sim.threads = threads;
-    for (i, c) in spec.copters.iter_mut().enumerate() {
-        c.mode = FlightMode::WallAvoid;
-        c.start.yaw_deg = (i as f32 * 137.508) % 360.0;
-        c.command.target_m = None;
-        c.command.yaw_deg = Some(c.start.yaw_deg);
-        c.command.velocity_m_s = Some([0.3, 0.0]);
-    }
+    let spec = scene::cruising_swarm(300, threads);
     scene::compile(&spec).unwrap()
 }
 

@@ -87,16 +87,8 @@ fn inputs_are_never_written_by_the_step() {
 /// 300 copters in Wall-Avoid, each heading its own way at 0.3 m/s: copters move between free
 /// flight and Rapier, meet, and some crash.
 fn swarm(threads: usize) -> World {
-    let mut spec = scene::grid_swarm(300, 2.0, 0.8, true);
-    spec.sim.threads = threads;
+    let mut spec = scene::cruising_swarm(300, threads);
     spec.sensors.crosstalk.enabled = true;
-    for (i, c) in spec.copters.iter_mut().enumerate() {
-        c.mode = sim_core::FlightMode::WallAvoid;
-        c.start.yaw_deg = (i as f32 * 137.508) % 360.0;
-        c.command.target_m = None;
-        c.command.yaw_deg = Some(c.start.yaw_deg);
-        c.command.velocity_m_s = Some([0.3, 0.0]);
-    }
     scene::compile(&spec).unwrap()
 }
 
