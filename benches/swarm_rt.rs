@@ -5,6 +5,7 @@
 //!
 //! ```text
 //! cargo bench -p twinswarm --bench swarm_rt -- --n 100 1000 --threads 1 2 [--log] [--sim-seconds S]
+//! cargo bench -p twinswarm --bench swarm_rt -- --n 100 1000 --log-cost ROUNDS [--zstd-level L]
 //! cargo bench -p twinswarm --bench swarm_rt -- --plot docs/img/scaling.png
 //! ```
 //!
@@ -28,6 +29,10 @@ struct Run {
     wall_s: f64,
     cpu_s: Option<f64>,
     crashed: usize,
+    /// CPU time of the log writer thread, s (logging runs, Linux).
+    writer_cpu_s: Option<f64>,
+    /// Size of the log file, bytes (logging runs).
+    log_bytes: u64,
 }
 
 impl Run {
@@ -58,11 +63,9 @@ impl Run {
     }
 }
 
-/// CPU time of the calling thread, s (Linux: `/proc/thread-self/schedstat`).
+/// CPU time of the calling thread, s (Linux).
 fn thread_cpu_s() -> Option<f64> {
-    let text = std::fs::read_to_string("/proc/thread-self/schedstat").ok()?;
-    let ns: f64 = text.split_whitespace().next()?.parse().ok()?;
-    Some(ns * 1e-9)
+    bridge::log::thread_cpu_ns().map(|ns| ns as f64 * 1e-9)
 }
 
 /// The swarm: `scene::cruising_swarm` (Wall-Avoid, 0.3 m/s forward, headings spread by the
@@ -73,6 +76,16 @@ fn world(n: usize, threads: usize) -> World {
         Ok(w) => w,
         Err(e) => panic!("{e}"),
     }
+}
+
+/// The logger's options: the defaults, or `--zstd-level L`.
+fn log_options() -> bridge::log::LogOptions {
+    let mut o = bridge::log::LogOptions::default();
+    let args: Vec<String> = std::env::args().collect();
+    if let Some(l) = args.iter().position(|a| a == "--zstd-level").and_then(|i| args.get(i + 1)?.parse().ok()) {
+        o.zstd_level = l;
+    }
+    o
 }
 
 fn run(n: usize, threads: usize, log: bool, sim_s: f64, dir: &Path) -> Run {
@@ -86,7 +99,7 @@ fn run(n: usize, threads: usize, log: bool, sim_s: f64, dir: &Path) -> Run {
     let steps = (sim_s / world.params.control_dt_s).round().max(1.0) as usize;
     let mut logger = log.then(|| {
         let path = dir.join(format!("swarm_rt_{n}_{threads}.mcap"));
-        match bridge::log::Logger::create(&path, &world, "", bridge::log::LogMeta::default()) {
+        match bridge::log::Logger::with_options(&path, &world, "", bridge::log::LogMeta::default(), log_options()) {
             Ok(l) => l,
             Err(e) => panic!("{e}"),
         }
@@ -101,18 +114,57 @@ fn run(n: usize, threads: usize, log: bool, sim_s: f64, dir: &Path) -> Run {
             panic!("{e}");
         }
     }
-    let wall_s = t0.elapsed().as_secs_f64();
     let cpu_s = match (threads, cpu0, thread_cpu_s()) {
         (1, Some(a), Some(b)) => Some(b - a),
         _ => None,
     };
-    if let Some(l) = logger
-        && let Err(e) = l.finish()
-    {
-        panic!("{e}");
+    // The run ends when everything is on disk: draining the writer's queue and the summary
+    // section count against logging.
+    let (mut writer_cpu_s, mut log_bytes) = (None, 0);
+    if let Some(l) = logger {
+        match l.finish() {
+            Ok(stats) => {
+                writer_cpu_s = stats.writer_cpu_s;
+                log_bytes = std::fs::metadata(&stats.path).map_or(0, |m| m.len());
+                let _ = std::fs::remove_file(&stats.path);
+            }
+            Err(e) => panic!("{e}"),
+        }
     }
+    let wall_s = t0.elapsed().as_secs_f64();
     let crashed = state.copters.iter().filter(|c| c.crash.is_some()).count();
-    Run { n, threads, log, sim_s: steps as f64 * world.params.control_dt_s, wall_s, cpu_s, crashed }
+    let sim_s = steps as f64 * world.params.control_dt_s;
+    Run { n, threads, log, sim_s, wall_s, cpu_s, crashed, writer_cpu_s, log_bytes }
+}
+
+/// The cost of logging at `n` copters: `rounds` pairs of runs, logging off then on, and the
+/// medians of each. Interleaving the pairs spreads the machine's noise over both sides.
+fn log_cost(n: usize, threads: usize, rounds: usize, sim_s: f64, dir: &Path) -> String {
+    let (mut off, mut on) = (Vec::new(), Vec::new());
+    for _ in 0..rounds {
+        off.push(run(n, threads, false, sim_s, dir));
+        on.push(run(n, threads, true, sim_s, dir));
+    }
+    let steps = |r: &Run| r.sim_s / 0.05;
+    let median = |runs: &[Run], f: &dyn Fn(&Run) -> Option<f64>| {
+        let mut v: Vec<f64> = runs.iter().filter_map(f).collect();
+        v.sort_by(f64::total_cmp);
+        if v.is_empty() { f64::NAN } else { v[v.len() / 2] }
+    };
+    let wall_off = median(&off, &|r| Some(1e3 * r.wall_s / steps(r)));
+    let wall_on = median(&on, &|r| Some(1e3 * r.wall_s / steps(r)));
+    let cpu_off = median(&off, &|r| r.cpu_s.map(|c| 1e3 * c / steps(r)));
+    let cpu_on = median(&on, &|r| r.cpu_s.map(|c| 1e3 * c / steps(r)));
+    let writer = median(&on, &|r| r.writer_cpu_s.map(|c| 1e3 * c / steps(r)));
+    let bytes = median(&on, &|r| Some(r.log_bytes as f64 / steps(r)));
+    format!(
+        "{{\"sim\": \"twinswarm\", \"scenario\": \"log_cost\", \"N\": {n}, \"threads\": {threads}, \"rounds\": {rounds}, \
+         \"sim_s\": {sim_s:.1}, \"ms_per_step_off\": {wall_off:.4}, \"ms_per_step_on\": {wall_on:.4}, \
+         \"overhead_pct\": {:.1}, \"step_thread_cpu_ms_off\": {cpu_off:.4}, \"step_thread_cpu_ms_on\": {cpu_on:.4}, \
+         \"writer_cpu_ms_per_step\": {writer:.4}, \"log_kib_per_step\": {:.1}}}",
+        100.0 * (wall_on / wall_off - 1.0),
+        bytes / 1024.0,
+    )
 }
 
 /// Default simulated time: long enough for stable numbers, short for big swarms.
@@ -171,6 +223,7 @@ fn main() {
     let mut ns = Vec::new();
     let mut threads = Vec::new();
     let mut log = false;
+    let mut log_cost_rounds = None;
     let mut sim_s = None;
     let mut plot_to: Option<PathBuf> = None;
     let mut args = std::env::args().skip(1).peekable();
@@ -180,6 +233,8 @@ fn main() {
             "--n" => list = Some(0),
             "--threads" => list = Some(1),
             "--log" => (log, list) = (true, None),
+            "--log-cost" => (log_cost_rounds, list) = (args.next().and_then(|v| v.parse::<usize>().ok()), None),
+            "--zstd-level" => (_, list) = (args.next(), None),
             "--sim-seconds" => (sim_s, list) = (args.next().and_then(|v| v.parse::<f64>().ok()), None),
             "--plot" => (plot_to, list) = (args.next().map(PathBuf::from), None),
             // `cargo bench` passes `--bench`; other flags are not ours.
@@ -224,7 +279,11 @@ fn main() {
         }
         for &t in &threads {
             for &n in &ns {
-                println!("{}", run(n, t, log, sim_s.unwrap_or(default_sim_s(n)), &dir).json());
+                let sim_s = sim_s.unwrap_or(default_sim_s(n));
+                match log_cost_rounds {
+                    Some(rounds) => println!("{}", log_cost(n, t, rounds.max(1), sim_s, &dir)),
+                    None => println!("{}", run(n, t, log, sim_s, &dir).json()),
+                }
             }
         }
     }

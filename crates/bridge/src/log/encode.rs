@@ -1,11 +1,12 @@
 //! Turns captured steps, events and the static scene into JSON messages (sans I/O): each
 //! message goes to a sink as `(topic, log_time_ns, bytes)`.
 
-use serde::{Serialize, Serializer, ser::SerializeSeq};
+use serde::Serialize;
 use sim_core::control::FlightMode;
 use sim_core::{CopterKind, Event, World};
 
-use super::capture::{CopterSample, StepFrame};
+use super::capture::StepFrame;
+use super::json::{Json, quoted};
 use super::msg::*;
 
 /// A channel of the log.
@@ -163,10 +164,16 @@ impl LogEvent {
 #[derive(Clone, Debug)]
 struct CopterInfo {
     name: String,
-    entity_id: String,
-    ac_id: Option<u8>,
+    /// The name as a JSON string.
+    name_json: String,
+    /// `"copter/<name>"` as a JSON string: its `/scene/copters` entity.
+    entity_id_json: String,
+    /// `,"copter":<name>,"id":<id>`: in every per-copter message.
+    ident: String,
+    /// `,"ac_id":…,"kind":…`: in `/copters/state`.
+    state_ident: String,
     kind: CopterKind,
-    body_size_m: V3,
+    body_size_m: [f32; 3],
 }
 
 /// Sonar cone drawing constants.
@@ -219,15 +226,22 @@ impl Encoder {
         let copters = world
             .copters
             .iter()
-            .map(|c| {
+            .enumerate()
+            .map(|(id, c)| {
                 let af = &world.airframes[c.airframe];
-                let [bx, by, bz] = af.spec.body_size_m;
+                let name_json = quoted(&c.name);
+                let ac_id = c.ac_id.map_or("null".to_owned(), |a| a.to_string());
                 CopterInfo {
                     name: c.name.clone(),
-                    entity_id: format!("copter/{}", c.name),
-                    ac_id: c.ac_id,
+                    ident: format!(",\"copter\":{name_json},\"id\":{id}"),
+                    state_ident: format!(
+                        ",\"ac_id\":{ac_id},\"kind\":{}",
+                        serde_json::to_string(&c.kind).unwrap_or_default()
+                    ),
+                    entity_id_json: quoted(&format!("copter/{}", c.name)),
+                    name_json,
                     kind: c.kind,
-                    body_size_m: v3(bx, by, bz),
+                    body_size_m: af.spec.body_size_m,
                 }
             })
             .collect();
@@ -281,89 +295,95 @@ impl Encoder {
     }
 
     /// Every per-step message of a captured step: state, sensors, command, control and `/tf`
-    /// per copter, one `/scene/copters` update, and the step's events.
+    /// per copter, one `/scene/copters` update every [`Encoder::scene_every_ticks`], and the
+    /// step's events. Written with [`Json`] (same text as serde's, several times faster).
     pub fn encode_step<E>(&mut self, frame: &StepFrame, sink: &mut impl Sink<E>) -> Result<(), E> {
         let tick = frame.tick;
         let lt = self.log_time(tick);
         let t_s = self.t_s(tick);
-        let copters = std::mem::take(&mut self.copters);
-        let result = (|| {
-            for (id, (info, c)) in copters.iter().zip(&frame.copters).enumerate() {
-                let name = info.name.as_str();
-                let mode = c.command.mode;
-                self.emit(Topic::State, lt, &state_msg(tick, t_s, id, info, c), sink)?;
-                let r = &c.sensors;
-                let sensors = SensorsMsg {
-                    tick,
-                    t_s,
-                    copter: name,
-                    id,
-                    sonar_tick: r.sonar_tick,
-                    sonar_truth_m: r.sonar_truth_m,
-                    sonar_m: r.sonar_m,
-                    sonar_fused_m: r.sonar_fused_m,
-                    sonar_crosstalk: r.sonar_crosstalk,
-                    ir_m: r.ir_m,
-                    ir_truth_m: r.ir_truth_m.is_finite().then_some(r.ir_truth_m),
-                    attitude_rad: r.attitude_rad,
-                    yaw_bias_rad: r.yaw_bias_rad,
-                    rate_body_rad_s: r.rate_body_rad_s,
-                    accel_body_m_s2: r.accel_body_m_s2,
-                };
-                self.emit(Topic::Sensors, lt, &sensors, sink)?;
-                let cmd = &c.command;
-                let command = CommandMsg {
-                    tick,
-                    t_s,
-                    copter: name,
-                    id,
-                    mode,
-                    roll_rad: cmd.roll_rad,
-                    pitch_rad: cmd.pitch_rad,
-                    yaw_rad: cmd.yaw_rad,
-                    throttle: cmd.throttle,
-                    height_m: cmd.height_m,
-                    target_m: cmd.target_m,
-                    velocity_m_s: cmd.velocity_m_s,
-                    virtual_sonar_m: cmd.virtual_sonar_m,
-                };
-                self.emit(Topic::Command, lt, &command, sink)?;
-                let wa = &c.wall_avoid;
-                let control = ControlMsg {
-                    tick,
-                    t_s,
-                    copter: name,
-                    id,
-                    setpoint: &c.setpoint,
-                    wall_avoid: WallAvoidMsg {
-                        engaged: mode == FlightMode::WallAvoid && wa.out_rad != [0.0; 2],
-                        out_rad: wa.out_rad,
-                        last_m: wa.last_m,
-                        rate_m_s: wa.rate_m_s,
-                    },
-                };
-                self.emit(Topic::Control, lt, &control, sink)?;
-                let p = &c.pose;
-                let tf = FrameTransform {
-                    timestamp: Time::from_ns(lt),
-                    parent_frame_id: WORLD_FRAME,
-                    child_frame_id: name,
-                    translation: v3(p.pos_m.x, p.pos_m.y, p.pos_m.z),
-                    rotation: Q { x: p.quat_xyzw[0], y: p.quat_xyzw[1], z: p.quat_xyzw[2], w: p.quat_xyzw[3] },
-                };
-                self.emit(Topic::Tf, lt, &tf, sink)?;
-            }
-            if tick.is_multiple_of(self.scene_every) {
-                let update = SceneUpdate {
-                    deletions: [],
-                    entities: CopterEntities { copters: &copters, frame, sonar: self.sonar, time: Time::from_ns(lt) },
-                };
-                self.emit(Topic::SceneCopters, lt, &update, sink)?;
-            }
-            Ok(())
-        })();
-        self.copters = copters;
-        result?;
+        // The part every copter message starts with: `{"tick":…,"t_s":…`.
+        let mut head = Vec::with_capacity(32);
+        Json(&mut head).raw("{\"tick\":").u64(tick).raw(",\"t_s\":").f64(t_s);
+        for (info, c) in self.copters.iter().zip(&frame.copters) {
+            let b = &mut self.buf;
+            let p = &c.pose;
+            let mode = c.command.mode;
+
+            b.clear();
+            b.extend_from_slice(&head);
+            let j = &mut Json(b);
+            j.raw(&info.ident).raw(&info.state_ident).raw(",\"mode\":\"").raw(mode.as_str()).raw("\"");
+            j.raw(",\"crashed\":").bool(c.crash.is_some()).raw(",\"crash_cause\":");
+            match &c.crash {
+                Some(cause) => j.serde(cause),
+                None => j.raw("null"),
+            };
+            j.raw(",\"took_off\":").bool(c.took_off_tick.is_some());
+            j.raw(",\"pos_m\":").f32s(&[p.pos_m.x, p.pos_m.y, p.pos_m.z]);
+            j.raw(",\"vel_m_s\":").f32s(&[p.vel_m_s.x, p.vel_m_s.y, p.vel_m_s.z]);
+            j.raw(",\"rpy_rad\":").f32s(&p.rpy_rad);
+            j.raw(",\"angvel_rad_s\":").f32s(&[p.angvel_rad_s.x, p.angvel_rad_s.y, p.angvel_rad_s.z]);
+            j.raw(",\"quat_xyzw\":").f32s(&p.quat_xyzw);
+            j.raw(",\"rotor_thrust_n\":").f32s(&c.rotor_thrust_n);
+            j.raw(",\"rotor_speed_rad_s\":").f32s(&c.rotor_speed_rad_s).raw("}");
+            sink(Topic::State, lt, b)?;
+
+            let r = &c.sensors;
+            b.clear();
+            b.extend_from_slice(&head);
+            let j = &mut Json(b);
+            j.raw(&info.ident).raw(",\"sonar_tick\":").u64(r.sonar_tick);
+            j.raw(",\"sonar_truth_m\":").f32s(&r.sonar_truth_m);
+            j.raw(",\"sonar_m\":").f32s(&r.sonar_m);
+            j.raw(",\"sonar_fused_m\":").f32s(&r.sonar_fused_m);
+            j.raw(",\"sonar_crosstalk\":").bools(&r.sonar_crosstalk);
+            j.raw(",\"ir_m\":").opt_f32(r.ir_m);
+            j.raw(",\"ir_truth_m\":").opt_f32(r.ir_truth_m.is_finite().then_some(r.ir_truth_m));
+            j.raw(",\"attitude_rad\":").f32s(&r.attitude_rad);
+            j.raw(",\"yaw_bias_rad\":").f32(r.yaw_bias_rad);
+            j.raw(",\"rate_body_rad_s\":").f32s(&r.rate_body_rad_s);
+            j.raw(",\"accel_body_m_s2\":").f32s(&r.accel_body_m_s2).raw("}");
+            sink(Topic::Sensors, lt, b)?;
+
+            let cmd = &c.command;
+            b.clear();
+            b.extend_from_slice(&head);
+            let j = &mut Json(b);
+            j.raw(&info.ident).raw(",\"mode\":\"").raw(mode.as_str()).raw("\"");
+            j.raw(",\"roll_rad\":").f32(cmd.roll_rad).raw(",\"pitch_rad\":").f32(cmd.pitch_rad);
+            j.raw(",\"yaw_rad\":").f32(cmd.yaw_rad).raw(",\"throttle\":").f32(cmd.throttle);
+            j.raw(",\"height_m\":").f32(cmd.height_m);
+            j.raw(",\"target_m\":").opt_f32s(cmd.target_m.as_ref().map(|v| &v[..]));
+            j.raw(",\"velocity_m_s\":").opt_f32s(cmd.velocity_m_s.as_ref().map(|v| &v[..]));
+            j.raw(",\"virtual_sonar_m\":").opt_f32s(cmd.virtual_sonar_m.as_ref().map(|v| &v[..])).raw("}");
+            sink(Topic::Command, lt, b)?;
+
+            let (sp, wa) = (&c.setpoint, &c.wall_avoid);
+            b.clear();
+            b.extend_from_slice(&head);
+            let j = &mut Json(b);
+            j.raw(&info.ident).raw(",\"setpoint\":{\"roll_rad\":").f32(sp.roll_rad);
+            j.raw(",\"pitch_rad\":").f32(sp.pitch_rad).raw(",\"yaw_rad\":").f32(sp.yaw_rad);
+            j.raw(",\"height_m\":").f32(sp.height_m).raw(",\"throttle\":").f32(sp.throttle);
+            let engaged = mode == FlightMode::WallAvoid && wa.out_rad != [0.0; 2];
+            j.raw("},\"wall_avoid\":{\"engaged\":").bool(engaged);
+            j.raw(",\"out_rad\":").f32s(&wa.out_rad).raw(",\"last_m\":").f32s(&wa.last_m);
+            j.raw(",\"rate_m_s\":").f32s(&wa.rate_m_s).raw("}}");
+            sink(Topic::Control, lt, b)?;
+
+            b.clear();
+            let j = &mut Json(b);
+            j.raw("{\"timestamp\":").time(lt).raw(",\"parent_frame_id\":\"").raw(WORLD_FRAME);
+            j.raw("\",\"child_frame_id\":").raw(&info.name_json);
+            j.raw(",\"translation\":").xyz([p.pos_m.x, p.pos_m.y, p.pos_m.z]);
+            j.raw(",\"rotation\":").xyzw(p.quat_xyzw).raw("}");
+            sink(Topic::Tf, lt, b)?;
+        }
+        if tick.is_multiple_of(self.scene_every) {
+            self.buf.clear();
+            copter_entities(&mut Json(&mut self.buf), &self.copters, frame, self.sonar, lt);
+            sink(Topic::SceneCopters, lt, &self.buf)?;
+        }
         for e in &frame.events {
             let copter = match e {
                 Event::TookOff { copter } | Event::Crashed { copter, .. } => *copter,
@@ -554,94 +574,53 @@ impl Encoder {
     }
 }
 
-fn state_msg<'a>(tick: u64, t_s: f64, id: usize, info: &'a CopterInfo, c: &'a CopterSample) -> StateMsg<'a> {
-    let p = &c.pose;
-    StateMsg {
-        tick,
-        t_s,
-        copter: &info.name,
-        id,
-        ac_id: info.ac_id,
-        kind: info.kind,
-        mode: c.command.mode,
-        crashed: c.crash.is_some(),
-        crash_cause: c.crash.as_ref(),
-        took_off: c.took_off_tick.is_some(),
-        pos_m: p.pos_m.into(),
-        vel_m_s: p.vel_m_s.into(),
-        rpy_rad: p.rpy_rad,
-        angvel_rad_s: p.angvel_rad_s.into(),
-        quat_xyzw: p.quat_xyzw,
-        rotor_thrust_n: c.rotor_thrust_n,
-        rotor_speed_rad_s: c.rotor_speed_rad_s,
-    }
-}
-
-/// The per-step copter entities, serialised on the fly (no allocation): body box coloured by
-/// kind and status, and the four sonar cones, each as long as its fused reading.
-struct CopterEntities<'a> {
-    copters: &'a [CopterInfo],
-    frame: &'a StepFrame,
-    sonar: SonarGeometry,
-    time: Time,
-}
-
-impl Serialize for CopterEntities<'_> {
-    fn serialize<S: Serializer>(&self, s: S) -> Result<S::Ok, S::Error> {
-        let mut seq = s.serialize_seq(Some(self.copters.len()))?;
-        for (info, c) in self.copters.iter().zip(&self.frame.copters) {
-            let body_color = match (c.crash.is_some(), info.kind) {
-                (true, _) => rgba(0.85, 0.1, 0.1, 1.0),
-                (false, CopterKind::Real) => rgba(0.1, 0.6, 0.2, 1.0),
-                (false, CopterKind::Virtual) => rgba(0.15, 0.35, 0.8, 1.0),
-            };
-            let cube = [Cube {
-                pose: Pose { position: V3::default(), orientation: IDENTITY },
-                size: info.body_size_m,
-                color: body_color,
-            }];
-            let g = self.sonar;
-            let cones: [Cylinder; 4] = std::array::from_fn(|k| {
-                let reading = c.sensors.sonar_fused_m[k];
-                let echo = reading < g.cap_m;
-                let len = reading.clamp(g.min_m, g.cap_m);
-                let color = if c.sensors.sonar_crosstalk[k] {
-                    rgba(1.0, 0.55, 0.0, 0.45)
-                } else if !echo {
-                    rgba(0.5, 0.5, 0.5, 0.06)
-                } else if reading < g.safety_m {
-                    rgba(0.9, 0.2, 0.2, 0.3)
-                } else {
-                    rgba(0.2, 0.6, 1.0, 0.2)
-                };
-                let a = SONAR_AXES[k];
-                let d = g.mount_offset_m + len / 2.0;
-                let width = 2.0 * len * g.tan_half;
-                Cylinder {
-                    pose: Pose { position: v3(a[0] * d, a[1] * d, a[2] * d), orientation: SONAR_Z_TO_AXIS[k] },
-                    size: v3(width, width, len),
-                    bottom_scale: 0.0,
-                    top_scale: 1.0,
-                    color,
-                }
-            });
-            seq.serialize_element(&Entity {
-                timestamp: self.time,
-                frame_id: &info.name,
-                id: &info.entity_id,
-                lifetime: FOREVER,
-                frame_locked: true,
-                metadata: &[],
-                arrows: &[],
-                cubes: &cube,
-                spheres: [],
-                cylinders: &cones,
-                lines: &[],
-                triangles: [],
-                texts: &[],
-                models: [],
-            })?;
+/// The per-step `foxglove.SceneUpdate` of the copters: per copter its body box, coloured by
+/// kind and status, and its four sonar cones, each as long as its fused reading; locked to
+/// the copter's frame.
+fn copter_entities(j: &mut Json<'_>, copters: &[CopterInfo], frame: &StepFrame, g: SonarGeometry, lt: u64) {
+    j.raw("{\"deletions\":[],\"entities\":[");
+    for (i, (info, c)) in copters.iter().zip(&frame.copters).enumerate() {
+        if i > 0 {
+            j.raw(",");
         }
-        seq.end()
+        let body_color = match (c.crash.is_some(), info.kind) {
+            (true, _) => [0.85, 0.1, 0.1, 1.0],
+            (false, CopterKind::Real) => [0.1, 0.6, 0.2, 1.0],
+            (false, CopterKind::Virtual) => [0.15, 0.35, 0.8, 1.0],
+        };
+        j.raw("{\"timestamp\":").time(lt).raw(",\"frame_id\":").raw(&info.name_json);
+        j.raw(",\"id\":").raw(&info.entity_id_json);
+        j.raw(",\"lifetime\":{\"sec\":0,\"nsec\":0},\"frame_locked\":true,\"metadata\":[],\"arrows\":[]");
+        j.raw(",\"cubes\":[{\"pose\":{\"position\":").xyz([0.0; 3]).raw(",\"orientation\":").xyzw([0.0, 0.0, 0.0, 1.0]);
+        j.raw("},\"size\":").xyz(info.body_size_m).raw(",\"color\":").rgba(body_color).raw("}]");
+        j.raw(",\"spheres\":[],\"cylinders\":[");
+        for k in 0..4 {
+            let reading = c.sensors.sonar_fused_m[k];
+            let echo = reading < g.cap_m;
+            let len = reading.clamp(g.min_m, g.cap_m);
+            let color = if c.sensors.sonar_crosstalk[k] {
+                [1.0, 0.55, 0.0, 0.45]
+            } else if !echo {
+                [0.5, 0.5, 0.5, 0.06]
+            } else if reading < g.safety_m {
+                [0.9, 0.2, 0.2, 0.3]
+            } else {
+                [0.2, 0.6, 1.0, 0.2]
+            };
+            let a = SONAR_AXES[k];
+            let d = g.mount_offset_m + len / 2.0;
+            let width = 2.0 * len * g.tan_half;
+            let q = SONAR_Z_TO_AXIS[k];
+            j.raw(if k > 0 { ",{\"pose\":{\"position\":" } else { "{\"pose\":{\"position\":" });
+            j.xyz([a[0] * d, a[1] * d, a[2] * d]).raw(",\"orientation\":").xyzw([q.x, q.y, q.z, q.w]);
+            j.raw("},\"size\":").xyz([width, width, len]).raw(",\"bottom_scale\":0.0,\"top_scale\":1.0");
+            j.raw(",\"color\":").rgba(color).raw("}");
+        }
+        j.raw("],\"lines\":[],\"triangles\":[],\"texts\":[],\"models\":[]}");
     }
+    j.raw("]}");
 }
+
+#[cfg(test)]
+#[path = "reference.rs"]
+mod reference;

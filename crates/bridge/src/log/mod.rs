@@ -36,15 +36,20 @@
 //! # Crash safety and cost
 //!
 //! The stepping thread only copies each copter's numbers into a reused [`StepFrame`] and hands
-//! it to a writer thread over a bounded channel; the writer thread serialises JSON into reused
-//! buffers and writes zstd-compressed chunks with message indexes. Every simulated second (and
-//! at the end of setup) the writer finishes the current chunk and flushes the file, so a
-//! `kill -9` loses at most about one simulated second (plus the few frames queued): `twinswarm
-//! log recover` reads every complete chunk of a truncated file and writes a complete one.
+//! it to a writer thread over a bounded channel. The writer thread encodes JSON into reused
+//! buffers (the per-step messages by hand, `json.rs`: serde spent most of its time escaping
+//! keys) and writes the file with its own chunked MCAP writer (`mcapw.rs`): a chunk's records
+//! go into one buffer that is compressed by a single zstd call, then written with its message
+//! indexes. Every simulated second (and at the end of setup) the writer finishes the current
+//! chunk and flushes the file, so a `kill -9` loses at most about one simulated second (plus
+//! the few frames queued): `twinswarm log recover` reads every complete chunk of a truncated
+//! file and writes a complete one.
 //! [`Logger::finish`] (or dropping the [`Logger`]) writes the summary section.
 
 mod capture;
 mod encode;
+mod json;
+mod mcapw;
 mod msg;
 mod pprz;
 mod read;
@@ -56,5 +61,5 @@ pub use capture::{CopterSample, StepFrame};
 pub use encode::{Encoder, EventKind, LogEvent, SCENE_COPTERS_PERIOD_S, Sink, Topic};
 pub use read::{ChannelInfo, LogFile, LogInfo, LogReadError, RecoverReport, recover};
 pub use schemas::{SCHEMAS, SchemaDef, schema_for};
-pub use time::{format_utc_basic, format_utc_iso, now_unix_ns};
+pub use time::{format_utc_basic, format_utc_iso, now_unix_ns, thread_cpu_ns};
 pub use writer::{LogError, LogMeta, LogOptions, LogStats, Logger};

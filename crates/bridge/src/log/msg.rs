@@ -1,88 +1,9 @@
-//! The JSON messages, as borrowed serde structs serialised straight into a reused buffer.
+//! The JSON messages written with serde: events, bus traffic and the static scene. The
+//! per-step messages are written by hand (`encode.rs`, `json.rs`); their serde reference
+//! structs live in `reference.rs`, for the tests.
 //! Field names match `crates/bridge/schemas/*.json` (and foxglove-sdk for `foxglove.*`).
 
 use serde::Serialize;
-use sim_core::control::FlightMode;
-use sim_core::{CopterKind, CrashCause};
-
-/// `twinswarm.CopterState`.
-#[derive(Debug, Serialize)]
-pub(crate) struct StateMsg<'a> {
-    pub tick: u64,
-    pub t_s: f64,
-    pub copter: &'a str,
-    pub id: usize,
-    pub ac_id: Option<u8>,
-    pub kind: CopterKind,
-    pub mode: FlightMode,
-    pub crashed: bool,
-    pub crash_cause: Option<&'a CrashCause>,
-    pub took_off: bool,
-    pub pos_m: [f32; 3],
-    pub vel_m_s: [f32; 3],
-    pub rpy_rad: [f32; 3],
-    pub angvel_rad_s: [f32; 3],
-    pub quat_xyzw: [f32; 4],
-    pub rotor_thrust_n: [f32; 4],
-    pub rotor_speed_rad_s: [f32; 4],
-}
-
-/// `twinswarm.CopterSensors`.
-#[derive(Debug, Serialize)]
-pub(crate) struct SensorsMsg<'a> {
-    pub tick: u64,
-    pub t_s: f64,
-    pub copter: &'a str,
-    pub id: usize,
-    pub sonar_tick: u64,
-    pub sonar_truth_m: [f32; 4],
-    pub sonar_m: [f32; 4],
-    pub sonar_fused_m: [f32; 4],
-    pub sonar_crosstalk: [bool; 4],
-    pub ir_m: Option<f32>,
-    pub ir_truth_m: Option<f32>,
-    pub attitude_rad: [f32; 3],
-    pub yaw_bias_rad: f32,
-    pub rate_body_rad_s: [f32; 3],
-    pub accel_body_m_s2: [f32; 3],
-}
-
-/// `twinswarm.CopterCommand`.
-#[derive(Debug, Serialize)]
-pub(crate) struct CommandMsg<'a> {
-    pub tick: u64,
-    pub t_s: f64,
-    pub copter: &'a str,
-    pub id: usize,
-    pub mode: FlightMode,
-    pub roll_rad: f32,
-    pub pitch_rad: f32,
-    pub yaw_rad: f32,
-    pub throttle: f32,
-    pub height_m: f32,
-    pub target_m: Option<[f32; 3]>,
-    pub velocity_m_s: Option<[f32; 2]>,
-    pub virtual_sonar_m: Option<[f32; 4]>,
-}
-
-/// `twinswarm.CopterControl`.
-#[derive(Debug, Serialize)]
-pub(crate) struct ControlMsg<'a> {
-    pub tick: u64,
-    pub t_s: f64,
-    pub copter: &'a str,
-    pub id: usize,
-    pub setpoint: &'a sim_core::Setpoint,
-    pub wall_avoid: WallAvoidMsg,
-}
-
-#[derive(Debug, Serialize)]
-pub(crate) struct WallAvoidMsg {
-    pub engaged: bool,
-    pub out_rad: [f32; 2],
-    pub last_m: [f32; 4],
-    pub rate_m_s: [f32; 4],
-}
 
 /// `twinswarm.Event`.
 #[derive(Debug, Serialize)]
@@ -256,16 +177,6 @@ pub(crate) struct Entity<'a> {
 pub(crate) struct SceneUpdate<E: Serialize> {
     pub deletions: [u8; 0],
     pub entities: E,
-}
-
-/// `foxglove.FrameTransform`.
-#[derive(Debug, Serialize)]
-pub(crate) struct FrameTransform<'a> {
-    pub timestamp: Time,
-    pub parent_frame_id: &'a str,
-    pub child_frame_id: &'a str,
-    pub translation: V3,
-    pub rotation: Q,
 }
 
 /// `foxglove.Log`.

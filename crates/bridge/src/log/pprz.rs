@@ -4,7 +4,6 @@
 
 use std::collections::BTreeMap;
 
-use mcap::McapError;
 use mcap::records::MessageHeader;
 use serde::Serialize;
 
@@ -63,16 +62,16 @@ impl PprzChannels {
     /// Logs `text` if `key` is a Paparazzi key (`…/pprz/<sender>/<NAME>`); other keys are
     /// ignored.
     #[allow(clippy::too_many_arguments)]
-    pub(super) fn write<W: std::io::Write + std::io::Seek>(
+    pub(super) fn write<W: std::io::Write>(
         &mut self,
-        out: &mut mcap::Writer<W>,
+        out: &mut super::mcapw::McapWriter<W>,
         tick: u64,
         log_time: u64,
         publish_time: u64,
         key: &str,
         direction: &str,
         text: &str,
-    ) -> Result<(), McapError> {
+    ) -> std::io::Result<()> {
         if !key.contains("/pprz/") {
             return Ok(());
         }

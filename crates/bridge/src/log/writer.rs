@@ -7,15 +7,16 @@ use std::path::{Path, PathBuf};
 use std::sync::mpsc::{Receiver, SyncSender, sync_channel};
 use std::thread::JoinHandle;
 
+use mcap::Attachment;
 use mcap::records::{MessageHeader, Metadata};
-use mcap::{Attachment, Compression, McapError, WriteOptions, Writer};
 use sim_core::{Inputs, State, StepReport, World};
 
 use super::capture::StepFrame;
 use super::encode::{Encoder, LogEvent, Topic};
+use super::mcapw::{ChunkOptions, McapWriter};
 use super::pprz::PprzChannels;
 use super::schemas::schema_for;
-use super::time::{format_utc_iso, now_unix_ns};
+use super::time::{format_utc_iso, now_unix_ns, thread_cpu_ns};
 
 /// Why logging failed.
 #[derive(Debug, thiserror::Error)]
@@ -33,8 +34,8 @@ pub enum LogError {
     Write {
         /// The file.
         path: PathBuf,
-        /// The MCAP writer's error.
-        source: McapError,
+        /// The I/O error.
+        source: std::io::Error,
     },
     /// The writer thread ended early (it panicked).
     #[error("the log writer thread for {path} stopped unexpectedly")]
@@ -60,17 +61,18 @@ pub struct LogMeta {
 pub struct LogOptions {
     /// Finish the chunk and flush the file every this many simulated seconds (default 1).
     pub flush_interval_s: f64,
-    /// zstd level (default 1: fast; JSON still compresses about 10x).
-    pub compression_level: u32,
-    /// zstd worker threads (0: compress on the writer thread; default 0).
-    pub compression_threads: u32,
+    /// zstd level of the chunks (default 1; negative: zstd's faster levels, bigger files).
+    pub zstd_level: i32,
+    /// A chunk is finished once it holds this many bytes of records (default 1 MiB), or at
+    /// the flush interval.
+    pub chunk_size: usize,
     /// Steps that may wait for the writer thread before `log_step` blocks (default 4).
     pub queue_steps: usize,
 }
 
 impl Default for LogOptions {
     fn default() -> Self {
-        Self { flush_interval_s: 1.0, compression_level: 1, compression_threads: 0, queue_steps: 4 }
+        Self { flush_interval_s: 1.0, zstd_level: 1, chunk_size: 1 << 20, queue_steps: 4 }
     }
 }
 
@@ -85,6 +87,9 @@ pub struct LogStats {
     pub last_tick: u64,
     /// Paparazzi messages on `/pprz/…` channels (each also on `/bus`).
     pub pprz_messages: u64,
+    /// CPU time of the writer thread (encoding, compression, I/O), s; `None` where the
+    /// platform does not tell.
+    pub writer_cpu_s: Option<f64>,
 }
 
 impl LogStats {
@@ -101,7 +106,7 @@ enum Job {
     Flush,
 }
 
-type McapOut = Writer<BufWriter<File>>;
+type McapOut = McapWriter<BufWriter<File>>;
 
 /// The MCAP log of one run.
 ///
@@ -148,14 +153,12 @@ impl Logger {
     ) -> Result<Self, LogError> {
         let file = File::create(path).map_err(|source| LogError::Create { path: path.to_owned(), source })?;
         let werr = |source| LogError::Write { path: path.to_owned(), source };
-        let mut out = WriteOptions::new()
-            .compression(Some(Compression::Zstd))
-            .compression_level(options.compression_level)
-            .compression_threads(options.compression_threads)
-            .profile("")
-            .library(format!("twinswarm {}", env!("CARGO_PKG_VERSION")))
-            .create(BufWriter::with_capacity(1 << 16, file))
-            .map_err(werr)?;
+        let chunking = ChunkOptions {
+            chunk_size: options.chunk_size,
+            zstd_level: options.zstd_level,
+            library: format!("twinswarm {}", env!("CARGO_PKG_VERSION")),
+        };
+        let mut out = McapWriter::new(BufWriter::with_capacity(1 << 16, file), chunking).map_err(werr)?;
         let epoch_ns = meta.epoch_ns.unwrap_or_else(now_unix_ns);
         let mut encoder = Encoder::new(world, epoch_ns);
         let now = now_unix_ns();
@@ -197,6 +200,7 @@ impl Logger {
             .name("mcap-writer".into())
             .spawn(move || {
                 let werr = |source| LogError::Write { path: thread_path.clone(), source };
+                let cpu0 = thread_cpu_ns();
                 let mut since_flush = 0u64;
                 for job in rx {
                     match job {
@@ -234,6 +238,9 @@ impl Logger {
                     }
                 }
                 state.out.finish().map_err(werr)?;
+                if let (Some(a), Some(b)) = (cpu0, thread_cpu_ns()) {
+                    state.stats.writer_cpu_s = Some(b.saturating_sub(a) as f64 * 1e-9);
+                }
                 Ok(state.stats.clone())
             })
             .map_err(|source| LogError::Create { path: path.to_owned(), source })?;
@@ -357,7 +364,7 @@ struct WriterState {
 }
 
 impl WriterState {
-    fn write(&mut self, topic: Topic, log_time: u64, data: &[u8]) -> Result<(), McapError> {
+    fn write(&mut self, topic: Topic, log_time: u64, data: &[u8]) -> std::io::Result<()> {
         let i = topic.index();
         let seq = self.sequences[i];
         self.sequences[i] = seq.wrapping_add(1);
@@ -372,7 +379,7 @@ impl WriterState {
     }
 }
 
-fn add_channel(out: &mut McapOut, topic: Topic) -> Result<u16, McapError> {
+fn add_channel(out: &mut McapOut, topic: Topic) -> std::io::Result<u16> {
     let schema = schema_for(topic.schema()).map(|s| s.json).unwrap_or("{}");
     let schema_id = out.add_schema(topic.schema(), "jsonschema", schema.as_bytes())?;
     out.add_channel(schema_id, topic.name(), "json", &BTreeMap::new())
