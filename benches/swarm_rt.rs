@@ -5,7 +5,7 @@
 //!
 //! ```text
 //! cargo bench -p twinswarm --bench swarm_rt -- --n 100 1000 --threads 1 2 [--log] [--sim-seconds S]
-//! cargo bench -p twinswarm --bench swarm_rt -- --n 100 1000 --log-cost ROUNDS [--zstd-level L]
+//! cargo bench -p twinswarm --bench swarm_rt -- --n 100 1000 --log-cost ROUNDS [--zstd-level L] [--zstd-level-behind L]
 //! cargo bench -p twinswarm --bench swarm_rt -- --plot docs/img/scaling.png
 //! ```
 //!
@@ -33,6 +33,8 @@ struct Run {
     writer_cpu_s: Option<f64>,
     /// Size of the log file, bytes (logging runs).
     log_bytes: u64,
+    /// Chunks compressed at the faster level because the writer was behind.
+    fast_chunks: u64,
 }
 
 impl Run {
@@ -82,9 +84,11 @@ fn world(n: usize, threads: usize) -> World {
 fn log_options() -> bridge::log::LogOptions {
     let mut o = bridge::log::LogOptions::default();
     let args: Vec<String> = std::env::args().collect();
-    if let Some(l) = args.iter().position(|a| a == "--zstd-level").and_then(|i| args.get(i + 1)?.parse().ok()) {
+    let value = |flag: &str| args.iter().position(|a| a == flag).and_then(|i| args.get(i + 1)?.parse().ok());
+    if let Some(l) = value("--zstd-level") {
         o.zstd_level = l;
     }
+    o.zstd_level_behind = value("--zstd-level-behind").unwrap_or(o.zstd_level_behind);
     o
 }
 
@@ -120,11 +124,12 @@ fn run(n: usize, threads: usize, log: bool, sim_s: f64, dir: &Path) -> Run {
     };
     // The run ends when everything is on disk: draining the writer's queue and the summary
     // section count against logging.
-    let (mut writer_cpu_s, mut log_bytes) = (None, 0);
+    let (mut writer_cpu_s, mut log_bytes, mut fast_chunks) = (None, 0, 0);
     if let Some(l) = logger {
         match l.finish() {
             Ok(stats) => {
                 writer_cpu_s = stats.writer_cpu_s;
+                fast_chunks = stats.fast_chunks;
                 log_bytes = std::fs::metadata(&stats.path).map_or(0, |m| m.len());
                 let _ = std::fs::remove_file(&stats.path);
             }
@@ -134,11 +139,11 @@ fn run(n: usize, threads: usize, log: bool, sim_s: f64, dir: &Path) -> Run {
     let wall_s = t0.elapsed().as_secs_f64();
     let crashed = state.copters.iter().filter(|c| c.crash.is_some()).count();
     let sim_s = steps as f64 * world.params.control_dt_s;
-    Run { n, threads, log, sim_s, wall_s, cpu_s, crashed, writer_cpu_s, log_bytes }
+    Run { n, threads, log, sim_s, wall_s, cpu_s, crashed, writer_cpu_s, log_bytes, fast_chunks }
 }
 
-/// The cost of logging at `n` copters: `rounds` pairs of runs, logging off then on, and the
-/// medians of each. Interleaving the pairs spreads the machine's noise over both sides.
+/// The cost of logging at `n` copters: `rounds` pairs of runs, logging off then on; the
+/// overhead is the median of the pairs' ratios, the other numbers are medians over the runs.
 fn log_cost(n: usize, threads: usize, rounds: usize, sim_s: f64, dir: &Path) -> String {
     let (mut off, mut on) = (Vec::new(), Vec::new());
     for _ in 0..rounds {
@@ -157,12 +162,20 @@ fn log_cost(n: usize, threads: usize, rounds: usize, sim_s: f64, dir: &Path) -> 
     let cpu_on = median(&on, &|r| r.cpu_s.map(|c| 1e3 * c / steps(r)));
     let writer = median(&on, &|r| r.writer_cpu_s.map(|c| 1e3 * c / steps(r)));
     let bytes = median(&on, &|r| Some(r.log_bytes as f64 / steps(r)));
+    let fast: u64 = on.iter().map(|r| r.fast_chunks).sum();
+    // The overhead of each pair (on / off of the same round), then their median: a pair runs
+    // back to back, so a noisy stretch of the machine shifts both of its runs.
+    let mut ratios: Vec<f64> = off.iter().zip(&on).map(|(a, b)| b.wall_s / a.wall_s).collect();
+    ratios.sort_by(f64::total_cmp);
+    let ratio = ratios[ratios.len() / 2];
     format!(
         "{{\"sim\": \"twinswarm\", \"scenario\": \"log_cost\", \"N\": {n}, \"threads\": {threads}, \"rounds\": {rounds}, \
          \"sim_s\": {sim_s:.1}, \"ms_per_step_off\": {wall_off:.4}, \"ms_per_step_on\": {wall_on:.4}, \
-         \"overhead_pct\": {:.1}, \"step_thread_cpu_ms_off\": {cpu_off:.4}, \"step_thread_cpu_ms_on\": {cpu_on:.4}, \
-         \"writer_cpu_ms_per_step\": {writer:.4}, \"log_kib_per_step\": {:.1}}}",
-        100.0 * (wall_on / wall_off - 1.0),
+         \"overhead_pct\": {:.1}, \"overhead_pct_min_max\": [{:.1}, {:.1}], \"step_thread_cpu_ms_off\": {cpu_off:.4}, \
+         \"step_thread_cpu_ms_on\": {cpu_on:.4}, \"writer_cpu_ms_per_step\": {writer:.4}, \"log_kib_per_step\": {:.1}, \"fast_chunks\": {fast}}}",
+        100.0 * (ratio - 1.0),
+        100.0 * (ratios[0] - 1.0),
+        100.0 * (ratios[ratios.len() - 1] - 1.0),
         bytes / 1024.0,
     )
 }
@@ -234,7 +247,7 @@ fn main() {
             "--threads" => list = Some(1),
             "--log" => (log, list) = (true, None),
             "--log-cost" => (log_cost_rounds, list) = (args.next().and_then(|v| v.parse::<usize>().ok()), None),
-            "--zstd-level" => (_, list) = (args.next(), None),
+            "--zstd-level" | "--zstd-level-behind" => (_, list) = (args.next(), None),
             "--sim-seconds" => (sim_s, list) = (args.next().and_then(|v| v.parse::<f64>().ok()), None),
             "--plot" => (plot_to, list) = (args.next().map(PathBuf::from), None),
             // `cargo bench` passes `--bench`; other flags are not ours.

@@ -212,6 +212,7 @@ pub struct Encoder {
     sonar: SonarGeometry,
     buf: Vec<u8>,
     scene_every: u64,
+    scene_text: SceneText,
 }
 
 /// A sink for encoded messages: topic, log time (ns), JSON bytes.
@@ -244,9 +245,10 @@ impl Encoder {
                     body_size_m: af.spec.body_size_m,
                 }
             })
-            .collect();
+            .collect::<Vec<_>>();
         let s = &world.sensors.spec;
         Self {
+            scene_text: SceneText::new(&copters),
             epoch_ns,
             dt_ns: (world.params.control_dt_s * 1e9).round() as u64,
             copters,
@@ -381,7 +383,7 @@ impl Encoder {
         }
         if tick.is_multiple_of(self.scene_every) {
             self.buf.clear();
-            copter_entities(&mut Json(&mut self.buf), &self.copters, frame, self.sonar, lt);
+            copter_entities(&mut Json(&mut self.buf), &self.scene_text, frame, self.sonar, lt);
             sink(Topic::SceneCopters, lt, &self.buf)?;
         }
         for e in &frame.events {
@@ -574,47 +576,95 @@ impl Encoder {
     }
 }
 
-/// The per-step `foxglove.SceneUpdate` of the copters: per copter its body box, coloured by
-/// kind and status, and its four sonar cones, each as long as its fused reading; locked to
-/// the copter's frame.
-fn copter_entities(j: &mut Json<'_>, copters: &[CopterInfo], frame: &StepFrame, g: SonarGeometry, lt: u64) {
-    j.raw("{\"deletions\":[],\"entities\":[");
-    for (i, (info, c)) in copters.iter().zip(&frame.copters).enumerate() {
-        if i > 0 {
-            j.raw(",");
-        }
-        let body_color = match (c.crash.is_some(), info.kind) {
-            (true, _) => [0.85, 0.1, 0.1, 1.0],
-            (false, CopterKind::Real) => [0.1, 0.6, 0.2, 1.0],
-            (false, CopterKind::Virtual) => [0.15, 0.35, 0.8, 1.0],
+/// The constant parts of the per-step `foxglove.SceneUpdate` of the copters, as JSON text:
+/// written once per run, so an update formats only what changes (time, cone positions and
+/// sizes).
+#[derive(Clone, Debug)]
+struct SceneText {
+    /// Per copter, `(flying, crashed)`: everything from `frame_id` to the opening of
+    /// `cylinders`, the body box coloured by kind, or red when crashed.
+    bodies: Vec<(String, String)>,
+    /// Per sonar, its cone's orientation (`,"orientation":…},"size":`).
+    orientations: [String; 4],
+    /// Per cone colour (crosstalk, no echo, closer than the safety distance, echo), the end
+    /// of the cone (`,"bottom_scale":…,"color":…}`).
+    colors: [String; 4],
+}
+
+impl SceneText {
+    fn new(copters: &[CopterInfo]) -> Self {
+        let text = |f: &dyn Fn(&mut Json<'_>)| {
+            let mut b = Vec::new();
+            f(&mut Json(&mut b));
+            String::from_utf8(b).unwrap_or_default()
         };
-        j.raw("{\"timestamp\":").time(lt).raw(",\"frame_id\":").raw(&info.name_json);
-        j.raw(",\"id\":").raw(&info.entity_id_json);
-        j.raw(",\"lifetime\":{\"sec\":0,\"nsec\":0},\"frame_locked\":true,\"metadata\":[],\"arrows\":[]");
-        j.raw(",\"cubes\":[{\"pose\":{\"position\":").xyz([0.0; 3]).raw(",\"orientation\":").xyzw([0.0, 0.0, 0.0, 1.0]);
-        j.raw("},\"size\":").xyz(info.body_size_m).raw(",\"color\":").rgba(body_color).raw("}]");
-        j.raw(",\"spheres\":[],\"cylinders\":[");
-        for k in 0..4 {
-            let reading = c.sensors.sonar_fused_m[k];
+        let body = |info: &CopterInfo, color: [f32; 4]| {
+            text(&|j| {
+                j.raw(",\"frame_id\":").raw(&info.name_json).raw(",\"id\":").raw(&info.entity_id_json);
+                j.raw(",\"lifetime\":{\"sec\":0,\"nsec\":0},\"frame_locked\":true,\"metadata\":[],\"arrows\":[]");
+                j.raw(",\"cubes\":[{\"pose\":{\"position\":").xyz([0.0; 3]);
+                j.raw(",\"orientation\":").xyzw([0.0, 0.0, 0.0, 1.0]);
+                j.raw("},\"size\":").xyz(info.body_size_m).raw(",\"color\":").rgba(color).raw("}]");
+                j.raw(",\"spheres\":[],\"cylinders\":[");
+            })
+        };
+        let bodies = copters
+            .iter()
+            .map(|info| {
+                let flying = match info.kind {
+                    CopterKind::Real => [0.1, 0.6, 0.2, 1.0],
+                    CopterKind::Virtual => [0.15, 0.35, 0.8, 1.0],
+                };
+                (body(info, flying), body(info, [0.85, 0.1, 0.1, 1.0]))
+            })
+            .collect();
+        let orientations = std::array::from_fn(|k| {
+            let q = SONAR_Z_TO_AXIS[k];
+            text(&|j| {
+                j.raw(",\"orientation\":").xyzw([q.x, q.y, q.z, q.w]).raw("},\"size\":");
+            })
+        });
+        let palette = [[1.0, 0.55, 0.0, 0.45], [0.5, 0.5, 0.5, 0.06], [0.9, 0.2, 0.2, 0.3], [0.2, 0.6, 1.0, 0.2]];
+        let colors = std::array::from_fn(|k| {
+            text(&|j| {
+                j.raw(",\"bottom_scale\":0.0,\"top_scale\":1.0,\"color\":").rgba(palette[k]).raw("}");
+            })
+        });
+        Self { bodies, orientations, colors }
+    }
+}
+
+/// The per-step `foxglove.SceneUpdate` of the copters: per copter its body box, coloured by
+/// kind and status, and its four sonar cones, each as long as its fused reading and coloured
+/// by what it sees; locked to the copter's frame.
+fn copter_entities(j: &mut Json<'_>, text: &SceneText, frame: &StepFrame, g: SonarGeometry, lt: u64) {
+    j.raw("{\"deletions\":[],\"entities\":[");
+    for (i, ((flying, crashed), c)) in text.bodies.iter().zip(&frame.copters).enumerate() {
+        j.raw(if i > 0 { ",{\"timestamp\":" } else { "{\"timestamp\":" }).time(lt);
+        j.raw(if c.crash.is_some() { crashed } else { flying });
+        let cones = c
+            .sensors
+            .sonar_fused_m
+            .iter()
+            .zip(&c.sensors.sonar_crosstalk)
+            .zip(SONAR_AXES.iter().zip(&text.orientations));
+        for (k, ((&reading, &crosstalk), (a, orientation))) in cones.enumerate() {
             let echo = reading < g.cap_m;
             let len = reading.clamp(g.min_m, g.cap_m);
-            let color = if c.sensors.sonar_crosstalk[k] {
-                [1.0, 0.55, 0.0, 0.45]
+            let color = if crosstalk {
+                0
             } else if !echo {
-                [0.5, 0.5, 0.5, 0.06]
+                1
             } else if reading < g.safety_m {
-                [0.9, 0.2, 0.2, 0.3]
+                2
             } else {
-                [0.2, 0.6, 1.0, 0.2]
+                3
             };
-            let a = SONAR_AXES[k];
             let d = g.mount_offset_m + len / 2.0;
             let width = 2.0 * len * g.tan_half;
-            let q = SONAR_Z_TO_AXIS[k];
             j.raw(if k > 0 { ",{\"pose\":{\"position\":" } else { "{\"pose\":{\"position\":" });
-            j.xyz([a[0] * d, a[1] * d, a[2] * d]).raw(",\"orientation\":").xyzw([q.x, q.y, q.z, q.w]);
-            j.raw("},\"size\":").xyz([width, width, len]).raw(",\"bottom_scale\":0.0,\"top_scale\":1.0");
-            j.raw(",\"color\":").rgba(color).raw("}");
+            j.xyz([a[0] * d, a[1] * d, a[2] * d]).raw(orientation);
+            j.xyz([width, width, len]).raw(&text.colors[color]);
         }
         j.raw("],\"lines\":[],\"triangles\":[],\"texts\":[],\"models\":[]}");
     }

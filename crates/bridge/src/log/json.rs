@@ -26,7 +26,13 @@ impl Json<'_> {
 
     #[inline]
     pub fn f32(&mut self, v: f32) -> &mut Self {
-        if v.is_finite() { self.raw(zmij::Buffer::new().format_finite(v)) } else { self.raw("null") }
+        if v.to_bits() == 0 {
+            self.raw("0.0") // common (idle commands, zero rates), and what zmij would write
+        } else if v.is_finite() {
+            self.raw(zmij::Buffer::new().format_finite(v))
+        } else {
+            self.raw("null")
+        }
     }
 
     #[inline]
