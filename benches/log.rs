@@ -1,7 +1,9 @@
 //! The cost of MCAP logging: one 50 ms control step of N hovering FINkens with sensors on,
 //! logging off versus on (every state, sensor reading, command, controller output, transform
 //! and 3D view, to a file in a temporary directory), N = 100, 1000 and 10 000, on 1 and 2
-//! threads (the logger itself runs on the caller's thread).
+//! threads. The step thread only copies numbers; the logger's writer thread encodes and
+//! compresses, and the step waits for it only when it falls behind (see the README's logging
+//! table, made with `swarm_rt --log-cost`).
 //!
 //! `cargo bench -p twinswarm --bench log`
 
