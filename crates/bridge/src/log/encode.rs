@@ -311,9 +311,7 @@ impl Encoder {
             let p = &c.pose;
             let mode = c.command.mode;
 
-            b.clear();
-            b.extend_from_slice(&head);
-            let j = &mut Json(b);
+            let j = &mut Json::starting(b, &head);
             j.raw(&info.ident).raw(&info.state_ident).raw(",\"mode\":\"").raw(mode.as_str()).raw("\"");
             j.raw(",\"crashed\":").bool(c.crash.is_some()).raw(",\"crash_cause\":");
             match &c.crash {
@@ -331,9 +329,7 @@ impl Encoder {
             sink(Topic::State, lt, b)?;
 
             let r = &c.sensors;
-            b.clear();
-            b.extend_from_slice(&head);
-            let j = &mut Json(b);
+            let j = &mut Json::starting(b, &head);
             j.raw(&info.ident).raw(",\"sonar_tick\":").u64(r.sonar_tick);
             j.raw(",\"sonar_truth_m\":").f32s(&r.sonar_truth_m);
             j.raw(",\"sonar_m\":").f32s(&r.sonar_m);
@@ -348,9 +344,7 @@ impl Encoder {
             sink(Topic::Sensors, lt, b)?;
 
             let cmd = &c.command;
-            b.clear();
-            b.extend_from_slice(&head);
-            let j = &mut Json(b);
+            let j = &mut Json::starting(b, &head);
             j.raw(&info.ident).raw(",\"mode\":\"").raw(mode.as_str()).raw("\"");
             j.raw(",\"roll_rad\":").f32(cmd.roll_rad).raw(",\"pitch_rad\":").f32(cmd.pitch_rad);
             j.raw(",\"yaw_rad\":").f32(cmd.yaw_rad).raw(",\"throttle\":").f32(cmd.throttle);
@@ -361,9 +355,7 @@ impl Encoder {
             sink(Topic::Command, lt, b)?;
 
             let (sp, wa) = (&c.setpoint, &c.wall_avoid);
-            b.clear();
-            b.extend_from_slice(&head);
-            let j = &mut Json(b);
+            let j = &mut Json::starting(b, &head);
             j.raw(&info.ident).raw(",\"setpoint\":{\"roll_rad\":").f32(sp.roll_rad);
             j.raw(",\"pitch_rad\":").f32(sp.pitch_rad).raw(",\"yaw_rad\":").f32(sp.yaw_rad);
             j.raw(",\"height_m\":").f32(sp.height_m).raw(",\"throttle\":").f32(sp.throttle);

@@ -11,7 +11,14 @@ use serde::Serialize;
 /// Appends JSON to a reused buffer.
 pub(crate) struct Json<'a>(pub &'a mut Vec<u8>);
 
-impl Json<'_> {
+impl<'a> Json<'a> {
+    /// A writer on `buf`, emptied and then holding `head`.
+    pub fn starting(buf: &'a mut Vec<u8>, head: &[u8]) -> Self {
+        buf.clear();
+        buf.extend_from_slice(head);
+        Json(buf)
+    }
+
     /// Literal JSON text: punctuation and keys, e.g. `,"pos_m":`.
     #[inline]
     pub fn raw(&mut self, text: &str) -> &mut Self {
@@ -87,35 +94,27 @@ impl Json<'_> {
         self.raw("{\"sec\":").u64(ns / 1_000_000_000).raw(",\"nsec\":").u64(ns % 1_000_000_000).raw("}")
     }
 
+    /// An object of floats: `keys[k]` is the text before value `k` (`{"x":`, `,"y":`, …).
+    fn floats<const N: usize>(&mut self, keys: [&str; N], v: [f32; N]) -> &mut Self {
+        for (key, x) in keys.into_iter().zip(v) {
+            self.raw(key).f32(x);
+        }
+        self.raw("}")
+    }
+
     /// `{"x":…,"y":…,"z":…}`.
     pub fn xyz(&mut self, v: [f32; 3]) -> &mut Self {
-        self.raw("{\"x\":").f32(v[0]).raw(",\"y\":").f32(v[1]).raw(",\"z\":").f32(v[2]).raw("}")
+        self.floats(["{\"x\":", ",\"y\":", ",\"z\":"], v)
     }
 
     /// `{"x":…,"y":…,"z":…,"w":…}`.
     pub fn xyzw(&mut self, v: [f32; 4]) -> &mut Self {
-        self.raw("{\"x\":")
-            .f32(v[0])
-            .raw(",\"y\":")
-            .f32(v[1])
-            .raw(",\"z\":")
-            .f32(v[2])
-            .raw(",\"w\":")
-            .f32(v[3])
-            .raw("}")
+        self.floats(["{\"x\":", ",\"y\":", ",\"z\":", ",\"w\":"], v)
     }
 
     /// `{"r":…,"g":…,"b":…,"a":…}`.
     pub fn rgba(&mut self, c: [f32; 4]) -> &mut Self {
-        self.raw("{\"r\":")
-            .f32(c[0])
-            .raw(",\"g\":")
-            .f32(c[1])
-            .raw(",\"b\":")
-            .f32(c[2])
-            .raw(",\"a\":")
-            .f32(c[3])
-            .raw("}")
+        self.floats(["{\"r\":", ",\"g\":", ",\"b\":", ",\"a\":"], c)
     }
 
     /// Anything else (enums, the rare crash cause), through serde.

@@ -66,6 +66,8 @@ trait Put {
     fn u64(&mut self, v: u64);
     fn str(&mut self, s: &str);
     fn map(&mut self, m: &BTreeMap<String, String>);
+    /// A `Map<uint16, uint64>` (channel id → count or offset).
+    fn map_u16_u64(&mut self, m: &[(u16, u64)]);
 }
 
 impl Put for Vec<u8> {
@@ -84,6 +86,13 @@ impl Put for Vec<u8> {
     fn str(&mut self, s: &str) {
         self.u32(s.len() as u32);
         self.extend_from_slice(s.as_bytes());
+    }
+    fn map_u16_u64(&mut self, m: &[(u16, u64)]) {
+        self.u32((m.len() * 10) as u32);
+        for &(k, v) in m {
+            self.u16(k);
+            self.u64(v);
+        }
     }
     fn map(&mut self, m: &BTreeMap<String, String>) {
         let len: usize = m.iter().map(|(k, v)| 8 + k.len() + v.len()).sum();
@@ -525,11 +534,8 @@ impl<W: Write> McapWriter<W> {
         b.u32(self.chunk_indexes.len() as u32);
         b.u64(start);
         b.u64(end);
-        b.u32((self.channel_counts.len() * 10) as u32);
-        for (ch, n) in &self.channel_counts {
-            b.u16(*ch);
-            b.u64(*n);
-        }
+        let counts: Vec<(u16, u64)> = self.channel_counts.iter().map(|(&ch, &n)| (ch, n)).collect();
+        b.map_u16_u64(&counts);
         end_record(&mut b, body);
         group(self, op::STATISTICS, &b)?;
 
@@ -540,11 +546,7 @@ impl<W: Write> McapWriter<W> {
             b.u64(c.end_time);
             b.u64(c.offset);
             b.u64(c.length);
-            b.u32((c.message_index_offsets.len() * 10) as u32);
-            for &(ch, o) in &c.message_index_offsets {
-                b.u16(ch);
-                b.u64(o);
-            }
+            b.map_u16_u64(&c.message_index_offsets);
             b.u64(c.message_index_length);
             b.str("zstd");
             b.u64(c.compressed_size);
