@@ -324,7 +324,7 @@ pub fn run_loop(
         if let Some(sync) = sync.as_mut() {
             sync.after_step(&world, &mut state, &inputs);
         }
-        hold_silent_twins(&world, &mut inputs, &mut stats.twins);
+        hold_silent_twins(&world, &mut inputs, &mut stats.twins, sync.as_mut());
         let mut pprz_out = Vec::new();
         if let Some(outbox) = outbox.as_mut() {
             outbox.after_step(&world, &state, &inputs, sensed, &mut pprz_out);
@@ -411,7 +411,12 @@ fn track_twins(world: &World, state: &State, twins: &mut BTreeMap<String, TwinSt
 }
 
 /// Levels out the twins whose telemetry stopped (see [`TWIN_LINK_TIMEOUT_S`]).
-fn hold_silent_twins(world: &World, inputs: &mut Inputs, twins: &mut BTreeMap<String, TwinStats>) {
+fn hold_silent_twins(
+    world: &World,
+    inputs: &mut Inputs,
+    twins: &mut BTreeMap<String, TwinStats>,
+    mut sync: Option<&mut TwinSync>,
+) {
     for (name, t) in twins.iter_mut() {
         let Some(last) = t.last_input else { continue };
         if t.holding || last.elapsed().as_secs_f64() <= TWIN_LINK_TIMEOUT_S {
@@ -420,6 +425,9 @@ fn hold_silent_twins(world: &World, inputs: &mut Inputs, twins: &mut BTreeMap<St
         let Some(id) = world.copter_id(name) else { continue };
         let cmd = &mut inputs.commands[id];
         (cmd.roll_rad, cmd.pitch_rad) = (0.0, 0.0);
+        if let Some(sync) = sync.as_deref_mut() {
+            sync.on_link_lost(id);
+        }
         t.holding = true;
         t.link_lost += 1;
         tracing::warn!("twin {name}: no telemetry for {TWIN_LINK_TIMEOUT_S} s; levelling out, holding its height");

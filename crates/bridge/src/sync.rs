@@ -307,6 +307,15 @@ impl TwinSync {
         }
     }
 
+    /// The twin's telemetry stopped and the loop levelled it out: forget the last attitude
+    /// targets, so that [`TwinSync::adjust_commands`] does not fly them (with the trim) again
+    /// at every step until telemetry resumes. The yaw target and the estimates stay.
+    pub fn on_link_lost(&mut self, id: usize) {
+        if let Some(tr) = self.twins.get_mut(&id) {
+            tr.attitude_command = None;
+        }
+    }
+
     /// The real copter's sonar readings (front, right, back, left), m; readings at or beyond
     /// the cap are out of range. Used at the next step.
     pub fn on_sonar(&mut self, world: &World, state: &State, id: usize, readings_m: [f32; 4]) {
@@ -474,6 +483,32 @@ mod tests {
         assert_eq!(past_position(&h, 2.0), Some(Vector2::new(0.2, 0.2)), "newer than the last: the last");
         assert_eq!(past_position(&h, 0.9), None, "older than the history");
         assert_eq!(past_position(&VecDeque::new(), 1.0), None);
+    }
+
+    #[test]
+    fn a_twin_whose_link_is_lost_stops_flying_its_last_attitude_targets() {
+        let (mut spec, _) = sim_core::scene::load_default();
+        spec.copters.truncate(1);
+        spec.copters[0].kind = CopterKind::Real;
+        spec.copters[0].mode = sim_core::FlightMode::Manual;
+        let world = sim_core::compile(&spec).unwrap();
+        let state = world.initial_state();
+        let mut inputs = world.initial_inputs();
+        let mut sync = TwinSync::new(&world, SyncOptions::default()).unwrap();
+        sync.on_command(&world, &state, 0, Some(0.1), Some(-0.05), Some(0.3));
+        sync.adjust_commands(&mut inputs);
+        assert_eq!((inputs.commands[0].pitch_rad, inputs.commands[0].roll_rad), (0.1, -0.05));
+        // The loop levels the silent twin out; the sync must not tilt it again.
+        sync.on_link_lost(0);
+        (inputs.commands[0].pitch_rad, inputs.commands[0].roll_rad) = (0.0, 0.0);
+        for _ in 0..3 {
+            sync.adjust_commands(&mut inputs);
+        }
+        assert_eq!((inputs.commands[0].pitch_rad, inputs.commands[0].roll_rad), (0.0, 0.0));
+        // Telemetry back: its targets fly again.
+        sync.on_command(&world, &state, 0, Some(-0.02), Some(0.04), None);
+        sync.adjust_commands(&mut inputs);
+        assert_eq!((inputs.commands[0].pitch_rad, inputs.commands[0].roll_rad), (-0.02, 0.04));
     }
 
     #[test]
