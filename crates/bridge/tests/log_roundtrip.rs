@@ -181,5 +181,34 @@ fn bad_files_give_clear_errors_not_panics() {
     if let Ok(f) = LogFile::open(&p) {
         assert!(f.messages::<serde_json::Value>("/copters/state").is_err(), "damage went unnoticed");
     }
+    // Damaged lengths: a chunk that says it unpacks to exabytes, a record longer than the
+    // file. The `mcap` reader would try to allocate them and abort the process; these are
+    // clear errors, and `recover` keeps what comes before the damage.
+    let first_chunk = {
+        let mut pos = 8;
+        loop {
+            let len = u64::from_le_bytes(bytes[pos + 1..pos + 9].try_into().unwrap()) as usize;
+            if bytes[pos] == 0x06 {
+                break pos;
+            }
+            pos += 9 + len;
+        }
+    };
+    let mut huge_chunk = bytes.clone();
+    huge_chunk[first_chunk + 9 + 16..first_chunk + 9 + 24].copy_from_slice(&u64::MAX.to_le_bytes());
+    let mut huge_record = bytes.clone();
+    huge_record[first_chunk + 1..first_chunk + 9].copy_from_slice(&(1u64 << 62).to_le_bytes());
+    for (name, damaged) in [("huge_chunk.mcap", huge_chunk), ("huge_record.mcap", huge_record)] {
+        let p = write(name, &damaged);
+        let err = LogFile::open(&p).unwrap_err();
+        assert!(matches!(err, LogReadError::Damaged { offset, .. } if offset == first_chunk as u64), "{name}: {err}");
+        assert!(err.to_string().contains("is damaged at byte"), "{err}");
+        let report = bridge::log::recover(&p, &dir.join("rescued.mcap")).unwrap();
+        // A record longer than the file looks like the cut record of a killed run to recover.
+        let why = report.stopped_by.as_deref().unwrap_or("");
+        assert!(why.contains("damaged") || why.contains("cut off"), "{name}: {report:?}");
+        assert!(report.schemas > 0 && report.channels > 0, "{name}: what came before the chunk is kept: {report:?}");
+        assert!(LogFile::open(&dir.join("rescued.mcap")).is_ok(), "{name}: the rescued file is complete");
+    }
     let _ = std::fs::remove_dir_all(&dir);
 }

@@ -56,6 +56,18 @@ pub enum LogReadError {
         /// The MCAP reader's error.
         source: McapError,
     },
+    /// A record's length (or a chunk's uncompressed size) is more than the file can hold: the
+    /// bytes are damaged. Checked before the `mcap` reader sees them, which would try to
+    /// allocate that much.
+    #[error("{path} is damaged at byte {offset}: {what}")]
+    Damaged {
+        /// The file.
+        path: PathBuf,
+        /// Where the bad record starts.
+        offset: u64,
+        /// What is wrong.
+        what: String,
+    },
     /// A message does not parse.
     #[error("{path}: a message on {topic} is not valid JSON for this program: {source}")]
     Json {
@@ -118,6 +130,97 @@ pub struct LogFile {
     summary: mcap::Summary,
 }
 
+/// The largest uncompressed chunk accepted (ours are 1 MiB).
+const MAX_CHUNK_BYTES: u64 = 1 << 30;
+
+/// What [`walk_records`] found.
+#[derive(Debug, Default)]
+struct Walk {
+    /// Where the complete records end.
+    end: usize,
+    /// The last record, cut by the end of the file (a killed run), if it was.
+    cut: Option<String>,
+    /// Offset of the DataEnd record and the data-section CRC it holds.
+    data_end: Option<(usize, u32)>,
+    /// Offset of the Footer record.
+    footer: Option<usize>,
+}
+
+/// Walks the records of an MCAP file (after the magic) by their length prefixes, up to the
+/// footer or to a last record cut by the end of the file. The `mcap` crate allocates what a
+/// record's length (and a chunk's uncompressed size) says before it checks anything, so a
+/// damaged length would abort the process; this refuses lengths the file cannot hold, and
+/// chunks said to unpack to more than [`MAX_CHUNK_BYTES`]. A cut last record is an error
+/// unless `cut_ok` (a killed run).
+fn walk_records(data: &[u8], cut_ok: bool) -> Result<Walk, (u64, String)> {
+    const CHUNK: u8 = 0x06;
+    const FOOTER: u8 = 0x02;
+    const DATA_END: u8 = 0x0F;
+    let mut walk = Walk::default();
+    let mut pos = mcap::MAGIC.len();
+    while pos < data.len() {
+        let Some(head) = data.get(pos..pos + 9) else {
+            let what = format!("a record header at byte {pos} is cut off by the end of the file");
+            return if cut_ok { Ok(Walk { end: pos, cut: Some(what), ..walk }) } else { Err((pos as u64, what)) };
+        };
+        let opcode = head[0];
+        let len = u64::from_le_bytes(head[1..9].try_into().unwrap_or_default());
+        let room = (data.len() - pos - 9) as u64;
+        if len > room {
+            if cut_ok && opcode != FOOTER {
+                let what = format!("record 0x{opcode:02x} at byte {pos} is cut off by the end of the file");
+                return Ok(Walk { end: pos, cut: Some(what), ..walk });
+            }
+            return Err((pos as u64, format!("record 0x{opcode:02x} says {len} bytes, the file has {room} left")));
+        }
+        let body = &data[pos + 9..pos + 9 + len as usize];
+        let u32_at = |i: usize| body.get(i..i + 4).map(|b| u32::from_le_bytes(b.try_into().unwrap_or_default()));
+        let u64_at = |i: usize| body.get(i..i + 8).map(|b| u64::from_le_bytes(b.try_into().unwrap_or_default()));
+        match opcode {
+            CHUNK => match u64_at(16) {
+                Some(u) if u <= MAX_CHUNK_BYTES => {}
+                Some(u) => return Err((pos as u64, format!("a chunk says it unpacks to {u} bytes"))),
+                None => return Err((pos as u64, "a chunk record is too short".into())),
+            },
+            DATA_END => walk.data_end = u32_at(0).map(|crc| (pos, crc)),
+            FOOTER => walk.footer = Some(pos),
+            _ => {}
+        }
+        pos += 9 + len as usize;
+        if opcode == FOOTER {
+            break;
+        }
+    }
+    walk.end = pos;
+    Ok(walk)
+}
+
+/// Checks the data-section CRC (in DataEnd) and the summary CRC (in the footer) where the
+/// writer set them; the `mcap` crate checks neither, and damage outside the chunks (message
+/// indexes, attachments) would go unnoticed.
+fn check_section_crcs(data: &[u8], walk: &Walk) -> Result<(), (u64, String)> {
+    if let Some((at, crc)) = walk.data_end
+        && crc != 0
+        && crc32fast::hash(&data[..at]) != crc
+    {
+        return Err((0, "the data section does not match its CRC".into()));
+    }
+    if let Some(f) = walk.footer {
+        let field =
+            |i: usize| data.get(f + 9 + i..f + 9 + i + 8).map(|b| u64::from_le_bytes(b.try_into().unwrap_or_default()));
+        let crc = data.get(f + 25..f + 29).map(|b| u32::from_le_bytes(b.try_into().unwrap_or_default()));
+        if let (Some(start), Some(crc)) = (field(0), crc)
+            && start != 0
+            && crc != 0
+            && (start as usize) <= f
+            && crc32fast::hash(&data[start as usize..f + 25]) != crc
+        {
+            return Err((start, "the summary section does not match its CRC".into()));
+        }
+    }
+    Ok(())
+}
+
 fn read_checked(path: &Path) -> Result<Vec<u8>, LogReadError> {
     let data = std::fs::read(path).map_err(|source| LogReadError::Io { path: path.to_owned(), source })?;
     if data.is_empty() {
@@ -136,6 +239,9 @@ impl LogFile {
         if data.len() < 2 * mcap::MAGIC.len() || !data.ends_with(mcap::MAGIC) {
             return Err(LogReadError::Truncated { path: path.to_owned(), len: data.len() as u64 });
         }
+        let damaged = |(offset, what)| LogReadError::Damaged { path: path.to_owned(), offset, what };
+        let walk = walk_records(&data, false).map_err(damaged)?;
+        check_section_crcs(&data, &walk).map_err(damaged)?;
         let corrupt = |source| LogReadError::Corrupt { path: path.to_owned(), source };
         let summary = mcap::Summary::read(&data)
             .map_err(corrupt)?
@@ -268,7 +374,19 @@ impl RecoverReport {
 /// attachments, metadata, and the messages of every chunk whose CRC checks) and writes them
 /// to a new, complete file (zstd chunks, indexes, summary).
 pub fn recover(broken: &Path, fixed: &Path) -> Result<RecoverReport, LogReadError> {
-    let data = read_checked(broken)?;
+    let mut data = read_checked(broken)?;
+    // Only complete records, and none from a damaged one on: the cut last record of a killed
+    // run, or a record whose length is garbage, ends what is read.
+    let damage = match walk_records(&data, true) {
+        Ok(walk) => {
+            data.truncate(walk.end);
+            walk.cut
+        }
+        Err((offset, what)) => {
+            data.truncate(offset as usize);
+            Some(format!("damaged at byte {offset}: {what}"))
+        }
+    };
     let file = std::fs::File::create(fixed).map_err(|source| LogReadError::Io { path: fixed.to_owned(), source })?;
     let werr = |source| LogReadError::Write { path: fixed.to_owned(), source };
     let mut out = WriteOptions::new()
@@ -278,7 +396,8 @@ pub fn recover(broken: &Path, fixed: &Path) -> Result<RecoverReport, LogReadErro
         .library(format!("twinswarm {} (log recover)", env!("CARGO_PKG_VERSION")))
         .create(BufWriter::new(file))
         .map_err(werr)?;
-    let mut report = RecoverReport { input_bytes: data.len() as u64, ..RecoverReport::default() };
+    let input_bytes = std::fs::metadata(broken).map_or(data.len() as u64, |m| m.len());
+    let mut report = RecoverReport { input_bytes, stopped_by: damage, ..RecoverReport::default() };
     let mut topics: BTreeMap<u16, String> = BTreeMap::new();
     let opts = mcap::read::Options::IgnoreEndMagic | mcap::read::Options::ValidateChunkCrcs;
     let reader = mcap::read::ChunkFlattener::new_with_options(&data, opts)
