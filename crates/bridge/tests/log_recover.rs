@@ -71,7 +71,10 @@ fn recover_rescues_complete_chunks_at_every_cut() {
         // Everything but the last second or so is there: bytes are roughly linear in time.
         let expected_ticks = STEPS as f64 * cut as f64 / bytes.len() as f64;
         let got = ticks.last().copied().unwrap_or(0) as f64;
-        assert!(got >= expected_ticks - 30.0, "cut at {cut} ({expected_ticks:.0} ticks): only {got} ticks recovered: {r:?}");
+        assert!(
+            got >= expected_ticks - 30.0,
+            "cut at {cut} ({expected_ticks:.0} ticks): only {got} ticks recovered: {r:?}"
+        );
         // A cut inside the summary section still has the whole data section.
         assert!(r.complete || r.stopped_by.is_some(), "cut at {cut}: {r:?}");
         if cut < bytes.len() * 9 / 10 {
