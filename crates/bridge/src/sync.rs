@@ -485,13 +485,18 @@ mod tests {
         assert_eq!(past_position(&VecDeque::new(), 1.0), None);
     }
 
-    #[test]
-    fn a_twin_whose_link_is_lost_stops_flying_its_last_attitude_targets() {
+    /// The default lab with one copter, a twin (kind `real`) flown in Manual mode.
+    fn one_twin() -> World {
         let (mut spec, _) = sim_core::scene::load_default();
         spec.copters.truncate(1);
         spec.copters[0].kind = CopterKind::Real;
         spec.copters[0].mode = sim_core::FlightMode::Manual;
-        let world = sim_core::compile(&spec).unwrap();
+        sim_core::compile(&spec).unwrap()
+    }
+
+    #[test]
+    fn a_twin_whose_link_is_lost_stops_flying_its_last_attitude_targets() {
+        let world = one_twin();
         let state = world.initial_state();
         let mut inputs = world.initial_inputs();
         let mut sync = TwinSync::new(&world, SyncOptions::default()).unwrap();
@@ -513,11 +518,7 @@ mod tests {
 
     #[test]
     fn a_tracking_pose_moves_a_twin_smoothly_and_no_further_than_the_error() {
-        let (mut spec, _) = sim_core::scene::load_default();
-        spec.copters.truncate(1);
-        spec.copters[0].kind = CopterKind::Real;
-        spec.copters[0].mode = sim_core::FlightMode::Manual;
-        let world = sim_core::compile(&spec).unwrap();
+        let world = one_twin();
         let mut state = world.initial_state();
         let inputs = world.initial_inputs();
         let opts = SyncOptions { medusa: false, tracking_lag_s: 0.0, ..SyncOptions::default() };

@@ -652,15 +652,20 @@ pub fn crosstalk_reading(spec: &SonarSpec, phase: CrosstalkPhase, dist_m: Real, 
 mod tests {
     use super::*;
 
-    #[test]
-    fn the_copter_grid_finds_exactly_what_a_full_scan_finds() {
-        let mut x: u32 = 99;
-        let mut rnd = || {
+    /// A small deterministic generator of numbers in [0, 1] for random layouts.
+    fn xorshift(seed: u32) -> impl FnMut() -> Real {
+        let mut x = seed;
+        move || {
             x ^= x << 13;
             x ^= x >> 17;
             x ^= x << 5;
             x as Real / u32::MAX as Real
-        };
+        }
+    }
+
+    #[test]
+    fn the_copter_grid_finds_exactly_what_a_full_scan_finds() {
+        let mut rnd = xorshift(99);
         let mut scene = SonarScene::default();
         for _ in 0..400 {
             scene.copters.push(OrientedBox {
@@ -687,13 +692,7 @@ mod tests {
 
     #[test]
     fn four_cones_at_once_give_the_same_bits_as_one_at_a_time() {
-        let mut x: u32 = 7;
-        let mut rnd = || {
-            x ^= x << 13;
-            x ^= x >> 17;
-            x ^= x << 5;
-            x as Real / u32::MAX as Real
-        };
+        let mut rnd = xorshift(7);
         let mut scene = SonarScene {
             walls: vec![(Vec3::X, 15.0), (Vec3::X, -15.0), (Vec3::Y, 10.0), (Vec3::Y, -10.0)],
             ..SonarScene::default()

@@ -52,27 +52,25 @@ impl<'a> Json<'a> {
         self.raw(if v { "true" } else { "false" })
     }
 
-    /// `[a,b,…]`.
-    pub fn f32s(&mut self, v: &[f32]) -> &mut Self {
+    /// `[a,b,…]`, each element written by `item`.
+    fn seq<T: Copy>(&mut self, v: &[T], item: fn(&mut Self, T) -> &mut Self) -> &mut Self {
         self.0.push(b'[');
         for (i, &x) in v.iter().enumerate() {
             if i > 0 {
                 self.0.push(b',');
             }
-            self.f32(x);
+            item(self, x);
         }
         self.raw("]")
     }
 
+    /// `[a,b,…]`.
+    pub fn f32s(&mut self, v: &[f32]) -> &mut Self {
+        self.seq(v, Self::f32)
+    }
+
     pub fn bools(&mut self, v: &[bool]) -> &mut Self {
-        self.0.push(b'[');
-        for (i, &x) in v.iter().enumerate() {
-            if i > 0 {
-                self.0.push(b',');
-            }
-            self.bool(x);
-        }
-        self.raw("]")
+        self.seq(v, Self::bool)
     }
 
     pub fn opt_f32(&mut self, v: Option<f32>) -> &mut Self {
