@@ -6,7 +6,7 @@
 use std::sync::Arc;
 use std::sync::atomic::{AtomicU64, Ordering};
 
-use bridge::bus::Bus;
+use bridge::paparazzi::bus::Bus;
 use criterion::{Criterion, Throughput, criterion_group, criterion_main};
 
 fn texts() -> Vec<String> {
@@ -28,7 +28,7 @@ fn bench_bus(c: &mut Criterion) {
     // 100 bindings: per-aircraft and any-aircraft patterns with capture groups, a few generic.
     for i in 0..100 {
         let d = delivered.clone();
-        let handler = move |_: &bridge::bus::Delivery<'_>, _: &mut bridge::bus::Control| {
+        let handler = move |_: &bridge::paparazzi::bus::Delivery<'_>, _: &mut bridge::paparazzi::bus::Control| {
             d.fetch_add(1, Ordering::Relaxed);
         };
         let name = names[i % names.len()];

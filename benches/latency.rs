@@ -14,10 +14,10 @@ use std::sync::atomic::AtomicBool;
 use std::time::{Duration, Instant};
 
 use bridge::mixed::{Gateway, OutboxOptions, Summary, TelemetryPlan, TwinAttitude, paired_copter};
-use bridge::node::{self, Node};
-use bridge::pairing::Pose;
+use bridge::paparazzi::pairing::Pose;
 use bridge::sim::{self, Frame, LoopOptions, Request};
 use bridge::wire::StateMsg;
+use bridge::zenoh_net::node::{self, Node};
 use sim_core::CopterKind;
 
 const COMMANDS: usize = 200;
@@ -43,22 +43,16 @@ fn main() {
     let endpoint = format!("tcp/127.0.0.1:{port}");
     let prefix = format!("latency-{port}/lab");
     let (req_tx, req_rx) = std::sync::mpsc::sync_channel::<Request>(1024);
-    let messages = Arc::new(bridge::pprz::project_messages());
+    let messages = Arc::new(bridge::paparazzi::convert::project_messages());
     let world_arc = Arc::new(world.clone());
     let (mut node, gateway) = rt.block_on(async {
         let config = node::default_config(std::slice::from_ref(&endpoint), &[]).unwrap();
         let node = Node::open(config, prefix.clone(), world_arc.clone(), req_tx.clone()).await.unwrap();
-        let gateway = Gateway::start(
-            node.session().clone(),
-            &prefix,
-            world_arc.clone(),
-            None,
-            messages.clone(),
-            req_tx.clone(),
-            TwinAttitude::Setpoint,
-        )
-        .await
-        .unwrap();
+        let links = bridge::mixed::PprzLinks { zenoh: Some((node.session().clone(), prefix.clone())), ivy: None };
+        let gateway =
+            Gateway::start(links, world_arc.clone(), None, messages.clone(), req_tx.clone(), TwinAttitude::Setpoint)
+                .await
+                .unwrap();
         (node, gateway)
     });
     let (frame_tx, mut frame_rx) = tokio::sync::mpsc::channel::<Frame>(256);

@@ -9,11 +9,11 @@
 //!   periods of its [`TelemetryPlan`]. Periods shorter than the control step give one message
 //!   per control step (the values change only that often).
 //! - [`Gateway`] lives on the tokio side: it binds the FINken telemetry on the Ivy-style bus
-//!   ([`crate::ivy::ZenohBus`]), routes each message by aircraft id ([`Router`]), and sends the
+//!   ([`crate::zenoh_net::pprz_bus::ZenohBus`]), routes each message by aircraft id ([`Router`]), and sends the
 //!   loop [`Request::Twin`]s (commands, observed attitude, automatic spawns). It records
 //!   inter-arrival times per aircraft and message.
 //!
-//! How a twin follows its real copter ([`crate::pprz::twin_command`]):
+//! How a twin follows its real copter ([`crate::paparazzi::convert::twin_command`]):
 //! `FINKEN_ACTUATORS_SET_POINT` gives attitude targets and throttle, `FINKEN_IR_ADC` or
 //! `FINKEN_SENSOR_MODEL.pos_z` the height to hold. `ATTITUDE` and `ROTORCRAFT_FP` are
 //! fallbacks, used only while the primary source of the same quantity has been silent for
@@ -22,6 +22,7 @@
 //! `ATTITUDE` for the attitude targets.
 
 use std::collections::BTreeMap;
+use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::mpsc::SyncSender;
 use std::sync::{Arc, Mutex};
 use std::time::Instant;
@@ -31,14 +32,15 @@ use sim_core::scene::{CommandSpec, CopterSpec, StartSpec};
 use sim_core::{CopterKind, FlightMode, SceneSpec, State, World};
 
 use crate::AcId;
-use crate::conf::AircraftKind;
-use crate::ivy::{IvyError, ZenohBus};
-use crate::messages::MessageSet;
-use crate::pairing::{ResolvedPairing, Route, UnknownAircraftStats};
-use crate::pprz::{TelemetrySource, telemetry_text, twin_command, virtual_sonar_text};
+use crate::paparazzi::conf::AircraftKind;
+use crate::paparazzi::convert::{TelemetrySource, telemetry_text, twin_command, virtual_sonar_text};
+use crate::paparazzi::ivy::IvyAgent;
+use crate::paparazzi::messages::MessageSet;
+use crate::paparazzi::pairing::{ResolvedPairing, Route, UnknownAircraftStats};
+use crate::paparazzi::telemetry::Telemetry;
 use crate::sim::{BusInput, Request};
-use crate::telemetry::Telemetry;
 use crate::wire::{CommandMsg, sensors_msg, state_msg};
+use crate::zenoh_net::pprz_bus::{ZenohBus, ZenohBusError};
 
 /// The project's telemetry plan (`assets/paparazzi/telemetry.xml`).
 pub const TELEMETRY_XML: &str = include_str!("../../../assets/paparazzi/telemetry.xml");
@@ -121,7 +123,7 @@ pub fn apply_pairing(spec: &mut SceneSpec, pairing: &ResolvedPairing) -> Result<
 }
 
 /// The scene table of a copter the bridge adds (pairing, or automatic spawn).
-pub fn paired_copter(name: &str, kind: CopterKind, ac_id: AcId, pose: &crate::pairing::Pose) -> CopterSpec {
+pub fn paired_copter(name: &str, kind: CopterKind, ac_id: AcId, pose: &crate::paparazzi::pairing::Pose) -> CopterSpec {
     let (mode, command) = match kind {
         CopterKind::Real => (FlightMode::Manual, CommandSpec::default()),
         CopterKind::Virtual => (FlightMode::WallAvoid, CommandSpec { height_m: 0.8, ..CommandSpec::default() }),
@@ -184,7 +186,7 @@ impl Outbox {
             .plan
             .periods
             .iter()
-            .filter(|(n, _)| !crate::pprz::TELEMETRY_MESSAGES.contains(&n.as_str()))
+            .filter(|(n, _)| !crate::paparazzi::convert::TELEMETRY_MESSAGES.contains(&n.as_str()))
             .map(|(n, _)| n.clone())
             .collect();
         if !unsupported.is_empty() {
@@ -308,7 +310,7 @@ pub enum Decision {
 }
 
 /// Routes aircraft ids to copters: the world's copters with an `ac_id`, then the pairing's
-/// rules for the rest (see [`crate::pairing`]). Spawn decisions are remembered, so an aircraft
+/// rules for the rest (see [`crate::paparazzi::pairing`]). Spawn decisions are remembered, so an aircraft
 /// spawns once.
 #[derive(Clone, Debug)]
 pub struct Router {
@@ -430,54 +432,156 @@ pub enum TwinAttitude {
     Measured,
 }
 
+/// Why the gateway could not bind.
+#[derive(Debug, thiserror::Error)]
+pub enum GatewayError {
+    /// On Zenoh.
+    #[error(transparent)]
+    Zenoh(#[from] ZenohBusError),
+    /// On Ivy.
+    #[error(transparent)]
+    Ivy(#[from] crate::paparazzi::ivy::IvyError),
+}
+
 /// The telemetry the gateway binds, with the regex it binds it with.
 pub const BOUND_TELEMETRY: [&str; 6] =
     ["FINKEN_ACTUATORS_SET_POINT", "FINKEN_IR_ADC", "FINKEN_SENSOR_MODEL", "ATTITUDE", "ROTORCRAFT_FP", "SONAR_ARRAY"];
 
+/// Where Paparazzi texts travel: Zenoh (`<prefix>/pprz/<sender>/<NAME>`), a real Ivy bus, or
+/// both, in which case the gateway also bridges every text between them.
+#[derive(Clone, Debug, Default)]
+pub struct PprzLinks {
+    /// A Zenoh session and the key prefix.
+    pub zenoh: Option<(zenoh::Session, String)>,
+    /// An agent on a real Ivy bus.
+    pub ivy: Option<Arc<IvyAgent>>,
+}
+
+/// Texts bridged between Zenoh and Ivy.
+#[derive(Debug, Default)]
+pub struct BridgeCounters {
+    /// Texts from Ivy peers published on Zenoh.
+    pub ivy_to_zenoh: AtomicU64,
+    /// Texts from Zenoh sent to Ivy peers.
+    pub zenoh_to_ivy: AtomicU64,
+    /// Texts not bridged, by reason.
+    pub dropped_queue_full: AtomicU64,
+    /// Texts Ivy cannot carry (newline or separator).
+    pub dropped_unsendable: AtomicU64,
+}
+
 /// The tokio side of mixed reality (see the module docs).
 pub struct Gateway {
-    bus: ZenohBus,
+    zenoh: Option<ZenohBus>,
+    ivy: Option<Arc<IvyAgent>>,
     shared: Arc<Mutex<Interpreter>>,
+    bridged: Arc<BridgeCounters>,
+    _forwarder: Option<tokio::task::JoinHandle<()>>,
 }
 
 impl std::fmt::Debug for Gateway {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.debug_struct("Gateway").field("bus", &self.bus).finish_non_exhaustive()
+        f.debug_struct("Gateway").field("zenoh", &self.zenoh).field("ivy", &self.ivy).finish_non_exhaustive()
     }
 }
 
+/// A handler that interprets telemetry texts into loop requests.
+fn telemetry_handler(
+    shared: &Arc<Mutex<Interpreter>>,
+    messages: &Arc<MessageSet>,
+    requests: &SyncSender<Request>,
+) -> impl FnMut(&crate::paparazzi::bus::Delivery<'_>, &mut crate::paparazzi::bus::Control) + Send + 'static {
+    let (shared, messages, requests) = (shared.clone(), messages.clone(), requests.clone());
+    move |d, _| {
+        let received = Instant::now();
+        let origin =
+            BusInput { key: d.key.to_owned(), text: d.text.to_owned(), received_unix_ns: crate::log::now_unix_ns() };
+        let Ok(mut sh) = shared.lock() else { return };
+        if let Some(request) = sh.interpret(&messages, origin, received)
+            && requests.try_send(request).is_err()
+        {
+            sh.stats.queue_full += 1;
+        }
+    }
+}
+
+/// What the gateway binds to bridge every text: a sender and a name.
+const ANY_TEXT: &str = r"^\S+ \S+";
+
 impl Gateway {
-    /// Binds the FINken telemetry under `prefix` on `session`; requests go to the loop.
+    /// Binds the FINken telemetry on every link; requests go to the loop. With both links,
+    /// every text is also bridged between them. No text loops: Zenoh subscribers take remote
+    /// samples only and Ivy peers never receive their own texts, so a bridged text is never
+    /// bridged back.
     pub async fn start(
-        session: zenoh::Session,
-        prefix: &str,
+        links: PprzLinks,
         world: Arc<World>,
         pairing: Option<ResolvedPairing>,
         messages: Arc<MessageSet>,
         requests: SyncSender<Request>,
         attitude: TwinAttitude,
-    ) -> Result<Self, IvyError> {
-        let bus = ZenohBus::new(session, prefix);
+    ) -> Result<Self, GatewayError> {
         let shared = Arc::new(Mutex::new(Interpreter::new(world, pairing, attitude)));
+        let bridged = Arc::new(BridgeCounters::default());
+        let zenoh = links.zenoh.map(|(session, prefix)| ZenohBus::new(session, prefix));
         for name in BOUND_TELEMETRY {
-            let (shared, messages, requests) = (shared.clone(), messages.clone(), requests.clone());
-            bus.bind(&format!(r"^(\d+) {name} "), move |d, _| {
-                let received = Instant::now();
-                let origin = BusInput {
-                    key: d.key.to_owned(),
-                    text: d.text.to_owned(),
-                    received_unix_ns: crate::log::now_unix_ns(),
-                };
-                let Ok(mut sh) = shared.lock() else { return };
-                if let Some(request) = sh.interpret(&messages, origin, received)
-                    && requests.try_send(request).is_err()
-                {
-                    sh.stats.queue_full += 1;
+            let pattern = format!(r"^(\d+) {name} ");
+            if let Some(z) = &zenoh {
+                z.bind(&pattern, telemetry_handler(&shared, &messages, &requests)).await?;
+            }
+            if let Some(ivy) = &links.ivy {
+                ivy.bind(&pattern, telemetry_handler(&shared, &messages, &requests))?;
+            }
+        }
+        let mut forwarder = None;
+        if let (Some(z), Some(ivy)) = (&zenoh, &links.ivy) {
+            // Zenoh → Ivy: straight from the subscriber callback (sending never waits).
+            let (ivy2, c) = (ivy.clone(), bridged.clone());
+            z.bind(ANY_TEXT, move |d, _| match ivy2.send(d.text) {
+                Ok(_) => {
+                    c.zenoh_to_ivy.fetch_add(1, Ordering::Relaxed);
+                }
+                Err(_) => {
+                    c.dropped_unsendable.fetch_add(1, Ordering::Relaxed);
                 }
             })
             .await?;
+            // Ivy → Zenoh: through a bounded queue to a publishing task.
+            let (tx, mut rx) = tokio::sync::mpsc::channel::<String>(4096);
+            let c = bridged.clone();
+            ivy.bind(ANY_TEXT, move |d, _| {
+                if tx.try_send(d.text.to_owned()).is_err() {
+                    c.dropped_queue_full.fetch_add(1, Ordering::Relaxed);
+                }
+            })?;
+            let (session, prefix, c) = (z.session().clone(), z.prefix().to_owned(), bridged.clone());
+            forwarder = Some(tokio::spawn(async move {
+                while let Some(text) = rx.recv().await {
+                    let Ok(key) = crate::zenoh_net::keyexpr::key_for_text(&prefix, &text) else {
+                        c.dropped_unsendable.fetch_add(1, Ordering::Relaxed);
+                        continue;
+                    };
+                    if session.put(key, text).await.is_ok() {
+                        c.ivy_to_zenoh.fetch_add(1, Ordering::Relaxed);
+                    }
+                }
+            }));
         }
-        Ok(Self { bus, shared })
+        Ok(Self { zenoh, ivy: links.ivy, shared, bridged, _forwarder: forwarder })
+    }
+
+    /// Sends the loop's Paparazzi texts on Ivy (Zenoh gets them from the node).
+    pub fn send_ivy(&self, out: &[PprzOut]) {
+        if let Some(ivy) = &self.ivy {
+            for o in out {
+                let _ = ivy.send(&o.text);
+            }
+        }
+    }
+
+    /// Texts bridged between Zenoh and Ivy.
+    pub fn bridged(&self) -> &BridgeCounters {
+        &self.bridged
     }
 
     /// Tells the gateway about the world after a spawn (for command validation).
@@ -492,9 +596,9 @@ impl Gateway {
         self.shared.lock().map(|sh| sh.report()).unwrap_or_default()
     }
 
-    /// The Ivy bus the gateway uses (for counters).
-    pub fn bus(&self) -> &ZenohBus {
-        &self.bus
+    /// The Zenoh bus the gateway uses, if any (for counters).
+    pub fn zenoh_bus(&self) -> Option<&ZenohBus> {
+        self.zenoh.as_ref()
     }
 }
 
@@ -559,7 +663,7 @@ impl Interpreter {
 
     fn interpret_message(
         &mut self,
-        msg: &crate::codec::Message<'_>,
+        msg: &crate::paparazzi::codec::Message<'_>,
         origin: BusInput,
         received: Instant,
     ) -> Option<Request> {
@@ -613,14 +717,14 @@ impl Interpreter {
             "FINKEN_IR_ADC" => last[1] = Some(received),
             "FINKEN_SENSOR_MODEL" => {
                 last[1] = Some(received);
-                yaw = crate::pprz::real_yaw(msg);
+                yaw = crate::paparazzi::convert::real_yaw(msg);
                 if silent(last[2]) {
-                    sonar = crate::pprz::real_sonar(msg);
+                    sonar = crate::paparazzi::convert::real_sonar(msg);
                 }
             }
             "SONAR_ARRAY" => {
                 last[2] = Some(received);
-                sonar = crate::pprz::real_sonar(msg);
+                sonar = crate::paparazzi::convert::real_sonar(msg);
             }
             "ROTORCRAFT_FP" => {
                 if let Some(c) = cmd.as_mut() {
@@ -716,8 +820,8 @@ pub struct GatewayReport {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::conf::ConfXml;
-    use crate::pairing::Pairing;
+    use crate::paparazzi::conf::ConfXml;
+    use crate::paparazzi::pairing::Pairing;
 
     #[test]
     fn the_embedded_plan_parses_and_sends_what_drives_a_twin_every_22_ms() {
@@ -725,7 +829,10 @@ mod tests {
         assert_eq!(plan.label, "Main/mixed");
         assert_eq!(plan.period_s("FINKEN_ACTUATORS_SET_POINT"), Some(0.022));
         for (name, _) in &plan.periods {
-            assert!(crate::pprz::TELEMETRY_MESSAGES.contains(&name.as_str()), "{name} cannot be produced");
+            assert!(
+                crate::paparazzi::convert::TELEMETRY_MESSAGES.contains(&name.as_str()),
+                "{name} cannot be produced"
+            );
         }
     }
 

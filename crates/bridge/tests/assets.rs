@@ -4,8 +4,8 @@
 
 mod common;
 
-use bridge::conf::AircraftKind;
-use bridge::pairing::{AircraftRef, Route, UnknownAircraftPolicy, UnknownAircraftStats};
+use bridge::paparazzi::conf::AircraftKind;
+use bridge::paparazzi::pairing::{AircraftRef, Route, UnknownAircraftPolicy, UnknownAircraftStats};
 use bridge::{ConfXml, Pairing, XmlError};
 
 use common::asset;

@@ -5,8 +5,9 @@ mod common;
 
 use std::sync::{Arc, Mutex};
 
-use bridge::codec::{Sender, encode};
-use bridge::keyexpr::{ChunkPattern, key_expr_matches, key_for_text, narrow, narrow_key_expr};
+use bridge::paparazzi::codec::{Sender, encode};
+use bridge::paparazzi::narrow::{ChunkPattern, narrow};
+use bridge::zenoh_net::keyexpr::{key_expr_matches, key_for_text, narrow_key_expr};
 use bridge::{BindId, Bus, BusError, MessageSet};
 use regex::Regex;
 
@@ -64,7 +65,7 @@ fn bind_from_receives_from_one_aircraft_only() {
         })
         .collect();
     assert_eq!(got, ["1 2 3", "4 5 6"]);
-    assert_eq!(bus.key_exprs("twinswarm/lab"), ["twinswarm/lab/pprz/5/ATTITUDE"]);
+    assert_eq!(bridge::zenoh_net::keyexpr::bus_key_exprs(&bus, "twinswarm/lab"), ["twinswarm/lab/pprz/5/ATTITUDE"]);
 }
 
 #[test]

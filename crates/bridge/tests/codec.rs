@@ -4,8 +4,8 @@
 mod common;
 
 use bridge::Value;
-use bridge::codec::{CodecError, Sender, encode};
-use bridge::messages::{BaseType, DefinitionFormat, LinkMode, MessageSet};
+use bridge::paparazzi::codec::{CodecError, Sender, encode};
+use bridge::paparazzi::messages::{BaseType, DefinitionFormat, LinkMode, MessageSet};
 
 use common::{Gen, asset, same_bits};
 

@@ -7,8 +7,8 @@ mod net;
 use std::sync::{Arc, Mutex};
 use std::time::Duration;
 
-use bridge::ivy::ZenohBus;
-use bridge::node;
+use bridge::zenoh_net::node;
+use bridge::zenoh_net::pprz_bus::ZenohBus;
 use net::{eventually, free_port, within};
 
 type Log = Arc<Mutex<Vec<Vec<String>>>>;

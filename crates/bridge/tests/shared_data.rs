@@ -5,9 +5,9 @@ mod common;
 
 use std::collections::BTreeMap;
 
-use bridge::codec::{Sender, encode};
-use bridge::messages::{DefinitionFormat, MessageSet};
-use bridge::telemetry::Telemetry;
+use bridge::paparazzi::codec::{Sender, encode};
+use bridge::paparazzi::messages::{DefinitionFormat, MessageSet};
+use bridge::paparazzi::telemetry::Telemetry;
 use bridge::{ConfXml, XmlError};
 
 use common::{Gen, same_bits, xml_files};
@@ -138,7 +138,7 @@ fn layouts_come_from_the_file_not_from_code() {
     let upstream_types: Vec<String> = upstream.iter().flat_map(|d| d.fields.iter().map(|f| f.ty.to_string())).collect();
     assert!(upstream_types.iter().any(|t| t == "char[5]"));
     let setting = upstream.by_class_and_name("datalink", "SETTING").expect("SETTING");
-    assert_eq!(setting.link, Some(bridge::messages::LinkMode::Forwarded));
+    assert_eq!(setting.link, Some(bridge::paparazzi::messages::LinkMode::Forwarded));
     let gps = upstream.by_name("GPS").expect("GPS");
     assert_eq!(gps.field("utm_east").and_then(|f| f.unit.as_deref()), Some("cm"));
     assert!(upstream.iter().any(|d| d.fields.iter().any(|f| !f.values.is_empty())));

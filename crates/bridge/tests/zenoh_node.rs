@@ -6,9 +6,9 @@ mod net;
 use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, Ordering};
 
-use bridge::node::{self, Node};
 use bridge::sim::{self, Frame, LoopOptions, Request};
 use bridge::wire::{CopterListEntry, StateMsg};
+use bridge::zenoh_net::node::{self, Node};
 use net::{eventually, free_port, within};
 use zenoh::Wait;
 

@@ -135,9 +135,18 @@ struct RunArgs {
     /// Do not write a log.
     #[arg(long)]
     no_log: bool,
-    /// Run without Zenoh (no bus at all).
+    /// Run without Zenoh (with `--ivy`, on the Ivy bus alone).
     #[arg(long)]
     no_bus: bool,
+    /// Join a Paparazzi Ivy bus as agent `Twinswarm`: real aircraft's telemetry from `link`
+    /// drives their twins, VIRTUAL_SONAR goes back, virtual copters send telemetry. BUS as in
+    /// Paparazzi (`127.255.255.255:2010`, `127:2010`); default: `--ivy-bus`, else `IVYBUS`,
+    /// else 127.255.255.255:2010. With Zenoh on, texts are bridged both ways.
+    #[arg(long, value_name = "BUS", num_args = 0..=1, default_missing_value = "")]
+    ivy: Option<String>,
+    /// The Ivy bus address (same syntax as Paparazzi's `-b`); implies nothing without `--ivy`.
+    #[arg(long, value_name = "ADDR:PORT")]
+    ivy_bus: Option<String>,
     /// A full Zenoh configuration file (JSON5), instead of the embedded default (peer mode,
     /// listen on tcp/127.0.0.1:7447, multicast scouting off).
     #[arg(long, value_name = "FILE.json5")]
@@ -380,7 +389,15 @@ fn run(args: RunArgs) -> anyhow::Result<()> {
         );
         bar
     });
+    let ivy = match &args.ivy {
+        None => None,
+        Some(b) => {
+            let explicit = if b.is_empty() { args.ivy_bus.as_deref() } else { Some(b.as_str()) };
+            Some(bridge::paparazzi::ivy::BusAddr::from_env_or(explicit).map_err(|e| BadInput(e.into()))?)
+        }
+    };
     let bus = runner::BusOptions {
+        ivy,
         no_bus: args.no_bus,
         zenoh_config: args.zenoh_config.clone(),
         listen: args.listen.clone(),
@@ -415,16 +432,40 @@ fn run(args: RunArgs) -> anyhow::Result<()> {
     } else {
         out!("{}", summary.to_text());
         outln!("  log: {}", log_stats.as_ref().map_or("off (--no-log)".into(), logcmd::describe));
-        match &outcome.bus {
-            Some(b) => outln!(
-                "  bus: zenoh, prefix {}; {} commands accepted, {} rejected; {} samples published; {} clients seen",
-                b.prefix,
+        match outcome.bus.as_ref().map(|b| (b, &b.prefix)) {
+            Some((b, Some(prefix))) => outln!(
+                "  bus: zenoh, prefix {prefix}; {} commands accepted, {} rejected; {} samples published; {} clients seen",
                 b.commands_accepted,
                 b.commands_rejected,
                 b.published,
                 b.clients_seen
             ),
-            None => outln!("  bus: off (--no-bus)"),
+            _ => outln!("  bus: zenoh off (--no-bus)"),
+        }
+        if let Some(i) = outcome.bus.as_ref().and_then(|b| b.ivy.as_ref()) {
+            outln!(
+                "  ivy: {} as {}; {} peers joined, {} left, at the end: {}; {} texts sent ({} msgs to peers), {} received, {} delivered",
+                i.bus,
+                i.app_name,
+                i.peers_joined,
+                i.peers_left,
+                if i.peers_at_end.is_empty() { "none".to_owned() } else { i.peers_at_end.join(", ") },
+                i.texts_sent,
+                i.msgs_sent,
+                i.msgs_received,
+                i.delivered
+            );
+            if i.bridged_ivy_to_zenoh + i.bridged_zenoh_to_ivy + i.bridge_dropped > 0 {
+                outln!(
+                    "    bridged: {} ivy -> zenoh, {} zenoh -> ivy, {} dropped",
+                    i.bridged_ivy_to_zenoh,
+                    i.bridged_zenoh_to_ivy,
+                    i.bridge_dropped
+                );
+            }
+            for (why, n) in &i.dropped {
+                outln!("    dropped {n}: {why}");
+            }
         }
         if let Some(b) = &outcome.bus {
             outln!("  paparazzi: {} messages sent (virtual sonar, virtual telemetry)", outcome.stats.pprz_sent);

@@ -8,11 +8,12 @@ use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, Ordering};
 
 use anyhow::Context;
-use bridge::mixed::{Gateway, GatewayReport, OutboxOptions, TelemetryPlan, TwinAttitude};
-use bridge::node::{self, Node};
-use bridge::pairing::ResolvedPairing;
+use bridge::mixed::{Gateway, GatewayReport, OutboxOptions, PprzLinks, TelemetryPlan, TwinAttitude};
+use bridge::paparazzi::ivy::{IvyAgent, IvyOptions};
+use bridge::paparazzi::pairing::ResolvedPairing;
 use bridge::sim::{self, LoopOptions, LoopStats, Request, StepObserver};
 use bridge::sync::SyncOptions;
+use bridge::zenoh_net::node::{self, Node};
 use sim_core::{State, World};
 
 /// Bus options from the command line.
@@ -30,6 +31,9 @@ pub struct BusOptions {
     pub prefix: Option<String>,
     /// Mixed reality: pairing, telemetry plan, virtual sonar rate.
     pub mixed: MixedOptions,
+    /// Join this Ivy bus (Paparazzi's ground segment) as well, or instead of Zenoh with
+    /// `no_bus`.
+    pub ivy: Option<bridge::paparazzi::ivy::BusAddr>,
 }
 
 /// Mixed-reality options (see `bridge::mixed`).
@@ -71,13 +75,66 @@ pub struct RunOutcome {
 /// Counters of the bus side.
 #[derive(Debug, Clone, serde::Serialize)]
 pub struct BusReport {
-    pub prefix: String,
+    /// `None` without Zenoh.
+    pub prefix: Option<String>,
     pub commands_accepted: u64,
     pub commands_rejected: u64,
     pub published: u64,
     pub clients_seen: u64,
     pub telemetry: GatewayReport,
+    pub ivy: Option<IvyReport>,
 }
+
+/// What the Ivy side saw.
+#[derive(Debug, Clone, serde::Serialize)]
+pub struct IvyReport {
+    pub bus: String,
+    pub app_name: String,
+    pub peers_joined: u64,
+    pub peers_left: u64,
+    pub peers_at_end: Vec<String>,
+    pub lines_received: u64,
+    pub msgs_received: u64,
+    pub delivered: u64,
+    pub texts_sent: u64,
+    pub msgs_sent: u64,
+    pub peer_regexes: u64,
+    pub bridged_ivy_to_zenoh: u64,
+    pub bridged_zenoh_to_ivy: u64,
+    pub bridge_dropped: u64,
+    /// Dropped hellos, lines and messages by reason.
+    pub dropped: std::collections::BTreeMap<String, u64>,
+    pub events: Vec<bridge::paparazzi::ivy::PeerEvent>,
+}
+
+impl IvyReport {
+    fn of(agent: &IvyAgent, bus: &str, gateway: &Gateway) -> Self {
+        let c = agent.counters();
+        let b = gateway.bridged();
+        let l = |a: &std::sync::atomic::AtomicU64| a.load(Ordering::Relaxed);
+        Self {
+            bus: bus.to_owned(),
+            app_name: IVY_APP_NAME.to_owned(),
+            peers_joined: l(&c.peers_joined),
+            peers_left: l(&c.peers_left),
+            peers_at_end: agent.peers().into_iter().map(|p| p.app_name).collect(),
+            lines_received: l(&c.lines),
+            msgs_received: l(&c.msgs_received),
+            delivered: l(&c.delivered),
+            texts_sent: l(&c.texts_sent),
+            msgs_sent: l(&c.msgs_sent),
+            peer_regexes: l(&c.peer_regexes),
+            bridged_ivy_to_zenoh: l(&b.ivy_to_zenoh),
+            bridged_zenoh_to_ivy: l(&b.zenoh_to_ivy),
+            bridge_dropped: l(&b.dropped_queue_full) + l(&b.dropped_unsendable),
+            dropped: agent.drops().into_iter().map(|(k, v)| (k.to_owned(), v)).collect(),
+            events: agent.events(),
+        }
+    }
+}
+
+/// The simulator's app name on an Ivy bus.
+pub const IVY_APP_NAME: &str = "Twinswarm";
 
 /// Builds the Zenoh configuration: the file if given (with `--listen`/`--connect` applied on
 /// top), else the embedded default (peer, `tcp/127.0.0.1:7447`, multicast scouting off).
@@ -115,24 +172,38 @@ pub fn run(
     let mut opts = LoopOptions { realtime, ticks, outbox: None, sync: None };
     let (req_tx, req_rx) = std::sync::mpsc::sync_channel::<Request>(1024);
 
-    if bus.no_bus {
+    if bus.no_bus && bus.ivy.is_none() {
         let (world, state, stats) = sim::run_loop(world, state, inputs, req_rx, None, observer, &stop, &opts);
         drop(req_tx);
         return Ok(RunOutcome { world, state, stats, bus: None });
     }
 
-    let config = zenoh_config(bus)?;
     let prefix = bus.prefix.clone().unwrap_or_else(|| node::default_prefix(&world));
     let rt = tokio::runtime::Builder::new_multi_thread().worker_threads(2).enable_all().build()?;
     let world_arc = Arc::new(world.clone());
-    let mut node = rt
-        .block_on(Node::open(config, prefix.clone(), world_arc.clone(), req_tx.clone()))
-        .with_context(|| format!("cannot start the Zenoh node (prefix {prefix})"))?;
-    let messages = Arc::new(bridge::pprz::project_messages());
+    let mut node = match bus.no_bus {
+        true => None,
+        false => {
+            let config = zenoh_config(bus)?;
+            Some(
+                rt.block_on(Node::open(config, prefix.clone(), world_arc.clone(), req_tx.clone()))
+                    .with_context(|| format!("cannot start the Zenoh node (prefix {prefix})"))?,
+            )
+        }
+    };
+    let ivy = match &bus.ivy {
+        None => None,
+        Some(addr) => {
+            let mut o = IvyOptions::new(addr.clone(), IVY_APP_NAME);
+            o.on_die = Some(stop.clone());
+            Some(Arc::new(rt.block_on(IvyAgent::start(o)).context("cannot join the Ivy bus")?))
+        }
+    };
+    let messages = Arc::new(bridge::paparazzi::convert::project_messages());
+    let links = PprzLinks { zenoh: node.as_ref().map(|n| (n.session().clone(), prefix.clone())), ivy: ivy.clone() };
     let gateway = rt
         .block_on(Gateway::start(
-            node.session().clone(),
-            &prefix,
+            links,
             world_arc.clone(),
             bus.mixed.pairing.clone(),
             messages.clone(),
@@ -157,7 +228,10 @@ pub fn run(
             // Publish until the loop ends (its frame sender drops).
             while let Some(frame) = frame_rx.recv().await {
                 gateway.set_world(&frame.world);
-                if let Err(e) = node.publish(&frame).await {
+                gateway.send_ivy(&frame.pprz_out);
+                if let Some(node) = &mut node
+                    && let Err(e) = node.publish(&frame).await
+                {
                     tracing::warn!("publish failed: {e}");
                 }
             }
@@ -165,17 +239,24 @@ pub fn run(
         h.join().map_err(|_| anyhow::anyhow!("the step loop panicked"))
     })?;
     drop(req_tx);
-    let c = &node.counters;
+    let l = |a: &std::sync::atomic::AtomicU64| a.load(Ordering::Relaxed);
+    let counters = node.as_ref().map(|n| n.counters.clone());
     let report = BusReport {
-        prefix,
-        commands_accepted: c.commands_accepted.load(Ordering::Relaxed),
-        commands_rejected: c.commands_rejected.load(Ordering::Relaxed),
-        published: c.published.load(Ordering::Relaxed),
-        clients_seen: c.clients_seen.load(Ordering::Relaxed),
+        prefix: node.as_ref().map(|_| prefix),
+        commands_accepted: counters.as_ref().map_or(0, |c| l(&c.commands_accepted)),
+        commands_rejected: counters.as_ref().map_or(0, |c| l(&c.commands_rejected)),
+        published: counters.as_ref().map_or(0, |c| l(&c.published)),
+        clients_seen: counters.as_ref().map_or(0, |c| l(&c.clients_seen)),
         telemetry: gateway.report(),
+        ivy: ivy.as_ref().zip(bus.ivy.as_ref()).map(|(a, addr)| IvyReport::of(a, &addr.to_string(), &gateway)),
     };
     drop(gateway);
-    rt.block_on(node.close()).context("closing the Zenoh session")?;
+    if let Some(agent) = ivy.and_then(|a| Arc::try_unwrap(a).ok()) {
+        rt.block_on(agent.stop());
+    }
+    if let Some(node) = node {
+        rt.block_on(node.close()).context("closing the Zenoh session")?;
+    }
     let (world, state, stats) = outcome;
     Ok(RunOutcome { world, state, stats, bus: Some(report) })
 }

@@ -20,7 +20,7 @@ use std::time::{Duration, Instant};
 
 use anyhow::Context;
 use bridge::mixed::TelemetryPlan;
-use bridge::pprz::{TELEMETRY_MESSAGES, TelemetrySource, telemetry_text, virtual_sonar_readings};
+use bridge::paparazzi::convert::{TELEMETRY_MESSAGES, TelemetrySource, telemetry_text, virtual_sonar_readings};
 use bridge::wire::{SensorsMsg, StateMsg, sensors_msg, state_msg};
 use sim_core::rng::Rng32;
 use sim_core::scene::{self, CommandSpec, CopterSpec, StartSpec};
@@ -217,20 +217,20 @@ pub fn run(args: CopterArgs) -> anyhow::Result<()> {
             })?,
             None => {
                 let connect = if args.connect.is_empty() {
-                    vec![bridge::node::DEFAULT_LISTEN.to_owned()]
+                    vec![bridge::zenoh_net::node::DEFAULT_LISTEN.to_owned()]
                 } else {
                     args.connect.clone()
                 };
-                bridge::node::client_config(&connect)?
+                bridge::zenoh_net::node::client_config(&connect)?
             }
         };
-        let prefix = args.prefix.clone().unwrap_or_else(|| bridge::node::default_prefix(&world));
+        let prefix = args.prefix.clone().unwrap_or_else(|| bridge::zenoh_net::node::default_prefix(&world));
         let session = rt
             .block_on(async { zenoh::open(config).await })
             .map_err(|e| anyhow::anyhow!("{e}"))
             .context("cannot open the Zenoh session")?;
-        let ivy = bridge::ivy::ZenohBus::new(session.clone(), prefix.clone());
-        let messages = Arc::new(bridge::pprz::project_messages());
+        let ivy = bridge::zenoh_net::pprz_bus::ZenohBus::new(session.clone(), prefix.clone());
+        let messages = Arc::new(bridge::paparazzi::convert::project_messages());
         {
             let (virt, received, messages, ac_id) = (virt.clone(), received.clone(), messages.clone(), args.ac_id);
             rt.block_on(ivy.bind(&format!(r"^ground_dl VIRTUAL_SONAR {ac_id} "), move |d, _| {

@@ -22,9 +22,9 @@ use std::sync::mpsc::SyncSender;
 use std::time::{Duration, Instant};
 
 use anyhow::Context;
-use bridge::messages::MessageSet;
 use bridge::mixed::{Interpreter, TelemetryPlan, TwinAttitude};
-use bridge::pprz::{TelemetrySource, telemetry_text};
+use bridge::paparazzi::convert::{TelemetrySource, telemetry_text};
+use bridge::paparazzi::messages::MessageSet;
 use bridge::sim::{BusInput, LoopOptions, Request, StepObserver};
 use bridge::sync::{SyncOptions, SyncStats};
 use bridge::wire::{sensors_msg, state_msg};
@@ -285,7 +285,7 @@ pub fn run_variant(
 
     let (tx, rx) = std::sync::mpsc::sync_channel::<Request>(4096);
     let plan = TelemetryPlan::project_default();
-    let messages = Arc::new(bridge::pprz::project_messages());
+    let messages = Arc::new(bridge::paparazzi::convert::project_messages());
     let mut harness = Harness {
         state: reality.initial_state(),
         inputs: reality.initial_inputs(),

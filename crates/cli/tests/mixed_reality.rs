@@ -103,7 +103,7 @@ fn a_stand_in_turns_away_from_a_virtual_box_and_its_twin_follows_it() {
     // A ground-side client: watch the virtual copter's telemetry, and play two other aircraft.
     let rt = tokio::runtime::Builder::new_multi_thread().worker_threads(2).enable_all().build().unwrap();
     let (client, virtual_rx) = rt.block_on(async {
-        let config = bridge::node::client_config(std::slice::from_ref(&endpoint)).unwrap();
+        let config = bridge::zenoh_net::node::client_config(std::slice::from_ref(&endpoint)).unwrap();
         let deadline = Instant::now() + Duration::from_secs(20);
         let client = loop {
             match zenoh::open(config.clone()).await {
@@ -153,7 +153,7 @@ fn a_stand_in_turns_away_from_a_virtual_box_and_its_twin_follows_it() {
 
     // The virtual copter's telemetry decodes, at the plan's rates (capped at the 20 Hz
     // control rate).
-    let messages = bridge::pprz::project_messages();
+    let messages = bridge::paparazzi::convert::project_messages();
     let mut counts: BTreeMap<String, usize> = BTreeMap::new();
     for text in &received {
         let msg = messages.decode(text).unwrap_or_else(|e| panic!("{text:?} does not decode: {e}"));

@@ -8,10 +8,10 @@ use mcap::records::MessageHeader;
 use serde::Serialize;
 
 use super::schemas::schema_for;
-use crate::codec::split_header;
-use crate::keyexpr::is_valid_chunk;
-use crate::messages::MessageSet;
-use crate::value::Value;
+use crate::paparazzi::codec::split_header;
+use crate::paparazzi::messages::MessageSet;
+use crate::paparazzi::value::Value;
+use crate::zenoh_net::keyexpr::is_valid_chunk;
 
 #[derive(Serialize)]
 struct TextMsg<'a> {
@@ -51,7 +51,7 @@ pub(super) struct PprzChannels {
 impl PprzChannels {
     pub(super) fn new() -> Self {
         Self {
-            messages: crate::pprz::project_messages(),
+            messages: crate::paparazzi::convert::project_messages(),
             schemas: None,
             pairs: BTreeMap::new(),
             written: 0,

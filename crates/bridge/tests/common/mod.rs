@@ -6,7 +6,7 @@
 use std::path::{Path, PathBuf};
 
 use bridge::Value;
-use bridge::messages::{BaseType, FieldType, MessageDef};
+use bridge::paparazzi::messages::{BaseType, FieldType, MessageDef};
 
 /// `shared/data` next to an ancestor of this crate (works from
 /// `/work/wip/bridge` and `/work/main/crates/bridge`), or

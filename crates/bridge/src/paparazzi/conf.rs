@@ -30,7 +30,7 @@ use std::path::Path;
 use serde::Serialize;
 
 use crate::AcId;
-use crate::xml::{Doc, XmlError};
+use crate::paparazzi::xml::{Doc, XmlError};
 
 /// Whether an aircraft exists physically or only in the simulation.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
@@ -102,7 +102,7 @@ impl ConfXml {
     /// Reads and parses a `conf.xml` file.
     pub fn from_file(path: impl AsRef<Path>) -> Result<ConfXml, XmlError> {
         let path = path.as_ref();
-        let text = crate::xml::read_file(path)?;
+        let text = crate::paparazzi::xml::read_file(path)?;
         ConfXml::parse(&text, &path.display().to_string())
     }
 

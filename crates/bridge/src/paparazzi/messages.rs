@@ -36,7 +36,7 @@ use std::path::Path;
 
 use serde::Serialize;
 
-use crate::xml::{Doc, Element, XmlError};
+use crate::paparazzi::xml::{Doc, Element, XmlError};
 
 /// Element type of a field (the part before any `[..]`).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, PartialOrd, Ord, Serialize)]
@@ -315,7 +315,7 @@ impl MessageSet {
     /// Reads and parses a `messages.xml` file.
     pub fn from_file(path: impl AsRef<Path>) -> Result<MessageSet, XmlError> {
         let path = path.as_ref();
-        let text = crate::xml::read_file(path)?;
+        let text = crate::paparazzi::xml::read_file(path)?;
         MessageSet::parse(&text, &path.display().to_string())
     }
 

@@ -49,8 +49,8 @@ use serde::ser::SerializeMap;
 use serde::{Serialize, Serializer};
 
 use crate::AcId;
-use crate::messages::{BaseType, FieldType, MessageDef, MessageSet};
-use crate::value::Value;
+use crate::paparazzi::messages::{BaseType, FieldType, MessageDef, MessageSet};
+use crate::paparazzi::value::Value;
 
 /// Longest variable-length array the binary link can carry (uint8 length).
 pub const MAX_VAR_ARRAY_LEN: usize = 255;
@@ -633,7 +633,7 @@ impl MessageSet {
             }
             [one] => self.get(*one),
             many => {
-                let is_tm = |r: &&crate::messages::MessageRef| self.get(**r).class_name == "telemetry";
+                let is_tm = |r: &&crate::paparazzi::messages::MessageRef| self.get(**r).class_name == "telemetry";
                 let pick =
                     if sender.ac_id().is_some() { many.iter().find(is_tm) } else { many.iter().find(|r| !is_tm(r)) };
                 self.get(*pick.unwrap_or(&many[0]))

@@ -1,63 +1,31 @@
-//! Zenoh key expressions for Ivy texts, and narrowing of Ivy regexes to the
-//! narrowest key expression that still receives everything they match.
-//!
-//! # Keys
-//!
-//! An Ivy text `<sender> <NAME> ...` is published under
-//! `<prefix>/pprz/<sender>/<NAME>` ([`key_for`], [`key_for_text`]). The
-//! header split is [`crate::codec::split_header`]: the sender is everything
-//! before the first space, the name the next run of non-space characters.
-//! Senders and names that cannot be a key chunk (empty, or containing
-//! whitespace or any of `/ * $ ? #`) have no key.
-//!
-//! # Narrowing
+//! Narrowing of Ivy regexes: from a regex, what the sender and the name of every text it can
+//! match look like (exact, a glob, or anything).
 //!
 //! [`narrow`] walks the regex's HIR (`regex-syntax`, same syntax as the
 //! `regex` crate) from a leading `^`/`\A` anchor and follows the literal
 //! parts through the header: sender chunk, the run of spaces, name chunk.
-//! Each chunk becomes exact (`5`, `ATTITUDE`), a glob using Zenoh's in-chunk
-//! wildcard `$*` (`ROTORCRAFT_FP$*` for `^5 ROTORCRAFT_FP`, which also
-//! matches `ROTORCRAFT_FP_MIN`), or `*`. When nothing can be determined (no
-//! anchor, multi-line `(?m)^`, a leading `.*`, ...) the result is
-//! `<prefix>/pprz/**`.
+//! Each chunk becomes exact (`5`, `ATTITUDE`), a glob with in-chunk
+//! wildcards (`ROTORCRAFT_FP$*` for `^5 ROTORCRAFT_FP`, which also
+//! matches `ROTORCRAFT_FP_MIN`), or anything. When nothing can be determined (no
+//! anchor, multi-line `(?m)^`, a leading `.*`, ...) both chunks are anything.
+//!
+//! The regex bus ([`crate::paparazzi::bus`]) indexes its bindings by the narrowed name, and
+//! the Zenoh side ([`crate::zenoh_net::keyexpr`]) turns a narrowing into the key expression it
+//! subscribes.
 //!
 //! **Invariant:** the analysis only ever widens. Every construct it does not
 //! understand turns the rest of the header into wildcards, so for every text
 //! `t` with a key, `regex.is_match(t)` implies that the narrowed expression
 //! matches `key_for_text(prefix, t)`. The tests check this on a corpus of
-//! messages and patterns.
+//! messages and patterns, against Zenoh's own key-expression matching.
 
 use regex_syntax::hir::{Class, Hir, HirKind, Look};
 
-use crate::bus::BusError;
-use crate::codec::split_header;
+use crate::paparazzi::bus::BusError;
 
-/// Characters that may not appear in a key chunk we form.
-const KEY_SPECIAL: [char; 5] = ['/', '*', '$', '?', '#'];
-
-/// Whether `s` can be used verbatim as one key-expression chunk.
-pub fn is_valid_chunk(s: &str) -> bool {
-    !s.is_empty() && !s.contains(KEY_SPECIAL) && !s.chars().any(|c| c.is_whitespace() || c.is_control())
-}
-
-/// `<prefix>/pprz/<sender>/<name>`, or an error if a part is not a valid
-/// chunk.
-pub fn key_for(prefix: &str, sender: &str, name: &str) -> Result<String, BusError> {
-    for chunk in [sender, name] {
-        if !is_valid_chunk(chunk) {
-            return Err(BusError::InvalidKeyChunk { chunk: chunk.to_owned() });
-        }
-    }
-    Ok(format!("{prefix}/pprz/{sender}/{name}"))
-}
-
-/// The key of an Ivy text (see the module docs), or an error if the text
-/// has no usable header.
-pub fn key_for_text(prefix: &str, text: &str) -> Result<String, BusError> {
-    let (sender, name, _) =
-        split_header(text).ok_or_else(|| BusError::NoHeader { text: text.chars().take(80).collect() })?;
-    key_for(prefix, sender, name)
-}
+/// Characters that may not appear in a key chunk (Zenoh's special characters): a regex
+/// literal holding one widens to a wildcard.
+pub const KEY_SPECIAL: [char; 5] = ['/', '*', '$', '?', '#'];
 
 /// What is known about one chunk (sender or name) of every matching text.
 #[derive(Debug, Clone, PartialEq, Eq)]
@@ -138,16 +106,6 @@ impl Narrowing {
     pub fn any() -> Narrowing {
         Narrowing { sender: ChunkPattern::Any, name: ChunkPattern::Any }
     }
-
-    /// The key expression under `prefix`: `<prefix>/pprz/<s>/<n>`, or
-    /// `<prefix>/pprz/**` when neither chunk is known.
-    pub fn key_expr(&self, prefix: &str) -> String {
-        if self.sender == ChunkPattern::Any && self.name == ChunkPattern::Any {
-            format!("{prefix}/pprz/**")
-        } else {
-            format!("{prefix}/pprz/{}/{}", self.sender.to_chunk(), self.name.to_chunk())
-        }
-    }
 }
 
 /// Parses `pattern` with `regex-syntax` and narrows it (see module docs).
@@ -157,12 +115,6 @@ pub fn narrow(pattern: &str) -> Result<Narrowing, BusError> {
         .parse(pattern)
         .map_err(|e| BusError::BadPattern { pattern: pattern.chars().take(200).collect(), message: e.to_string() })?;
     Ok(narrow_hir(&hir))
-}
-
-/// The narrowest key expression under `prefix` for `pattern`, e.g.
-/// `^(\S*) ATTITUDE (.*)` → `<prefix>/pprz/*/ATTITUDE`.
-pub fn narrow_key_expr(prefix: &str, pattern: &str) -> Result<String, BusError> {
-    Ok(narrow(pattern)?.key_expr(prefix))
 }
 
 fn flatten<'h>(hir: &'h Hir, out: &mut Vec<&'h Hir>) {
@@ -383,68 +335,4 @@ pub fn narrow_hir(hir: &Hir) -> Narrowing {
     }
     // The pattern ends: whatever follows in the text is unconstrained.
     w.give_up()
-}
-
-/// Reference matcher for the subset of Zenoh key expressions produced here:
-/// `*` (one chunk), `**` (any number of chunks, including none) and `$*`
-/// (any run of characters inside a chunk, including none).
-///
-/// Intended for tests and diagnostics; the Zenoh layer uses Zenoh's own.
-pub fn key_expr_matches(expr: &str, key: &str) -> bool {
-    let e: Vec<&str> = expr.split('/').collect();
-    let k: Vec<&str> = key.split('/').collect();
-    // dp[i][j]: e[i..] matches k[j..]
-    let mut dp = vec![vec![false; k.len() + 1]; e.len() + 1];
-    dp[e.len()][k.len()] = true;
-    for i in (0..e.len()).rev() {
-        for j in (0..=k.len()).rev() {
-            dp[i][j] = if e[i] == "**" {
-                dp[i + 1][j] || (j < k.len() && dp[i][j + 1])
-            } else {
-                j < k.len() && chunk_matches(e[i], k[j]) && dp[i + 1][j + 1]
-            };
-        }
-    }
-    dp[0][0]
-}
-
-fn chunk_matches(pattern: &str, chunk: &str) -> bool {
-    if pattern == "*" {
-        return !chunk.is_empty();
-    }
-    let pieces: Vec<&str> = pattern.split("$*").collect();
-    if pieces.len() == 1 {
-        return pattern == chunk;
-    }
-    let (first, rest) = (pieces[0], &pieces[1..]);
-    let Some(mut remaining) = chunk.strip_prefix(first) else {
-        return false;
-    };
-    let last = rest[rest.len() - 1];
-    for mid in &rest[..rest.len() - 1] {
-        match remaining.find(mid) {
-            Some(pos) => remaining = &remaining[pos + mid.len()..],
-            None => return false,
-        }
-    }
-    remaining.ends_with(last)
-}
-
-#[cfg(test)]
-mod tests {
-    use super::*;
-
-    #[test]
-    fn matcher_semantics() {
-        assert!(key_expr_matches("a/pprz/**", "a/pprz/5/X"));
-        assert!(key_expr_matches("a/**", "a"));
-        assert!(key_expr_matches("a/pprz/*/X", "a/pprz/5/X"));
-        assert!(!key_expr_matches("a/pprz/*/X", "a/pprz/5/Y"));
-        assert!(key_expr_matches("a/pprz/5/X$*", "a/pprz/5/X"));
-        assert!(key_expr_matches("a/pprz/5/X$*", "a/pprz/5/X_MIN"));
-        assert!(!key_expr_matches("a/pprz/5/X$*", "a/pprz/5/Y"));
-        assert!(key_expr_matches("a/pprz/1$*/A$*B", "a/pprz/12/AxxB"));
-        assert!(!key_expr_matches("a/pprz/1$*/A$*B", "a/pprz/12/AxxBy"));
-        assert!(!key_expr_matches("a/*", "a/b/c"));
-    }
 }

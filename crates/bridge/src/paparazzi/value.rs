@@ -4,7 +4,7 @@ use std::fmt;
 
 use serde::{Serialize, Serializer};
 
-use crate::messages::{BaseType, FieldType};
+use crate::paparazzi::messages::{BaseType, FieldType};
 
 /// The value of one field. Integer variants match the field's declared
 /// width exactly; `char[]`/`char[N]` fields are [`Value::Text`]; other arrays
@@ -154,7 +154,7 @@ impl Serialize for Value {
 }
 
 impl fmt::Display for Value {
-    /// Ivy text form of the value (see [`crate::codec`]).
+    /// Ivy text form of the value (see [`crate::paparazzi::codec`]).
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
         match self {
             Value::I8(v) => write!(f, "{v}"),

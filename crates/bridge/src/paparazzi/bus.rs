@@ -28,20 +28,20 @@
 //! # Speed
 //!
 //! Each binding's regex is narrowed once at bind time
-//! ([`crate::keyexpr::narrow`]). Bindings whose message name is known
+//! ([`crate::paparazzi::narrow::narrow`]). Bindings whose message name is known
 //! exactly are indexed by name, so a text is only matched against the
 //! regexes that can match its name plus the few whose name is not known;
 //! bindings with an exact sender (or [`Bus::bind_from`]) are skipped by a
 //! string comparison before any regex runs. The same narrowing gives the
-//! Zenoh key expressions to subscribe ([`Bus::key_exprs`]).
+//! Zenoh key expressions to subscribe ([`crate::zenoh_net::keyexpr::bus_key_exprs`]).
 
 use std::collections::HashMap;
 
 use regex::{CaptureLocations, Regex, RegexBuilder};
 
 use crate::AcId;
-use crate::codec::split_header;
-use crate::keyexpr::{ChunkPattern, Narrowing, narrow_hir};
+use crate::paparazzi::codec::split_header;
+use crate::paparazzi::narrow::{ChunkPattern, Narrowing, narrow_hir};
 
 /// Maximum compiled size of one binding's regex (`RegexBuilder::size_limit`).
 pub const REGEX_SIZE_LIMIT_BYTES: usize = 1 << 20;
@@ -175,7 +175,8 @@ impl std::fmt::Debug for Bus {
     }
 }
 
-fn compile(pattern: &str) -> Result<(Regex, Narrowing), BusError> {
+/// Compiles `pattern` with the bus's limits, and narrows it.
+pub(crate) fn compile(pattern: &str) -> Result<(Regex, Narrowing), BusError> {
     if pattern.len() > MAX_PATTERN_LEN_BYTES {
         return Err(BusError::PatternTooLong { len_bytes: pattern.len(), limit_bytes: MAX_PATTERN_LEN_BYTES });
     }
@@ -316,14 +317,23 @@ impl Bus {
             .collect()
     }
 
-    /// The key expressions (under `prefix`) that together receive every
-    /// text some binding can match; sorted and deduplicated.
-    pub fn key_exprs(&self, prefix: &str) -> Vec<String> {
-        let mut v: Vec<String> =
-            self.bindings.iter().filter_map(|(_, b)| b.as_ref().map(|b| b.narrowing.key_expr(prefix))).collect();
-        v.sort();
-        v.dedup();
-        v
+    /// Delivers `text` to binding `id` alone, if its regex matches (a transport that already
+    /// knows which binding a text is for, such as the Ivy wire protocol, whose peers match
+    /// sender-side). Returns whether the handler ran.
+    pub fn deliver_to(&mut self, id: BindId, key: &str, text: &str) -> bool {
+        let Some(idx) = self.slot(id) else { return false };
+        let Some(b) = self.bindings[idx].1.as_mut() else { return false };
+        if b.regex.captures_read(&mut b.locs, text).is_none() {
+            return false;
+        }
+        let captures: Vec<&str> =
+            (1..b.locs.len()).map(|g| b.locs.get(g).map(|(s, e)| &text[s..e]).unwrap_or("")).collect();
+        let mut ctl = Control { current: id, unbinds: Vec::new() };
+        (b.handler)(&Delivery { bind_id: id, key, text, captures: &captures }, &mut ctl);
+        for u in ctl.unbinds {
+            self.unbind(u);
+        }
+        true
     }
 
     /// Delivers `text` (which arrived on `key`) to every binding whose

@@ -9,14 +9,14 @@
 
 use sim_core::Setpoint;
 
-use crate::codec::{CodecError, Message, Sender};
-use crate::messages::{BaseType, FieldDef, MessageSet};
-use crate::value::Value;
+use crate::paparazzi::codec::{CodecError, Message, Sender};
+use crate::paparazzi::messages::{BaseType, FieldDef, MessageSet};
+use crate::paparazzi::value::Value;
 use crate::wire::{CommandMsg, SensorsMsg, StateMsg};
 
 /// The project's own message definitions (FINken telemetry, `ATTITUDE`, `ROTORCRAFT_FP`,
 /// `VIRTUAL_SONAR`).
-pub const MESSAGES_XML: &str = include_str!("../../../assets/paparazzi/messages.xml");
+pub const MESSAGES_XML: &str = include_str!("../../../../assets/paparazzi/messages.xml");
 
 /// Parses [`MESSAGES_XML`].
 pub fn project_messages() -> MessageSet {
@@ -75,7 +75,7 @@ pub fn twin_command(msg: &Message<'_>) -> Option<CommandMsg> {
         "FINKEN_ACTUATORS_SET_POINT" => Some(CommandMsg {
             pitch: f(msg, "pitch").map(|d| -d.to_radians()),
             roll: f(msg, "roll").map(f32::to_radians),
-            yaw: f(msg, "yaw").map(|d| crate::pprz::wrap(-d.to_radians())),
+            yaw: f(msg, "yaw").map(|d| crate::paparazzi::convert::wrap(-d.to_radians())),
             throttle: f(msg, "thrust").map(|p| (p / 100.0).clamp(0.0, 1.0)),
             ..CommandMsg::default()
         }),
@@ -194,7 +194,7 @@ fn encode_by_field(
         })?;
         values.push(wire_value(f, v));
     }
-    crate::codec::encode(&Sender::Aircraft(ac_id), def, &values)
+    crate::paparazzi::codec::encode(&Sender::Aircraft(ac_id), def, &values)
 }
 
 /// The Ivy text of telemetry message `name` for aircraft `ac_id`, from `src`; `None` for a

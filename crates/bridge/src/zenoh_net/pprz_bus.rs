@@ -1,8 +1,8 @@
-//! The Ivy-style bus over Zenoh: [`crate::bus::Bus`] bindings fed by Zenoh subscribers on the
+//! The Ivy-style bus over Zenoh: [`crate::paparazzi::bus::Bus`] bindings fed by Zenoh subscribers on the
 //! narrowest key expressions their regexes allow.
 //!
 //! - [`ZenohBus::bind`] compiles the regex, narrows it to a key expression
-//!   (`^(\S*) ATTITUDE …` → `<prefix>/pprz/*/ATTITUDE`, see [`crate::keyexpr`]) and declares a
+//!   (`^(\S*) ATTITUDE …` → `<prefix>/pprz/*/ATTITUDE`, see [`crate::zenoh_net::keyexpr`]) and declares a
 //!   subscriber on that expression unless one is already there. Zenoh drops everything else
 //!   before it reaches this process: non-matching keys never arrive.
 //! - The regex then runs on the text, and the handler receives the capture groups, as with
@@ -15,7 +15,7 @@
 //!
 //! Like Ivy, a process does not receive its own messages (subscribers accept remote samples
 //! only). Handlers run on Zenoh's callback threads with the bus locked: keep them short, and
-//! do not call `bind`/`unbind` from inside one (use [`Control`](crate::bus::Control)).
+//! do not call `bind`/`unbind` from inside one (use [`Control`](crate::paparazzi::bus::Control)).
 
 use std::collections::BTreeMap;
 use std::sync::atomic::{AtomicU64, Ordering};
@@ -24,12 +24,12 @@ use std::sync::{Arc, Mutex};
 use zenoh::sample::Locality;
 
 use crate::AcId;
-use crate::bus::{BindId, Bus, BusError, Control, Delivery};
-use crate::keyexpr::key_for_text;
+use crate::paparazzi::bus::{BindId, Bus, BusError, Control, Delivery};
+use crate::zenoh_net::keyexpr::key_for_text;
 
 /// Errors of the Zenoh bus.
 #[derive(Debug, thiserror::Error)]
-pub enum IvyError {
+pub enum ZenohBusError {
     /// The pattern or the text is not usable.
     #[error(transparent)]
     Bus(#[from] BusError),
@@ -84,6 +84,11 @@ impl ZenohBus {
         }
     }
 
+    /// The session.
+    pub fn session(&self) -> &zenoh::Session {
+        &self.session
+    }
+
     /// The key-expression prefix.
     pub fn prefix(&self) -> &str {
         &self.prefix
@@ -94,7 +99,7 @@ impl ZenohBus {
         &self,
         pattern: &str,
         handler: impl FnMut(&Delivery<'_>, &mut Control) + Send + 'static,
-    ) -> Result<BindId, IvyError> {
+    ) -> Result<BindId, ZenohBusError> {
         self.bind_inner(None, pattern, Box::new(handler)).await
     }
 
@@ -104,7 +109,7 @@ impl ZenohBus {
         ac_id: AcId,
         pattern: &str,
         handler: impl FnMut(&Delivery<'_>, &mut Control) + Send + 'static,
-    ) -> Result<BindId, IvyError> {
+    ) -> Result<BindId, ZenohBusError> {
         self.bind_inner(Some(ac_id), pattern, Box::new(handler)).await
     }
 
@@ -112,15 +117,19 @@ impl ZenohBus {
         &self,
         from: Option<AcId>,
         pattern: &str,
-        handler: crate::bus::Handler,
-    ) -> Result<BindId, IvyError> {
+        handler: crate::paparazzi::bus::Handler,
+    ) -> Result<BindId, ZenohBusError> {
         let (id, key) = {
             let mut bus = self.bus.lock().map_err(|_| poisoned())?;
             let id = match from {
                 Some(ac) => bus.bind_from(ac, pattern, handler)?,
                 None => bus.bind(pattern, handler)?,
             };
-            let key = bus.bindings().into_iter().find(|b| b.id == id).map(|b| b.narrowing.key_expr(&self.prefix));
+            let key = bus
+                .bindings()
+                .into_iter()
+                .find(|b| b.id == id)
+                .map(|b| crate::zenoh_net::keyexpr::key_expr(&b.narrowing, &self.prefix));
             (id, key.unwrap_or_else(|| format!("{}/pprz/**", self.prefix)))
         };
         self.key_of.lock().map_err(|_| poisoned())?.insert(id, key.clone());
@@ -131,7 +140,7 @@ impl ZenohBus {
         Ok(id)
     }
 
-    async fn subscribe(&self, key: &str) -> Result<(), IvyError> {
+    async fn subscribe(&self, key: &str) -> Result<(), ZenohBusError> {
         if let Some(s) = self.subs.lock().map_err(|_| poisoned())?.get_mut(key) {
             s.users += 1;
             return Ok(());
@@ -154,7 +163,7 @@ impl ZenohBus {
                 }
             })
             .await
-            .map_err(|e| IvyError::Zenoh(e.to_string()))?;
+            .map_err(|e| ZenohBusError::Zenoh(e.to_string()))?;
         let mut subs = self.subs.lock().map_err(|_| poisoned())?;
         // Another bind may have raced us to the same key: keep one subscriber.
         match subs.get_mut(key) {
@@ -189,9 +198,9 @@ impl ZenohBus {
     }
 
     /// Publishes `text` under its key (`<prefix>/pprz/<sender>/<NAME>`).
-    pub async fn send(&self, text: &str) -> Result<(), IvyError> {
+    pub async fn send(&self, text: &str) -> Result<(), ZenohBusError> {
         let key = key_for_text(&self.prefix, text)?;
-        self.session.put(key, text.to_owned()).await.map_err(|e| IvyError::Zenoh(e.to_string()))?;
+        self.session.put(key, text.to_owned()).await.map_err(|e| ZenohBusError::Zenoh(e.to_string()))?;
         self.counters.sent.fetch_add(1, Ordering::Relaxed);
         Ok(())
     }
@@ -207,6 +216,6 @@ impl ZenohBus {
     }
 }
 
-fn poisoned() -> IvyError {
-    IvyError::Zenoh("a bus handler panicked earlier".into())
+fn poisoned() -> ZenohBusError {
+    ZenohBusError::Zenoh("a bus handler panicked earlier".into())
 }

@@ -28,7 +28,7 @@ use std::path::Path;
 
 use serde::Serialize;
 
-use crate::xml::{Doc, Element, XmlError};
+use crate::paparazzi::xml::{Doc, Element, XmlError};
 
 /// One `<message>` of a mode.
 #[derive(Debug, Clone, PartialEq, Serialize)]
@@ -107,7 +107,7 @@ impl Telemetry {
     /// Reads and parses a telemetry file.
     pub fn from_file(path: impl AsRef<Path>) -> Result<Telemetry, XmlError> {
         let path = path.as_ref();
-        let text = crate::xml::read_file(path)?;
+        let text = crate::paparazzi::xml::read_file(path)?;
         Telemetry::parse(&text, &path.display().to_string())
     }
 

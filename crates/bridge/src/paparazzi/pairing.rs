@@ -56,8 +56,8 @@ use std::path::{Path, PathBuf};
 use serde::Serialize;
 
 use crate::AcId;
-use crate::conf::{AircraftKind, ConfXml};
-use crate::xml::{Doc, Element, Location, XmlError};
+use crate::paparazzi::conf::{AircraftKind, ConfXml};
+use crate::paparazzi::xml::{Doc, Element, Location, XmlError};
 
 /// A pose in the scene's world frame.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize)]
@@ -263,7 +263,7 @@ impl Pairing {
     /// Reads and parses a pairing file.
     pub fn from_file(path: impl AsRef<Path>) -> Result<Pairing, XmlError> {
         let path = path.as_ref();
-        let text = crate::xml::read_file(path)?;
+        let text = crate::paparazzi::xml::read_file(path)?;
         Pairing::parse(&text, &path.display().to_string())
     }
 

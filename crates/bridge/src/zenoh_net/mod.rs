@@ -1,0 +1,14 @@
+//! The Zenoh side: the simulator's node (state, sensors, commands, queryables, liveliness)
+//! and Paparazzi texts carried over Zenoh.
+//!
+//! * [`node`]: the Zenoh session: key expressions, publishers, the command subscriber,
+//!   queryables and liveliness.
+//! * [`keyexpr`]: Zenoh keys for Paparazzi texts and regex → key-expression narrowing.
+//! * [`pprz_bus`]: the Ivy-style regex bus over Zenoh ([`pprz_bus::ZenohBus`]).
+//!
+//! **May use:** Zenoh, tokio, [`crate::paparazzi`] (formats and the regex bus) and
+//! [`crate::wire`] and [`crate::sim`] (the payloads and the loop's channels).
+
+pub mod keyexpr;
+pub mod node;
+pub mod pprz_bus;
