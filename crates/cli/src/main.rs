@@ -19,6 +19,7 @@ macro_rules! outln {
     }};
 }
 
+mod ivycmd;
 mod localize;
 mod logcmd;
 mod plot;
@@ -53,6 +54,8 @@ enum Command {
     Run(RunArgs),
     /// Stand in for a real FINken: fly its own "reality", send telemetry, fuse virtual sonar.
     Copter(standin::CopterArgs),
+    /// Ivy bus tools: probe (like ivyprobe), send, peers.
+    Ivy(ivycmd::IvyArgs),
     /// Validate a scene file and explain what it contains.
     Check {
         /// The scene file (TOML).
@@ -290,6 +293,7 @@ fn main() -> ExitCode {
     let result = match command {
         Command::Run(args) => run(args),
         Command::Copter(args) => standin::run(args),
+        Command::Ivy(args) => ivycmd::run(args),
         Command::Check { scene } => check(&scene),
         Command::Inspect { scene, json } => inspect(scene.as_deref(), json),
         Command::Localize(args) => localize::run(args),

@@ -251,7 +251,7 @@ pub fn run(
         ivy: ivy.as_ref().zip(bus.ivy.as_ref()).map(|(a, addr)| IvyReport::of(a, &addr.to_string(), &gateway)),
     };
     drop(gateway);
-    if let Some(agent) = ivy.and_then(|a| Arc::try_unwrap(a).ok()) {
+    if let Some(agent) = ivy {
         rt.block_on(agent.stop());
     }
     if let Some(node) = node {

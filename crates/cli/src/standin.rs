@@ -74,6 +74,14 @@ pub struct CopterArgs {
     /// Fly alone, as fast as possible, without Zenoh (a control run).
     #[arg(long)]
     no_bus: bool,
+    /// Speak Ivy instead of Zenoh, as a real copter behind Paparazzi's `link` would: telemetry
+    /// as `<ac_id> <NAME> ...`, VIRTUAL_SONAR bound with link's own regex. BUS as in Paparazzi;
+    /// default: `--ivy-bus`, else `IVYBUS`, else 127.255.255.255:2010.
+    #[arg(long, value_name = "BUS", num_args = 0..=1, default_missing_value = "", conflicts_with = "no_bus")]
+    ivy: Option<String>,
+    /// The Ivy bus address (same syntax as Paparazzi's `-b`).
+    #[arg(long, value_name = "ADDR:PORT")]
+    ivy_bus: Option<String>,
     /// A full Zenoh configuration file (JSON5); default: connect to tcp/127.0.0.1:7447,
     /// listen nowhere, multicast scouting off.
     #[arg(long, value_name = "FILE.json5")]
@@ -205,63 +213,22 @@ pub fn run(args: CopterArgs) -> anyhow::Result<()> {
     let mut inputs = world.initial_inputs();
     let shared = Arc::new(Mutex::new(snapshot(&world, &state, &inputs)));
 
-    let bus = if args.no_bus {
-        None
-    } else {
-        let rt = tokio::runtime::Builder::new_multi_thread().worker_threads(2).enable_all().build()?;
-        let config = match &args.zenoh_config {
-            Some(_) => crate::runner::zenoh_config(&crate::runner::BusOptions {
-                zenoh_config: args.zenoh_config.clone(),
-                connect: args.connect.clone(),
-                ..Default::default()
-            })?,
-            None => {
-                let connect = if args.connect.is_empty() {
-                    vec![bridge::zenoh_net::node::DEFAULT_LISTEN.to_owned()]
-                } else {
-                    args.connect.clone()
-                };
-                bridge::zenoh_net::node::client_config(&connect)?
-            }
-        };
-        let prefix = args.prefix.clone().unwrap_or_else(|| bridge::zenoh_net::node::default_prefix(&world));
-        let session = rt
-            .block_on(async { zenoh::open(config).await })
-            .map_err(|e| anyhow::anyhow!("{e}"))
-            .context("cannot open the Zenoh session")?;
-        let ivy = bridge::zenoh_net::pprz_bus::ZenohBus::new(session.clone(), prefix.clone());
-        let messages = Arc::new(bridge::paparazzi::convert::project_messages());
-        {
-            let (virt, received, messages, ac_id) = (virt.clone(), received.clone(), messages.clone(), args.ac_id);
-            rt.block_on(ivy.bind(&format!(r"^ground_dl VIRTUAL_SONAR {ac_id} "), move |d, _| {
-                let Ok(msg) = messages.decode(d.text) else { return };
-                if let Some((to, readings)) = virtual_sonar_readings(&msg)
-                    && to == ac_id
-                {
-                    received.fetch_add(1, Ordering::Relaxed);
-                    if let Ok(mut v) = virt.lock() {
-                        *v = Some((readings, Instant::now()));
-                    }
-                }
-            }))?;
-        }
-        Some((rt, session, ivy, messages, prefix))
-    };
+    let bus = if args.no_bus { None } else { Some(open_link(&args, &world, &virt, &received)?) };
 
     // Telemetry senders, one task per message of the plan.
     let sent = Arc::new(AtomicU64::new(0));
     let lost = Arc::new(AtomicU64::new(0));
     let done = Arc::new(AtomicBool::new(false));
     let mut senders = Vec::new();
-    if let Some((rt, session, _, messages, prefix)) = &bus {
+    if let Some((rt, link)) = &bus {
+        let messages = Arc::new(bridge::paparazzi::convert::project_messages());
         for (k, (name, period)) in plan.periods.iter().enumerate() {
             if !TELEMETRY_MESSAGES.contains(&name.as_str()) {
                 tracing::warn!("the stand-in cannot send {name} (not modelled)");
                 continue;
             }
-            let (session, messages, shared) = (session.clone(), messages.clone(), shared.clone());
+            let (link, messages, shared) = (link.clone(), messages.clone(), shared.clone());
             let (sent, lost, done) = (sent.clone(), lost.clone(), done.clone());
-            let key = format!("{prefix}/pprz/{}/{name}", args.ac_id);
             let (name, period) = (name.clone(), Duration::from_secs_f64(*period));
             let (ac_id, jitter_s, loss) = (args.ac_id, args.jitter_ms / 1e3, args.loss as f32);
             let mut rng = Rng32::new(world.params.seed, 0x7e1e_0000 + k as u64);
@@ -283,7 +250,7 @@ pub fn run(args: CopterArgs) -> anyhow::Result<()> {
                     };
                     match text {
                         Some(Ok(text)) => {
-                            if session.put(key.as_str(), text).await.is_ok() {
+                            if link.send(text).await {
                                 sent.fetch_add(1, Ordering::Relaxed);
                             }
                         }
@@ -350,16 +317,11 @@ pub fn run(args: CopterArgs) -> anyhow::Result<()> {
     if let Some(w) = &mut track {
         w.flush()?;
     }
-    if let Some((rt, session, ivy, _, _)) = bus {
-        rt.block_on(async {
-            for s in senders {
-                s.abort();
-            }
-            drop(ivy);
-            session.close().await
-        })
-        .map_err(|e| anyhow::anyhow!("{e}"))
-        .context("closing the Zenoh session")?;
+    if let Some((rt, link)) = bus {
+        for s in &senders {
+            s.abort();
+        }
+        rt.block_on(link.close())?;
     }
     let summary = Summary {
         ac_id: args.ac_id,
@@ -407,4 +369,108 @@ fn snapshot(world: &World, state: &State, inputs: &sim_core::Inputs) -> Snapshot
         sensors: sensors_msg(world, state, 0),
         setpoint: state.copters[0].setpoint,
     }
+}
+
+/// How the stand-in reaches the simulator: Zenoh keys, or a real Ivy bus.
+#[derive(Clone)]
+enum Link {
+    Zenoh { session: zenoh::Session, prefix: String, _bus: Arc<bridge::zenoh_net::pprz_bus::ZenohBus> },
+    Ivy(Arc<bridge::paparazzi::ivy::IvyAgent>),
+}
+
+impl Link {
+    /// Sends one telemetry text; whether it went out.
+    async fn send(&self, text: String) -> bool {
+        match self {
+            Link::Zenoh { session, prefix, .. } => match bridge::key_for_text(prefix, &text) {
+                Ok(key) => session.put(key, text).await.is_ok(),
+                Err(_) => false,
+            },
+            Link::Ivy(agent) => agent.send(&text).is_ok(),
+        }
+    }
+
+    async fn close(self) -> anyhow::Result<()> {
+        match self {
+            Link::Zenoh { session, _bus, .. } => {
+                drop(_bus);
+                session.close().await.map_err(|e| anyhow::anyhow!("{e}")).context("closing the Zenoh session")
+            }
+            Link::Ivy(agent) => {
+                agent.stop().await;
+                Ok(())
+            }
+        }
+    }
+}
+
+/// Records a VIRTUAL_SONAR text for `ac_id`.
+fn on_virtual_sonar(
+    messages: &bridge::MessageSet,
+    text: &str,
+    ac_id: u8,
+    virt: &Mutex<Option<VirtualReading>>,
+    received: &AtomicU64,
+) {
+    let Ok(msg) = messages.decode(text) else { return };
+    if let Some((to, readings)) = virtual_sonar_readings(&msg)
+        && to == ac_id
+    {
+        received.fetch_add(1, Ordering::Relaxed);
+        if let Ok(mut v) = virt.lock() {
+            *v = Some((readings, Instant::now()));
+        }
+    }
+}
+
+/// Opens the bus (Zenoh, or Ivy with `--ivy`) and binds the virtual sonar.
+fn open_link(
+    args: &CopterArgs,
+    world: &World,
+    virt: &Arc<Mutex<Option<VirtualReading>>>,
+    received: &Arc<AtomicU64>,
+) -> anyhow::Result<(tokio::runtime::Runtime, Link)> {
+    let rt = tokio::runtime::Builder::new_multi_thread().worker_threads(2).enable_all().build()?;
+    let messages = Arc::new(bridge::paparazzi::convert::project_messages());
+    let (virt, received, ac_id) = (virt.clone(), received.clone(), args.ac_id);
+    if let Some(b) = &args.ivy {
+        let explicit = if b.is_empty() { args.ivy_bus.as_deref() } else { Some(b.as_str()) };
+        let addr = bridge::paparazzi::ivy::BusAddr::from_env_or(explicit).map_err(|e| BadInput(e.into()))?;
+        let opts = bridge::paparazzi::ivy::IvyOptions::new(addr, format!("twinswarm-copter-{ac_id}"));
+        let agent = rt.block_on(bridge::paparazzi::ivy::IvyAgent::start(opts)).context("cannot join the Ivy bus")?;
+        // Exactly what Paparazzi's link binds for a datalink message it forwards
+        // (link.ml: `^([^ ]*) +(NAME( .*|$))`), so the stand-in receives what a real
+        // aircraft would.
+        agent.bind_raw(r"^([^ ]*) +(VIRTUAL_SONAR( .*|$))", move |g| {
+            if let [sender, msg, ..] = g {
+                on_virtual_sonar(&messages, &format!("{sender} {msg}"), ac_id, &virt, &received);
+            }
+        })?;
+        return Ok((rt, Link::Ivy(Arc::new(agent))));
+    }
+    let config = match &args.zenoh_config {
+        Some(_) => crate::runner::zenoh_config(&crate::runner::BusOptions {
+            zenoh_config: args.zenoh_config.clone(),
+            connect: args.connect.clone(),
+            ..Default::default()
+        })?,
+        None => {
+            let connect = if args.connect.is_empty() {
+                vec![bridge::zenoh_net::node::DEFAULT_LISTEN.to_owned()]
+            } else {
+                args.connect.clone()
+            };
+            bridge::zenoh_net::node::client_config(&connect)?
+        }
+    };
+    let prefix = args.prefix.clone().unwrap_or_else(|| bridge::zenoh_net::node::default_prefix(world));
+    let session = rt
+        .block_on(async { zenoh::open(config).await })
+        .map_err(|e| anyhow::anyhow!("{e}"))
+        .context("cannot open the Zenoh session")?;
+    let bus = bridge::zenoh_net::pprz_bus::ZenohBus::new(session.clone(), prefix.clone());
+    rt.block_on(bus.bind(&format!(r"^ground_dl VIRTUAL_SONAR {ac_id} "), move |d, _| {
+        on_virtual_sonar(&messages, d.text, ac_id, &virt, &received);
+    }))?;
+    Ok((rt, Link::Zenoh { session, prefix, _bus: Arc::new(bus) }))
 }

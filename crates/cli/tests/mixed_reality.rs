@@ -196,3 +196,47 @@ fn a_stand_in_turns_away_from_a_virtual_box_and_its_twin_follows_it() {
     assert!(summary["twins"]["finken_03"]["spawned"].as_bool().unwrap_or(false), "{}", summary["twins"]);
     let _ = std::fs::remove_dir_all(&dir);
 }
+
+fn free_udp_port() -> u16 {
+    std::net::UdpSocket::bind("127.0.0.1:0").and_then(|s| s.local_addr()).map(|a| a.port()).unwrap_or(23511)
+}
+
+/// The same loop with no Zenoh at all: the simulator and the stand-in are two agents on one
+/// real Ivy bus (loopback broadcast on a free port), as the simulator and a copter behind
+/// Paparazzi's `link` would be.
+#[test]
+fn the_full_loop_runs_over_a_real_ivy_bus() {
+    let dir = std::env::temp_dir().join(format!("twinswarm-mr-ivy-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let bus = format!("127.255.255.255:{}", free_udp_port());
+    let main = Command::new(env!("CARGO_BIN_EXE_twinswarm"))
+        .arg("run")
+        .arg(assets().join("scenes/mixed_lab.toml"))
+        .arg("--pairing")
+        .arg(assets().join("pairing/mixed_lab.xml"))
+        .args(["--realtime", "--duration", "19", "--twin-attitude", "measured", "--json", "--no-log"])
+        .args(["--no-bus", "--ivy", &bus])
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .expect("start twinswarm run");
+    std::thread::sleep(Duration::from_millis(800));
+    let track_path = dir.join("ivy.csv");
+    let stand_in_summary = stand_in(&["--ivy", &bus, "--jitter-ms", "5"], &track_path);
+    let out = main.wait_with_output().expect("twinswarm run");
+    assert!(out.status.success(), "twinswarm run failed: {}", String::from_utf8_lossy(&out.stderr));
+    let summary: Value = serde_json::from_slice(&out.stdout).expect("run JSON");
+    let mixed = read_track(&track_path);
+    println!(
+        "over ivy: max x {:.2} m, closest to the ghost {:.2} m, virtual sonar {}; ivy {}",
+        mixed.max_x_m, mixed.min_ghost_distance_m, stand_in_summary["virtual_sonar_received"], summary["bus"]["ivy"]
+    );
+    assert!(stand_in_summary["virtual_sonar_received"].as_u64().unwrap_or(0) > 100, "{stand_in_summary}");
+    assert!(mixed.max_x_m < GHOST_FACE_X_M, "the stand-in entered the virtual box (max x {:.2} m)", mixed.max_x_m);
+    let twin = &summary["twins"]["finken_01"];
+    assert!(twin["inputs_applied"].as_u64().unwrap() > 500, "{twin}");
+    assert_eq!(summary["crashes"].as_array().map_or(0, Vec::len), 0, "{}", summary["crashes"]);
+    let ivy = &summary["bus"]["ivy"];
+    assert!(ivy["peers_joined"].as_u64().unwrap() >= 1, "{ivy}");
+    let _ = std::fs::remove_dir_all(&dir);
+}

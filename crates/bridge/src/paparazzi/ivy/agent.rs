@@ -235,7 +235,7 @@ impl Inner {
 }
 
 /// An agent on an Ivy bus (see the module docs). Dropping it leaves the bus without Bye; call
-/// [`IvyAgent::stop`] to say Bye.
+/// [`IvyAgent::stop`] to say Bye first.
 pub struct IvyAgent {
     inner: Arc<Inner>,
     tasks: Vec<JoinHandle<()>>,
@@ -500,7 +500,7 @@ impl IvyAgent {
     }
 
     /// Leaves the bus: Bye to every peer, then closes everything (after at most 1 s).
-    pub async fn stop(self) {
+    pub async fn stop(&self) {
         let mut bye = Vec::new();
         Frame::Bye.encode(&mut bye);
         let txs: Vec<mpsc::Sender<Vec<u8>>> = self
