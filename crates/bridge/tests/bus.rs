@@ -270,6 +270,46 @@ fn narrowed_key_never_excludes_a_matching_message() {
     assert!(narrowed > 1_000, "only {narrowed} patterns narrowed");
 }
 
+/// The same property checked against Zenoh's own key-expression algebra, not the project's
+/// matcher: for every text a regex matches, Zenoh's `KeyExpr` of the narrowed expression
+/// includes (and so intersects) the text's key. Zenoh delivers a sample to a subscriber
+/// exactly when the subscription intersects the key, so narrowing never loses a text Zenoh
+/// would deliver. Also: the project's matcher agrees with Zenoh's on every (expression, key).
+#[test]
+fn narrowed_key_never_excludes_a_matching_message_by_zenohs_own_rules() {
+    use zenoh::key_expr::KeyExpr;
+    let texts: Vec<(String, KeyExpr<'static>)> = corpus()
+        .into_iter()
+        .filter_map(|t| {
+            let k = key_for_text(PREFIX, &t).ok()?;
+            Some((t, KeyExpr::try_from(k).expect("a text's key is a valid key expression")))
+        })
+        .collect();
+    let mut checked = 0usize;
+    let mut globbed = 0usize;
+    for p in patterns() {
+        let re = Regex::new(&p).unwrap_or_else(|e| panic!("{p}: {e}"));
+        let ke_text = narrow_key_expr(PREFIX, &p).unwrap_or_else(|e| panic!("{p}: {e}"));
+        let ke = KeyExpr::try_from(ke_text.clone()).unwrap_or_else(|e| panic!("{p} narrowed to {ke_text}: {e}"));
+        globbed += usize::from(ke_text.contains("$*"));
+        for (text, key) in &texts {
+            let zenoh_delivers = ke.intersects(key);
+            assert_eq!(ke.includes(key), zenoh_delivers, "{ke} vs {key}: a key has no wildcards");
+            assert_eq!(
+                key_expr_matches(&ke_text, key.as_str()),
+                zenoh_delivers,
+                "the project's matcher disagrees with Zenoh on {ke} vs {key}"
+            );
+            if re.is_match(text) {
+                checked += 1;
+                assert!(zenoh_delivers, "pattern `{p}` matches `{text}` but Zenoh would not deliver {key} to {ke}");
+            }
+        }
+    }
+    assert!(checked > 10_000, "only {checked} matching pairs");
+    assert!(globbed > 10, "only {globbed} narrowed expressions use `$*`");
+}
+
 #[test]
 fn dispatch_agrees_with_brute_force_matching() {
     let texts = corpus();

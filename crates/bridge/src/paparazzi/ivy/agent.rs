@@ -27,7 +27,7 @@
 //! - **Never stalls the caller.** Each peer has a bounded queue of lines; a peer that does not
 //!   read loses messages (counted), the sender never waits. Lines longer than
 //!   [`MAX_LINE_BYTES`](super::frame::MAX_LINE_BYTES) are dropped and counted; a connection
-//!   that does not introduce itself within [`HANDSHAKE_TIMEOUT`] is closed; at most
+//!   that does not introduce itself within [`IvyOptions::handshake_timeout`] is closed; at most
 //!   [`IvyOptions::max_peers`] connections are kept.
 //! - **Die** sets the caller's stop flag (the simulator then ends its run cleanly) and the
 //!   agent leaves the bus with Bye, as ivy-python does.
@@ -49,7 +49,7 @@ use super::frame::{Frame, FrameError, Hello, Line, LineSplitter, PROTOCOL_VERSIO
 use crate::paparazzi::bus::{BindId, Bus, BusError, Control, Delivery, compile};
 use crate::paparazzi::codec::split_header;
 
-/// A connection that has not sent StartRegexp after this long is closed.
+/// A connection that has not sent StartRegexp after this long is closed (default).
 pub const HANDSHAKE_TIMEOUT: Duration = Duration::from_secs(10);
 
 /// Lines queued per peer before messages to it are dropped.
@@ -66,12 +66,14 @@ pub struct IvyOptions {
     pub max_peers: usize,
     /// Set when a peer sends Die.
     pub on_die: Option<Arc<AtomicBool>>,
+    /// A connection that has not sent StartRegexp after this long is closed.
+    pub handshake_timeout: Duration,
 }
 
 impl IvyOptions {
     /// Options for `app_name` on `bus`, with at most 256 peers.
     pub fn new(bus: BusAddr, app_name: impl Into<String>) -> Self {
-        Self { bus, app_name: app_name.into(), max_peers: 256, on_die: None }
+        Self { bus, app_name: app_name.into(), max_peers: 256, on_die: None, handshake_timeout: HANDSHAKE_TIMEOUT }
     }
 }
 
@@ -691,7 +693,7 @@ async fn read_loop(inner: &Arc<Inner>, key: u64, rd: &mut tokio::net::tcp::Owned
         let read = if introduced {
             rd.read(&mut buf).await
         } else {
-            match tokio::time::timeout_at(opened + HANDSHAKE_TIMEOUT, rd.read(&mut buf)).await {
+            match tokio::time::timeout_at(opened + inner.opts.handshake_timeout, rd.read(&mut buf)).await {
                 Ok(r) => r,
                 Err(_) => {
                     inner.drop_one("connection closed: no handshake in time");
