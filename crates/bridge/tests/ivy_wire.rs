@@ -15,6 +15,9 @@ use net::{eventually, within};
 use tokio::io::{AsyncBufReadExt, AsyncWriteExt, BufReader};
 use tokio::net::TcpStream;
 
+/// Texts received, with their groups.
+type Received = Arc<Mutex<Vec<(String, Vec<String>)>>>;
+
 fn bus() -> BusAddr {
     let port = std::net::UdpSocket::bind("127.0.0.1:0").and_then(|s| s.local_addr()).map(|a| a.port()).unwrap();
     BusAddr::parse(&format!("127.255.255.255:{port}")).unwrap()
@@ -28,7 +31,7 @@ fn drops(agent: &IvyAgent, reason: &str) -> u64 {
 async fn two_agents_find_each_other_exchange_groups_and_unbind() {
     let bus = bus();
     let a = within("start a", IvyAgent::start(IvyOptions::new(bus.clone(), "A"))).await.unwrap();
-    let got: Arc<Mutex<Vec<(String, Vec<String>)>>> = Arc::default();
+    let got: Received = Arc::default();
     let g = got.clone();
     let id = a
         .bind(r"^(\S*) ATTITUDE (\S+) (\S+)", move |d, _| {

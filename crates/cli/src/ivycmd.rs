@@ -51,6 +51,10 @@ enum IvyCommand {
         /// Wait this long for peers and their regexes before sending, s.
         #[arg(long, value_name = "S", default_value_t = 1.0)]
         wait: f64,
+        /// Send each text this many times, as fast as possible, and report the rate (a load
+        /// test; bounded to 10 million).
+        #[arg(long, value_name = "N", default_value_t = 1)]
+        repeat: u64,
     },
     /// List the agents on the bus and their regexes.
     Peers {
@@ -80,7 +84,7 @@ pub fn run(args: IvyArgs) -> anyhow::Result<()> {
     let agent = rt.block_on(IvyAgent::start(opts)).with_context(|| format!("cannot join the Ivy bus {addr}"))?;
     let result = match args.command {
         IvyCommand::Probe { regex, duration, count } => probe(&rt, &agent, &regex, duration, count, &stop),
-        IvyCommand::Send { text, wait } => send(&rt, &agent, &text, wait),
+        IvyCommand::Send { text, wait, repeat } => send(&rt, &agent, &text, wait, repeat),
         IvyCommand::Peers { wait, json } => peers(&rt, &agent, wait, json),
     };
     rt.block_on(agent.stop());
@@ -132,15 +136,37 @@ fn probe(
     Ok(())
 }
 
-fn send(rt: &tokio::runtime::Runtime, agent: &IvyAgent, texts: &[String], wait: f64) -> anyhow::Result<()> {
+fn send(
+    rt: &tokio::runtime::Runtime,
+    agent: &IvyAgent,
+    texts: &[String],
+    wait: f64,
+    repeat: u64,
+) -> anyhow::Result<()> {
+    if !(1..=10_000_000).contains(&repeat) {
+        return Err(BadInput(anyhow::anyhow!("--repeat must be in 1..=10000000, got {repeat}")).into());
+    }
     let wait_for = seconds(wait, "--wait")?;
     rt.block_on(async { tokio::time::sleep(wait_for).await });
     for t in texts {
-        let n = agent.send(t).map_err(|e| BadInput(anyhow::anyhow!("`{t}`: {e}")))?;
-        outln!("{n} peer regex(es) matched: {t}");
+        let started = Instant::now();
+        let mut n = 0;
+        for _ in 0..repeat {
+            n = agent.send(t).map_err(|e| BadInput(anyhow::anyhow!("`{t}`: {e}")))?;
+        }
+        if repeat > 1 {
+            let s = started.elapsed().as_secs_f64();
+            outln!("{n} peer regex(es) matched, {repeat} times in {s:.3} s ({:.0} texts/s): {t}", repeat as f64 / s);
+        } else {
+            outln!("{n} peer regex(es) matched: {t}");
+        }
+    }
+    let dropped: u64 = agent.drops().iter().filter(|(k, _)| k.starts_with("peer not reading")).map(|(_, v)| v).sum();
+    if dropped > 0 {
+        outln!("{dropped} messages dropped: a peer did not read fast enough");
     }
     // Let the writers flush.
-    rt.block_on(async { tokio::time::sleep(Duration::from_millis(100)).await });
+    rt.block_on(async { tokio::time::sleep(Duration::from_millis(300)).await });
     Ok(())
 }
 
