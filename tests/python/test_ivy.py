@@ -245,3 +245,31 @@ def test_e_peers_join_and_leave_mid_run(twinswarm_bin, bus):
     ivy = summary["bus"]["ivy"]
     names = [(e["what"], e["app_name"]) for e in ivy["events"]]
     assert ("joined", "PyFirst") in names and ("joined", "PyLate") in names and ("left", "PyFirst") in names, names
+
+
+def server_regex(name: str) -> str:
+    """The regex Paparazzi's server binds for a telemetry message (`Tm_Pprz.message_bind`)."""
+    return r"^([^ ]*) +(%s( .*|$))" % name
+
+
+def test_f_virtual_copters_send_what_paparazzis_server_registers_them_with(twinswarm_bin, bus):
+    server = Agent("Paparazzi server", bus)
+    ids = {n: server.bind(server_regex(n)) for n in ["ALIVE", "INS_REF", "ROTORCRAFT_STATUS"]}
+    server.start()
+    try:
+        proc = run_sim(twinswarm_bin, bus, 6.0)
+        assert server.joined.wait(15)
+        finish(proc)
+    finally:
+        server.stop()
+    alive = [g for g in server.received(ids["ALIVE"]) if g[0] == "101"]
+    assert len(alive) >= 2, alive
+    md5 = alive[0][1].split(" ")[1].split(",")
+    assert len(md5) == 16 and all(b == "0" for b in md5), alive[0]  # the server's "MD5 is ZERO" case
+    ins_ref = [g for g in server.received(ids["INS_REF"]) if g[0] == "101"]
+    assert ins_ref, "no INS_REF"
+    x0, y0, z0, lat0, lon0 = (int(v) for v in ins_ref[0][1].split(" ")[1:6])
+    assert abs((x0**2 + y0**2 + z0**2) ** 0.5 / 100 - 6.365e6) < 5e3  # cm, on the Earth's surface
+    assert (lat0, lon0) == (521398600, 116454800)
+    status = [g for g in server.received(ids["ROTORCRAFT_STATUS"]) if g[0] == "101"]
+    assert status and len(status[-1][1].split(" ")) == 13, status[-1:]

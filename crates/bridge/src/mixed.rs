@@ -837,6 +837,42 @@ mod tests {
     }
 
     #[test]
+    fn a_virtual_copter_registers_with_the_server_before_it_reports_positions() {
+        // Paparazzi's server registers an aircraft on ALIVE and converts ROTORCRAFT_FP into a
+        // position only once INS_REF has given the origin: both must precede the first
+        // ROTORCRAFT_FP.
+        let (_, world) = sim_core::scene::load_default();
+        let mut state = world.initial_state();
+        let inputs = world.initial_inputs();
+        let messages = Arc::new(crate::paparazzi::convert::project_messages());
+        let mut outbox = Outbox::new(OutboxOptions {
+            prefix: "t".into(),
+            messages: messages.clone(),
+            plan: TelemetryPlan::project_default(),
+            virtual_sonar_period_s: 0.0,
+        });
+        let mut out = Vec::new();
+        for _ in 0..3 {
+            sim_core::step(&world, &mut state, &inputs);
+            outbox.after_step(&world, &state, &inputs, true, &mut out);
+        }
+        let ac = world.copters[0].ac_id.unwrap();
+        let names: Vec<&str> = out
+            .iter()
+            .filter(|o| o.text.starts_with(&format!("{ac} ")))
+            .map(|o| o.text.split(' ').nth(1).unwrap())
+            .collect();
+        let pos = |n: &str| names.iter().position(|x| *x == n).unwrap_or_else(|| panic!("no {n} in {names:?}"));
+        assert!(pos("ALIVE") < pos("ROTORCRAFT_FP") && pos("INS_REF") < pos("ROTORCRAFT_FP"), "{names:?}");
+        let alive = out.iter().find(|o| o.text.starts_with(&format!("{ac} ALIVE"))).unwrap();
+        assert_eq!(alive.text, format!("{ac} ALIVE 0,0,0,0,0,0,0,0,0,0,0,0,0,0,0,0"));
+        for o in &out {
+            messages.decode(&o.text).unwrap_or_else(|e| panic!("{}: {e}", o.text));
+        }
+        assert!(outbox.failures().is_empty(), "{:?}", outbox.failures());
+    }
+
+    #[test]
     fn known_aircraft_spawn_once_unknown_ones_follow_the_policy() {
         let (_, world) = sim_core::scene::load_default();
         let conf = ConfXml::parse(

@@ -147,8 +147,40 @@ pub struct TelemetrySource<'a> {
 }
 
 /// The telemetry messages [`telemetry_text`] can produce.
-pub const TELEMETRY_MESSAGES: [&str; 6] =
-    ["FINKEN_ACTUATORS_SET_POINT", "FINKEN_IR_ADC", "FINKEN_SENSOR_MODEL", "SONAR_ARRAY", "ATTITUDE", "ROTORCRAFT_FP"];
+pub const TELEMETRY_MESSAGES: [&str; 9] = [
+    "FINKEN_ACTUATORS_SET_POINT",
+    "FINKEN_IR_ADC",
+    "FINKEN_SENSOR_MODEL",
+    "SONAR_ARRAY",
+    "ATTITUDE",
+    "ROTORCRAFT_FP",
+    "ALIVE",
+    "INS_REF",
+    "ROTORCRAFT_STATUS",
+];
+
+/// The arena's origin on Earth, for `INS_REF`: latitude and longitude (degrees, WGS84) and
+/// height above mean sea level (m). Paparazzi's server places `ROTORCRAFT_FP` positions (local
+/// north, east, up) relative to it. This is the FINken lab at Otto von Guericke University
+/// Magdeburg; the lab's flight plan for its virtual aircraft must use the same `lat0`/`lon0`
+/// (see `docs/paparazzi_ground.md`).
+pub const ARENA_ORIGIN_LLA: (f64, f64, f64) = (52.139_86, 11.645_48, 50.0);
+
+/// WGS84 geodetic → ECEF, m.
+fn ecef_of(lat_deg: f64, lon_deg: f64, h_m: f64) -> [f64; 3] {
+    const A: f64 = 6_378_137.0;
+    const E2: f64 = 6.694_379_990_14e-3;
+    let (lat, lon) = (lat_deg.to_radians(), lon_deg.to_radians());
+    let n = A / (1.0 - E2 * lat.sin().powi(2)).sqrt();
+    [(n + h_m) * lat.cos() * lon.cos(), (n + h_m) * lat.cos() * lon.sin(), (n * (1.0 - E2) + h_m) * lat.sin()]
+}
+
+/// `ALIVE` with an all-zero md5: Paparazzi's server accepts it with a warning ("MD5 is ZERO"),
+/// since a simulated aircraft has no built configuration to sign.
+fn alive_text(messages: &MessageSet, ac_id: u8) -> Result<String, CodecError> {
+    let def = messages.by_name("ALIVE").ok_or_else(|| CodecError::UnknownMessage { name: "ALIVE".to_owned() })?;
+    crate::paparazzi::codec::encode(&Sender::Aircraft(ac_id), def, &[Value::Array(vec![Value::U8(0); 16])])
+}
 
 /// The value of a field in its transmitted unit: `display / alt_unit_coef`, cast to the
 /// field's type (saturating; integers rounded towards zero).
@@ -221,6 +253,7 @@ pub fn telemetry_text(
     let thrust_n: f32 = st.rotor_thrust_n.iter().sum();
     let [gx, gy, gz] = se.rate_body_rad_s.map(f64::from);
     let [ax, ay, az] = se.accel_body_m_s2.map(f64::from);
+    let ecef = ecef_of(ARENA_ORIGIN_LLA.0, ARENA_ORIGIN_LLA.1, ARENA_ORIGIN_LLA.2);
     let value_of = |field: &str| -> Option<f64> {
         Some(match (name, field) {
             ("FINKEN_ACTUATORS_SET_POINT", "pitch") => -f64::from(sp.pitch_rad).to_degrees(),
@@ -259,11 +292,34 @@ pub fn telemetry_text(
             ("ROTORCRAFT_FP", "carrot_east" | "carrot_north" | "carrot_up" | "carrot_psi") => 0.0,
             ("ROTORCRAFT_FP", "thrust") => f64::from(thrust_n) * 1000.0,
             ("ROTORCRAFT_FP", "flight_time") => st.time_s.min(65_535.0),
+            ("INS_REF", "ecef_x0") => ecef[0],
+            ("INS_REF", "ecef_y0") => ecef[1],
+            ("INS_REF", "ecef_z0") => ecef[2],
+            ("INS_REF", "lat0") => ARENA_ORIGIN_LLA.0,
+            ("INS_REF", "lon0") => ARENA_ORIGIN_LLA.1,
+            // Height above the ellipsoid is taken as hmsl (the geoid separation is not modelled).
+            ("INS_REF", "alt0" | "hmsl0") => ARENA_ORIGIN_LLA.2,
+            ("INS_REF", "baro_qfe") => 101_325.0,
+            ("ROTORCRAFT_STATUS", "link_imu_nb_err" | "motor_nb_err" | "rc_status") => 0.0,
+            ("ROTORCRAFT_STATUS", "frame_rate") => 20.0,
+            // No GPS on a FINken.
+            ("ROTORCRAFT_STATUS", "gps_status") => 0.0,
+            // MODULE: the FINken's flight modes are a module.
+            ("ROTORCRAFT_STATUS", "ap_mode") => 17.0,
+            ("ROTORCRAFT_STATUS", "ap_in_flight") => f64::from(u8::from(z > 0.05)),
+            ("ROTORCRAFT_STATUS", "ap_motors_on") => f64::from(u8::from(thrust_n > 0.0)),
+            ("ROTORCRAFT_STATUS", "ap_h_mode" | "ap_v_mode") => 6.0,
+            // A full 3S battery; battery drain is not modelled.
+            ("ROTORCRAFT_STATUS", "vsupply") => 124.0,
+            ("ROTORCRAFT_STATUS", "cpu_time") => st.time_s.min(65_535.0),
             _ => return None,
         })
     };
     if !TELEMETRY_MESSAGES.contains(&name) {
         return None;
+    }
+    if name == "ALIVE" {
+        return Some(alive_text(messages, ac_id));
     }
     // ATTITUDE's angles and the FINKEN_SENSOR_MODEL pose are radians; ROTORCRAFT_FP's display
     // unit is degrees.
@@ -289,9 +345,23 @@ mod tests {
             "ATTITUDE",
             "ROTORCRAFT_FP",
             "VIRTUAL_SONAR",
+            "ALIVE",
+            "INS_REF",
+            "ROTORCRAFT_STATUS",
         ] {
             assert!(m.by_name(name).is_some(), "{name}");
         }
+    }
+
+    #[test]
+    fn ins_ref_holds_the_arena_origin_in_ecef() {
+        // ECEF of 52.13986 N, 11.64548 E, 50 m, by hand: N = a / sqrt(1 - e² sin²φ).
+        let [x, y, z] = ecef_of(52.139_86, 11.645_48, 50.0);
+        assert!((x.hypot(y).hypot(z) - 6_365_049.0).abs() < 2_000.0, "{x} {y} {z}");
+        assert!((y.atan2(x).to_degrees() - 11.645_48).abs() < 1e-9);
+        // The origin of the ECEF frame sits on the equator plane: z > 0 in the north.
+        assert!(z > 5.0e6);
+        assert_eq!(ecef_of(0.0, 0.0, 0.0), [6_378_137.0, 0.0, 0.0]);
     }
 
     #[test]
