@@ -93,6 +93,9 @@ fn our_messages_xml_has_what_twinswarm_uses() {
         ("telemetry", "FINKEN_SENSOR_MODEL", 217, 21),
         ("telemetry", "FINKEN_ACTUATORS_SET_POINT", 250, 4),
         ("telemetry", "FINKEN_IR_ADC", 252, 2),
+        ("telemetry", "ALIVE", 2, 1),
+        ("telemetry", "INS_REF", 154, 8),
+        ("telemetry", "ROTORCRAFT_STATUS", 231, 12),
         ("datalink", "VIRTUAL_SONAR", 210, 5),
     ];
     for (class, name, id, n_fields) in expect {
