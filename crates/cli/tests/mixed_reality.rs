@@ -163,6 +163,11 @@ fn a_stand_in_turns_away_from_a_virtual_box_and_its_twin_follows_it() {
     println!("virtual copter telemetry in 3 s: {counts:?}");
     let plan = bridge::mixed::TelemetryPlan::project_default();
     for (name, period) in &plan.periods {
+        // INS_REF (5.1 s) may fall outside a 3 s window; the registration messages' order and
+        // content are tested in the bridge (mixed.rs) and against ivy-python (test_ivy.py).
+        if *period > 3.0 {
+            continue;
+        }
         let expected = 3.0 / period.max(0.05);
         let got = counts.get(name).copied().unwrap_or(0) as f64;
         assert!(got >= 0.7 * expected && got <= 1.3 * expected + 1.0, "{name}: {got} in 3 s, expected {expected:.0}");
