@@ -839,7 +839,13 @@ fn deliver(inner: &Inner, id: u32, args: &[String]) {
                 inner.drop_one("msg without the text group");
                 return;
             };
-            if bus.deliver_to(*bind_id, "ivy", text) {
+            // The key names the transport and, like a Zenoh key, the sender and the name, so the
+            // log files Ivy traffic under the same `/pprz/<sender>/<NAME>` channels.
+            let key = match split_header(text) {
+                Some((sender, name, _)) => format!("ivy/pprz/{sender}/{name}"),
+                None => "ivy".to_owned(),
+            };
+            if bus.deliver_to(*bind_id, &key, text) {
                 inner.counters.delivered.fetch_add(1, Ordering::Relaxed);
             } else {
                 inner.drop_one("msg the local regex does not match (peer's regex engine differs)");
