@@ -28,7 +28,7 @@ cargo test --workspace --all-targets --locked
 say "cargo test --doc"
 cargo test --workspace --doc --locked
 
-say "python: independent MCAP reader (tests/python)"
+say "python: independent clients and peers (tests/python: eclipse-zenoh, mcap, ivy-python)"
 if [ ! -x .venv/bin/python ]; then
   python3 -m venv .venv
 fi
@@ -46,4 +46,4 @@ elif [ "$pytest_status" -ne 0 ]; then
 fi
 
 echo
-echo "all checks passed: fmt, clippy, cargo tests, doc tests, python tests (Zenoh client, MCAP reader, replay)"
+echo "all checks passed: fmt, clippy, cargo tests, doc tests, python tests (Zenoh client, MCAP reader, replay, Ivy peers)"
