@@ -190,7 +190,6 @@ struct Peer {
     app_id: String,
     addr: SocketAddr,
     port: u16,
-    hello_port: Option<u16>,
     ready: bool,
     regexes: BTreeMap<u32, PeerRegex>,
     refused: BTreeMap<u32, String>,
@@ -645,7 +644,6 @@ async fn run_peer(inner: Arc<Inner>, stream: TcpStream, addr: SocketAddr, hello:
                 app_id: hello.as_ref().map(|h| h.app_id.clone()).unwrap_or_default(),
                 addr,
                 port: hello.as_ref().map_or(0, |h| h.port),
-                hello_port: hello.as_ref().map(|h| h.port),
                 ready: false,
                 regexes: BTreeMap::new(),
                 refused: BTreeMap::new(),
@@ -778,7 +776,6 @@ fn handle_frame(inner: &Arc<Inner>, key: u64, frame: Frame) -> Option<String> {
             {
                 p.app_name = app_name;
                 p.port = port;
-                let _ = p.hello_port;
             }
         }
         Frame::EndRegexp => {
