@@ -68,6 +68,7 @@ fn main() {
             virtual_sonar_period_s: 0.0,
         }),
         sync: Some(bridge::sync::SyncOptions::default()),
+        ..LoopOptions::default()
     };
     let loop_thread = std::thread::spawn(move || {
         let (state, inputs) = (world.initial_state(), world.initial_inputs());

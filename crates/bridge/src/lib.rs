@@ -19,6 +19,7 @@
 //! [`paparazzi::ivy`] opens Ivy sockets; only [`sim`] runs the step loop, and it never blocks
 //! on publishing.
 
+pub mod failsafe;
 pub mod log;
 pub mod mixed;
 pub mod paparazzi;
@@ -29,6 +30,13 @@ pub mod zenoh_net;
 
 /// Paparazzi aircraft id (one byte on the link, the Ivy sender of telemetry).
 pub type AcId = u8;
+
+/// Locks `m`, also after a panic elsewhere poisoned it: what the lock guards (counters,
+/// bindings, the world) stays usable, and an input path never drops what arrives because an
+/// earlier handler panicked (the panic itself was reported by the panic hook).
+pub(crate) fn lock<T>(m: &std::sync::Mutex<T>) -> std::sync::MutexGuard<'_, T> {
+    m.lock().unwrap_or_else(std::sync::PoisonError::into_inner)
+}
 
 pub use paparazzi::bus::{BindId, Bus, BusError, Control, Delivery};
 pub use paparazzi::codec::{CodecError, Message, Sender};

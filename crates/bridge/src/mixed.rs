@@ -23,7 +23,7 @@
 
 use std::collections::BTreeMap;
 use std::sync::atomic::{AtomicU64, Ordering};
-use std::sync::mpsc::SyncSender;
+use std::sync::mpsc::{SyncSender, TrySendError};
 use std::sync::{Arc, Mutex};
 use std::time::Instant;
 
@@ -403,6 +403,9 @@ pub struct GatewayStats {
     pub queue_full: u64,
     /// Twins spawned on first telemetry.
     pub spawned: Vec<String>,
+    /// Texts logged but not used, by reason (an aircraft that is not ours, one of our virtual
+    /// aircraft sent by someone else, a sender that is not an aircraft).
+    pub ignored: BTreeMap<&'static str, u64>,
 }
 
 /// Turns telemetry texts into loop requests: decoding, routing by aircraft, primary and
@@ -414,6 +417,8 @@ pub struct Interpreter {
     stats: GatewayStats,
     /// Per aircraft: when the primary attitude, height and sonar sources were last heard.
     last_primary: BTreeMap<AcId, [Option<Instant>; 3]>,
+    /// Twin spawns the loop's queue could not take, sent again with the aircraft's next text.
+    pending_spawn: BTreeMap<AcId, Box<CopterSpec>>,
     world: Arc<World>,
     attitude: TwinAttitude,
 }
@@ -468,6 +473,8 @@ pub struct BridgeCounters {
     pub dropped_queue_full: AtomicU64,
     /// Texts Ivy cannot carry (newline or separator).
     pub dropped_unsendable: AtomicU64,
+    /// Ivy texts Zenoh refused to publish (the session closing).
+    pub dropped_put_failed: AtomicU64,
 }
 
 /// The tokio side of mixed reality (see the module docs).
@@ -496,11 +503,18 @@ fn telemetry_handler(
         let received = Instant::now();
         let origin =
             BusInput { key: d.key.to_owned(), text: d.text.to_owned(), received_unix_ns: crate::log::now_unix_ns() };
-        let Ok(mut sh) = shared.lock() else { return };
-        if let Some(request) = sh.interpret(&messages, origin, received)
-            && requests.try_send(request).is_err()
-        {
+        let mut sh = crate::lock(&shared);
+        let request = sh.interpret(&messages, origin, received);
+        if let Err(TrySendError::Full(r) | TrySendError::Disconnected(r)) = requests.try_send(request) {
             sh.stats.queue_full += 1;
+            // A lost spawn would leave the aircraft routed to a twin that never exists: the
+            // next text of the aircraft carries it again.
+            if let Request::Twin { spawn: Some(spec), .. } = r {
+                sh.pending_spawn.insert(spec.ac_id.unwrap_or(0), spec);
+            }
+            if sh.stats.queue_full.is_power_of_two() {
+                tracing::warn!("{} telemetry texts dropped so far: the step loop's queue is full", sh.stats.queue_full);
+            }
         }
     }
 }
@@ -561,9 +575,13 @@ impl Gateway {
                         c.dropped_unsendable.fetch_add(1, Ordering::Relaxed);
                         continue;
                     };
-                    if session.put(key, text).await.is_ok() {
-                        c.ivy_to_zenoh.fetch_add(1, Ordering::Relaxed);
-                    }
+                    match session.put(key, text).await {
+                        Ok(()) => c.ivy_to_zenoh.fetch_add(1, Ordering::Relaxed),
+                        Err(e) => {
+                            tracing::debug!("bridging a text to Zenoh failed: {e}");
+                            c.dropped_put_failed.fetch_add(1, Ordering::Relaxed)
+                        }
+                    };
                 }
             }));
         }
@@ -609,6 +627,7 @@ impl Interpreter {
             router: Router::new(&world, pairing),
             stats: GatewayStats::default(),
             last_primary: BTreeMap::new(),
+            pending_spawn: BTreeMap::new(),
             world,
             attitude,
         }
@@ -640,6 +659,7 @@ impl Interpreter {
             decode_errors: sh.stats.decode_errors,
             rejected: sh.stats.rejected,
             queue_full: sh.stats.queue_full,
+            ignored: sh.stats.ignored.iter().map(|(k, v)| ((*k).to_owned(), *v)).collect(),
             spawned: sh.stats.spawned.clone(),
             unknown_dropped: sh.router.unknown.dropped_by_ac_id.clone(),
             own_virtual_dropped: sh.router.own_virtual_dropped,
@@ -647,18 +667,24 @@ impl Interpreter {
     }
 
     /// The request for one telemetry text that arrived at `received`: a twin input, a
-    /// rejection (undecodable, out of range), or nothing (not for a twin: counted).
-    pub fn interpret(&mut self, messages: &MessageSet, origin: BusInput, received: Instant) -> Option<Request> {
+    /// rejection (undecodable, out of range), or a text that drives nothing (logged and
+    /// counted all the same: every received text reaches the loop and the log).
+    pub fn interpret(&mut self, messages: &MessageSet, origin: BusInput, received: Instant) -> Request {
         let sh = self;
         let msg = match messages.decode(&origin.text) {
             Ok(m) => m,
             Err(e) => {
                 sh.stats.decode_errors += 1;
                 let reason = format!("undecodable telemetry: {e}");
-                return Some(Request::Rejected { origin, reason });
+                return Request::Rejected { origin, reason };
             }
         };
         sh.interpret_message(&msg, origin, received)
+    }
+
+    fn ignore(&mut self, origin: BusInput, reason: &'static str) -> Request {
+        *self.stats.ignored.entry(reason).or_default() += 1;
+        Request::Ignored { origin, reason }
     }
 
     fn interpret_message(
@@ -666,19 +692,20 @@ impl Interpreter {
         msg: &crate::paparazzi::codec::Message<'_>,
         origin: BusInput,
         received: Instant,
-    ) -> Option<Request> {
+    ) -> Request {
         let sh = self;
-        let ac_id = msg.sender.ac_id()?;
+        let Some(ac_id) = msg.sender.ac_id() else { return sh.ignore(origin, "not sent by an aircraft") };
         let name = msg.def.name.clone();
         sh.stats.arrivals.entry((ac_id, name.clone())).or_default().record(received);
         let (copter, spawn) = match sh.router.route(ac_id) {
-            Decision::Twin(c) => (c, None),
+            Decision::Twin(c) => (c, sh.pending_spawn.remove(&ac_id)),
             Decision::SpawnTwin(spec) => {
                 sh.stats.spawned.push(spec.name.clone());
                 tracing::info!("aircraft {ac_id}: spawning its twin `{}`", spec.name);
                 (spec.name.clone(), Some(spec))
             }
-            Decision::OwnVirtual | Decision::Unknown => return None,
+            Decision::OwnVirtual => return sh.ignore(origin, "sent as one of our virtual aircraft"),
+            Decision::Unknown => return sh.ignore(origin, "aircraft not paired"),
         };
         // Primary and fallback sources.
         let last = sh.last_primary.entry(ac_id).or_default();
@@ -743,11 +770,11 @@ impl Interpreter {
             && let Err(e) = c.validate(&sh.world)
         {
             sh.stats.rejected += 1;
-            return Some(Request::Rejected { origin, reason: format!("telemetry gives {e}") });
+            return Request::Rejected { origin, reason: format!("telemetry gives {e}") };
         }
         // Sent even when it changes nothing (a fallback while the primary speaks): the loop logs
         // every message it receives.
-        Some(Request::Twin { copter, spawn, cmd, observed_rpy: observed, sonar_m: sonar, yaw_rad: yaw, origin })
+        Request::Twin { copter, spawn, cmd, observed_rpy: observed, sonar_m: sonar, yaw_rad: yaw, origin }
     }
 }
 
@@ -815,6 +842,8 @@ pub struct GatewayReport {
     pub unknown_dropped: BTreeMap<AcId, u64>,
     /// Dropped messages claiming to come from one of our virtual aircraft.
     pub own_virtual_dropped: u64,
+    /// Texts logged but not used, by reason.
+    pub ignored: BTreeMap<String, u64>,
 }
 
 #[cfg(test)]

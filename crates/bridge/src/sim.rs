@@ -16,6 +16,7 @@ use std::time::{Duration, Instant};
 use sim_core::scene::CopterSpec;
 use sim_core::{Inputs, State, StepReport, World, step};
 
+use crate::failsafe::{Failsafe, FailsafeEvent, FailsafeKind, FailsafeOptions};
 use crate::mixed::{Outbox, OutboxOptions, PprzOut, Summary};
 use crate::sync::{SyncOptions, SyncStats, TwinSync};
 use crate::wire::{CommandMsg, SensorsMsg, StateMsg, sensors_msg, state_msg};
@@ -31,6 +32,14 @@ pub enum Request {
         cmd: CommandMsg,
         /// Where it came from (the bus key) and its raw text, for the log.
         origin: BusInput,
+    },
+    /// A text that drives nothing (an aircraft that is not ours, one of our virtual aircraft
+    /// sent by someone else), for the log: every received text reaches it.
+    Ignored {
+        /// Where it came from and its raw text.
+        origin: BusInput,
+        /// Why it drives nothing.
+        reason: &'static str,
     },
     /// An input the bus refused (malformed, out of range, unknown copter), for the log.
     Rejected {
@@ -71,6 +80,17 @@ pub enum Request {
         pos_m: [f32; 2],
         /// The message, its key and arrival time.
         origin: BusInput,
+    },
+    /// A copter's controller changed (Zenoh liveliness claims, see
+    /// [`crate::zenoh_net::node`]).
+    Controller {
+        /// The copter's name.
+        copter: String,
+        /// Its controller now, if any.
+        client: Option<String>,
+        /// The controller that disappeared, if one did (its failsafe applies when no other
+        /// client takes over).
+        lost: Option<String>,
     },
     /// Finish after the current step.
     Stop,
@@ -119,6 +139,8 @@ pub struct LoopOptions {
     pub outbox: Option<OutboxOptions>,
     /// Keep twins where their real copters are (see [`crate::sync`]).
     pub sync: Option<SyncOptions>,
+    /// Lost links: twins' telemetry, virtual copters' controllers (see [`crate::failsafe`]).
+    pub failsafe: FailsafeOptions,
 }
 
 /// How well a twin follows its real copter.
@@ -139,19 +161,11 @@ pub struct TwinStats {
     latencies_ms: Vec<f32>,
     #[serde(skip)]
     sq_sum: [f64; 2],
-    /// Times its telemetry stopped for longer than [`TWIN_LINK_TIMEOUT_S`].
+    /// Times its telemetry stopped for longer than [`FailsafeOptions::hold_after_s`].
     pub link_lost: u64,
     #[serde(skip)]
     observed: Option<([f32; 3], Instant)>,
-    #[serde(skip)]
-    last_input: Option<Instant>,
-    #[serde(skip)]
-    holding: bool,
 }
-
-/// A twin whose telemetry has been silent this long levels out and holds its height (instead
-/// of flying on with its last attitude), until telemetry comes back.
-pub const TWIN_LINK_TIMEOUT_S: f64 = 0.5;
 
 /// What the loop reports when it ends.
 #[derive(Debug, Default, Clone)]
@@ -166,6 +180,15 @@ pub struct LoopStats {
     pub commands_applied: u64,
     /// Commands for unknown copters.
     pub commands_unknown_copter: u64,
+    /// Inputs refused before they reached the loop (malformed, out of range, not from the
+    /// copter's controller), logged as rejected.
+    pub inputs_rejected: u64,
+    /// Texts logged that drive nothing (see [`Request::Ignored`]).
+    pub inputs_ignored: u64,
+    /// Requests still queued when the loop ended, logged as rejected.
+    pub inputs_after_end: u64,
+    /// Paparazzi texts made but not sent, because their frame was dropped.
+    pub pprz_dropped: u64,
     /// Copters spawned.
     pub spawned: u64,
     /// Whether it stopped early (stop request or signal).
@@ -176,6 +199,9 @@ pub struct LoopStats {
     pub pprz_sent: u64,
     /// Position synchronisation per twin name.
     pub sync: BTreeMap<String, SyncStats>,
+    /// Failsafe transitions by kind (`hold`, `land`, `landed`, `resumed`, `client_lost`,
+    /// `controller`).
+    pub failsafe: BTreeMap<&'static str, u64>,
 }
 
 /// Observes every step from inside the loop (e.g. a logger). Runs on the loop's thread: keep
@@ -195,6 +221,12 @@ pub trait StepObserver: Send {
     fn pprz_out(&mut self, _tick: u64, _out: &PprzOut) {}
     /// Called when a real aircraft's twin was spawned on its first telemetry.
     fn paired(&mut self, _tick: u64, _ac_id: u8, _id: usize, _copter: &str) {}
+    /// Called when a step's frame was dropped because the publisher was behind: its states
+    /// were not published and its `pprz_lost` Paparazzi texts (already given to
+    /// [`StepObserver::pprz_out`]) were not sent.
+    fn frame_dropped(&mut self, _tick: u64, _pprz_lost: u64) {}
+    /// Called for each failsafe transition (lost links, controllers).
+    fn failsafe(&mut self, _tick: u64, _world: &World, _event: &FailsafeEvent) {}
 }
 
 /// No observer.
@@ -220,6 +252,8 @@ pub fn run_loop(
     let start = Instant::now();
     let sonar_period = world.sensors.spec.sonar.period_steps.max(1) as u64;
     let mut outbox = opts.outbox.clone().map(Outbox::new);
+    let mut failsafe = Failsafe::new(opts.failsafe.clone());
+    let mut fs_events: Vec<FailsafeEvent> = Vec::new();
     let mut sync = opts.sync.clone().and_then(|o| match TwinSync::new(&world, o) {
         Ok(s) => Some(s),
         Err(e) => {
@@ -234,6 +268,7 @@ pub fn run_loop(
                 Ok(Request::Command { copter, cmd, origin }) => match world.copter_id(&copter) {
                     Some(id) => {
                         observer.bus_input(&origin);
+                        failsafe.commanded(id, &mut inputs, &mut fs_events);
                         cmd.apply(&mut inputs.commands[id]);
                         stats.commands_applied += 1;
                     }
@@ -242,7 +277,14 @@ pub fn run_loop(
                         observer.input_rejected(state.tick, &origin, &format!("no copter named {copter:?}"));
                     }
                 },
-                Ok(Request::Rejected { origin, reason }) => observer.input_rejected(state.tick, &origin, &reason),
+                Ok(Request::Rejected { origin, reason }) => {
+                    stats.inputs_rejected += 1;
+                    observer.input_rejected(state.tick, &origin, &reason);
+                }
+                Ok(Request::Ignored { origin, reason: _ }) => {
+                    stats.inputs_ignored += 1;
+                    observer.bus_input(&origin);
+                }
                 Ok(Request::Spawn { spec, reply }) => {
                     let answer = spawn(&mut world, &mut state, &mut inputs, &spec, observer, &mut stats);
                     let _ = reply.send(answer.map(|_| spec.name.clone()));
@@ -278,10 +320,9 @@ pub fn run_loop(
                     let twin = stats.twins.entry(copter).or_default();
                     let cmd_attitude = cmd.as_ref().map(|c| [c.pitch, c.roll, c.yaw]);
                     if let Some(cmd) = cmd {
+                        failsafe.telemetry(id, Instant::now(), &mut inputs, &mut fs_events);
                         cmd.apply(&mut inputs.commands[id]);
                         twin.inputs_applied += 1;
-                        twin.last_input = Some(Instant::now());
-                        twin.holding = false;
                         let now = crate::log::now_unix_ns();
                         if twin.latencies_ms.len() < 1_000_000 {
                             twin.latencies_ms.push(now.saturating_sub(origin.received_unix_ns) as f32 / 1e6);
@@ -301,6 +342,18 @@ pub fn run_loop(
                         if let Some(r) = sonar_m {
                             sync.on_sonar(&world, &state, id, r);
                         }
+                    }
+                }
+                Ok(Request::Controller { copter, client, lost }) => {
+                    let Some(id) = world.copter_id(&copter) else {
+                        tracing::warn!("controller change for {copter:?}, which is not in the world");
+                        continue;
+                    };
+                    match (client, lost) {
+                        (None, Some(lost)) => {
+                            failsafe.client_lost(&world, &state, id, &lost, &mut inputs, &mut fs_events);
+                        }
+                        (client, _) => failsafe.controller(id, client, &mut fs_events),
                     }
                 }
                 Ok(Request::Stop) => {
@@ -324,7 +377,19 @@ pub fn run_loop(
         if let Some(sync) = sync.as_mut() {
             sync.after_step(&world, &mut state, &inputs);
         }
-        hold_silent_twins(&world, &mut inputs, &mut stats.twins, sync.as_mut());
+        failsafe.after_step(&world, &state, &mut inputs, Instant::now(), &mut fs_events);
+        for e in fs_events.drain(..) {
+            if let FailsafeKind::Hold { .. } = e.kind {
+                if let Some(t) = stats.twins.get_mut(&world.copters[e.copter].name) {
+                    t.link_lost += 1;
+                }
+                if let Some(sync) = sync.as_mut() {
+                    sync.on_link_lost(e.copter);
+                }
+            }
+            tracing::warn!("failsafe: {}", e.message(&world));
+            observer.failsafe(state.tick, &world, &e);
+        }
         let mut pprz_out = Vec::new();
         if let Some(outbox) = outbox.as_mut() {
             outbox.after_step(&world, &state, &inputs, sensed, &mut pprz_out);
@@ -345,8 +410,12 @@ pub fn run_loop(
                 pprz_out,
                 stepped_at: Instant::now(),
             };
-            if tx.try_send(frame).is_err() {
+            if let Err(e) = tx.try_send(frame) {
                 stats.frames_dropped += 1;
+                let lost = e.into_inner().pprz_out.len() as u64;
+                stats.pprz_sent -= lost;
+                stats.pprz_dropped += lost;
+                observer.frame_dropped(state.tick, lost);
             }
         }
         if opts.realtime {
@@ -360,6 +429,19 @@ pub fn run_loop(
             }
         }
     }
+    // What arrived too late for a step: logged, so that no received input goes unrecorded.
+    while let Ok(r) = requests.try_recv() {
+        if let Request::Command { origin, .. }
+        | Request::Twin { origin, .. }
+        | Request::Tracking { origin, .. }
+        | Request::Rejected { origin, .. }
+        | Request::Ignored { origin, .. } = &r
+        {
+            stats.inputs_after_end += 1;
+            observer.input_rejected(state.tick, origin, "arrived after the last step");
+        }
+    }
+    stats.failsafe = failsafe.counts.clone();
     if let Some(sync) = &sync {
         stats.sync = sync.stats().into_iter().map(|(id, s)| (world.copters[id].name.clone(), s)).collect();
     }
@@ -407,29 +489,5 @@ fn track_twins(world: &World, state: &State, twins: &mut BTreeMap<String, TwinSt
             t.sq_sum[k] += e * e;
         }
         t.attitude_samples += 1;
-    }
-}
-
-/// Levels out the twins whose telemetry stopped (see [`TWIN_LINK_TIMEOUT_S`]).
-fn hold_silent_twins(
-    world: &World,
-    inputs: &mut Inputs,
-    twins: &mut BTreeMap<String, TwinStats>,
-    mut sync: Option<&mut TwinSync>,
-) {
-    for (name, t) in twins.iter_mut() {
-        let Some(last) = t.last_input else { continue };
-        if t.holding || last.elapsed().as_secs_f64() <= TWIN_LINK_TIMEOUT_S {
-            continue;
-        }
-        let Some(id) = world.copter_id(name) else { continue };
-        let cmd = &mut inputs.commands[id];
-        (cmd.roll_rad, cmd.pitch_rad) = (0.0, 0.0);
-        if let Some(sync) = sync.as_deref_mut() {
-            sync.on_link_lost(id);
-        }
-        t.holding = true;
-        t.link_lost += 1;
-        tracing::warn!("twin {name}: no telemetry for {TWIN_LINK_TIMEOUT_S} s; levelling out, holding its height");
     }
 }

@@ -119,6 +119,10 @@ pub struct SyncStats {
     pub last_confidence: f64,
     /// Learnt pitch and roll trim at the end, deg.
     pub trim_deg: [f64; 2],
+    /// Why MEDUSA is off for this twin although synchronisation asks for it: its filter could
+    /// not be built.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub medusa_off: Option<String>,
 }
 
 #[derive(Clone, Copy, Debug)]
@@ -238,14 +242,25 @@ impl TwinSync {
     fn tracker(&mut self, world: &World, state: &State, id: usize) -> &mut TwinTracker {
         let (medusa, opts) = (&self.medusa, &self.opts);
         self.twins.entry(id).or_insert_with(|| {
-            let filter = opts.medusa.then(|| {
-                let mut f = MedusaFilter::new(medusa.clone(), filter_config(world, id)).ok()?;
-                // Start where the twin is: a twin starts at its real copter's pose.
-                f.reset_at(xy(state.pose(id).pos_m), 0.1).ok()?;
-                Some(f)
-            });
+            let mut stats = SyncStats::default();
+            let filter = match opts.medusa {
+                false => None,
+                true => {
+                    // Start where the twin is: a twin starts at its real copter's pose.
+                    let built = MedusaFilter::new(medusa.clone(), filter_config(world, id))
+                        .and_then(|mut f| f.reset_at(xy(state.pose(id).pos_m), 0.1).map(|()| f));
+                    match built {
+                        Ok(f) => Some(f),
+                        Err(e) => {
+                            tracing::warn!("twin {}: MEDUSA is off for it: {e}", world.copters[id].name);
+                            stats.medusa_off = Some(e.to_string());
+                            None
+                        }
+                    }
+                }
+            };
             TwinTracker {
-                filter: filter.flatten(),
+                filter,
                 history: VecDeque::new(),
                 yaw: None,
                 pending_sonar: None,
@@ -254,7 +269,7 @@ impl TwinSync {
                 yaw_bias: None,
                 attitude_command: None,
                 trim: [0.0; 2],
-                stats: SyncStats::default(),
+                stats,
             }
         })
     }

@@ -157,6 +157,11 @@ pub struct CommandMsg {
     pub velocity: Option<[f32; 2]>,
     /// Virtual sonar readings to fuse as `min(physical, virtual)`, m (front, right, back, left).
     pub virtual_sonar: Option<[f32; 4]>,
+    /// Who sends it: the client name of its liveliness claim
+    /// `…/alive/copters/<name>/<client>`. A copter that a client has claimed takes commands
+    /// from that client only (see [`crate::zenoh_net::node`]).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub client: Option<String>,
 }
 
 /// Why a command was rejected.

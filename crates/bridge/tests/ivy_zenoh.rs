@@ -94,3 +94,38 @@ async fn bind_bind_from_unbind_and_narrowing_over_zenoh() {
     within("close talker", talker.close()).await.unwrap();
     within("close listener", listener.close()).await.unwrap();
 }
+
+/// Found by the flood test: two bindings whose key expressions overlap (`…/pprz/*/ATTITUDE`
+/// and `…/pprz/**`) have two subscriptions that both receive a text; each must deliver it to
+/// its own bindings only, so that every handler runs once per text, not once per subscription.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn overlapping_subscriptions_deliver_each_text_once_to_each_binding() {
+    let port = free_port();
+    let endpoint = format!("tcp/127.0.0.1:{port}");
+    let prefix = format!("ivy-overlap-{port}");
+    let listener =
+        within("open listener", zenoh::open(node::default_config(std::slice::from_ref(&endpoint), &[]).unwrap()))
+            .await
+            .unwrap();
+    let talker = within("open talker", zenoh::open(node::client_config(std::slice::from_ref(&endpoint)).unwrap()))
+        .await
+        .unwrap();
+    let rx = ZenohBus::new(listener.clone(), prefix.clone());
+    let tx = ZenohBus::new(talker.clone(), prefix.clone());
+    let (attitude, h) = recorder();
+    within("bind", rx.bind(r"^(\d+) ATTITUDE ", h)).await.unwrap();
+    let (any, h) = recorder();
+    within("bind any", rx.bind(r"^(\S+) \S+", h)).await.unwrap();
+    assert_eq!(rx.subscribed_keys().len(), 2);
+    tokio::time::sleep(Duration::from_millis(300)).await;
+    for k in 0..10 {
+        within("send", tx.send(&format!("{k} ATTITUDE 0.1 0.2 0.3"))).await.unwrap();
+    }
+    within("send", tx.send("5 SONAR_ARRAY 1 2 3 4")).await.unwrap();
+    eventually("deliveries", || attitude.lock().unwrap().len() >= 10 && any.lock().unwrap().len() >= 11).await;
+    tokio::time::sleep(Duration::from_millis(300)).await;
+    assert_eq!(attitude.lock().unwrap().len(), 10, "each ATTITUDE once to its binding");
+    assert_eq!(any.lock().unwrap().len(), 11, "each text once to the catch-all binding");
+    within("close", listener.close()).await.unwrap();
+    within("close", talker.close()).await.unwrap();
+}

@@ -72,14 +72,20 @@ pub fn start_run_log(
 
 /// SIGINT and SIGTERM set the returned flag (the run loop stops and finishes the log); a
 /// second signal of the same kind exits at once.
+///
+/// SIGXFSZ (a write beyond the file-size limit, `ulimit -f`) is caught too: by default it
+/// kills the process without a word (exit 153). Caught, the write fails with `EFBIG`
+/// instead, and the log's error path says what happened and where the log ends.
 pub fn install_stop_flag() -> anyhow::Result<Arc<AtomicBool>> {
-    use signal_hook::consts::{SIGINT, SIGTERM};
+    use signal_hook::consts::{SIGINT, SIGTERM, SIGXFSZ};
     let stop = Arc::new(AtomicBool::new(false));
     for sig in [SIGINT, SIGTERM] {
         signal_hook::flag::register_conditional_shutdown(sig, 130, Arc::clone(&stop))
             .context("cannot install the signal handler")?;
         signal_hook::flag::register(sig, Arc::clone(&stop)).context("cannot install the signal handler")?;
     }
+    signal_hook::flag::register(SIGXFSZ, Arc::new(AtomicBool::new(false)))
+        .context("cannot install the SIGXFSZ handler")?;
     Ok(stop)
 }
 

@@ -2,32 +2,18 @@
 //! load the scene, drive `sim-core`, report. Errors are printed with their whole chain and
 //! mapped to exit codes: 0 ok, 2 bad input (usage or scene), 1 runtime failure.
 
-/// `print!` that ignores a closed stdout (e.g. `twinswarm log info F | head`) instead of
-/// panicking.
-macro_rules! out {
-    ($($arg:tt)*) => {{
-        use std::io::Write as _;
-        let _ = write!(std::io::stdout(), $($arg)*);
-    }};
-}
-
-/// `println!` that ignores a closed stdout.
-macro_rules! outln {
-    ($($arg:tt)*) => {{
-        use std::io::Write as _;
-        let _ = writeln!(std::io::stdout(), $($arg)*);
-    }};
-}
+#[macro_use]
+extern crate twinswarm;
 
 mod ivycmd;
 mod localize;
-mod logcmd;
-mod plot;
 mod replay;
 mod report;
 mod runner;
 mod standin;
 mod synceval;
+
+use twinswarm::{BadInput, logcmd, plot};
 
 use std::io::IsTerminal;
 use std::path::PathBuf;
@@ -35,6 +21,7 @@ use std::process::ExitCode;
 use std::time::Instant;
 
 use anyhow::Context;
+use bridge::failsafe::{ClientLostAction, FailsafeOptions};
 use clap::{Parser, Subcommand};
 use sim_core::World;
 use sim_core::scene::{self, SceneSpec};
@@ -189,6 +176,31 @@ struct RunArgs {
     /// Lag of the tracking poses, s.
     #[arg(long, value_name = "S", default_value_t = 0.2)]
     tracking_lag: f64,
+    /// A twin whose telemetry stays silent this long levels out and holds its height, s.
+    #[arg(long, value_name = "S", default_value_t = FailsafeOptions::default().hold_after_s)]
+    link_hold: f64,
+    /// A twin whose telemetry stays silent this long descends and lands, s.
+    #[arg(long, value_name = "S", default_value_t = FailsafeOptions::default().land_after_s)]
+    link_land: f64,
+    /// Descent rate of a failsafe landing, m/s.
+    #[arg(long, value_name = "M_S", default_value_t = FailsafeOptions::default().descent_m_s)]
+    descent: f32,
+    /// What a virtual copter does when the client controlling it over Zenoh disappears:
+    /// `hover` where it is, `land`, or go back to its `scene` command.
+    #[arg(long, value_name = "ACTION", default_value = "hover")]
+    on_client_lost: ClientLostAction,
+    /// When the log cannot be written (disk full, file-size limit): `stop` the run (exit code
+    /// 1), or `continue` flying without a log. Either way the file keeps what was written,
+    /// readable after `twinswarm log recover`.
+    #[arg(long, value_name = "WHAT", default_value = "stop")]
+    on_log_error: OnLogError,
+}
+
+/// `--on-log-error`.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
+enum OnLogError {
+    Stop,
+    Continue,
 }
 
 /// `--sync` and `--tracking-lag` as options (`None`: off).
@@ -254,17 +266,6 @@ fn load_mixed(
     };
     Ok(runner::MixedOptions { pairing, plan, virtual_sonar_period_s, ..Default::default() })
 }
-
-/// An error that is the user's input's fault (exit code 2).
-#[derive(Debug)]
-struct BadInput(anyhow::Error);
-
-impl std::fmt::Display for BadInput {
-    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        write!(f, "{:#}", self.0)
-    }
-}
-impl std::error::Error for BadInput {}
 
 fn main() -> ExitCode {
     let cli = match Cli::try_parse() {
@@ -381,6 +382,13 @@ fn run(args: RunArgs) -> anyhow::Result<()> {
         };
         anyhow::Error::new(BadInput(e))
     })?;
+    let failsafe = FailsafeOptions {
+        hold_after_s: args.link_hold,
+        land_after_s: args.link_land,
+        descent_m_s: args.descent,
+        client_lost: args.on_client_lost,
+    };
+    failsafe.validate().map_err(|e| BadInput(anyhow::anyhow!("--link-hold/--link-land/--descent: {e}")))?;
     let ticks = world.default_ticks();
     let log = logcmd::start_run_log(args.log.as_deref(), args.no_log, &world, args.scene.as_deref(), &origin)?;
     let stop = logcmd::install_stop_flag()?;
@@ -408,20 +416,69 @@ fn run(args: RunArgs) -> anyhow::Result<()> {
         connect: args.connect.clone(),
         prefix: args.prefix.clone(),
         mixed,
+        failsafe,
     };
-    let mut observer = RunObserver { tracker: report::Tracker::new(&world), log, log_error: None, progress };
+    let stop_on_log_error = (args.on_log_error == OnLogError::Stop).then(|| stop.clone());
+    let log_path = log.as_ref().map(|l| l.path().to_owned());
+    let mut observer = RunObserver {
+        tracker: report::Tracker::new(&world),
+        log,
+        log_error: None,
+        log_error_tick: None,
+        stop_on_log_error,
+        failsafe_events: Vec::new(),
+        tick: 0,
+        progress,
+    };
     let started = Instant::now();
     let outcome = runner::run(world, ticks, args.realtime, &bus, &mut observer, stop)?;
     let wall_s = started.elapsed().as_secs_f64();
-    let RunObserver { tracker, log, log_error, progress } = observer;
+    let RunObserver { tracker, log, log_error, log_error_tick, failsafe_events, progress, .. } = observer;
     if let Some(bar) = progress {
         bar.finish_and_clear();
     }
-    let interrupted = outcome.stats.stopped_early.then_some(outcome.state.tick);
-    let log_stats = logcmd::finish_run_log(log, interrupted)?;
-    if let Some(e) = log_error {
-        return Err(e.context("logging failed; the log holds everything up to the failure"));
+    let interrupted = (outcome.stats.stopped_early && log_error.is_none()).then_some(outcome.state.tick);
+    let mut log = log;
+    if let (Some(l), Some(b)) = (&mut log, &outcome.bus) {
+        // The drop counts belong in the log too: what never reached the loop is only there.
+        let st = &outcome.stats;
+        let mut detail = serde_json::to_value(b)?;
+        detail["inputs"] = serde_json::json!({
+            "rejected": st.inputs_rejected,
+            "ignored": st.inputs_ignored,
+            "after_end": st.inputs_after_end,
+            "frames_dropped": st.frames_dropped,
+            "pprz_dropped": st.pprz_dropped,
+        });
+        let event = bridge::log::LogEvent {
+            tick: outcome.state.tick,
+            kind: bridge::log::EventKind::BusReport,
+            copter: None,
+            message: format!(
+                "bus: {} commands accepted, {} rejected, {} inputs dropped (queue full), {} telemetry texts dropped",
+                b.commands_accepted, b.commands_rejected, b.requests_dropped, b.telemetry.queue_full
+            ),
+            detail: Some(detail),
+        };
+        if let Err(e) = l.log_event(event) {
+            tracing::warn!("could not log the bus report: {e}");
+        }
     }
+    let log_stats = logcmd::finish_run_log(log, interrupted)?;
+    let log_error = log_error.map(|e| {
+        let tick = log_error_tick.unwrap_or(0);
+        let path = log_path.as_ref().map_or("the log".to_owned(), |p| p.display().to_string());
+        let what = match args.on_log_error {
+            OnLogError::Stop => format!("the run stopped at control step {tick}"),
+            OnLogError::Continue => {
+                format!("the run went on without a log from control step {tick} to {}", outcome.state.tick)
+            }
+        };
+        e.context(format!(
+            "logging failed at control step {tick}; {what}. {path} holds what was written before the failure: \
+             `twinswarm log recover {path} FIXED.mcap` makes it a complete log"
+        ))
+    });
     let summary = tracker.summary(&outcome.world, &outcome.state, &origin, wall_s, outcome.stats.overruns);
     if args.json {
         let mut json = serde_json::to_value(&summary)?;
@@ -432,18 +489,39 @@ fn run(args: RunArgs) -> anyhow::Result<()> {
         json["twins"] = serde_json::to_value(&outcome.stats.twins)?;
         json["sync"] = serde_json::to_value(&outcome.stats.sync)?;
         json["pprz_sent"] = outcome.stats.pprz_sent.into();
+        json["failsafe"] = serde_json::to_value(&outcome.stats.failsafe)?;
+        let st = &outcome.stats;
+        json["inputs"] = serde_json::json!({
+            "commands_applied": st.commands_applied,
+            "commands_unknown_copter": st.commands_unknown_copter,
+            "rejected": st.inputs_rejected,
+            "ignored": st.inputs_ignored,
+            "after_end": st.inputs_after_end,
+            "pprz_dropped": st.pprz_dropped,
+        });
+        json["log_error"] = log_error.as_ref().map_or(serde_json::Value::Null, |e| format!("{e:#}").into());
         outln!("{}", serde_json::to_string_pretty(&json)?);
     } else {
         out!("{}", summary.to_text());
         outln!("  log: {}", log_stats.as_ref().map_or("off (--no-log)".into(), logcmd::describe));
         match outcome.bus.as_ref().map(|b| (b, &b.prefix)) {
-            Some((b, Some(prefix))) => outln!(
-                "  bus: zenoh, prefix {prefix}; {} commands accepted, {} rejected; {} samples published; {} clients seen",
-                b.commands_accepted,
-                b.commands_rejected,
-                b.published,
-                b.clients_seen
-            ),
+            Some((b, Some(prefix))) => {
+                outln!(
+                    "  bus: zenoh, prefix {prefix}; {} commands accepted, {} rejected ({} not from the copter's controller); {} samples published; {} clients seen",
+                    b.commands_accepted,
+                    b.commands_rejected,
+                    b.commands_not_controller,
+                    b.published,
+                    b.clients_seen
+                );
+                if b.tracking_rejected + b.requests_dropped > 0 {
+                    outln!(
+                        "    {} tracking poses rejected; {} inputs dropped (step loop's queue full)",
+                        b.tracking_rejected,
+                        b.requests_dropped
+                    );
+                }
+            }
             _ => outln!("  bus: zenoh off (--no-bus)"),
         }
         if let Some(i) = outcome.bus.as_ref().and_then(|b| b.ivy.as_ref()) {
@@ -517,6 +595,17 @@ fn run(args: RunArgs) -> anyhow::Result<()> {
                 t.attitude_samples
             );
         }
+        if !outcome.stats.failsafe.is_empty() {
+            let counts: Vec<String> = outcome.stats.failsafe.iter().map(|(k, n)| format!("{n} {k}")).collect();
+            outln!("  failsafe: {}", counts.join(", "));
+            for (tick, message) in &failsafe_events {
+                outln!("    step {tick}: {message}");
+            }
+            let total: u64 = outcome.stats.failsafe.values().sum();
+            if total > failsafe_events.len() as u64 {
+                outln!("    … {} more in the log (/events)", total - failsafe_events.len() as u64);
+            }
+        }
         if interrupted.is_some() {
             outln!(
                 "  interrupted by a signal after {:.2} s simulated; the log was finished cleanly",
@@ -524,7 +613,10 @@ fn run(args: RunArgs) -> anyhow::Result<()> {
             );
         }
     }
-    Ok(())
+    match log_error {
+        Some(e) => Err(e),
+        None => Ok(()),
+    }
 }
 
 /// Follows the step loop: summary tracker, MCAP log, progress bar.
@@ -532,7 +624,40 @@ struct RunObserver {
     tracker: report::Tracker,
     log: Option<bridge::log::Logger>,
     log_error: Option<anyhow::Error>,
+    /// The control step at which the log failed.
+    log_error_tick: Option<u64>,
+    /// `--on-log-error stop`: the run's stop flag, set when the log fails.
+    stop_on_log_error: Option<std::sync::Arc<std::sync::atomic::AtomicBool>>,
+    /// The first failsafe transitions, for the summary.
+    failsafe_events: Vec<(u64, String)>,
+    /// The last control step observed.
+    tick: u64,
     progress: Option<indicatif::ProgressBar>,
+}
+
+impl RunObserver {
+    /// Logs an event, if logging.
+    fn log_event(&mut self, event: bridge::log::LogEvent) {
+        let tick = event.tick;
+        if let Some(log) = &mut self.log
+            && let Err(e) = log.log_event(event)
+        {
+            self.log_failed(tick, e.into());
+        }
+    }
+
+    /// The log failed: keep the first error, stop logging, and stop the run if asked to.
+    fn log_failed(&mut self, tick: u64, e: anyhow::Error) {
+        if self.log_error.is_none() {
+            tracing::error!("logging failed at control step {tick}: {e:#}");
+            self.log_error = Some(e);
+            self.log_error_tick = Some(tick);
+        }
+        self.log = None;
+        if let Some(stop) = &self.stop_on_log_error {
+            stop.store(true, std::sync::atomic::Ordering::Relaxed);
+        }
+    }
 }
 
 impl bridge::sim::StepObserver for RunObserver {
@@ -544,12 +669,11 @@ impl bridge::sim::StepObserver for RunObserver {
         report: &sim_core::StepReport,
     ) {
         self.tracker.observe(world, state, report);
+        self.tick = state.tick;
         if let Some(log) = &mut self.log
             && let Err(e) = log.log_step(world, state, inputs, report)
         {
-            // Stop logging, keep flying; the error is reported at the end.
-            self.log_error = Some(e.into());
-            self.log = None;
+            self.log_failed(state.tick, e.into());
         }
         if let Some(bar) = &self.progress
             && state.tick.is_multiple_of(20)
@@ -562,76 +686,82 @@ impl bridge::sim::StepObserver for RunObserver {
         if let Some(log) = &mut self.log
             && let Err(e) = log.log_bus_message(&input.key, true, &input.text, input.received_unix_ns)
         {
-            self.log_error = Some(e.into());
-            self.log = None;
+            self.log_failed(self.tick, e.into());
         }
     }
 
     fn input_rejected(&mut self, tick: u64, input: &bridge::sim::BusInput, reason: &str) {
         self.bus_input(input);
-        if let Some(log) = &mut self.log {
-            let event = bridge::log::LogEvent {
-                tick,
-                kind: bridge::log::EventKind::InputRejected,
-                copter: None,
-                detail: Some(serde_json::json!({ "key": input.key, "reason": reason })),
-                message: format!("rejected input on {}: {reason}", input.key),
-            };
-            if let Err(e) = log.log_event(event) {
-                self.log_error = Some(e.into());
-                self.log = None;
-            }
-        }
+        self.log_event(bridge::log::LogEvent {
+            tick,
+            kind: bridge::log::EventKind::InputRejected,
+            copter: None,
+            detail: Some(serde_json::json!({ "key": input.key, "reason": reason })),
+            message: format!("rejected input on {}: {reason}", input.key),
+        });
     }
 
     fn spawned(&mut self, world: &sim_core::World, id: usize, tick: u64) {
-        if let Some(log) = &mut self.log {
-            let event = bridge::log::LogEvent {
-                tick,
-                kind: bridge::log::EventKind::Spawned,
-                copter: Some(id),
-                detail: None,
-                message: format!("spawned copter {:?}", world.copters[id].name),
-            };
-            if let Err(e) = log.log_event(event) {
-                self.log_error = Some(e.into());
-                self.log = None;
-            }
-        }
+        self.log_event(bridge::log::LogEvent {
+            tick,
+            kind: bridge::log::EventKind::Spawned,
+            copter: Some(id),
+            detail: None,
+            message: format!("spawned copter {:?}", world.copters[id].name),
+        });
     }
 
-    fn pprz_out(&mut self, _tick: u64, out: &bridge::mixed::PprzOut) {
+    fn pprz_out(&mut self, tick: u64, out: &bridge::mixed::PprzOut) {
         if let Some(log) = &mut self.log
             && let Err(e) = log.log_bus_message(&out.key, false, &out.text, bridge::log::now_unix_ns())
         {
-            self.log_error = Some(e.into());
-            self.log = None;
+            self.log_failed(tick, e.into());
         }
     }
 
     fn paired(&mut self, tick: u64, ac_id: u8, id: usize, copter: &str) {
-        if let Some(log) = &mut self.log {
-            let event = bridge::log::LogEvent {
-                tick,
-                kind: bridge::log::EventKind::Paired,
-                copter: Some(id),
-                detail: Some(serde_json::json!({ "ac_id": ac_id, "copter": copter, "spawned": true })),
-                message: format!("aircraft {ac_id} paired with its new twin {copter:?} (spawned on first telemetry)"),
-            };
-            if let Err(e) = log.log_event(event) {
-                self.log_error = Some(e.into());
-                self.log = None;
-            }
-        }
+        self.log_event(bridge::log::LogEvent {
+            tick,
+            kind: bridge::log::EventKind::Paired,
+            copter: Some(id),
+            detail: Some(serde_json::json!({ "ac_id": ac_id, "copter": copter, "spawned": true })),
+            message: format!("aircraft {ac_id} paired with its new twin {copter:?} (spawned on first telemetry)"),
+        });
     }
 
     fn overrun(&mut self, tick: u64, late_s: f64) {
         if let Err(e) = logcmd::log_overrun(&mut self.log, tick, late_s) {
-            self.log_error = Some(e);
-            self.log = None;
+            self.log_failed(tick, e);
         }
     }
+
+    fn frame_dropped(&mut self, tick: u64, pprz_lost: u64) {
+        self.log_event(bridge::log::LogEvent {
+            tick,
+            kind: bridge::log::EventKind::FrameDropped,
+            copter: None,
+            detail: Some(serde_json::json!({ "pprz_lost": pprz_lost })),
+            message: format!("step {tick} not published (publisher behind); {pprz_lost} Paparazzi texts not sent"),
+        });
+    }
+
+    fn failsafe(&mut self, tick: u64, world: &sim_core::World, event: &bridge::failsafe::FailsafeEvent) {
+        let message = event.message(world);
+        if self.failsafe_events.len() < MAX_SUMMARY_EVENTS {
+            self.failsafe_events.push((tick, message.clone()));
+        }
+        self.log_event(bridge::log::LogEvent {
+            tick,
+            kind: bridge::log::EventKind::Failsafe,
+            copter: Some(event.copter),
+            detail: serde_json::to_value(&event.kind).ok(),
+            message,
+        });
+    }
 }
+
+/// Failsafe transitions the text summary lists one by one (the log has them all).
+const MAX_SUMMARY_EVENTS: usize = 8;
 
 fn check(path: &std::path::Path) -> anyhow::Result<()> {
     let (origin, spec, world) = load_scene(Some(path))?;

@@ -31,8 +31,13 @@ fn register_font() -> anyhow::Result<()> {
 pub const HEATMAP_PANEL_PX: (u32, u32) = (560, 460);
 /// Attitude and sonar figure size, px.
 pub const FIGURE_PX: (u32, u32) = (1200, 800);
-/// Heat-map cell, m.
+/// Heat-map cell, m (larger when the arena would need more than [`MAX_CELLS`] of them).
 const CELL_M: f64 = 0.05;
+/// Most heat-map cells per panel: the grid is sized from the file's metadata, so a crafted
+/// log must not choose the allocation.
+const MAX_CELLS: f64 = 1_000_000.0;
+/// Largest arena side a log may claim, m.
+const MAX_ARENA_M: f64 = 10_000.0;
 /// Copters drawn in one line plot.
 const MAX_LINES: usize = 8;
 
@@ -110,6 +115,11 @@ impl PlotData {
             Ok(v) => serde_json::from_value(v).map_err(|e| bad(e.into()))?,
             Err(_) => Vec::new(),
         };
+        if arena_m.iter().any(|v| !v.is_finite() || *v <= 0.0 || *v > MAX_ARENA_M) {
+            return Err(bad(anyhow::anyhow!(
+                "metadata \"arena_size_m\" = {arena_m:?}: each side must be positive and at most {MAX_ARENA_M} m"
+            )));
+        }
         let dt_s = meta.get("control_dt_s").and_then(|s| s.parse().ok()).unwrap_or(0.05);
         let states =
             file.messages::<StateRow>("/copters/state").map_err(read_error)?.into_iter().map(|m| m.1).collect();
@@ -184,6 +194,23 @@ pub fn plot(path: &Path, req: &PlotRequest<'_>) -> anyhow::Result<()> {
     Ok(())
 }
 
+/// Loads a log and draws every plot into memory, as `plot` would but writing no file: what
+/// the `plot` fuzz target runs. Returns the bytes drawn.
+pub fn draw_all_in_memory(path: &Path) -> anyhow::Result<usize> {
+    let file = LogFile::open(path).map_err(read_error)?;
+    let data = PlotData::load(&file, true, true)?;
+    if data.states.is_empty() {
+        return Err(BadInput(anyhow::anyhow!("{}: no messages on /copters/state to plot", path.display())).into());
+    }
+    register_font()?;
+    let mut drawn = draw_buffer(heatmap_size(&data), |root| draw_heatmap(&data, root))?.len();
+    drawn += draw_buffer(FIGURE_PX, |root| draw_attitude(&data, root))?.len();
+    if !data.copters.is_empty() {
+        drawn += draw_buffer(FIGURE_PX, |root| draw_sonar(&data, 0, root))?.len();
+    }
+    Ok(drawn)
+}
+
 type Area<'a> = DrawingArea<BitMapBackend<'a>, Shift>;
 type DrawResult = Result<(), Box<dyn std::error::Error + 'static>>;
 
@@ -197,16 +224,15 @@ fn draw_png(out: &Path, size: (u32, u32), draw: impl FnOnce(&Area<'_>) -> DrawRe
     Ok(())
 }
 
-/// Draws into an RGB buffer (for tests): `w × h × 3` bytes.
-#[cfg(test)]
-fn draw_buffer(size: (u32, u32), draw: impl FnOnce(&Area<'_>) -> DrawResult) -> Vec<u8> {
-    let mut buf = vec![0u8; (size.0 * size.1 * 3) as usize];
+/// Draws into an RGB buffer: `w × h × 3` bytes.
+fn draw_buffer(size: (u32, u32), draw: impl FnOnce(&Area<'_>) -> DrawResult) -> anyhow::Result<Vec<u8>> {
+    let mut buf = vec![0u8; size.0 as usize * size.1 as usize * 3];
     {
         let root = BitMapBackend::with_buffer(&mut buf, size).into_drawing_area();
-        draw(&root).expect("draw");
-        root.present().expect("present");
+        draw(&root).map_err(|e| anyhow::anyhow!("cannot draw: {e}"))?;
+        root.present().map_err(|e| anyhow::anyhow!("cannot draw: {e}"))?;
     }
-    buf
+    Ok(buf)
 }
 
 const PALETTE: [RGBColor; 8] = [
@@ -239,6 +265,11 @@ fn heatmap_size(data: &PlotData) -> (u32, u32) {
     (HEATMAP_PANEL_PX.0 * cols as u32, HEATMAP_PANEL_PX.1 * rows as u32)
 }
 
+/// The heat-map cell: [`CELL_M`], or larger so that a panel has at most [`MAX_CELLS`].
+fn heatmap_cell_m([sx, sy]: [f64; 2]) -> f64 {
+    CELL_M.max((sx * sy / MAX_CELLS).sqrt())
+}
+
 fn draw_heatmap(data: &PlotData, root: &Area<'_>) -> DrawResult {
     root.fill(&WHITE)?;
     let panels = heatmap_panels(data);
@@ -246,13 +277,14 @@ fn draw_heatmap(data: &PlotData, root: &Area<'_>) -> DrawResult {
     let areas = root.split_evenly((rows, cols));
     let [sx, sy] = data.arena_m;
     let (hx, hy) = (sx / 2.0, sy / 2.0);
-    let nx = (sx / CELL_M).ceil() as usize;
-    let ny = (sy / CELL_M).ceil() as usize;
+    let cell_m = heatmap_cell_m(data.arena_m);
+    let nx = (sx / cell_m).ceil() as usize;
+    let ny = (sy / cell_m).ceil() as usize;
     for (panel, area) in panels.iter().zip(&areas) {
         let mut counts = vec![0u32; nx * ny];
         for s in data.states.iter().filter(|s| panel.is_none_or(|id| s.id == id)) {
             let (x, y) = (s.pos_m[0] as f64, s.pos_m[1] as f64);
-            let (i, j) = (((x + hx) / CELL_M).floor(), ((y + hy) / CELL_M).floor());
+            let (i, j) = (((x + hx) / cell_m).floor(), ((y + hy) / cell_m).floor());
             if i >= 0.0 && j >= 0.0 && (i as usize) < nx && (j as usize) < ny {
                 counts[j as usize * nx + i as usize] += 1;
             }
@@ -262,7 +294,7 @@ fn draw_heatmap(data: &PlotData, root: &Area<'_>) -> DrawResult {
             Some(id) => format!("{} ({})", data.copters[*id].name, data.copters[*id].kind),
             None => format!("all {} copters", data.copters.len()),
         };
-        let caption = format!("{title}: time per {:.0} cm cell, max {:.1} s", CELL_M * 100.0, max as f64 * data.dt_s);
+        let caption = format!("{title}: time per {:.0} cm cell, max {:.1} s", cell_m * 100.0, max as f64 * data.dt_s);
         let m = 0.15;
         let mut chart = ChartBuilder::on(area)
             .caption(caption, (FONT, 17))
@@ -284,8 +316,8 @@ fn draw_heatmap(data: &PlotData, root: &Area<'_>) -> DrawResult {
             let t = (1.0 + *c as f64).ln() / ln_max;
             let lerp = |a: f64, b: f64| (a + (b - a) * t).round() as u8;
             let color = RGBColor(lerp(222.0, 8.0), lerp(235.0, 48.0), lerp(247.0, 107.0));
-            let (x0, y0) = (-hx + i * CELL_M, -hy + j * CELL_M);
-            Rectangle::new([(x0, y0), (x0 + CELL_M, y0 + CELL_M)], color.filled())
+            let (x0, y0) = (-hx + i * cell_m, -hy + j * cell_m);
+            Rectangle::new([(x0, y0), (x0 + cell_m, y0 + cell_m)], color.filled())
         }))?;
         // Arena outline and boxes.
         chart.draw_series(std::iter::once(PathElement::new(
@@ -510,9 +542,9 @@ mod tests {
         assert_eq!(data.states.len(), 240);
         assert_eq!(heatmap_size(&data), (HEATMAP_PANEL_PX.0 * 2, HEATMAP_PANEL_PX.1));
         for (what, buf) in [
-            ("heatmap", draw_buffer(heatmap_size(&data), |a| draw_heatmap(&data, a))),
-            ("attitude", draw_buffer(FIGURE_PX, |a| draw_attitude(&data, a))),
-            ("sonar", draw_buffer(FIGURE_PX, |a| draw_sonar(&data, 0, a))),
+            ("heatmap", draw_buffer(heatmap_size(&data), |a| draw_heatmap(&data, a)).unwrap()),
+            ("attitude", draw_buffer(FIGURE_PX, |a| draw_attitude(&data, a)).unwrap()),
+            ("sonar", draw_buffer(FIGURE_PX, |a| draw_sonar(&data, 0, a)).unwrap()),
         ] {
             assert!(distinct_colors(&buf) > 16, "{what} looks blank: {} colours", distinct_colors(&buf));
         }

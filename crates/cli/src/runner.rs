@@ -8,6 +8,7 @@ use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, Ordering};
 
 use anyhow::Context;
+use bridge::failsafe::FailsafeOptions;
 use bridge::mixed::{Gateway, GatewayReport, OutboxOptions, PprzLinks, TelemetryPlan, TwinAttitude};
 use bridge::paparazzi::ivy::{IvyAgent, IvyOptions};
 use bridge::paparazzi::pairing::ResolvedPairing;
@@ -34,6 +35,8 @@ pub struct BusOptions {
     /// Join this Ivy bus (Paparazzi's ground segment) as well, or instead of Zenoh with
     /// `no_bus`.
     pub ivy: Option<bridge::paparazzi::ivy::BusAddr>,
+    /// Lost links and lost controllers.
+    pub failsafe: FailsafeOptions,
 }
 
 /// Mixed-reality options (see `bridge::mixed`).
@@ -81,6 +84,11 @@ pub struct BusReport {
     pub commands_rejected: u64,
     pub published: u64,
     pub clients_seen: u64,
+    /// Commands rejected because another client controls the copter.
+    pub commands_not_controller: u64,
+    pub tracking_rejected: u64,
+    /// Inputs dropped because the step loop's queue was full.
+    pub requests_dropped: u64,
     pub telemetry: GatewayReport,
     pub ivy: Option<IvyReport>,
 }
@@ -126,12 +134,15 @@ impl IvyReport {
             peer_regexes: l(&c.peer_regexes),
             bridged_ivy_to_zenoh: l(&b.ivy_to_zenoh),
             bridged_zenoh_to_ivy: l(&b.zenoh_to_ivy),
-            bridge_dropped: l(&b.dropped_queue_full) + l(&b.dropped_unsendable),
+            bridge_dropped: l(&b.dropped_queue_full) + l(&b.dropped_unsendable) + l(&b.dropped_put_failed),
             dropped: agent.drops().into_iter().map(|(k, v)| (k.to_owned(), v)).collect(),
             events: agent.events(),
         }
     }
 }
+
+/// Inputs the step loop's queue holds between two steps.
+pub const REQUEST_QUEUE: usize = 8192;
 
 /// The simulator's app name on an Ivy bus.
 pub const IVY_APP_NAME: &str = "Twinswarm";
@@ -169,8 +180,10 @@ pub fn run(
 ) -> anyhow::Result<RunOutcome> {
     let state = world.initial_state();
     let inputs = world.initial_inputs();
-    let mut opts = LoopOptions { realtime, ticks, outbox: None, sync: None };
-    let (req_tx, req_rx) = std::sync::mpsc::sync_channel::<Request>(1024);
+    let mut opts = LoopOptions { realtime, ticks, failsafe: bus.failsafe.clone(), ..Default::default() };
+    // Room for 8,192 inputs between two steps: 160,000 per second at 50 ms, five times the
+    // flood test's 30,000 (scripts/flood.sh); beyond, inputs are dropped and counted.
+    let (req_tx, req_rx) = std::sync::mpsc::sync_channel::<Request>(REQUEST_QUEUE);
 
     if bus.no_bus && bus.ivy.is_none() {
         let (world, state, stats) = sim::run_loop(world, state, inputs, req_rx, None, observer, &stop, &opts);
@@ -247,6 +260,9 @@ pub fn run(
         commands_rejected: counters.as_ref().map_or(0, |c| l(&c.commands_rejected)),
         published: counters.as_ref().map_or(0, |c| l(&c.published)),
         clients_seen: counters.as_ref().map_or(0, |c| l(&c.clients_seen)),
+        commands_not_controller: counters.as_ref().map_or(0, |c| l(&c.commands_not_controller)),
+        tracking_rejected: counters.as_ref().map_or(0, |c| l(&c.tracking_rejected)),
+        requests_dropped: counters.as_ref().map_or(0, |c| l(&c.requests_dropped)),
         telemetry: gateway.report(),
         ivy: ivy.as_ref().zip(bus.ivy.as_ref()).map(|(a, addr)| IvyReport::of(a, &addr.to_string(), &gateway)),
     };

@@ -172,6 +172,8 @@ struct Harness {
     outside: u64,
     sent: u64,
     lost: u64,
+    /// Inputs the loop's queue could not take (it holds 4096 and is drained every step).
+    queue_full: u64,
     last_error: f64,
 }
 
@@ -226,8 +228,9 @@ impl StepObserver for Harness {
                     received_unix_ns: (sent_at * 1e9) as u64,
                 };
                 let received = self.base + Duration::from_secs_f64(sent_at);
-                if let Some(r) = self.interpreter.interpret(&self.messages, origin, received) {
-                    let _ = self.requests.try_send(r);
+                let r = self.interpreter.interpret(&self.messages, origin, received);
+                if self.requests.try_send(r).is_err() {
+                    self.queue_full += 1;
                 }
             }
         }
@@ -240,7 +243,9 @@ impl StepObserver for Harness {
                     text: format!("{{\"pos_m\":[{},{}]}}", p[0], p[1]),
                     received_unix_ns: (t * 1e9) as u64,
                 };
-                let _ = self.requests.try_send(Request::Tracking { copter: "twin".into(), pos_m: *p, origin });
+                if self.requests.try_send(Request::Tracking { copter: "twin".into(), pos_m: *p, origin }).is_err() {
+                    self.queue_full += 1;
+                }
             }
         }
     }
@@ -306,13 +311,20 @@ pub fn run_variant(
         outside: 0,
         sent: 0,
         lost: 0,
+        queue_full: 0,
         last_error: 0.0,
         world: reality,
     };
-    let opts = LoopOptions { realtime: false, ticks: world.default_ticks(), outbox: None, sync: variant.sync.clone() };
+    let opts =
+        LoopOptions { realtime: false, ticks: world.default_ticks(), sync: variant.sync.clone(), ..Default::default() };
     let stop = AtomicBool::new(false);
     let (state, inputs) = (world.initial_state(), world.initial_inputs());
     let (world, state, stats) = bridge::sim::run_loop(world, state, inputs, rx, None, &mut harness, &stop, &opts);
+    anyhow::ensure!(
+        harness.queue_full == 0,
+        "{} inputs did not fit the loop's queue: the evaluation would be biased",
+        harness.queue_full
+    );
     Ok(SyncRun {
         error_cm: error_cm(&harness.errors),
         error_in_dropout_cm: variant.tracking_dropout_s.map(|_| error_cm(&harness.dropout_errors)),

@@ -104,14 +104,24 @@ pub enum EventKind {
     StepOverrun,
     /// The run was interrupted (SIGINT/SIGTERM) and the log finished cleanly.
     Interrupted,
+    /// A lost link or a controller change (see `bridge::failsafe`).
+    Failsafe,
+    /// A step's frame was not published (the publisher was behind).
+    FrameDropped,
+    /// At the end of a run on a bus: what the bus received, refused and dropped.
+    BusReport,
 }
 
 impl EventKind {
     /// `foxglove.Log` level.
     fn level(self) -> u8 {
         match self {
-            EventKind::TookOff | EventKind::Spawned | EventKind::Paired => 2,
-            EventKind::InputRejected | EventKind::StepOverrun | EventKind::Interrupted => 3,
+            EventKind::TookOff | EventKind::Spawned | EventKind::Paired | EventKind::BusReport => 2,
+            EventKind::InputRejected
+            | EventKind::StepOverrun
+            | EventKind::Interrupted
+            | EventKind::Failsafe
+            | EventKind::FrameDropped => 3,
             EventKind::Crashed => 4,
         }
     }

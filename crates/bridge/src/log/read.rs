@@ -130,8 +130,10 @@ pub struct LogFile {
     summary: mcap::Summary,
 }
 
-/// The largest uncompressed chunk accepted (ours are 1 MiB).
-const MAX_CHUNK_BYTES: u64 = 1 << 30;
+/// The largest uncompressed chunk accepted: ours are 1 MiB, the `mcap` crate's and
+/// Foxglove's writers default to about as much, so 64 MiB leaves a wide margin while a
+/// crafted length cannot make the reader allocate more than that per chunk.
+const MAX_CHUNK_BYTES: u64 = 64 << 20;
 
 /// What [`walk_records`] found.
 #[derive(Debug, Default)]

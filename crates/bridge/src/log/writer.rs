@@ -24,7 +24,7 @@ use super::time::{format_utc_iso, now_unix_ns, thread_cpu_ns};
 #[derive(Debug, thiserror::Error)]
 pub enum LogError {
     /// The file could not be created.
-    #[error("cannot create log file {path}: {source}")]
+    #[error("cannot create log file {path}")]
     Create {
         /// The file.
         path: PathBuf,
@@ -32,7 +32,7 @@ pub enum LogError {
         source: std::io::Error,
     },
     /// Writing MCAP failed (disk full, I/O error).
-    #[error("cannot write log file {path}: {source}")]
+    #[error("cannot write log file {path}")]
     Write {
         /// The file.
         path: PathBuf,

@@ -339,6 +339,13 @@ impl Bus {
     /// Delivers `text` (which arrived on `key`) to every binding whose
     /// regex matches it. Returns the number of handler calls.
     pub fn dispatch(&mut self, key: &str, text: &str) -> usize {
+        self.dispatch_among(key, text, |_| true)
+    }
+
+    /// Like [`Bus::dispatch`], but only to the bindings `among` accepts (a transport with one
+    /// subscription per key expression delivers each sample to the bindings of that
+    /// subscription only, so that overlapping subscriptions do not deliver a text twice).
+    pub fn dispatch_among(&mut self, key: &str, text: &str, among: impl Fn(BindId) -> bool) -> usize {
         let sender = sender_token(text);
         let named: &[BindId] = match split_header(text) {
             Some((_, name, _)) => self.by_name.get(name).map(Vec::as_slice).unwrap_or(&[]),
@@ -368,6 +375,9 @@ impl Bus {
                 }
                 (None, None) => break,
             };
+            if !among(id) {
+                continue;
+            }
             let Ok(idx) = bindings.binary_search_by_key(&id, |(i, _)| *i) else {
                 continue;
             };

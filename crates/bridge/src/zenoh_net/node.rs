@@ -15,9 +15,20 @@
 //! | `…/copters` | queryable | [`CopterListEntry`] list |
 //! | `…/spawn` | queryable | JSON copter table in, name or error out |
 //! | `…/alive/sim` | liveliness token of the simulator | |
-//! | `…/alive/copters/<name>` | liveliness tokens of attached clients | |
+//! | `…/alive/copters/<name>` | liveliness token of a client attached to a copter | |
+//! | `…/alive/copters/<name>/<client>` | liveliness claim: `client` wants to command the copter | |
+//!
+//! **Who may command.** A copter that no client has claimed takes commands from anyone on
+//! the bus (an open lab). Once a client declares the liveliness token
+//! `…/alive/copters/<name>/<client>`, the copter takes commands only from it: commands must
+//! carry `"client": "<client>"`, and any other is rejected, counted
+//! ([`NodeCounters::commands_not_controller`]) and logged. Claims queue in the order they
+//! arrive; when the controller's token disappears (it left, or its process or link died) the
+//! next claim takes over, or, if there is none, the copter's lost-client failsafe applies
+//! (see [`crate::failsafe`]). This keeps two well-meaning clients from fighting over a copter;
+//! against a hostile client, lock the bus with Zenoh's access control (`docs/security.md`).
 
-use std::collections::BTreeSet;
+use std::collections::{BTreeMap, BTreeSet};
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::mpsc::SyncSender;
 use std::sync::{Arc, Mutex};
@@ -89,6 +100,14 @@ pub struct NodeCounters {
     pub published: AtomicU64,
     /// Clients seen through liveliness.
     pub clients_seen: AtomicU64,
+    /// Commands rejected because another client controls the copter (also in
+    /// `commands_rejected`).
+    pub commands_not_controller: AtomicU64,
+    /// Tracking poses rejected (malformed, out of range) or dropped (queue full).
+    pub tracking_rejected: AtomicU64,
+    /// Requests for the step loop dropped because its queue was full (commands, tracking,
+    /// controller changes, rejections for the log).
+    pub requests_dropped: AtomicU64,
 }
 
 /// Logs at most once per `period` (plus a count of what was suppressed).
@@ -125,6 +144,8 @@ pub struct Node {
     pub counters: Arc<NodeCounters>,
     /// Names of attached clients (liveliness).
     pub clients: Arc<Mutex<BTreeSet<String>>>,
+    /// Each copter's claims, in arrival order: the first is its controller.
+    pub controllers: Arc<Mutex<BTreeMap<String, Vec<String>>>>,
     _token: zenoh::liveliness::LivelinessToken,
     _cmd_sub: zenoh::pubsub::Subscriber<()>,
     _tracking_sub: zenoh::pubsub::Subscriber<()>,
@@ -179,23 +200,39 @@ impl Node {
 
         // Commands.
         let limiter = Arc::new(RateLimiter::new(Duration::from_secs(1)));
+        let controllers: Arc<Mutex<BTreeMap<String, Vec<String>>>> = Arc::default();
         let cmd_sub = {
-            let (counters, world_cell, requests, limiter) =
-                (counters.clone(), world_cell.clone(), requests.clone(), limiter.clone());
+            let (counters, world_cell, requests, limiter, controllers) =
+                (counters.clone(), world_cell.clone(), requests.clone(), limiter.clone(), controllers.clone());
             let prefix_len = prefix.len();
             session
                 .declare_subscriber(format!("{prefix}/copters/*/cmd"))
                 .callback(move |sample| {
                     let (name, payload, origin) = copter_sample(&sample, prefix_len, "/cmd");
                     let key = origin.key.as_str();
-                    let world = match world_cell.lock() {
-                        Ok(w) => w.clone(),
-                        Err(_) => return,
-                    };
+                    let world = crate::lock(&world_cell).clone();
                     let result = match world.copter_id(&name) {
                         None => Err(crate::wire::CommandError::UnknownCopter(name.clone())),
                         Some(_) => CommandMsg::parse(&payload, &world),
                     };
+                    let controller = crate::lock(&controllers).get(&name).and_then(|v| v.first().cloned());
+                    if let (Ok(cmd), Some(owner)) = (&result, controller)
+                        && cmd.client.as_deref() != Some(owner.as_str())
+                    {
+                        counters.commands_rejected.fetch_add(1, Ordering::Relaxed);
+                        counters.commands_not_controller.fetch_add(1, Ordering::Relaxed);
+                        let reason = match &cmd.client {
+                            Some(c) => format!("copter {name:?} is controlled by client {owner:?}, not {c:?}"),
+                            None => format!(
+                                "copter {name:?} is controlled by client {owner:?}; this command names no client"
+                            ),
+                        };
+                        limiter.warn(&format!("rejected command on {key}: {reason}"));
+                        if requests.try_send(Request::Rejected { origin, reason }).is_err() {
+                            counters.requests_dropped.fetch_add(1, Ordering::Relaxed);
+                        }
+                        return;
+                    }
                     match result {
                         Ok(cmd) => match requests.try_send(Request::Command { copter: name, cmd, origin }) {
                             Ok(()) => {
@@ -203,14 +240,17 @@ impl Node {
                             }
                             Err(_) => {
                                 counters.commands_rejected.fetch_add(1, Ordering::Relaxed);
+                                counters.requests_dropped.fetch_add(1, Ordering::Relaxed);
                                 limiter.warn("command dropped: the step loop's queue is full");
                             }
                         },
                         Err(e) => {
                             counters.commands_rejected.fetch_add(1, Ordering::Relaxed);
                             limiter.warn(&format!("rejected command on {key}: {e}"));
-                            // For the log; if the queue is full, the counter still has it.
-                            let _ = requests.try_send(Request::Rejected { origin, reason: e.to_string() });
+                            // For the log; if the queue is full, the counters still have it.
+                            if requests.try_send(Request::Rejected { origin, reason: e.to_string() }).is_err() {
+                                counters.requests_dropped.fetch_add(1, Ordering::Relaxed);
+                            }
                         }
                     }
                 })
@@ -229,12 +269,15 @@ impl Node {
                     let request = match crate::wire::TrackingMsg::parse(&payload) {
                         Ok(t) => Request::Tracking { copter: name, pos_m: [t.pos_m[0], t.pos_m[1]], origin },
                         Err(e) => {
-                            counters.commands_rejected.fetch_add(1, Ordering::Relaxed);
+                            counters.tracking_rejected.fetch_add(1, Ordering::Relaxed);
                             limiter.warn(&format!("rejected tracking pose on {}: {e}", origin.key));
                             Request::Rejected { origin, reason: e.to_string() }
                         }
                     };
-                    let _ = requests.try_send(request);
+                    if requests.try_send(request).is_err() {
+                        counters.requests_dropped.fetch_add(1, Ordering::Relaxed);
+                        limiter.warn("tracking pose dropped: the step loop's queue is full");
+                    }
                 })
                 .await
                 .map_err(zerr)?
@@ -244,26 +287,53 @@ impl Node {
         let token = session.liveliness().declare_token(format!("{prefix}/alive/sim")).await.map_err(zerr)?;
         let clients = Arc::new(Mutex::new(BTreeSet::new()));
         let alive_sub = {
-            let (clients, counters) = (clients.clone(), counters.clone());
+            let (clients, counters, controllers, requests) =
+                (clients.clone(), counters.clone(), controllers.clone(), requests.clone());
             let base = format!("{prefix}/alive/copters/");
             session
                 .liveliness()
-                .declare_subscriber(format!("{prefix}/alive/copters/*"))
+                .declare_subscriber(format!("{prefix}/alive/copters/**"))
                 .history(true)
                 .callback(move |sample| {
-                    let name = sample.key_expr().as_str().trim_start_matches(base.as_str()).to_owned();
-                    if let Ok(mut c) = clients.lock() {
-                        match sample.kind() {
-                            SampleKind::Put => {
-                                if c.insert(name.clone()) {
-                                    counters.clients_seen.fetch_add(1, Ordering::Relaxed);
-                                    tracing::info!("client attached: {name}");
-                                }
+                    let rest = sample.key_expr().as_str().trim_start_matches(base.as_str()).to_owned();
+                    let put = sample.kind() == SampleKind::Put;
+                    {
+                        let mut c = crate::lock(&clients);
+                        if put {
+                            if c.insert(rest.clone()) {
+                                counters.clients_seen.fetch_add(1, Ordering::Relaxed);
+                                tracing::info!("client attached: {rest}");
                             }
-                            SampleKind::Delete => {
-                                c.remove(&name);
-                                tracing::info!("client left: {name}");
+                        } else {
+                            c.remove(&rest);
+                            tracing::info!("client left: {rest}");
+                        }
+                    }
+                    // A claim: `<copter>/<client>`.
+                    let Some((copter, client)) = rest.split_once('/') else { return };
+                    let change = {
+                        let mut map = crate::lock(&controllers);
+                        let queue = map.entry(copter.to_owned()).or_default();
+                        let before = queue.first().cloned();
+                        if put {
+                            if !queue.iter().any(|c| c == client) {
+                                queue.push(client.to_owned());
                             }
+                        } else {
+                            queue.retain(|c| c != client);
+                        }
+                        let after = queue.first().cloned();
+                        (before != after).then(|| {
+                            let lost = before.filter(|b| !queue.contains(b));
+                            (after, lost)
+                        })
+                    };
+                    if let Some((client, lost)) = change {
+                        tracing::info!("copter {copter}: controller {client:?} (was {lost:?})");
+                        let request = Request::Controller { copter: copter.to_owned(), client, lost };
+                        if requests.try_send(request).is_err() {
+                            counters.requests_dropped.fetch_add(1, Ordering::Relaxed);
+                            tracing::warn!("controller change of {copter} dropped: the step loop's queue is full");
                         }
                     }
                 })
@@ -357,6 +427,7 @@ impl Node {
             world: world_cell,
             counters,
             clients,
+            controllers,
             _token: token,
             _cmd_sub: cmd_sub,
             _tracking_sub: tracking_sub,

@@ -40,13 +40,17 @@ pub enum ZenohBusError {
 
 /// Counters of a [`ZenohBus`].
 #[derive(Debug, Default)]
-pub struct IvyCounters {
+pub struct ZenohBusCounters {
     /// Samples that reached this process's subscribers.
     pub samples_received: AtomicU64,
     /// Handler calls.
     pub delivered: AtomicU64,
     /// Texts sent.
     pub sent: AtomicU64,
+    /// Samples dropped: their payload is not UTF-8 (Paparazzi texts are ASCII).
+    pub dropped_not_utf8: AtomicU64,
+    /// Texts on a subscribed key that no binding's regex matched.
+    pub unmatched: AtomicU64,
 }
 
 struct Sub {
@@ -60,9 +64,10 @@ pub struct ZenohBus {
     prefix: String,
     bus: Arc<Mutex<Bus>>,
     subs: Mutex<BTreeMap<String, Sub>>,
-    key_of: Mutex<BTreeMap<BindId, String>>,
+    /// The key expression each binding subscribed (its subscription delivers to it alone).
+    key_of: Arc<Mutex<BTreeMap<BindId, String>>>,
     /// Counters.
-    pub counters: Arc<IvyCounters>,
+    pub counters: Arc<ZenohBusCounters>,
 }
 
 impl std::fmt::Debug for ZenohBus {
@@ -79,8 +84,8 @@ impl ZenohBus {
             prefix: prefix.into(),
             bus: Arc::new(Mutex::new(Bus::default())),
             subs: Mutex::new(BTreeMap::new()),
-            key_of: Mutex::new(BTreeMap::new()),
-            counters: Arc::new(IvyCounters::default()),
+            key_of: Arc::default(),
+            counters: Arc::new(ZenohBusCounters::default()),
         }
     }
 
@@ -145,7 +150,8 @@ impl ZenohBus {
             s.users += 1;
             return Ok(());
         }
-        let (bus, counters) = (self.bus.clone(), self.counters.clone());
+        let (bus, counters, key_of, my_key) =
+            (self.bus.clone(), self.counters.clone(), self.key_of.clone(), key.to_owned());
         let subscriber = self
             .session
             .declare_subscriber(key.to_owned())
@@ -154,12 +160,21 @@ impl ZenohBus {
                 counters.samples_received.fetch_add(1, Ordering::Relaxed);
                 let payload = sample.payload().to_bytes();
                 let Ok(text) = std::str::from_utf8(&payload) else {
-                    tracing::debug!("non-UTF-8 payload on {}", sample.key_expr());
+                    let n = counters.dropped_not_utf8.fetch_add(1, Ordering::Relaxed) + 1;
+                    if n.is_power_of_two() {
+                        tracing::warn!("{n} non-UTF-8 payloads dropped so far (the last on {})", sample.key_expr());
+                    }
                     return;
                 };
-                if let Ok(mut bus) = bus.lock() {
-                    let n = bus.dispatch(sample.key_expr().as_str(), text.trim_end_matches(['\n', '\r']));
-                    counters.delivered.fetch_add(n as u64, Ordering::Relaxed);
+                // Only this subscription's bindings: another subscription whose key expression
+                // overlaps delivers the same sample to its own.
+                let mine: Vec<BindId> =
+                    crate::lock(&key_of).iter().filter(|(_, k)| **k == my_key).map(|(id, _)| *id).collect();
+                let text = text.trim_end_matches(['\n', '\r']);
+                let n = crate::lock(&bus).dispatch_among(sample.key_expr().as_str(), text, |id| mine.contains(&id));
+                counters.delivered.fetch_add(n as u64, Ordering::Relaxed);
+                if n == 0 {
+                    counters.unmatched.fetch_add(1, Ordering::Relaxed);
                 }
             })
             .await

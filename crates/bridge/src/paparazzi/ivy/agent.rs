@@ -449,7 +449,7 @@ impl IvyAgent {
         self.inner.counters.texts_sent.fetch_add(1, Ordering::Relaxed);
         let name = split_header(text).map(|(_, n, _)| n);
         let mut n = 0;
-        let Ok(mut peers) = self.inner.peers.lock() else { return Ok(0) };
+        let mut peers = crate::lock(&self.inner.peers);
         let mut groups: Vec<&str> = Vec::new();
         for p in peers.values_mut() {
             let mut out = Vec::new();
@@ -624,8 +624,8 @@ async fn run_peer(inner: Arc<Inner>, stream: TcpStream, addr: SocketAddr, hello:
     let key = inner.next_peer.fetch_add(1, Ordering::Relaxed);
     {
         // The handshake is queued under the local lock, so no binding made meanwhile is missed.
-        let Ok(local) = inner.local.lock() else { return };
-        let Ok(mut peers) = inner.peers.lock() else { return };
+        let local = crate::lock(&inner.local);
+        let mut peers = crate::lock(&inner.peers);
         if peers.len() >= inner.opts.max_peers {
             inner.drop_one("connection refused: too many peers");
             return;
@@ -823,7 +823,7 @@ fn handle_frame(inner: &Arc<Inner>, key: u64, frame: Frame) -> Option<String> {
 
 /// Hands a Msg for local binding `id` to its handler.
 fn deliver(inner: &Inner, id: u32, args: &[String]) {
-    let Ok(mut local) = inner.local.lock() else { return };
+    let mut local = crate::lock(&inner.local);
     let Local { bus, wire, .. } = &mut *local;
     match wire.get_mut(&id) {
         None => inner.drop_one("msg for a regex id not bound (late after unbind, or bogus)"),

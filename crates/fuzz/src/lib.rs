@@ -1,0 +1,231 @@
+//! Fuzz targets: every path by which bytes from outside reach Twinswarm.
+//!
+//! Each target is a function from bytes to nothing that must not panic, abort or allocate
+//! without bound, whatever the bytes. The same functions run three ways:
+//! - `cargo test -p twinswarm-fuzz` replays every file under `corpus/<target>/` (seeds and
+//!   everything a long run kept) and `regressions/<target>/` (each crash found, minimised):
+//!   CI's smoke pass;
+//! - `scripts/fuzz.sh` builds `src/bin/afl.rs` with AFL++'s instrumentation and runs
+//!   `afl-fuzz` on each target for a given number of executions;
+//! - a crash file found by AFL++ replays with `cargo run -p twinswarm-fuzz --features afl
+//!   --bin twinswarm-afl -- TARGET < FILE` or by copying it into `regressions/`.
+//!
+//! Errors are the expected outcome for most inputs: a target only insists that bad input
+//! gives an error value, never a panic.
+
+use std::path::PathBuf;
+use std::sync::OnceLock;
+
+use bridge::paparazzi::ivy::frame::{Frame, Hello, Line, LineSplitter};
+use bridge::{Bus, ConfXml, MessageSet, Pairing, Telemetry};
+use sim_core::World;
+use sim_core::scene::{self, CopterSpec};
+
+/// A fuzz target: its name (the corpus folder) and its function.
+pub type Target = (&'static str, fn(&[u8]));
+
+/// Every target, by name.
+pub const TARGETS: &[Target] = &[
+    ("scene", scene),
+    ("messages_xml", messages_xml),
+    ("conf_xml", conf_xml),
+    ("pairing_xml", pairing_xml),
+    ("telemetry_xml", telemetry_xml),
+    ("ivy_text", ivy_text),
+    ("ivy_wire", ivy_wire),
+    ("zenoh_json", zenoh_json),
+    ("mcap", mcap),
+    ("plot", plot),
+];
+
+/// The target called `name`.
+pub fn target(name: &str) -> Option<fn(&[u8])> {
+    TARGETS.iter().find(|(n, _)| *n == name).map(|(_, f)| *f)
+}
+
+fn text(data: &[u8]) -> Option<&str> {
+    std::str::from_utf8(data).ok()
+}
+
+/// Copters above this many are compiled but not stepped: a scene may legitimately ask for
+/// thousands, and stepping them is the benchmarks' business, not the parser's.
+const MAX_STEPPED_COPTERS: usize = 16;
+
+/// A scene TOML: parsed, checked, compiled; if it has few copters, two control steps flown
+/// (the core must not panic on any scene that compiled).
+pub fn scene(data: &[u8]) {
+    let Some(text) = text(data) else { return };
+    let Ok((_, world)) = scene::load("fuzz.toml", text) else { return };
+    if world.copters.len() <= MAX_STEPPED_COPTERS {
+        let mut state = world.initial_state();
+        let inputs = world.initial_inputs();
+        for _ in 0..2 {
+            sim_core::step(&world, &mut state, &inputs);
+        }
+    }
+}
+
+/// A messages.xml; then, for every message it defines, a text of zeros decoded with it.
+pub fn messages_xml(data: &[u8]) {
+    let Some(text) = text(data) else { return };
+    let Ok(set) = MessageSet::parse(text, "fuzz/messages.xml") else { return };
+    for def in set.iter() {
+        let zeros = vec!["0"; def.fields.len().min(256)].join(" ");
+        let _ = set.decode(&format!("1 {} {zeros}", def.name));
+    }
+}
+
+/// A conf.xml.
+pub fn conf_xml(data: &[u8]) {
+    if let Some(text) = text(data) {
+        let _ = ConfXml::parse(text, "fuzz/conf.xml");
+    }
+}
+
+/// A pairing file.
+pub fn pairing_xml(data: &[u8]) {
+    if let Some(text) = text(data) {
+        let _ = Pairing::parse(text, "fuzz/pairing.xml");
+    }
+}
+
+/// A telemetry.xml, then the telemetry plan of its first process and mode.
+pub fn telemetry_xml(data: &[u8]) {
+    let Some(text) = text(data) else { return };
+    if let Ok(t) = Telemetry::parse(text, "fuzz/telemetry.xml") {
+        let _ = bridge::mixed::TelemetryPlan::from_telemetry(&t, None, None);
+    }
+}
+
+fn project_messages() -> &'static MessageSet {
+    static SET: OnceLock<MessageSet> = OnceLock::new();
+    SET.get_or_init(bridge::paparazzi::convert::project_messages)
+}
+
+/// Ivy texts as they arrive on the bus: the first line is a regex a peer binds (as an Ivy
+/// `AddRegexp` would), the rest are texts decoded with the project's messages.xml, turned
+/// into what the twins use, and dispatched on a bus with that binding and the gateway's.
+pub fn ivy_text(data: &[u8]) {
+    let Some(text) = text(data) else { return };
+    let mut lines = text.split('\n');
+    let mut bus = Bus::new();
+    let _ = bus.bind(lines.next().unwrap_or(""), |_, _| {});
+    let _ = bus.bind(r"^(\S+) (ATTITUDE|ROTORCRAFT_FP|SONAR_ARRAY|ROTORCRAFT_STATUS) (.*)$", |_, _| {});
+    let set = project_messages();
+    for line in lines {
+        if let Ok(msg) = set.decode(line) {
+            let _ = bridge::paparazzi::convert::twin_command(&msg);
+            let _ = bridge::paparazzi::convert::real_sonar(&msg);
+            let _ = bridge::paparazzi::convert::real_yaw(&msg);
+            let _ = bridge::paparazzi::convert::virtual_sonar_readings(&msg);
+        }
+        bus.dispatch("fuzz", line);
+    }
+}
+
+/// The Ivy wire protocol: the first line as a UDP hello, then the whole input as a TCP
+/// stream, split into lines, each parsed; a parsed frame must encode back to a line that
+/// parses to the same frame.
+pub fn ivy_wire(data: &[u8]) {
+    let first = data.split(|&b| b == b'\n').next().unwrap_or(data);
+    if let Ok(hello) = Hello::parse(first) {
+        assert_eq!(Hello::parse(&hello.encode()).as_ref(), Ok(&hello), "hello round trip");
+    }
+    let mut splitter = LineSplitter::default();
+    // In two reads, as TCP may cut it anywhere.
+    let cut = data.len() / 2;
+    for part in [&data[..cut], &data[cut..]] {
+        splitter.push(part, |line| {
+            if let Line::Complete(bytes) = line
+                && let Ok(frame) = Frame::parse(bytes)
+            {
+                // A received `Msg` group may hold `\x02`; such a group cannot be sent on
+                // (`encode_msg` refuses it), so only sendable frames must round-trip.
+                let sendable = match &frame {
+                    Frame::Msg { id, args } => {
+                        let refs: Vec<&str> = args.iter().map(String::as_str).collect();
+                        bridge::paparazzi::ivy::frame::encode_msg(*id, &refs, &mut Vec::new()).is_ok()
+                    }
+                    _ => true,
+                };
+                if sendable {
+                    let mut out = Vec::new();
+                    frame.encode(&mut out);
+                    let again = out.strip_suffix(b"\n").unwrap_or(&out);
+                    assert_eq!(Frame::parse(again).as_ref(), Ok(&frame), "frame round trip of {bytes:?}");
+                }
+            }
+        });
+    }
+}
+
+fn lab() -> &'static World {
+    static LAB: OnceLock<World> = OnceLock::new();
+    LAB.get_or_init(|| scene::load_default().1)
+}
+
+/// A JSON payload from Zenoh; the first byte says which key it came on: `cmd` (0), `tracking`
+/// (1) or `spawn` (2, a copter table added to the lab).
+pub fn zenoh_json(data: &[u8]) {
+    let Some((&which, payload)) = data.split_first() else { return };
+    let world = lab();
+    match which % 3 {
+        0 => {
+            if let Ok(cmd) = bridge::wire::CommandMsg::parse(payload, world) {
+                let mut c = world.copters[0].initial_command.clone();
+                cmd.apply(&mut c);
+            }
+        }
+        1 => {
+            let _ = bridge::wire::TrackingMsg::parse(payload);
+        }
+        _ => {
+            let Ok(spec) = serde_json::from_slice::<CopterSpec>(payload) else { return };
+            let mut state = world.initial_state();
+            if let Ok(w) = world.with_spawned(&state, &spec) {
+                state.add_copters(&w);
+                let inputs = w.initial_inputs();
+                sim_core::step(&w, &mut state, &inputs);
+            }
+        }
+    }
+}
+
+/// A scratch file for the file-reading targets, one per process and target.
+fn scratch(tag: &str) -> PathBuf {
+    let dir = if std::path::Path::new("/dev/shm").is_dir() { PathBuf::from("/dev/shm") } else { std::env::temp_dir() };
+    dir.join(format!("twinswarm-fuzz-{}-{tag}", std::process::id()))
+}
+
+/// An MCAP log: opened, summarised, every message read, then `log recover` on it and the
+/// recovered file opened again.
+pub fn mcap(data: &[u8]) {
+    let (path, fixed) = (scratch("in.mcap"), scratch("fixed.mcap"));
+    if std::fs::write(&path, data).is_err() {
+        return;
+    }
+    if let Ok(file) = bridge::log::LogFile::open(&path)
+        && let Ok(info) = file.info()
+    {
+        let topics: Vec<&str> = info.channels.iter().map(|c| c.topic.as_str()).collect();
+        let _ = file.for_each_message(&topics, |_, _, _| Ok(()));
+        let _ = file.messages::<serde_json::Value>("/copters/state");
+    }
+    if bridge::log::recover(&path, &fixed).is_ok()
+        && let Ok(file) = bridge::log::LogFile::open(&fixed)
+    {
+        let _ = file.info();
+    }
+    let _ = std::fs::remove_file(&path);
+    let _ = std::fs::remove_file(&fixed);
+}
+
+/// `twinswarm plot` on a log: every plot drawn into memory.
+pub fn plot(data: &[u8]) {
+    let path = scratch("plot.mcap");
+    if std::fs::write(&path, data).is_err() {
+        return;
+    }
+    let _ = twinswarm::plot::draw_all_in_memory(&path);
+    let _ = std::fs::remove_file(&path);
+}
