@@ -51,7 +51,7 @@ seeds_of() {
     conf_xml) echo assets/paparazzi/conf.xml ;;
     pairing_xml) ls assets/pairing/*.xml ;;
     telemetry_xml) echo assets/paparazzi/telemetry.xml ;;
-    plot) ls crates/fuzz/corpus/mcap/* ;;
+    plot) ls crates/fuzz/corpus/mcap/* crates/fuzz/regressions/mcap/* ;;
   esac
   find "crates/fuzz/corpus/$1" "crates/fuzz/regressions/$1" -type f -size +0 2>/dev/null || true
 }
@@ -90,10 +90,14 @@ for t in "${targets[@]}"; do
     AFL_PATH=/usr/lib/afl afl-cmin -i "$out/default/queue" -o "$work/cmin/$t" -t 2000 -m none -- "$bin" "$t" \
       >"$work/$t.cmin.log" 2>&1 || true
     # At most 100 files of under 8 KiB each: the smoke pass replays them in CI.
-    find "$work/cmin/$t" -type f -size -8k -printf '%s %p\n' 2>/dev/null | sort -n | head -100 |
-      while read -r _ f; do
-        cp "$f" "crates/fuzz/corpus/$t/$(sha1sum "$f" | cut -c1-16)"
-      done
+    # (`head` closes the pipe early: no pipefail here.)
+    (
+      set +o pipefail
+      find "$work/cmin/$t" -type f -size -8k -printf '%s %p\n' 2>/dev/null | sort -n | head -100 |
+        while read -r _ f; do
+          cp "$f" "crates/fuzz/corpus/$t/$(sha1sum "$f" | cut -c1-16)"
+        done
+    )
   fi
 done
 echo

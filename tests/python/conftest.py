@@ -1,4 +1,7 @@
-"""Shared fixtures: the twinswarm binary and free loopback ports."""
+"""Shared fixtures and helpers: the twinswarm binary, free loopback ports, loopback-only Zenoh
+client sessions, and the shared data directory (a loud skip, or a failure under CI=true, when
+it is absent)."""
+import json
 import os
 import pathlib
 import socket
@@ -6,6 +9,9 @@ import socket
 import pytest
 
 ROOT = pathlib.Path(__file__).resolve().parents[2]
+
+# Tests skipped for want of shared data in this session: (test, path), reported at the end.
+_SHARED_DATA_SKIPS = []
 
 
 @pytest.fixture(scope="session")
@@ -16,8 +22,76 @@ def twinswarm_bin() -> pathlib.Path:
     return path
 
 
-@pytest.fixture
-def free_port() -> int:
+def free_tcp_port() -> int:
+    """A TCP port free on 127.0.0.1 right now (the OS picks it)."""
     with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
         s.bind(("127.0.0.1", 0))
         return s.getsockname()[1]
+
+
+def loopback_endpoint() -> str:
+    """A Zenoh endpoint on 127.0.0.1 at a free port, for a simulator to listen on."""
+    return f"tcp/127.0.0.1:{free_tcp_port()}"
+
+
+@pytest.fixture
+def free_port() -> int:
+    return free_tcp_port()
+
+
+def zenoh_client_config(endpoint: str):
+    """A Zenoh configuration for a pure client on loopback: peer mode, listening nowhere,
+    multicast scouting off, connecting only to `endpoint` (which must be on 127.0.0.1)."""
+    import zenoh
+
+    assert endpoint.split("/", 1)[-1].startswith("127.0.0.1:"), f"not a loopback endpoint: {endpoint}"
+    conf = zenoh.Config()
+    conf.insert_json5("mode", '"peer"')
+    conf.insert_json5("scouting/multicast/enabled", "false")
+    conf.insert_json5("listen/endpoints", "[]")
+    conf.insert_json5("connect/endpoints", json.dumps([endpoint]))
+    return conf
+
+
+def under_ci() -> bool:
+    """Whether the tests run under CI (CI=true or CI=1, as CI services set it)."""
+    return os.environ.get("CI", "").lower() in ("true", "1")
+
+
+def shared_data_dir() -> pathlib.Path:
+    """$TWINSWARM_SHARED_DATA if set, else shared/data in the nearest ancestor of the repository
+    that has one (normally the repository's ../shared/data), else that expected path."""
+    if "TWINSWARM_SHARED_DATA" in os.environ:
+        return pathlib.Path(os.environ["TWINSWARM_SHARED_DATA"])
+    for d in ROOT.parents:
+        if (d / "shared" / "data").is_dir():
+            return d / "shared" / "data"
+    return ROOT.parent / "shared" / "data"
+
+
+def shared_data_or_skip(*parts: str) -> pathlib.Path:
+    """The directory `parts` below the shared data directory. When it is absent: under CI=true
+    the test fails, naming the path; otherwise it is skipped loudly (listed at the end of the
+    session) and recorded as a line `test<TAB>path` in the file named by $TWINSWARM_SKIP_LOG,
+    which scripts/test.sh counts."""
+    path = shared_data_dir().joinpath(*parts)
+    if path.is_dir():
+        return path
+    test = os.environ.get("PYTEST_CURRENT_TEST", "?").rsplit(" (", 1)[0]
+    how = "from TWINSWARM_SHARED_DATA" if "TWINSWARM_SHARED_DATA" in os.environ else "TWINSWARM_SHARED_DATA unset"
+    if under_ci():
+        pytest.fail(f"shared data not found at {path} ({how}); CI=true, so this is a failure, not a skip "
+                    "(provide the directory or point TWINSWARM_SHARED_DATA at it)", pytrace=False)
+    _SHARED_DATA_SKIPS.append((test, path))
+    log = os.environ.get("TWINSWARM_SKIP_LOG")
+    if log:
+        with open(log, "a", encoding="utf-8") as f:
+            f.write(f"{test}\t{path}\n")
+    pytest.skip(f"shared data not found at {path} ({how})")
+
+
+def pytest_terminal_summary(terminalreporter):
+    if _SHARED_DATA_SKIPS:
+        terminalreporter.section("shared data absent", sep="=", yellow=True, bold=True)
+        for test, path in _SHARED_DATA_SKIPS:
+            terminalreporter.write_line(f"SKIPPED {test}: shared data not found at {path}", yellow=True)

@@ -9,7 +9,7 @@ import time
 import zenoh
 from mcap.reader import make_reader
 
-from conftest import ROOT
+from conftest import ROOT, zenoh_client_config
 
 
 def test_python_client_flies_a_copter_up(twinswarm_bin, free_port, tmp_path):
@@ -33,11 +33,7 @@ def test_python_client_flies_a_copter_up(twinswarm_bin, free_port, tmp_path):
         assert "climbed from" in client.stdout, client.stdout
         print(client.stdout.strip())
         # A malformed command: rejected, counted, and logged with its source key.
-        conf = zenoh.Config()
-        conf.insert_json5("mode", '"peer"')
-        conf.insert_json5("scouting/multicast/enabled", "false")
-        conf.insert_json5("connect/endpoints", json.dumps([endpoint]))
-        with zenoh.open(conf) as session:
+        with zenoh.open(zenoh_client_config(endpoint)) as session:
             time.sleep(0.5)
             session.put("twinswarm/lab/copters/finken2/cmd", '{"throttle": "full"}')
             time.sleep(0.5)

@@ -17,16 +17,22 @@ from mcap.reader import make_reader
 from referencing import Registry, Resource
 from referencing.jsonschema import DRAFT202012
 
+from conftest import loopback_endpoint, shared_data_or_skip
+
 HERE = Path(__file__).resolve().parent
 REPO = HERE.parents[1]
 BIN = Path(os.environ.get("TWINSWARM_BIN", HERE / "../../target/debug/twinswarm")).resolve()
 SCHEMA_DIR = REPO / "crates" / "bridge" / "schemas"
-FOXGLOVE_DIR = REPO.parent / "shared" / "data" / "foxglove"
 DT_S = 0.05  # the lab's control step
 
 
 def twinswarm(*args, cwd=None, timeout=300):
     return subprocess.run([str(BIN), *map(str, args)], capture_output=True, text=True, cwd=cwd, timeout=timeout)
+
+
+def run_args(*args):
+    """`twinswarm run` with `args`, its Zenoh node on a free loopback port (not the default 7447)."""
+    return ["run", *map(str, args), "--listen", loopback_endpoint()]
 
 
 @pytest.fixture(scope="session", autouse=True)
@@ -38,7 +44,7 @@ def binary():
 @pytest.fixture(scope="module")
 def run_log(tmp_path_factory):
     path = tmp_path_factory.mktemp("run") / "lab.mcap"
-    r = twinswarm("run", "--duration", "10", "--log", path)
+    r = twinswarm(*run_args("--duration", "10", "--log", path))
     assert r.returncode == 0, r.stderr
     assert str(path) in r.stdout, r.stdout
     return path
@@ -151,9 +157,9 @@ def test_payloads_validate_against_file_and_checked_in_schemas(run_log):
     assert len(seen) >= 8, seen
 
 
-def foxglove_registry():
+def foxglove_registry(foxglove_dir):
     resources = []
-    for p in sorted(FOXGLOVE_DIR.glob("*.json")):
+    for p in sorted(foxglove_dir.glob("*.json")):
         contents = json.loads(p.read_text())
         resource = Resource.from_contents(contents, default_specification=DRAFT202012)
         resources += [(p.name, resource), (contents["title"], resource)]
@@ -161,9 +167,8 @@ def foxglove_registry():
 
 
 def test_foxglove_channels_validate_against_the_reference_schemas(run_log):
-    if not FOXGLOVE_DIR.is_dir():
-        pytest.skip(f"reference Foxglove schemas not found at {FOXGLOVE_DIR}: skipping the Foxglove check")
-    registry = foxglove_registry()
+    foxglove_dir = shared_data_or_skip("foxglove")
+    registry = foxglove_registry(foxglove_dir)
     validators = {}
     _, _, _, messages = read_all(run_log)
     checked = defaultdict(int)
@@ -171,7 +176,7 @@ def test_foxglove_channels_validate_against_the_reference_schemas(run_log):
         if not schema.name.startswith("foxglove."):
             continue
         if schema.name not in validators:
-            ref = FOXGLOVE_DIR / (schema.name.removeprefix("foxglove.") + ".json")
+            ref = foxglove_dir / (schema.name.removeprefix("foxglove.") + ".json")
             assert ref.exists(), f"no reference schema for {schema.name}"
             validators[schema.name] = validator(json.loads(ref.read_text()), registry)
         validators[schema.name].validate(json.loads(msg.data))
@@ -189,7 +194,7 @@ def state_ticks(path):
 
 def test_kill_9_loses_at_most_about_a_second(tmp_path):
     broken, fixed = tmp_path / "killed.mcap", tmp_path / "fixed.mcap"
-    proc = subprocess.Popen([str(BIN), "run", "--duration", "600", "--realtime", "--log", str(broken)],
+    proc = subprocess.Popen([str(BIN), *run_args("--duration", "600", "--realtime", "--log", broken)],
                             stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
     started = time.monotonic()
     try:
@@ -214,7 +219,7 @@ def test_kill_9_loses_at_most_about_a_second(tmp_path):
 @pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])
 def test_sigint_and_sigterm_finish_the_file_cleanly(tmp_path, sig):
     path = tmp_path / "stopped.mcap"
-    proc = subprocess.Popen([str(BIN), "run", "--duration", "600", "--realtime", "--log", str(path)],
+    proc = subprocess.Popen([str(BIN), *run_args("--duration", "600", "--realtime", "--log", path)],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
         time.sleep(1.5)
@@ -231,13 +236,13 @@ def test_sigint_and_sigterm_finish_the_file_cleanly(tmp_path, sig):
 
 
 def test_default_log_path_and_no_log(tmp_path):
-    r = twinswarm("run", "--duration", "1", cwd=tmp_path)
+    r = twinswarm(*run_args("--duration", "1"), cwd=tmp_path)
     assert r.returncode == 0, r.stderr
     logs = list((tmp_path / "runs").glob("lab-*.mcap"))
     assert len(logs) == 1, logs
     assert logs[0].name[4:20].endswith("Z") and "T" in logs[0].name, logs[0].name
     assert f"runs/{logs[0].name}" in r.stdout, r.stdout
-    r = twinswarm("run", "--duration", "1", "--no-log", cwd=tmp_path)
+    r = twinswarm(*run_args("--duration", "1", "--no-log"), cwd=tmp_path)
     assert r.returncode == 0 and "off" in r.stdout
     assert len(list((tmp_path / "runs").glob("*.mcap"))) == 1
 

@@ -8,6 +8,8 @@ import time
 import zenoh
 from mcap.reader import make_reader
 
+from conftest import loopback_endpoint, zenoh_client_config
+
 STATE_KEYS = {
     "name", "kind", "ac_id", "tick", "time_s", "mode", "pos_m", "vel_m_s", "attitude_rad",
     "angvel_rad_s", "quat_xyzw", "rotor_thrust_n", "crashed",
@@ -16,12 +18,7 @@ SENSOR_KEYS = {"name", "tick", "time_s", "sonar_m", "sonar_fused_m", "ir_m", "at
 
 
 def session_to(endpoint):
-    conf = zenoh.Config()
-    conf.insert_json5("mode", '"peer"')
-    conf.insert_json5("scouting/multicast/enabled", "false")
-    conf.insert_json5("listen/endpoints", "[]")
-    conf.insert_json5("connect/endpoints", json.dumps([endpoint]))
-    return zenoh.open(conf)
+    return zenoh.open(zenoh_client_config(endpoint))
 
 
 def read_log(path, topic):
@@ -138,7 +135,7 @@ def test_replay_republishes_bus_traffic_under_a_new_prefix(twinswarm_bin, free_p
     bus = read_log(log, "/bus")
     assert any(m["key"] == "twinswarm/lab/copters/finken1/cmd" for m in bus), bus
 
-    replay_ep = f"tcp/127.0.0.1:{free_port + 1 if free_port < 65535 else free_port - 1}"
+    replay_ep = loopback_endpoint()
     replay = subprocess.Popen(
         [str(twinswarm_bin), "replay", str(log), "--speed", "4", "--listen", replay_ep, "--prefix", "again/lab",
          "--wait-for-subscriber", "15"],

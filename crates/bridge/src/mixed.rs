@@ -592,6 +592,8 @@ impl Gateway {
     pub fn send_ivy(&self, out: &[PprzOut]) {
         if let Some(ivy) = &self.ivy {
             for o in out {
+                // The agent counts what it cannot send (its drops); the outbox's texts hold
+                // no newline or separator.
                 let _ = ivy.send(&o.text);
             }
         }

@@ -191,6 +191,8 @@ pub struct LoopStats {
     pub pprz_dropped: u64,
     /// Copters spawned.
     pub spawned: u64,
+    /// Spawn requests the world refused (a bad copter table).
+    pub spawns_failed: u64,
     /// Whether it stopped early (stop request or signal).
     pub stopped_early: bool,
     /// Twins by name.
@@ -287,6 +289,12 @@ pub fn run_loop(
                 }
                 Ok(Request::Spawn { spec, reply }) => {
                     let answer = spawn(&mut world, &mut state, &mut inputs, &spec, observer, &mut stats);
+                    if let Err(e) = &answer {
+                        stats.spawns_failed += 1;
+                        tracing::warn!("spawn of {:?} refused: {e}", spec.name);
+                    }
+                    // The requester may have given up (it waits 5 s); the spawn stands and is
+                    // logged either way.
                     let _ = reply.send(answer.map(|_| spec.name.clone()));
                 }
                 Ok(Request::Tracking { copter, pos_m, origin }) => {

@@ -119,6 +119,10 @@ pub struct SyncStats {
     pub last_confidence: f64,
     /// Learnt pitch and roll trim at the end, deg.
     pub trim_deg: [f64; 2],
+    /// MEDUSA predictions and corrections that failed (bad input); the first is logged.
+    pub medusa_errors: u64,
+    /// Sonar telemetry replaced by newer readings before a step could use it.
+    pub sonar_superseded: u64,
     /// Why MEDUSA is off for this twin although synchronisation asks for it: its filter could
     /// not be built.
     #[serde(skip_serializing_if = "Option::is_none")]
@@ -342,7 +346,11 @@ impl TwinSync {
             let v = f64::from(v);
             (v.is_finite() && v > 0.0 && v < cap - 1e-3).then_some(v)
         });
-        self.tracker(world, state, id).pending_sonar = Some(r);
+        let tr = self.tracker(world, state, id);
+        if tr.pending_sonar.replace(r).is_some() {
+            // Two readings between steps (jitter): the newer wins, counted.
+            tr.stats.sonar_superseded += 1;
+        }
     }
 
     /// An external tracking pose (x, y), m, received at `t_s`; it shows the real copter
@@ -389,10 +397,14 @@ impl TwinSync {
                 let cmd = &inputs.commands[id];
                 let input = MotionInput::from_attitude(f64::from(cmd.pitch_rad), f64::from(cmd.roll_rad));
                 let yaw_est = YawEstimate::new(yaw, opts.yaw_sigma_rad);
-                let _ = f.predict(dt, &input, yaw_est);
-                if let Some(readings) = tr.pending_sonar.take()
-                    && let Ok(est) = f.correct(yaw_est, &readings)
-                {
+                if let Err(e) = f.predict(dt, &input, yaw_est) {
+                    medusa_error(&mut tr.stats, &world.copters[id].name, &e);
+                }
+                let corrected = tr.pending_sonar.take().map(|readings| f.correct(yaw_est, &readings));
+                if let Some(Err(e)) = &corrected {
+                    medusa_error(&mut tr.stats, &world.copters[id].name, e);
+                }
+                if let Some(Ok(est)) = corrected {
                     tr.stats.medusa_updates += 1;
                     tr.stats.last_confidence = est.confidence;
                     let then = past_position(&tr.history, t - opts.medusa_latency_s);
@@ -471,6 +483,14 @@ impl TwinSync {
 }
 
 /// Where the twin was at `t_s`, interpolated from its history (`None` if too old or empty).
+/// Counts a MEDUSA error of a twin, logging the first.
+fn medusa_error(stats: &mut SyncStats, name: &str, e: &impl std::fmt::Display) {
+    stats.medusa_errors += 1;
+    if stats.medusa_errors == 1 {
+        tracing::warn!("twin {name}: a MEDUSA update failed ({e}); further failures are only counted");
+    }
+}
+
 fn past_position(history: &VecDeque<(f64, Vector2<f64>)>, t_s: f64) -> Option<Vector2<f64>> {
     let (first, last) = (history.front()?, history.back()?);
     if t_s >= last.0 {

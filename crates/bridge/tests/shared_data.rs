@@ -1,5 +1,12 @@
 //! Interoperability tests against the real Paparazzi / pprzlink files in
-//! `shared/data` (skipped, saying so, when that directory is absent).
+//! `shared/data`: the repository's `../shared/data`, or the directory named by
+//! `TWINSWARM_SHARED_DATA`.
+//!
+//! When that directory is absent, each test skips loudly (a `SKIPPED` line on stderr, shown
+//! even when output is captured, and a line in the file named by `TWINSWARM_SKIP_LOG`, which
+//! `scripts/test.sh` counts), and under `CI=true` it fails instead, naming the path. To see
+//! both: `TWINSWARM_SHARED_DATA=/nonexistent cargo test -p bridge --test shared_data`, with
+//! and without `CI=true`.
 
 mod common;
 

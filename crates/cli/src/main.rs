@@ -272,14 +272,19 @@ fn main() -> ExitCode {
         Ok(cli) => cli,
         Err(e) => {
             let code = if e.use_stderr() { 2 } else { 0 };
+            // Printing fails only on a closed stdout or stderr: the exit code still tells.
             let _ = e.print();
             return ExitCode::from(code);
         }
     };
-    tracing_subscriber::fmt()
-        .with_env_filter(tracing_subscriber::EnvFilter::try_from_env("TWINSWARM_LOG").unwrap_or_else(|_| "warn".into()))
-        .with_writer(std::io::stderr)
-        .init();
+    let filter = match std::env::var("TWINSWARM_LOG") {
+        Err(_) => tracing_subscriber::EnvFilter::new("warn"),
+        Ok(v) => tracing_subscriber::EnvFilter::try_new(&v).unwrap_or_else(|e| {
+            eprintln!("twinswarm: TWINSWARM_LOG={v:?} is not a log filter ({e}); using \"warn\"");
+            tracing_subscriber::EnvFilter::new("warn")
+        }),
+    };
+    tracing_subscriber::fmt().with_env_filter(filter).with_writer(std::io::stderr).init();
     // No subcommand: `run` with its defaults (parsed, so every default is clap's).
     let command = match cli.command {
         Some(c) => c,
@@ -514,11 +519,13 @@ fn run(args: RunArgs) -> anyhow::Result<()> {
                     b.published,
                     b.clients_seen
                 );
-                if b.tracking_rejected + b.requests_dropped > 0 {
+                if b.tracking_rejected + b.requests_dropped + b.spawns_rejected + b.publish_failed > 0 {
                     outln!(
-                        "    {} tracking poses rejected; {} inputs dropped (step loop's queue full)",
+                        "    {} tracking poses rejected, {} spawn requests refused; {} inputs dropped (step loop's queue full); {} frames not fully published",
                         b.tracking_rejected,
-                        b.requests_dropped
+                        b.spawns_rejected,
+                        b.requests_dropped,
+                        b.publish_failed
                     );
                 }
             }
@@ -563,14 +570,25 @@ fn run(args: RunArgs) -> anyhow::Result<()> {
                 );
             }
             let t = &b.telemetry;
-            if !t.unknown_dropped.is_empty() || t.own_virtual_dropped > 0 || t.decode_errors > 0 || t.rejected > 0 {
+            if !t.unknown_dropped.is_empty()
+                || t.own_virtual_dropped > 0
+                || t.decode_errors > 0
+                || t.rejected > 0
+                || t.queue_full > 0
+            {
                 outln!(
-                    "    dropped: unknown aircraft {:?}, as our virtual aircraft {}, undecodable {}, out of range {}",
+                    "    not used (logged): unknown aircraft {:?}, as our virtual aircraft {}, undecodable {}, out of range {}; dropped (queue full) {}",
                     t.unknown_dropped,
                     t.own_virtual_dropped,
                     t.decode_errors,
-                    t.rejected
+                    t.rejected,
+                    t.queue_full
                 );
+            }
+            if let Some([_, _, unmatched, not_utf8]) = b.zenoh_texts
+                && unmatched + not_utf8 > 0
+            {
+                outln!("    zenoh: {unmatched} texts matched no binding, {not_utf8} payloads not UTF-8 (dropped)");
             }
         }
         for (name, s) in &outcome.stats.sync {
@@ -582,6 +600,16 @@ fn run(args: RunArgs) -> anyhow::Result<()> {
                 s.corrected_m,
                 s.corrected_steps
             );
+            if let Some(why) = &s.medusa_off {
+                outln!("    MEDUSA off for {name}: {why}");
+            }
+            if s.medusa_errors + s.sonar_superseded > 0 {
+                outln!(
+                    "    {} MEDUSA updates failed, {} sonar readings superseded before use",
+                    s.medusa_errors,
+                    s.sonar_superseded
+                );
+            }
         }
         for (name, t) in &outcome.stats.twins {
             outln!(
@@ -593,6 +621,18 @@ fn run(args: RunArgs) -> anyhow::Result<()> {
                 t.attitude_rms_deg[0],
                 t.attitude_rms_deg[1],
                 t.attitude_samples
+            );
+        }
+        let st = &outcome.stats;
+        if st.inputs_rejected + st.inputs_ignored + st.inputs_after_end + st.frames_dropped + st.spawns_failed > 0 {
+            outln!(
+                "  inputs: {} rejected, {} logged but not used (not ours), {} after the last step; {} spawns refused; {} frames not published ({} Paparazzi texts not sent)",
+                st.inputs_rejected,
+                st.inputs_ignored,
+                st.inputs_after_end,
+                st.spawns_failed,
+                st.frames_dropped,
+                st.pprz_dropped
             );
         }
         if !outcome.stats.failsafe.is_empty() {

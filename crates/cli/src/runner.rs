@@ -87,9 +87,15 @@ pub struct BusReport {
     /// Commands rejected because another client controls the copter.
     pub commands_not_controller: u64,
     pub tracking_rejected: u64,
+    pub spawns_rejected: u64,
+    /// Frames whose publishing failed part-way.
+    pub publish_failed: u64,
     /// Inputs dropped because the step loop's queue was full.
     pub requests_dropped: u64,
     pub telemetry: GatewayReport,
+    /// Paparazzi texts on Zenoh: samples received, handler calls, texts no binding matched,
+    /// payloads dropped for not being UTF-8.
+    pub zenoh_texts: Option<[u64; 4]>,
     pub ivy: Option<IvyReport>,
 }
 
@@ -245,7 +251,10 @@ pub fn run(
                 if let Some(node) = &mut node
                     && let Err(e) = node.publish(&frame).await
                 {
-                    tracing::warn!("publish failed: {e}");
+                    let n = node.counters.publish_failed.fetch_add(1, Ordering::Relaxed) + 1;
+                    if n.is_power_of_two() {
+                        tracing::warn!("{n} frames not fully published so far: {e}");
+                    }
                 }
             }
         });
@@ -262,8 +271,14 @@ pub fn run(
         clients_seen: counters.as_ref().map_or(0, |c| l(&c.clients_seen)),
         commands_not_controller: counters.as_ref().map_or(0, |c| l(&c.commands_not_controller)),
         tracking_rejected: counters.as_ref().map_or(0, |c| l(&c.tracking_rejected)),
+        spawns_rejected: counters.as_ref().map_or(0, |c| l(&c.spawns_rejected)),
+        publish_failed: counters.as_ref().map_or(0, |c| l(&c.publish_failed)),
         requests_dropped: counters.as_ref().map_or(0, |c| l(&c.requests_dropped)),
         telemetry: gateway.report(),
+        zenoh_texts: gateway.zenoh_bus().map(|z| {
+            let c = &z.counters;
+            [l(&c.samples_received), l(&c.delivered), l(&c.unmatched), l(&c.dropped_not_utf8)]
+        }),
         ivy: ivy.as_ref().zip(bus.ivy.as_ref()).map(|(a, addr)| IvyReport::of(a, &addr.to_string(), &gateway)),
     };
     drop(gateway);

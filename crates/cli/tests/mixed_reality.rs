@@ -21,7 +21,10 @@ fn assets() -> PathBuf {
 }
 
 fn free_port() -> u16 {
-    std::net::TcpListener::bind("127.0.0.1:0").and_then(|l| l.local_addr()).map(|a| a.port()).unwrap_or(17511)
+    std::net::TcpListener::bind("127.0.0.1:0")
+        .and_then(|l| l.local_addr())
+        .map(|a| a.port())
+        .expect("a free loopback port")
 }
 
 /// The ghost box of `assets/scenes/mixed_lab.toml`: centre x 0.6, 0.3 m deep, y in ±1.0.
@@ -203,7 +206,10 @@ fn a_stand_in_turns_away_from_a_virtual_box_and_its_twin_follows_it() {
 }
 
 fn free_udp_port() -> u16 {
-    std::net::UdpSocket::bind("127.0.0.1:0").and_then(|s| s.local_addr()).map(|a| a.port()).unwrap_or(23511)
+    std::net::UdpSocket::bind("127.0.0.1:0")
+        .and_then(|s| s.local_addr())
+        .map(|a| a.port())
+        .expect("a free loopback UDP port")
 }
 
 /// The same loop with no Zenoh at all: the simulator and the stand-in are two agents on one

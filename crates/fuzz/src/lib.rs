@@ -197,8 +197,8 @@ fn scratch(tag: &str) -> PathBuf {
     dir.join(format!("twinswarm-fuzz-{}-{tag}", std::process::id()))
 }
 
-/// An MCAP log: opened, summarised, every message read, then `log recover` on it and the
-/// recovered file opened again.
+/// An MCAP log: opened, summarised, every message and attachment read, then `log recover` on
+/// it and the recovered file opened again.
 pub fn mcap(data: &[u8]) {
     let (path, fixed) = (scratch("in.mcap"), scratch("fixed.mcap"));
     if std::fs::write(&path, data).is_err() {
@@ -210,6 +210,9 @@ pub fn mcap(data: &[u8]) {
         let topics: Vec<&str> = info.channels.iter().map(|c| c.topic.as_str()).collect();
         let _ = file.for_each_message(&topics, |_, _, _| Ok(()));
         let _ = file.messages::<serde_json::Value>("/copters/state");
+        for (name, _, _) in &info.attachments {
+            let _ = file.attachment(name);
+        }
     }
     if bridge::log::recover(&path, &fixed).is_ok()
         && let Ok(file) = bridge::log::LogFile::open(&fixed)

@@ -20,7 +20,9 @@ fn assets(target: &str) -> Vec<PathBuf> {
         "conf_xml" => vec![a.join("paparazzi/conf.xml")],
         "pairing_xml" => vec![a.join("pairing/finken_lab.xml"), a.join("pairing/mixed_lab.xml")],
         "telemetry_xml" => vec![a.join("paparazzi/telemetry.xml")],
-        "plot" => files(&root().join("corpus/mcap")),
+        "plot" => {
+            files(&root().join("corpus/mcap")).into_iter().chain(files(&root().join("regressions/mcap"))).collect()
+        }
         _ => Vec::new(),
     }
 }

@@ -187,9 +187,11 @@ fn step_on(world: &World, state: &mut State, inputs: &Inputs, parallel: bool) ->
         }
         if any_near {
             state.physics.step_with_events(&(), &scratch.collisions);
-            if let Ok(mut started) = scratch.collisions.started.lock() {
-                std::mem::swap(&mut *started, &mut scratch.started);
-            }
+            // Poisoned only if Rapier's event collector panicked; its events are still good,
+            // and losing them would lose crash detection.
+            let mut started = scratch.collisions.started.lock().unwrap_or_else(std::sync::PoisonError::into_inner);
+            std::mem::swap(&mut *started, &mut scratch.started);
+            drop(started);
             for (lane, c) in scratch.lanes.iter_mut().zip(&state.copters) {
                 if !lane.free {
                     let body = &state.physics.bodies[c.body];

@@ -158,6 +158,7 @@ fn walk_records(data: &[u8], cut_ok: bool) -> Result<Walk, (u64, String)> {
     const CHUNK: u8 = 0x06;
     const FOOTER: u8 = 0x02;
     const DATA_END: u8 = 0x0F;
+    const ATTACHMENT: u8 = 0x09;
     let mut walk = Walk::default();
     let mut pos = mcap::MAGIC.len();
     while pos < data.len() {
@@ -180,10 +181,15 @@ fn walk_records(data: &[u8], cut_ok: bool) -> Result<Walk, (u64, String)> {
         let u64_at = |i: usize| body.get(i..i + 8).map(|b| u64::from_le_bytes(b.try_into().unwrap_or_default()));
         match opcode {
             CHUNK => match u64_at(16) {
-                Some(u) if u <= MAX_CHUNK_BYTES => {}
+                Some(u) if u <= MAX_CHUNK_BYTES => {
+                    check_uncompressed_chunk(body).map_err(|what| (pos as u64, what))?;
+                }
                 Some(u) => return Err((pos as u64, format!("a chunk says it unpacks to {u} bytes"))),
                 None => return Err((pos as u64, "a chunk record is too short".into())),
             },
+            ATTACHMENT if !attachment_fits(body) => {
+                return Err((pos as u64, "an attachment record is shorter than its header says".into()));
+            }
             DATA_END => walk.data_end = u32_at(0).map(|crc| (pos, crc)),
             FOOTER => walk.footer = Some(pos),
             _ => {}
@@ -195,6 +201,89 @@ fn walk_records(data: &[u8], cut_ok: bool) -> Result<Walk, (u64, String)> {
     }
     walk.end = pos;
     Ok(walk)
+}
+
+/// A chunk stored without compression: its records must fit in it. The `mcap` crate
+/// subtracts each inner record's length from what is left of the chunk without checking
+/// (an overflow, found by fuzzing); zstd chunks are checked by the decompressing reader.
+fn check_uncompressed_chunk(body: &[u8]) -> Result<(), String> {
+    let u32_at = |i: usize| body.get(i..i + 4).map(|b| u32::from_le_bytes([b[0], b[1], b[2], b[3]]) as usize);
+    let u64_at = |i: usize| body.get(i..i + 8).and_then(|b| b.try_into().ok()).map(u64::from_le_bytes);
+    // start, end, uncompressed size (8 each), uncompressed CRC (4), compression (string).
+    let Some(name_len) = u32_at(28) else { return Err("a chunk record is too short".into()) };
+    let Some(compression) = body.get(32..32 + name_len) else { return Err("a chunk's compression name is cut".into()) };
+    let records_at = 32 + name_len + 8;
+    let Some(compressed) = u64_at(32 + name_len) else { return Err("a chunk record is too short".into()) };
+    if !compression.is_empty() {
+        return Ok(());
+    }
+    let Some(records) = usize::try_from(compressed).ok().and_then(|n| body.get(records_at..records_at.checked_add(n)?))
+    else {
+        return Err(format!("a chunk says it holds {compressed} bytes of records, more than the record has"));
+    };
+    let mut at = 0;
+    while at < records.len() {
+        let len = records.get(at + 1..at + 9).and_then(|b| b.try_into().ok()).map(u64::from_le_bytes);
+        match len.and_then(|l| usize::try_from(l).ok()).and_then(|l| (at + 9).checked_add(l)) {
+            Some(end) if end <= records.len() => at = end,
+            _ => return Err(format!("a record inside a chunk, at byte {at} of its records, overruns the chunk")),
+        }
+    }
+    Ok(())
+}
+
+/// Whether an attachment record's body holds what its header says: the `mcap` crate slices
+/// it without checking, and panics on a short one (found by fuzzing).
+fn attachment_fits(body: &[u8]) -> bool {
+    let str_end = |at: usize| -> Option<usize> {
+        let n = body.get(at..at + 4).map(|b| u32::from_le_bytes([b[0], b[1], b[2], b[3]]) as usize)?;
+        (at + 4).checked_add(n)
+    };
+    // log time, create time (8 each), name, media type, data length (8), data, CRC (4).
+    let header_len = str_end(16).and_then(str_end).map(|at| at + 8);
+    header_len.is_some_and(|h| h + 4 <= body.len())
+}
+
+/// The records of an MCAP file's data section, chunks flattened, with every record and chunk
+/// length capped at [`MAX_CHUNK_BYTES`].
+///
+/// The `mcap` crate's `ChunkFlattener` and `MessageStream` set no length limit on the records
+/// inside a chunk, so a crafted inner length makes them allocate whatever it says (found by
+/// fuzzing `log recover` and `plot`). This drives the crate's sans-I/O reader the way they
+/// do, with the limit its own `LinearReader` uses.
+fn bounded_records(
+    data: &[u8],
+    ignore_end_magic: bool,
+) -> impl Iterator<Item = Result<Record<'static>, McapError>> + '_ {
+    use mcap::sans_io::linear_reader::{LinearReadEvent, LinearReader, LinearReaderOptions};
+    let limit = usize::try_from(MAX_CHUNK_BYTES).unwrap_or(usize::MAX).min(data.len().max(1 << 20));
+    let mut reader = LinearReader::new_with_options(
+        LinearReaderOptions::default()
+            .with_record_length_limit(limit)
+            .with_skip_end_magic(ignore_end_magic)
+            .with_validate_chunk_crcs(true),
+    );
+    let mut rest = data;
+    std::iter::from_fn(move || {
+        while let Some(event) = reader.next_event() {
+            match event {
+                Ok(LinearReadEvent::ReadRequest(need)) => {
+                    let len = need.min(rest.len());
+                    reader.insert(len).copy_from_slice(&rest[..len]);
+                    reader.notify_read(len);
+                    rest = &rest[len..];
+                }
+                Ok(LinearReadEvent::Record { data, opcode }) => {
+                    if opcode == 0x09 && !attachment_fits(data) {
+                        return Some(Err(McapError::UnexpectedEoc));
+                    }
+                    return Some(mcap::parse_record(opcode, data).map(|r| r.into_owned()));
+                }
+                Err(e) => return Some(Err(e)),
+            }
+        }
+        None
+    })
 }
 
 /// Checks the data-section CRC (in DataEnd) and the summary CRC (in the footer) where the
@@ -301,6 +390,21 @@ impl LogFile {
         let corrupt = |source| LogReadError::Corrupt { path: self.path.clone(), source };
         for idx in &self.summary.attachment_indexes {
             if idx.name == name {
+                // The index may point anywhere: check the record there before the crate
+                // slices it.
+                let at = usize::try_from(idx.offset).unwrap_or(usize::MAX);
+                let head = self.data.get(at..at.saturating_add(9));
+                let body = head.and_then(|h| {
+                    let len = usize::try_from(u64::from_le_bytes(h[1..9].try_into().ok()?)).ok()?;
+                    (h[0] == 0x09).then(|| self.data.get(at + 9..(at + 9).checked_add(len)?)).flatten()
+                });
+                if !body.is_some_and(attachment_fits) {
+                    return Err(LogReadError::Damaged {
+                        path: self.path.clone(),
+                        offset: idx.offset,
+                        what: format!("the summary's index of attachment {name:?} points at no attachment"),
+                    });
+                }
                 return Ok(Some(mcap::read::attachment(&self.data, idx).map_err(corrupt)?.data.into_owned()));
             }
         }
@@ -315,12 +419,19 @@ impl LogFile {
         mut f: impl FnMut(&str, u64, &[u8]) -> Result<(), LogReadError>,
     ) -> Result<(), LogReadError> {
         let corrupt = |source| LogReadError::Corrupt { path: self.path.clone(), source };
-        let stream = mcap::MessageStream::new_with_options(&self.data, mcap::read::Options::ValidateChunkCrcs.into())
-            .map_err(corrupt)?;
-        for m in stream {
-            let m = m.map_err(corrupt)?;
-            if topics.contains(&m.channel.topic.as_str()) {
-                f(&m.channel.topic, m.log_time, &m.data)?;
+        let mut channels: BTreeMap<u16, String> = BTreeMap::new();
+        for record in bounded_records(&self.data, false) {
+            match record.map_err(corrupt)? {
+                Record::Channel(c) => {
+                    channels.insert(c.id, c.topic);
+                }
+                Record::Message { header, data } => match channels.get(&header.channel_id) {
+                    Some(topic) if topics.contains(&topic.as_str()) => f(topic, header.log_time, &data)?,
+                    Some(_) => {}
+                    None => return Err(corrupt(McapError::UnknownChannel(header.sequence, header.channel_id))),
+                },
+                Record::DataEnd(_) => break,
+                _ => {}
             }
         }
         Ok(())
@@ -401,10 +512,7 @@ pub fn recover(broken: &Path, fixed: &Path) -> Result<RecoverReport, LogReadErro
     let input_bytes = std::fs::metadata(broken).map_or(data.len() as u64, |m| m.len());
     let mut report = RecoverReport { input_bytes, stopped_by: damage, ..RecoverReport::default() };
     let mut topics: BTreeMap<u16, String> = BTreeMap::new();
-    let opts = mcap::read::Options::IgnoreEndMagic | mcap::read::Options::ValidateChunkCrcs;
-    let reader = mcap::read::ChunkFlattener::new_with_options(&data, opts)
-        .map_err(|source| LogReadError::Corrupt { path: broken.to_owned(), source })?;
-    for record in reader {
+    for record in bounded_records(&data, true) {
         let record = match record {
             Ok(r) => r,
             Err(e) => {

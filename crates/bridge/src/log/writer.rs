@@ -231,6 +231,8 @@ impl Logger {
                             encoder.encode_step(&frame, &mut |t, lt, d: &[u8]| state.write(t, lt, d)).map_err(werr)?;
                             backlog.fetch_sub(1, Ordering::Relaxed);
                             state.stats.last_tick = frame.tick;
+                            // Recycling only: with the pool full (or the Logger gone) the frame
+                            // is freed and `log_step` allocates a new one.
                             let _ = free_tx.try_send(frame);
                             since_flush += 1;
                             if since_flush >= flush_every {
@@ -376,6 +378,7 @@ impl Drop for Logger {
         // returned to whoever called it.
         self.jobs = None;
         if let Some(t) = self.thread.take() {
+            // A panicked writer thread already reported itself through the panic hook.
             let _ = t.join();
         }
     }

@@ -103,8 +103,12 @@ pub struct NodeCounters {
     /// Commands rejected because another client controls the copter (also in
     /// `commands_rejected`).
     pub commands_not_controller: AtomicU64,
-    /// Tracking poses rejected (malformed, out of range) or dropped (queue full).
+    /// Tracking poses rejected (malformed, out of range).
     pub tracking_rejected: AtomicU64,
+    /// Spawn requests refused before they reached the loop (malformed, queue full).
+    pub spawns_rejected: AtomicU64,
+    /// Frames whose publishing failed part-way (the session closing, a Zenoh error).
+    pub publish_failed: AtomicU64,
     /// Requests for the step loop dropped because its queue was full (commands, tracking,
     /// controller changes, rejections for the log).
     pub requests_dropped: AtomicU64,
@@ -349,7 +353,9 @@ impl Node {
                 session
                     .declare_queryable(format!("{prefix}/scene"))
                     .callback(move |q| {
-                        let body = scene_json.lock().map(|s| s.clone()).unwrap_or_default();
+                        let body = crate::lock(&scene_json).clone();
+                        // A reply fails only when the querier is gone or the session is closing:
+                        // nobody is left to tell (the same below).
                         let _ = q.reply(q.key_expr().clone(), body).wait();
                     })
                     .await
@@ -362,21 +368,19 @@ impl Node {
                 session
                     .declare_queryable(format!("{prefix}/copters"))
                     .callback(move |q| {
-                        let list: Vec<CopterListEntry> = match world_cell.lock() {
-                            Ok(w) => w
-                                .copters
-                                .iter()
-                                .enumerate()
-                                .map(|(id, c)| CopterListEntry {
-                                    id,
-                                    name: c.name.clone(),
-                                    kind: crate::wire::kind_str(c.kind).into(),
-                                    ac_id: c.ac_id,
-                                    crashed: false,
-                                })
-                                .collect(),
-                            Err(_) => Vec::new(),
-                        };
+                        let list: Vec<CopterListEntry> = crate::lock(&world_cell)
+                            .copters
+                            .iter()
+                            .enumerate()
+                            .map(|(id, c)| CopterListEntry {
+                                id,
+                                name: c.name.clone(),
+                                kind: crate::wire::kind_str(c.kind).into(),
+                                ac_id: c.ac_id,
+                                crashed: false,
+                            })
+                            .collect();
+                        // Strings and numbers: serialising cannot fail.
                         let _ = q.reply(q.key_expr().clone(), serde_json::to_string(&list).unwrap_or_default()).wait();
                     })
                     .await
@@ -384,21 +388,26 @@ impl Node {
             );
         }
         {
-            let requests = requests.clone();
+            let (requests, counters, limiter) = (requests.clone(), counters.clone(), limiter.clone());
             queryables.push(
                 session
                     .declare_queryable(format!("{prefix}/spawn"))
                     .callback(move |q| {
+                        // No payload is an empty request: parsing it fails and the querier is told.
                         let payload = q.payload().map(|p| p.to_bytes().into_owned()).unwrap_or_default();
                         let spec: CopterSpec = match serde_json::from_slice(&payload) {
                             Ok(s) => s,
                             Err(e) => {
+                                counters.spawns_rejected.fetch_add(1, Ordering::Relaxed);
+                                limiter.warn(&format!("rejected a spawn request: {e}"));
                                 let _ = q.reply_err(format!("malformed spawn request: {e}")).wait();
                                 return;
                             }
                         };
                         let (tx, rx) = tokio::sync::oneshot::channel();
                         if requests.try_send(Request::Spawn { spec: Box::new(spec), reply: tx }).is_err() {
+                            counters.spawns_rejected.fetch_add(1, Ordering::Relaxed);
+                            counters.requests_dropped.fetch_add(1, Ordering::Relaxed);
                             let _ = q.reply_err("the step loop is busy or stopped").wait();
                             return;
                         }
@@ -471,12 +480,9 @@ impl Node {
     /// Publishes one frame: clock, then each copter's state and sensors.
     pub async fn publish(&mut self, frame: &Frame) -> Result<(), NodeError> {
         if frame.world.copters.len() != self.publishers.len() {
-            if let Ok(mut w) = self.world.lock() {
-                *w = frame.world.clone();
-            }
-            if let Ok(mut s) = self.scene_json.lock() {
-                *s = serde_json::to_string(&frame.world.spec).unwrap_or_default();
-            }
+            *crate::lock(&self.world) = frame.world.clone();
+            // A SceneSpec always serialises (a test round-trips it).
+            *crate::lock(&self.scene_json) = serde_json::to_string(&frame.world.spec).unwrap_or_default();
             let world = frame.world.clone();
             self.declare_copter_publishers(&world).await?;
         }

@@ -1,5 +1,6 @@
 //! Helpers shared by the integration tests: locating the shared data
-//! directory and a deterministic value generator.
+//! directory (skipping loudly, or failing under `CI=true`, when it is absent) and a
+//! deterministic value generator.
 
 #![allow(dead_code)]
 
@@ -8,39 +9,94 @@ use std::path::{Path, PathBuf};
 use bridge::Value;
 use bridge::paparazzi::messages::{BaseType, FieldType, MessageDef};
 
-/// `shared/data` next to an ancestor of this crate (works from
-/// `/work/wip/bridge` and `/work/main/crates/bridge`), or
-/// `$TWINSWARM_SHARED_DATA`.
-pub fn shared_data_dir() -> Result<PathBuf, String> {
-    if let Ok(p) = std::env::var("TWINSWARM_SHARED_DATA") {
+/// Where the shared data directory was expected, when it is absent.
+#[derive(Debug)]
+pub struct MissingSharedData {
+    /// The path that was expected.
+    pub expected: PathBuf,
+    /// How it was chosen.
+    pub how: String,
+}
+
+impl std::fmt::Display for MissingSharedData {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(f, "{} ({})", self.expected.display(), self.how)
+    }
+}
+
+/// `$TWINSWARM_SHARED_DATA` if set, else `shared/data` in the nearest ancestor of this crate
+/// that has one (the repository's `../shared/data`; works from `/work/wip/bridge` and
+/// `/work/main/crates/bridge`).
+pub fn shared_data_dir() -> Result<PathBuf, MissingSharedData> {
+    if let Some(p) = std::env::var_os("TWINSWARM_SHARED_DATA") {
         let p = PathBuf::from(p);
-        return if p.is_dir() { Ok(p) } else { Err(format!("{} (from TWINSWARM_SHARED_DATA)", p.display())) };
+        return if p.is_dir() {
+            Ok(p)
+        } else {
+            Err(MissingSharedData { expected: p, how: "from TWINSWARM_SHARED_DATA".into() })
+        };
     }
     let start = Path::new(env!("CARGO_MANIFEST_DIR"));
-    let mut dir = Some(start);
-    while let Some(d) = dir {
+    for d in start.ancestors() {
         let cand = d.join("shared").join("data");
         if cand.is_dir() {
             return Ok(cand);
         }
-        dir = d.parent();
     }
-    Err(format!("any ancestor of {} (looked for shared/data)", start.display()))
+    // crates/bridge -> crates -> the repository -> its parent.
+    let expected = start.ancestors().nth(3).unwrap_or(start).join("shared").join("data");
+    let how = format!("nor shared/data in any other ancestor of {}; TWINSWARM_SHARED_DATA unset", start.display());
+    Err(MissingSharedData { expected, how })
 }
 
-/// Returns the shared data dir, or prints the skip notice and returns from
-/// the calling test.
+/// Whether the tests run under CI (`CI=true` or `CI=1`, as CI services set it).
+pub fn under_ci() -> bool {
+    std::env::var("CI").is_ok_and(|v| v.eq_ignore_ascii_case("true") || v == "1")
+}
+
+/// The shared data directory for `test`, or `None` after a loud skip notice when it is
+/// absent. Under CI (see [`under_ci`]) an absent directory is a failure instead.
+///
+/// A skip writes one line, `test<TAB>path`, to the file named by `$TWINSWARM_SKIP_LOG` (if
+/// set; `scripts/test.sh` sets it and counts the lines), and a notice straight to stderr:
+/// `std::io::stderr()` bypasses libtest's capture, which would hide an `eprintln!` of a
+/// passing test.
+pub fn shared_data_or_skip(test: &str) -> Option<PathBuf> {
+    use std::io::Write;
+    let missing = match shared_data_dir() {
+        Ok(d) => return Some(d),
+        Err(missing) => missing,
+    };
+    if under_ci() {
+        panic!(
+            "{test}: shared data not found at {missing}; CI=true, so this is a failure, not a skip \
+             (provide the directory or point TWINSWARM_SHARED_DATA at it)"
+        );
+    }
+    let notice = format!("\nSKIPPED {test}: shared data not found at {missing}\n");
+    let _ = std::io::stderr().write_all(notice.as_bytes());
+    if let Some(log) = std::env::var_os("TWINSWARM_SKIP_LOG") {
+        let line = format!("{test}\t{}\n", missing.expected.display());
+        let appended = std::fs::OpenOptions::new().create(true).append(true).open(&log);
+        if let Err(e) = appended.and_then(|mut f| f.write_all(line.as_bytes())) {
+            panic!("{test}: cannot record the skip in TWINSWARM_SKIP_LOG={}: {e}", Path::new(&log).display());
+        }
+    }
+    None
+}
+
+/// Returns the shared data dir, or returns from the calling test after
+/// [`shared_data_or_skip`] (a loud skip; a failure under `CI=true`).
 #[macro_export]
 macro_rules! shared_or_skip {
-    () => {
-        match common::shared_data_dir() {
-            Ok(d) => d,
-            Err(where_) => {
-                println!("skipping: shared data not found at {where_}");
-                return;
-            }
+    () => {{
+        fn here() {}
+        let name = std::any::type_name_of_val(&here);
+        match common::shared_data_or_skip(name.strip_suffix("::here").unwrap_or(name)) {
+            Some(d) => d,
+            None => return,
         }
-    };
+    }};
 }
 
 /// Path of a file in the crate's `assets/`.

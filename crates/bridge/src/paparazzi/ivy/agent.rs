@@ -619,6 +619,7 @@ async fn hello_loop(inner: Arc<Inner>, udp: Arc<UdpSocket>) {
 
 /// Serves one connection until it ends.
 async fn run_peer(inner: Arc<Inner>, stream: TcpStream, addr: SocketAddr, hello: Option<Hello>) {
+    // Latency only: the connection works with Nagle too.
     let _ = stream.set_nodelay(true);
     let (tx, rx) = mpsc::channel::<Vec<u8>>(PEER_QUEUE_LINES);
     let key = inner.next_peer.fetch_add(1, Ordering::Relaxed);
@@ -636,6 +637,7 @@ async fn run_peer(inner: Arc<Inner>, stream: TcpStream, addr: SocketAddr, hello:
             Frame::AddRegexp { id: *id, regex: regex.clone() }.encode(&mut hs);
         }
         Frame::EndRegexp.encode(&mut hs);
+        // A fresh channel of PEER_QUEUE_LINES slots: the handshake always fits.
         let _ = tx.try_send(hs);
         peers.insert(
             key,
@@ -678,6 +680,7 @@ async fn write_loop(mut wr: tokio::net::tcp::OwnedWriteHalf, mut rx: mpsc::Recei
             break;
         }
     }
+    // Best effort: the peer may be gone already.
     let _ = wr.shutdown().await;
 }
 

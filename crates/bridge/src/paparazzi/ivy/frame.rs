@@ -215,7 +215,8 @@ impl Frame {
         if line.len() > MAX_LINE_BYTES {
             return Err(FrameError::TooLong { len_bytes: line.len(), limit_bytes: MAX_LINE_BYTES });
         }
-        let line = line.strip_suffix(b"\r").unwrap_or(line);
+        // No `\r` is stripped: ivy-c ends a line at `\n` alone, and a payload may end in `\r`
+        // (stripping it made such a frame lose one `\r` per hop; found by fuzzing).
         let text = std::str::from_utf8(line).map_err(|_| FrameError::NotUtf8)?;
         let (head, payload) = text.split_once('\x02').ok_or_else(|| FrameError::Header(short(text)))?;
         let (ty, ident) = head.split_once(' ').ok_or_else(|| FrameError::Header(short(head)))?;
@@ -391,6 +392,9 @@ mod tests {
     fn frames_round_trip() {
         let frames = [
             Frame::Bye,
+            // Found by fuzzing: a payload ending in `\r` lost one per hop.
+            Frame::Die { id: 0, text: "bye\r\r".into() },
+            Frame::AddRegexp { id: 1, regex: "^(\\S+) ATTIT\r".into() },
             Frame::AddRegexp { id: 7, regex: r"^(\S*) ROTORCRAFT_FP (.*)".into() },
             Frame::Msg { id: 7, args: vec!["5".into(), "1 2 3".into()] },
             Frame::Msg { id: 8, args: vec![] },
