@@ -372,21 +372,74 @@ fn sanitise(name: &str) -> String {
 #[derive(Clone, Debug, Default)]
 pub struct Arrivals {
     last: Option<Instant>,
-    /// Inter-arrival times, ms (the first 100 000).
-    pub gaps_ms: Vec<f32>,
+    /// Inter-arrival times, ms.
+    pub gaps_ms: Sample,
     /// Messages received.
     pub count: u64,
 }
 
 impl Arrivals {
     fn record(&mut self, now: Instant) {
-        if let Some(last) = self.last
-            && self.gaps_ms.len() < 100_000
-        {
+        if let Some(last) = self.last {
             self.gaps_ms.push((now - last).as_secs_f32() * 1e3);
         }
         self.last = Some(now);
         self.count += 1;
+    }
+}
+
+/// A stream of values in constant memory: the exact count, mean and maximum, and a uniform
+/// random sample of [`Sample::CAPACITY`] values for the percentiles (reservoir sampling,
+/// Vitter's algorithm R, on a fixed-seed generator: the same stream gives the same sample).
+/// Statistics of a flood or of a day-long run cost the same few kilobytes.
+#[derive(Clone, Debug, Default)]
+pub struct Sample {
+    values: Vec<f32>,
+    seen: u64,
+    sum: f64,
+    max: f32,
+    rng: u64,
+}
+
+impl Sample {
+    /// Values kept for the percentiles.
+    pub const CAPACITY: usize = 4096;
+
+    /// Adds a value (non-finite ones are ignored).
+    pub fn push(&mut self, v: f32) {
+        if !v.is_finite() {
+            return;
+        }
+        if self.seen == 0 {
+            self.values.reserve_exact(Self::CAPACITY);
+            self.max = v;
+        }
+        self.seen += 1;
+        self.sum += f64::from(v);
+        self.max = self.max.max(v);
+        if self.values.len() < Self::CAPACITY {
+            self.values.push(v);
+        } else {
+            // xorshift64*: a cheap, fixed-seed stream.
+            self.rng = if self.rng == 0 { 0x9E37_79B9_7F4A_7C15 } else { self.rng };
+            self.rng ^= self.rng >> 12;
+            self.rng ^= self.rng << 25;
+            self.rng ^= self.rng >> 27;
+            let j = self.rng.wrapping_mul(0x2545_F491_4F6C_DD1D) % self.seen;
+            if let Some(slot) = self.values.get_mut(j as usize) {
+                *slot = v;
+            }
+        }
+    }
+
+    /// Count, exact mean and maximum; median and 99th percentile of the sample.
+    pub fn summary(&self) -> Summary {
+        if self.seen == 0 {
+            return Summary::default();
+        }
+        let mut s = Summary::of(&self.values);
+        (s.n, s.mean, s.max) = (self.seen as usize, self.sum / self.seen as f64, f64::from(self.max));
+        s
     }
 }
 
@@ -653,7 +706,7 @@ impl Interpreter {
                 ac_id: *ac,
                 message: name.clone(),
                 count: a.count,
-                gap_ms: Summary::of(&a.gaps_ms),
+                gap_ms: a.gaps_ms.summary(),
             })
             .collect();
         GatewayReport {
@@ -851,6 +904,24 @@ pub struct GatewayReport {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_sample_keeps_exact_count_mean_max_and_fair_percentiles_in_constant_memory() {
+        let mut s = Sample::default();
+        for k in 0..1_000_000u32 {
+            s.push((k % 1000) as f32);
+        }
+        s.push(f32::NAN);
+        let sum = s.summary();
+        assert_eq!(sum.n, 1_000_000);
+        assert!((sum.mean - 499.5).abs() < 1e-6, "{}", sum.mean);
+        assert_eq!(sum.max, 999.0);
+        // A uniform sample of 4,096: the median within a few percent of 500.
+        assert!((sum.p50 - 500.0).abs() < 30.0, "{}", sum.p50);
+        assert!(sum.p99 > 960.0, "{}", sum.p99);
+        assert!(s.values.capacity() <= Sample::CAPACITY);
+        assert_eq!(Sample::default().summary(), Summary::default());
+    }
     use crate::paparazzi::conf::ConfXml;
     use crate::paparazzi::pairing::Pairing;
 

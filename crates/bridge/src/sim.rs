@@ -17,7 +17,7 @@ use sim_core::scene::CopterSpec;
 use sim_core::{Inputs, State, StepReport, World, step};
 
 use crate::failsafe::{Failsafe, FailsafeEvent, FailsafeKind, FailsafeOptions};
-use crate::mixed::{Outbox, OutboxOptions, PprzOut, Summary};
+use crate::mixed::{Outbox, OutboxOptions, PprzOut, Sample, Summary};
 use crate::sync::{SyncOptions, SyncStats, TwinSync};
 use crate::wire::{CommandMsg, SensorsMsg, StateMsg, sensors_msg, state_msg};
 
@@ -158,7 +158,7 @@ pub struct TwinStats {
     /// Whether it was spawned on its first telemetry.
     pub spawned: bool,
     #[serde(skip)]
-    latencies_ms: Vec<f32>,
+    latencies_ms: Sample,
     #[serde(skip)]
     sq_sum: [f64; 2],
     /// Times its telemetry stopped for longer than [`FailsafeOptions::hold_after_s`].
@@ -332,9 +332,7 @@ pub fn run_loop(
                         cmd.apply(&mut inputs.commands[id]);
                         twin.inputs_applied += 1;
                         let now = crate::log::now_unix_ns();
-                        if twin.latencies_ms.len() < 1_000_000 {
-                            twin.latencies_ms.push(now.saturating_sub(origin.received_unix_ns) as f32 / 1e6);
-                        }
+                        twin.latencies_ms.push(now.saturating_sub(origin.received_unix_ns) as f32 / 1e6);
                     }
                     if let Some(rpy) = observed_rpy {
                         twin.observed = Some((rpy, Instant::now()));
@@ -454,7 +452,7 @@ pub fn run_loop(
         stats.sync = sync.stats().into_iter().map(|(id, s)| (world.copters[id].name.clone(), s)).collect();
     }
     for t in stats.twins.values_mut() {
-        t.input_latency_ms = Summary::of(&t.latencies_ms);
+        t.input_latency_ms = t.latencies_ms.summary();
         let n = t.attitude_samples.max(1) as f64;
         t.attitude_rms_deg = t.sq_sum.map(|s| (s / n).sqrt().to_degrees());
     }

@@ -21,11 +21,12 @@ fn recorder() -> (Log, impl FnMut(&bridge::Delivery<'_>, &mut bridge::Control) +
     })
 }
 
-#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
-async fn bind_bind_from_unbind_and_narrowing_over_zenoh() {
+/// A listening session and a client session on a free loopback port, and a bus on each under
+/// the prefix `<tag>-<port>`.
+async fn buses(tag: &str) -> (zenoh::Session, zenoh::Session, ZenohBus, ZenohBus) {
     let port = free_port();
     let endpoint = format!("tcp/127.0.0.1:{port}");
-    let prefix = format!("ivy-test-{port}");
+    let prefix = format!("{tag}-{port}");
     let listener =
         within("open listener", zenoh::open(node::default_config(std::slice::from_ref(&endpoint), &[]).unwrap()))
             .await
@@ -34,7 +35,14 @@ async fn bind_bind_from_unbind_and_narrowing_over_zenoh() {
         .await
         .unwrap();
     let rx = ZenohBus::new(listener.clone(), prefix.clone());
-    let tx = ZenohBus::new(talker.clone(), prefix.clone());
+    let tx = ZenohBus::new(talker.clone(), prefix);
+    (listener, talker, rx, tx)
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn bind_bind_from_unbind_and_narrowing_over_zenoh() {
+    let (listener, talker, rx, tx) = buses("ivy-test").await;
+    let prefix = rx.prefix().to_owned();
 
     // Capture groups, Ivy style; the pattern narrows to <prefix>/pprz/*/ATTITUDE.
     let (attitude, h) = recorder();
@@ -100,18 +108,7 @@ async fn bind_bind_from_unbind_and_narrowing_over_zenoh() {
 /// its own bindings only, so that every handler runs once per text, not once per subscription.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn overlapping_subscriptions_deliver_each_text_once_to_each_binding() {
-    let port = free_port();
-    let endpoint = format!("tcp/127.0.0.1:{port}");
-    let prefix = format!("ivy-overlap-{port}");
-    let listener =
-        within("open listener", zenoh::open(node::default_config(std::slice::from_ref(&endpoint), &[]).unwrap()))
-            .await
-            .unwrap();
-    let talker = within("open talker", zenoh::open(node::client_config(std::slice::from_ref(&endpoint)).unwrap()))
-        .await
-        .unwrap();
-    let rx = ZenohBus::new(listener.clone(), prefix.clone());
-    let tx = ZenohBus::new(talker.clone(), prefix.clone());
+    let (listener, talker, rx, tx) = buses("ivy-overlap").await;
     let (attitude, h) = recorder();
     within("bind", rx.bind(r"^(\d+) ATTITUDE ", h)).await.unwrap();
     let (any, h) = recorder();

@@ -139,7 +139,7 @@ fn floods_of_commands_and_texts_are_all_counted_and_the_loop_keeps_time() {
     let pid = child.id();
 
     let rt = tokio::runtime::Builder::new_multi_thread().worker_threads(2).enable_all().build().unwrap();
-    let (sent_cmds, sent_zenoh, sent_ivy, rss_start, rss_end) = rt.block_on(async {
+    let (sent_cmds, sent_zenoh, sent_ivy, [rss_start, rss_mid, rss_end]) = rt.block_on(async {
         let config = bridge::zenoh_net::node::client_config(std::slice::from_ref(&endpoint)).unwrap();
         let session = zenoh::open(config).await.expect("zenoh client");
         let addr = BusAddr::parse(&bus).expect("bus address");
@@ -192,7 +192,12 @@ fn floods_of_commands_and_texts_are_all_counted_and_the_loop_keeps_time() {
             })
         };
         let started = Instant::now();
+        let mid = tokio::spawn(async move {
+            tokio::time::sleep(Duration::from_secs_f64(secs as f64 / 2.0)).await;
+            rss_kb(pid)
+        });
         let (c, z, _) = (cmds.await.unwrap(), texts.await.unwrap(), ivy_sent.await.unwrap());
+        let rss_mid = mid.await.unwrap();
         eprintln!("flooded for {:.1} s", started.elapsed().as_secs_f64());
         let rss_end = rss_kb(pid);
         tokio::time::sleep(Duration::from_millis(500)).await;
@@ -201,7 +206,7 @@ fn floods_of_commands_and_texts_are_all_counted_and_the_loop_keeps_time() {
         assert_eq!(ivy_drops, 0, "the flooder's own Ivy agent dropped: {:?}", agent.drops());
         agent.stop().await;
         session.close().await.unwrap();
-        (c, z, cmd_sent.load(Ordering::Relaxed), rss_start, rss_end)
+        (c, z, cmd_sent.load(Ordering::Relaxed), [rss_start, rss_mid, rss_end])
     });
     let out = child.wait_with_output().expect("twinswarm run ends");
     let stderr = String::from_utf8_lossy(&out.stderr);
@@ -223,7 +228,7 @@ fn floods_of_commands_and_texts_are_all_counted_and_the_loop_keeps_time() {
         "flood {secs} s at {rate}/s each: commands sent {sent_cmds}, accepted {}, rejected {} (not from the \
          controller {}), dropped {}; texts sent {} (zenoh {sent_zenoh}, ivy {sent_ivy}), seen {texts_seen} \
          (decode errors {}, out of range {}, ignored {}, queue full {}); ivy drops {}; steps {steps}, \
-         overruns {overruns}; RSS {rss_start} kB -> {rss_end} kB",
+         overruns {overruns}; RSS {rss_start} kB at the start, {rss_mid} kB half-way, {rss_end} kB at the end",
         n(&b["commands_accepted"]),
         n(&b["commands_rejected"]),
         n(&b["commands_not_controller"]),
