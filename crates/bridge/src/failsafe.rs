@@ -388,6 +388,45 @@ mod tests {
     }
 
     #[test]
+    fn a_lost_client_makes_its_copter_hover_or_go_back_to_its_scene_command() {
+        let (_, world) = sim_core::scene::load_default();
+        let state = world.initial_state();
+        let scene_cmd = world.copters[0].initial_command.clone();
+        for action in [ClientLostAction::Hover, ClientLostAction::Scene, ClientLostAction::Land] {
+            let mut inputs = world.initial_inputs();
+            let flying = &mut inputs.commands[0];
+            (flying.pitch_rad, flying.height_m, flying.velocity_m_s) = (0.1, 1.7, Some([0.4, 0.0]));
+            let commanded = inputs.commands[0].clone();
+            let mut fs = Failsafe::new(FailsafeOptions { client_lost: action, ..Default::default() });
+            let mut ev = Vec::new();
+            fs.client_lost(&world, &state, 0, "pilot", &mut inputs, &mut ev);
+            assert_eq!(ev[0].kind, FailsafeKind::ClientLost { client: "pilot".into(), action });
+            let cmd = &inputs.commands[0];
+            match action {
+                ClientLostAction::Hover => {
+                    // Level, no cruise, holding the height it has now (on the floor: 5 cm).
+                    assert_eq!((cmd.pitch_rad, cmd.velocity_m_s), (0.0, None));
+                    assert_eq!(cmd.height_m, state.pose(0).pos_m.z.max(0.05));
+                    assert!(fs.active(0) && ev.len() == 1);
+                }
+                ClientLostAction::Scene => {
+                    assert_eq!(*cmd, scene_cmd);
+                    assert!(!fs.active(0), "nothing to undo: the scene's command is the copter's own");
+                }
+                ClientLostAction::Land => {
+                    assert!(matches!(ev[1].kind, FailsafeKind::Land { .. }));
+                }
+            }
+            // A new controller's command ends it, restoring what was flown before.
+            if fs.active(0) {
+                fs.commanded(0, &mut inputs, &mut ev);
+                assert!(matches!(ev.last().unwrap().kind, FailsafeKind::Resumed { .. }));
+                assert_eq!(inputs.commands[0], commanded);
+            }
+        }
+    }
+
+    #[test]
     fn an_undriven_twin_has_no_failsafe_and_a_silent_one_holds_then_lands() {
         let (_, world) = sim_core::scene::load_default();
         let state = world.initial_state();

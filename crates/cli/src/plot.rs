@@ -111,16 +111,23 @@ impl PlotData {
             serde_json::from_value(parse("copters").map_err(bad)?).map_err(|e| bad(e.into()))?;
         let arena_m: [f64; 2] =
             serde_json::from_value(parse("arena_size_m").map_err(bad)?).map_err(|e| bad(e.into()))?;
-        let boxes: Vec<BoxMeta> = match parse("boxes") {
-            Ok(v) => serde_json::from_value(v).map_err(|e| bad(e.into()))?,
-            Err(_) => Vec::new(),
+        // Logs from before boxes were recorded have none; present but malformed is an error.
+        let boxes: Vec<BoxMeta> = match meta.get("boxes") {
+            None => Vec::new(),
+            Some(_) => serde_json::from_value(parse("boxes").map_err(bad)?).map_err(|e| bad(e.into()))?,
         };
         if arena_m.iter().any(|v| !v.is_finite() || *v <= 0.0 || *v > MAX_ARENA_M) {
             return Err(bad(anyhow::anyhow!(
                 "metadata \"arena_size_m\" = {arena_m:?}: each side must be positive and at most {MAX_ARENA_M} m"
             )));
         }
-        let dt_s = meta.get("control_dt_s").and_then(|s| s.parse().ok()).unwrap_or(0.05);
+        // Logs from before the step was recorded used the 50 ms default.
+        let dt_s: f64 = match meta.get("control_dt_s") {
+            None => 0.05,
+            Some(text) => text.parse().ok().filter(|dt: &f64| dt.is_finite() && *dt > 0.0).ok_or_else(|| {
+                bad(anyhow::anyhow!("metadata \"control_dt_s\" = {text:?} is not a positive number of seconds"))
+            })?,
+        };
         let states =
             file.messages::<StateRow>("/copters/state").map_err(read_error)?.into_iter().map(|m| m.1).collect();
         let commands = if need_commands {

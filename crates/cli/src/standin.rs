@@ -121,7 +121,12 @@ struct Summary {
     crashed: Option<String>,
     final_pos_m: [f32; 3],
     telemetry_sent: u64,
+    /// Simulated link loss (`--loss`).
     telemetry_lost: u64,
+    /// Sends that failed (the link closing, a text the link refused).
+    telemetry_send_failed: u64,
+    /// `VIRTUAL_SONAR` texts that did not decode.
+    virtual_sonar_rejected: u64,
     virtual_sonar_received: u64,
     steps_with_virtual_sonar: u64,
     overruns: u64,
@@ -217,6 +222,7 @@ pub fn run(args: CopterArgs) -> anyhow::Result<()> {
 
     // Telemetry senders, one task per message of the plan.
     let sent = Arc::new(AtomicU64::new(0));
+    let send_failed = Arc::new(AtomicU64::new(0));
     let lost = Arc::new(AtomicU64::new(0));
     let done = Arc::new(AtomicBool::new(false));
     let mut senders = Vec::new();
@@ -228,7 +234,7 @@ pub fn run(args: CopterArgs) -> anyhow::Result<()> {
                 continue;
             }
             let (link, messages, shared) = (link.clone(), messages.clone(), shared.clone());
-            let (sent, lost, done) = (sent.clone(), lost.clone(), done.clone());
+            let (sent, lost, done, send_failed) = (sent.clone(), lost.clone(), done.clone(), send_failed.clone());
             let (name, period) = (name.clone(), Duration::from_secs_f64(*period));
             let (ac_id, jitter_s, loss) = (args.ac_id, args.jitter_ms / 1e3, args.loss as f32);
             let mut rng = Rng32::new(world.params.seed, 0x7e1e_0000 + k as u64);
@@ -252,6 +258,8 @@ pub fn run(args: CopterArgs) -> anyhow::Result<()> {
                         Some(Ok(text)) => {
                             if link.send(text).await {
                                 sent.fetch_add(1, Ordering::Relaxed);
+                            } else {
+                                send_failed.fetch_add(1, Ordering::Relaxed);
                             }
                         }
                         Some(Err(e)) => {
@@ -332,6 +340,8 @@ pub fn run(args: CopterArgs) -> anyhow::Result<()> {
         final_pos_m: state.pose(0).pos_m.to_array(),
         telemetry_sent: sent.load(Ordering::Relaxed),
         telemetry_lost: lost.load(Ordering::Relaxed),
+        telemetry_send_failed: send_failed.load(Ordering::Relaxed),
+        virtual_sonar_rejected: REJECTED.load(Ordering::Relaxed),
         virtual_sonar_received: received.load(Ordering::Relaxed),
         steps_with_virtual_sonar: with_virtual,
         overruns,
@@ -349,10 +359,12 @@ pub fn run(args: CopterArgs) -> anyhow::Result<()> {
             summary.crashed.as_deref().unwrap_or("no crash")
         );
         outln!(
-            "  telemetry: {} sent, {} lost; virtual sonar: {} received, used in {} steps; {} overruns",
+            "  telemetry: {} sent, {} lost (simulated), {} failed to send; virtual sonar: {} received ({} undecodable), used in {} steps; {} overruns",
             summary.telemetry_sent,
             summary.telemetry_lost,
+            summary.telemetry_send_failed,
             summary.virtual_sonar_received,
+            summary.virtual_sonar_rejected,
             summary.steps_with_virtual_sonar,
             summary.overruns
         );
@@ -404,6 +416,10 @@ impl Link {
     }
 }
 
+/// `VIRTUAL_SONAR` texts this process could not decode (one stand-in per process; the
+/// handlers run in Zenoh's and the Ivy agent's callbacks).
+static REJECTED: AtomicU64 = AtomicU64::new(0);
+
 /// Records a VIRTUAL_SONAR text for `ac_id`.
 fn on_virtual_sonar(
     messages: &bridge::MessageSet,
@@ -412,10 +428,12 @@ fn on_virtual_sonar(
     virt: &Mutex<Option<VirtualReading>>,
     received: &AtomicU64,
 ) {
-    let Ok(msg) = messages.decode(text) else { return };
-    if let Some((to, readings)) = virtual_sonar_readings(&msg)
-        && to == ac_id
-    {
+    let Some((to, readings)) = messages.decode(text).ok().and_then(|msg| virtual_sonar_readings(&msg)) else {
+        REJECTED.fetch_add(1, Ordering::Relaxed);
+        return;
+    };
+    // For another aircraft: link forwards every VIRTUAL_SONAR; ours carries our ac_id.
+    if to == ac_id {
         received.fetch_add(1, Ordering::Relaxed);
         if let Ok(mut v) = virt.lock() {
             *v = Some((readings, Instant::now()));
