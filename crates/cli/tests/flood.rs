@@ -277,5 +277,9 @@ fn floods_of_commands_and_texts_are_all_counted_and_the_loop_keeps_time() {
     assert!(overruns * 20 <= steps, "{overruns} overruns in {steps} steps");
     // Memory: flat within 32 MB (the first seconds allocate the queues and the log buffers).
     assert!(rss_end <= rss_start + 32 * 1024, "RSS grew from {rss_start} kB to {rss_end} kB");
-    let _ = std::fs::remove_dir_all(&dir);
+    if std::env::var_os("FLOOD_KEEP_LOG").is_some() {
+        eprintln!("log kept: {}", log.display());
+    } else {
+        let _ = std::fs::remove_dir_all(&dir);
+    }
 }

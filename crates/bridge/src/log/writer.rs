@@ -111,9 +111,25 @@ impl LogStats {
 enum Job {
     Step(Box<StepFrame>),
     Event(LogEvent),
-    Bus { tick: u64, key: String, direction: &'static str, text: String, received_ns: u64 },
+    /// Bus messages of one step, in arrival order.
+    Bus(Vec<BusJob>),
     Flush,
 }
+
+/// One bus message to log.
+#[derive(Debug)]
+struct BusJob {
+    tick: u64,
+    key: String,
+    direction: &'static str,
+    text: String,
+    received_ns: u64,
+}
+
+/// Bus messages go to the writer in batches of at most this many (and at each step, event or
+/// flush): one job per message would hand the loop thread to the writer thread at every
+/// message of a flood (the job queue holds a few steps), and miss real-time deadlines.
+const BUS_BATCH: usize = 1024;
 
 type McapOut = McapWriter<BufWriter<File>>;
 
@@ -141,6 +157,8 @@ pub struct Logger {
     thread: Option<JoinHandle<Result<LogStats, LogError>>>,
     /// Steps sent to the writer thread and not yet encoded by it.
     pending: Arc<AtomicUsize>,
+    /// Bus messages not yet handed to the writer (see [`BUS_BATCH`]).
+    bus: Vec<BusJob>,
     last_tick: u64,
     epoch_ns: u64,
     dt_ns: u64,
@@ -243,21 +261,24 @@ impl Logger {
                         Job::Event(ev) => {
                             encoder.encode_event(&ev, &mut |t, lt, d: &[u8]| state.write(t, lt, d)).map_err(werr)?
                         }
-                        Job::Bus { tick, key, direction, text, received_ns } => {
+                        Job::Bus(batch) => {
                             if state.channels[Topic::Bus.index()] == 0 {
                                 state.channels[Topic::Bus.index()] =
                                     add_channel(&mut state.out, Topic::Bus).map_err(werr)?;
                             }
-                            state.publish_override = Some(received_ns);
-                            let r = encoder
-                                .encode_bus(tick, &key, direction, &text, &mut |t, lt, d: &[u8]| state.write(t, lt, d));
-                            state.publish_override = None;
-                            r.map_err(werr)?;
-                            let log_time = epoch_ns + tick * dt_ns;
-                            state
-                                .pprz
-                                .write(&mut state.out, tick, log_time, received_ns, &key, direction, &text)
-                                .map_err(werr)?;
+                            for BusJob { tick, key, direction, text, received_ns } in batch {
+                                state.publish_override = Some(received_ns);
+                                let r = encoder.encode_bus(tick, &key, direction, &text, &mut |t, lt, d: &[u8]| {
+                                    state.write(t, lt, d)
+                                });
+                                state.publish_override = None;
+                                r.map_err(werr)?;
+                                let log_time = epoch_ns + tick * dt_ns;
+                                state
+                                    .pprz
+                                    .write(&mut state.out, tick, log_time, received_ns, &key, direction, &text)
+                                    .map_err(werr)?;
+                            }
                             state.stats.pprz_messages = state.pprz.written;
                         }
                         Job::Flush => state.out.flush().map_err(werr)?,
@@ -277,6 +298,7 @@ impl Logger {
             free,
             thread: Some(thread),
             pending,
+            bus: Vec::new(),
             last_tick: 0,
             epoch_ns,
             dt_ns: (world.params.control_dt_s * 1e9).round() as u64,
@@ -331,13 +353,17 @@ impl Logger {
         text: &str,
         received_unix_ns: u64,
     ) -> Result<(), LogError> {
-        self.send(Job::Bus {
+        if self.jobs.is_none() {
+            return Err(LogError::WriterGone { path: self.path.clone() });
+        }
+        self.bus.push(BusJob {
             tick: self.last_tick,
             key: key.to_owned(),
             direction: if incoming { "in" } else { "out" },
             text: text.to_owned(),
             received_ns: received_unix_ns,
-        })
+        });
+        if self.bus.len() >= BUS_BATCH { self.send_bus_batch() } else { Ok(()) }
     }
 
     /// Finishes the current chunk and flushes the file now.
@@ -345,7 +371,24 @@ impl Logger {
         self.send(Job::Flush)
     }
 
+    /// Hands the bus messages waiting for a batch to the writer.
+    fn send_bus_batch(&mut self) -> Result<(), LogError> {
+        if self.bus.is_empty() {
+            return Ok(());
+        }
+        let room = BUS_BATCH.min(self.bus.len() * 2);
+        let batch = std::mem::replace(&mut self.bus, Vec::with_capacity(room));
+        self.send_job(Job::Bus(batch))
+    }
+
+    /// Sends `job`, after the bus messages waiting for a batch (so that the file keeps their
+    /// order with steps and events).
     fn send(&mut self, job: Job) -> Result<(), LogError> {
+        self.send_bus_batch()?;
+        self.send_job(job)
+    }
+
+    fn send_job(&mut self, job: Job) -> Result<(), LogError> {
         let Some(jobs) = &self.jobs else { return Err(LogError::WriterGone { path: self.path.clone() }) };
         if jobs.send(job).is_ok() {
             return Ok(());
@@ -367,6 +410,7 @@ impl Logger {
 
     /// Writes everything queued, the summary section and the footer; closes the file.
     pub fn finish(mut self) -> Result<LogStats, LogError> {
+        self.send_bus_batch()?;
         self.jobs = None;
         self.join()
     }
@@ -375,7 +419,9 @@ impl Logger {
 impl Drop for Logger {
     fn drop(&mut self) {
         // Finish the file even when the run ends with an error; the error of `finish` was
-        // returned to whoever called it.
+        // returned to whoever called it. Bus messages still batched go first (if the writer
+        // is gone, its error was reported by the call that found it gone).
+        let _ = self.send_bus_batch();
         self.jobs = None;
         if let Some(t) = self.thread.take() {
             // A panicked writer thread already reported itself through the panic hook.
