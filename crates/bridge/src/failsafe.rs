@@ -218,19 +218,13 @@ impl Failsafe {
         Self { opts, ..Default::default() }
     }
 
-    /// The options.
-    pub fn options(&self) -> &FailsafeOptions {
-        &self.opts
-    }
-
     /// Whether copter `id` is under a failsafe now.
     pub fn active(&self, id: usize) -> bool {
         self.guards.contains_key(&id)
     }
 
     fn push(&mut self, events: &mut Vec<FailsafeEvent>, copter: usize, kind: FailsafeKind) {
-        *self.counts.entry(kind.name()).or_default() += 1;
-        events.push(FailsafeEvent { copter, kind });
+        record(&mut self.counts, events, copter, kind);
     }
 
     /// A twin's telemetry input applied at `now`: it is a driven copter from now on (a twin
@@ -269,19 +263,12 @@ impl Failsafe {
         self.push(events, id, FailsafeKind::ClientLost { client: client.to_owned(), action });
         // It is no longer a driven copter: only a new command ends this.
         self.last_input.remove(&id);
-        let cmd = &mut inputs.commands[id];
         match action {
-            ClientLostAction::Scene => *cmd = world.copters[id].initial_command.clone(),
-            ClientLostAction::Hover => {
-                let saved = cmd.clone();
-                level_and_hold(cmd, state.pose(id).pos_m.z);
-                self.guards.insert(id, Guard { phase: Phase::Holding, saved });
-            }
+            ClientLostAction::Scene => inputs.commands[id] = world.copters[id].initial_command.clone(),
+            ClientLostAction::Hover => take_over(&mut self.guards, state, id, inputs, Phase::Holding),
             ClientLostAction::Land => {
-                let saved = cmd.clone();
-                let z = state.pose(id).pos_m.z;
-                level_and_hold(cmd, z);
-                self.guards.insert(id, Guard { phase: Phase::Landing { target_m: z }, saved });
+                let target_m = state.pose(id).pos_m.z;
+                take_over(&mut self.guards, state, id, inputs, Phase::Landing { target_m });
                 self.push(events, id, FailsafeKind::Land { silent_s: 0.0 });
             }
         }
@@ -297,39 +284,33 @@ impl Failsafe {
         events: &mut Vec<FailsafeEvent>,
     ) {
         let dt = world.params.control_dt_s as f32;
-        let silent: Vec<(usize, f64)> = self
-            .last_input
-            .iter()
-            .map(|(&id, &t)| (id, now.saturating_duration_since(t).as_secs_f64()))
-            .filter(|&(_, s)| s > self.opts.hold_after_s)
-            .collect();
-        for (id, silent_s) in silent {
-            if id >= inputs.commands.len() {
+        // Disjoint fields: no copy of the silent twins on this per-step path.
+        let Self { opts, last_input, guards, counts } = self;
+        for (&id, &t) in last_input.iter() {
+            let silent_s = now.saturating_duration_since(t).as_secs_f64();
+            if silent_s <= opts.hold_after_s || id >= inputs.commands.len() {
                 continue;
             }
-            if let std::collections::btree_map::Entry::Vacant(slot) = self.guards.entry(id) {
-                let saved = inputs.commands[id].clone();
-                level_and_hold(&mut inputs.commands[id], state.pose(id).pos_m.z);
-                slot.insert(Guard { phase: Phase::Holding, saved });
-                self.push(events, id, FailsafeKind::Hold { silent_s });
+            if !guards.contains_key(&id) {
+                take_over(guards, state, id, inputs, Phase::Holding);
+                record(counts, events, id, FailsafeKind::Hold { silent_s });
             }
-            if silent_s > self.opts.land_after_s
-                && let Some(g) = self.guards.get_mut(&id)
+            if silent_s > opts.land_after_s
+                && let Some(g) = guards.get_mut(&id)
                 && g.phase == Phase::Holding
             {
                 g.phase = Phase::Landing { target_m: state.pose(id).pos_m.z };
-                self.push(events, id, FailsafeKind::Land { silent_s });
+                record(counts, events, id, FailsafeKind::Land { silent_s });
             }
         }
-        let mut landed = Vec::new();
-        for (&id, g) in &mut self.guards {
+        for (&id, g) in guards.iter_mut() {
             let rest = world.airframes[world.copters[id].airframe].rest_height_m;
             let z = state.pose(id).pos_m.z;
             let cmd = &mut inputs.commands[id];
             match g.phase {
                 Phase::Holding | Phase::Landed => {}
                 Phase::Landing { target_m } => {
-                    let target_m = (target_m - self.opts.descent_m_s * dt).max(rest - PRESS_M);
+                    let target_m = (target_m - opts.descent_m_s * dt).max(rest - PRESS_M);
                     cmd.height_m = target_m.max(1e-3);
                     g.phase = if z <= rest + TOUCHDOWN_M {
                         Phase::Settling { since: now }
@@ -344,13 +325,10 @@ impl Failsafe {
                         // On the floor: stop the motors (height hold off, zero throttle).
                         (cmd.height_m, cmd.throttle) = (0.0, 0.0);
                         g.phase = Phase::Landed;
-                        landed.push(id);
+                        record(counts, events, id, FailsafeKind::Landed);
                     }
                 }
             }
-        }
-        for id in landed {
-            self.push(events, id, FailsafeKind::Landed);
         }
     }
 
@@ -358,6 +336,25 @@ impl Failsafe {
     pub fn controller(&mut self, id: usize, client: Option<String>, events: &mut Vec<FailsafeEvent>) {
         self.push(events, id, FailsafeKind::Controller { client });
     }
+}
+
+/// The failsafe takes copter `id` over in `phase`: its command is kept for later, and it
+/// levels out at the height it has now.
+fn take_over(guards: &mut BTreeMap<usize, Guard>, state: &State, id: usize, inputs: &mut Inputs, phase: Phase) {
+    let saved = inputs.commands[id].clone();
+    level_and_hold(&mut inputs.commands[id], state.pose(id).pos_m.z);
+    guards.insert(id, Guard { phase, saved });
+}
+
+/// Counts a transition and hands it on.
+fn record(
+    counts: &mut BTreeMap<&'static str, u64>,
+    events: &mut Vec<FailsafeEvent>,
+    copter: usize,
+    kind: FailsafeKind,
+) {
+    *counts.entry(kind.name()).or_default() += 1;
+    events.push(FailsafeEvent { copter, kind });
 }
 
 /// Level, no steering, holding height `z_m` (at least 5 cm, so height hold stays on). A

@@ -446,15 +446,8 @@ fn run(args: RunArgs) -> anyhow::Result<()> {
     let mut log = log;
     if let (Some(l), Some(b)) = (&mut log, &outcome.bus) {
         // The drop counts belong in the log too: what never reached the loop is only there.
-        let st = &outcome.stats;
         let mut detail = serde_json::to_value(b)?;
-        detail["inputs"] = serde_json::json!({
-            "rejected": st.inputs_rejected,
-            "ignored": st.inputs_ignored,
-            "after_end": st.inputs_after_end,
-            "frames_dropped": st.frames_dropped,
-            "pprz_dropped": st.pprz_dropped,
-        });
+        detail["inputs"] = inputs_json(&outcome.stats);
         let event = bridge::log::LogEvent {
             tick: outcome.state.tick,
             kind: bridge::log::EventKind::BusReport,
@@ -495,15 +488,7 @@ fn run(args: RunArgs) -> anyhow::Result<()> {
         json["sync"] = serde_json::to_value(&outcome.stats.sync)?;
         json["pprz_sent"] = outcome.stats.pprz_sent.into();
         json["failsafe"] = serde_json::to_value(&outcome.stats.failsafe)?;
-        let st = &outcome.stats;
-        json["inputs"] = serde_json::json!({
-            "commands_applied": st.commands_applied,
-            "commands_unknown_copter": st.commands_unknown_copter,
-            "rejected": st.inputs_rejected,
-            "ignored": st.inputs_ignored,
-            "after_end": st.inputs_after_end,
-            "pprz_dropped": st.pprz_dropped,
-        });
+        json["inputs"] = inputs_json(&outcome.stats);
         json["log_error"] = log_error.as_ref().map_or(serde_json::Value::Null, |e| format!("{e:#}").into());
         outln!("{}", serde_json::to_string_pretty(&json)?);
     } else {
@@ -585,10 +570,14 @@ fn run(args: RunArgs) -> anyhow::Result<()> {
                     t.queue_full
                 );
             }
-            if let Some([_, _, unmatched, not_utf8]) = b.zenoh_texts
-                && unmatched + not_utf8 > 0
+            if let Some(z) = &b.zenoh_texts
+                && z.unmatched + z.not_utf8 > 0
             {
-                outln!("    zenoh: {unmatched} texts matched no binding, {not_utf8} payloads not UTF-8 (dropped)");
+                outln!(
+                    "    zenoh: {} texts matched no binding, {} payloads not UTF-8 (dropped)",
+                    z.unmatched,
+                    z.not_utf8
+                );
             }
         }
         for (name, s) in &outcome.stats.sync {
@@ -657,6 +646,20 @@ fn run(args: RunArgs) -> anyhow::Result<()> {
         Some(e) => Err(e),
         None => Ok(()),
     }
+}
+
+/// What became of the inputs that reached the loop, for `--json` and the log's `bus_report`.
+fn inputs_json(st: &bridge::sim::LoopStats) -> serde_json::Value {
+    serde_json::json!({
+        "commands_applied": st.commands_applied,
+        "commands_unknown_copter": st.commands_unknown_copter,
+        "rejected": st.inputs_rejected,
+        "ignored": st.inputs_ignored,
+        "after_end": st.inputs_after_end,
+        "spawns_failed": st.spawns_failed,
+        "frames_dropped": st.frames_dropped,
+        "pprz_dropped": st.pprz_dropped,
+    })
 }
 
 /// Follows the step loop: summary tracker, MCAP log, progress bar.

@@ -166,11 +166,7 @@ pub fn plot(path: &Path, req: &PlotRequest<'_>) -> anyhow::Result<()> {
     if req.heatmap.is_none() && req.attitude.is_none() && req.sonar.is_none() {
         return Err(BadInput(anyhow::anyhow!("plot: give at least one of --heatmap, --attitude, --sonar")).into());
     }
-    let file = LogFile::open(path).map_err(read_error)?;
-    let data = PlotData::load(&file, req.attitude.is_some(), req.sonar.is_some())?;
-    if data.states.is_empty() {
-        return Err(BadInput(anyhow::anyhow!("{}: no messages on /copters/state to plot", path.display())).into());
-    }
+    let data = load_plottable(path, req.attitude.is_some(), req.sonar.is_some())?;
     let sonar_id = match req.copter {
         None => 0,
         Some(name) => data.copter_id(name).ok_or_else(|| {
@@ -204,18 +200,26 @@ pub fn plot(path: &Path, req: &PlotRequest<'_>) -> anyhow::Result<()> {
 /// Loads a log and draws every plot into memory, as `plot` would but writing no file: what
 /// the `plot` fuzz target runs. Returns the bytes drawn.
 pub fn draw_all_in_memory(path: &Path) -> anyhow::Result<usize> {
-    let file = LogFile::open(path).map_err(read_error)?;
-    let data = PlotData::load(&file, true, true)?;
-    if data.states.is_empty() {
-        return Err(BadInput(anyhow::anyhow!("{}: no messages on /copters/state to plot", path.display())).into());
-    }
+    let data = load_plottable(path, true, true)?;
     register_font()?;
     let mut drawn = draw_buffer(heatmap_size(&data), |root| draw_heatmap(&data, root))?.len();
     drawn += draw_buffer(FIGURE_PX, |root| draw_attitude(&data, root))?.len();
-    if !data.copters.is_empty() {
-        drawn += draw_buffer(FIGURE_PX, |root| draw_sonar(&data, 0, root))?.len();
-    }
+    drawn += draw_buffer(FIGURE_PX, |root| draw_sonar(&data, 0, root))?.len();
     Ok(drawn)
+}
+
+/// A log's plot data, refused (bad input) when there is nothing to plot: no copters in its
+/// metadata, or no states.
+fn load_plottable(path: &Path, need_commands: bool, need_sensors: bool) -> anyhow::Result<PlotData> {
+    let file = LogFile::open(path).map_err(read_error)?;
+    let data = PlotData::load(&file, need_commands, need_sensors)?;
+    if data.copters.is_empty() {
+        return Err(BadInput(anyhow::anyhow!("{}: its metadata lists no copters", path.display())).into());
+    }
+    if data.states.is_empty() {
+        return Err(BadInput(anyhow::anyhow!("{}: no messages on /copters/state to plot", path.display())).into());
+    }
+    Ok(data)
 }
 
 type Area<'a> = DrawingArea<BitMapBackend<'a>, Shift>;

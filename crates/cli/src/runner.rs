@@ -93,10 +93,19 @@ pub struct BusReport {
     /// Inputs dropped because the step loop's queue was full.
     pub requests_dropped: u64,
     pub telemetry: GatewayReport,
-    /// Paparazzi texts on Zenoh: samples received, handler calls, texts no binding matched,
-    /// payloads dropped for not being UTF-8.
-    pub zenoh_texts: Option<[u64; 4]>,
+    /// Paparazzi texts on Zenoh (`None` without Zenoh).
+    pub zenoh_texts: Option<ZenohTexts>,
     pub ivy: Option<IvyReport>,
+}
+
+/// Paparazzi texts on Zenoh: samples received, handler calls, texts on a subscribed key that no
+/// binding matched, payloads dropped for not being UTF-8.
+#[derive(Debug, Clone, serde::Serialize)]
+pub struct ZenohTexts {
+    pub received: u64,
+    pub delivered: u64,
+    pub unmatched: u64,
+    pub not_utf8: u64,
 }
 
 /// What the Ivy side saw.
@@ -277,7 +286,12 @@ pub fn run(
         telemetry: gateway.report(),
         zenoh_texts: gateway.zenoh_bus().map(|z| {
             let c = &z.counters;
-            [l(&c.samples_received), l(&c.delivered), l(&c.unmatched), l(&c.dropped_not_utf8)]
+            ZenohTexts {
+                received: l(&c.samples_received),
+                delivered: l(&c.delivered),
+                unmatched: l(&c.unmatched),
+                not_utf8: l(&c.dropped_not_utf8),
+            }
         }),
         ivy: ivy.as_ref().zip(bus.ivy.as_ref()).map(|(a, addr)| IvyReport::of(a, &addr.to_string(), &gateway)),
     };
