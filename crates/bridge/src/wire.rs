@@ -87,6 +87,15 @@ pub struct SensorsMsg {
     pub rate_body_rad_s: [f32; 3],
     /// Accelerometer, body frame, m/s².
     pub accel_body_m_s2: [f32; 3],
+    /// The height estimate the copter holds (IR, filtered), m.
+    #[serde(default)]
+    pub height_est_m: f32,
+    /// Battery voltage, V.
+    #[serde(default)]
+    pub battery_v: f32,
+    /// Battery state of charge, in [0, 1].
+    #[serde(default)]
+    pub battery_charge: f32,
 }
 
 /// Builds the state message of copter `i`, flying `inputs`' command.
@@ -124,6 +133,9 @@ pub fn sensors_msg(world: &World, state: &State, i: usize) -> SensorsMsg {
         attitude_rad: r.attitude_rad,
         rate_body_rad_s: r.rate_body_rad_s,
         accel_body_m_s2: r.accel_body_m_s2,
+        height_est_m: r.height_est_m,
+        battery_v: r.battery_v,
+        battery_charge: r.battery_charge,
     }
 }
 

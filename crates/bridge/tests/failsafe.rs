@@ -144,8 +144,9 @@ fn a_silent_twin_holds_then_lands_and_follows_again_when_telemetry_returns() {
     // The loop checks after each 50 ms step.
     assert!((0.3..0.5).contains(&hold), "hold after {hold} s");
     assert!((1.0..1.2).contains(&land), "land after {land} s");
-    // 1 m at 0.6 m/s, then 0.5 s on the floor before the motors stop.
-    assert!((2.0..5.0).contains(&down), "landed after {down} s");
+    // 1 m at 0.6 m/s (the soft height loop of the report's eq. 3.5 lags a falling target by
+    // about (kd / kp) v = 0.6 m), then 0.5 s on the floor before the motors stop.
+    assert!((2.0..6.5).contains(&down), "landed after {down} s");
     assert!(back.expect("a resumed event") > down);
     let (z, spin, crashed) = z_landed;
     assert!(!crashed, "a failsafe landing is not a crash");

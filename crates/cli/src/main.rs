@@ -868,17 +868,25 @@ fn check(path: &std::path::Path) -> anyhow::Result<()> {
     }
     let s = &world.sensors.spec;
     outln!(
-        "  sensors {}: sonar {}° cone, {}-{} m, sigma {} m; cross-talk {}",
+        "  sensors {}: sonar {}° cone, {}-{} m, sigma {} m, floor echoes {}; cross-talk {}; estimators {}",
         if s.enabled { "on" } else { "off" },
         s.sonar.opening_deg,
         s.sonar.min_range_m,
         s.sonar.max_range_m,
         if s.noise { s.sonar.noise_sigma_m } else { 0.0 },
+        if s.sonar.floor_echo { "on" } else { "off" },
         if s.crosstalk.enabled {
-            format!("on (p = {}, {:?})", s.crosstalk.probability, s.crosstalk.phase)
+            format!("on ({:?}, {} ms cycles)", s.crosstalk.phase, s.crosstalk.cycle_s * 1000.0)
         } else {
             "off".into()
-        }
+        },
+        if s.estimator.ideal { "ideal (ground truth)" } else { "IR height, AHRS, thrust adaptation" }
+    );
+    let a = &world.airflow.spec;
+    outln!(
+        "  airflow: downwash {}, ground effect {}",
+        if a.downwash { "on" } else { "off" },
+        if a.ground_effect { "on" } else { "off" }
     );
     Ok(())
 }

@@ -100,6 +100,13 @@ struct LoggedSensors {
     attitude_rad: [f32; 3],
     rate_body_rad_s: [f32; 3],
     accel_body_m_s2: [f32; 3],
+    // Logs written before the estimators and the battery have none of these.
+    #[serde(default)]
+    height_est_m: f32,
+    #[serde(default)]
+    battery_v: f32,
+    #[serde(default)]
+    battery_charge: f32,
 }
 
 /// A logged `twinswarm.BusMessage`.
@@ -141,6 +148,9 @@ impl From<LoggedSensors> for SensorsMsg {
             attitude_rad: s.attitude_rad,
             rate_body_rad_s: s.rate_body_rad_s,
             accel_body_m_s2: s.accel_body_m_s2,
+            height_est_m: s.height_est_m,
+            battery_v: s.battery_v,
+            battery_charge: s.battery_charge,
         }
     }
 }

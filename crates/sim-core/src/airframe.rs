@@ -15,6 +15,7 @@
 
 use serde::{Deserialize, Serialize};
 
+use crate::battery::BatterySpec;
 use crate::math::{GRAVITY_M_S2, Real, Vec3};
 
 /// How the number of particles a rotor emits in one physics step is drawn.
@@ -85,12 +86,18 @@ pub struct AirframeSpec {
     pub roll_pitch_pid: PidGains,
     /// Yaw attitude PID.
     pub yaw_pid: PidGains,
+    /// Natural frequency of the roll and pitch reference model, rad/s (0: none).
+    pub attitude_ref_omega_rad_s: Real,
+    /// Damping ratio of the roll and pitch reference model.
+    pub attitude_ref_zeta: Real,
     /// Largest roll or pitch the attitude controller will command, deg.
     pub max_tilt_deg: Real,
     /// Height hold proportional gain, N per m of height error (eq. 3.5's `P`).
     pub height_kp_n_per_m: Real,
     /// Height hold damping, N per m/s of vertical speed (eq. 3.5's `D`).
     pub height_kd_n_s_per_m: Real,
+    /// Height hold integral gain, N per (m·s) of height error.
+    pub height_ki_n_per_m_s: Real,
     /// Throttle curve parameter `a` (flatness at hover, 0 = linear, 1 = flat).
     pub throttle_curve_a: Real,
     /// Throttle curve parameter `b` (width of the flat zone around hover).
@@ -99,6 +106,8 @@ pub struct AirframeSpec {
     pub crash_impact_speed_m_s: Real,
     /// A tilt beyond this crashes, deg.
     pub crash_tilt_deg: Real,
+    /// The flight battery.
+    pub battery: BatterySpec,
 }
 
 impl Default for AirframeSpec {
@@ -122,15 +131,24 @@ impl Default for AirframeSpec {
             particle_rate_hover_hz: 430.0,
             particle_noise: ParticleNoise::Dither,
             rotor_tolerance_sigma: 0.02,
-            roll_pitch_pid: PidGains { kp: 400.0, ki: 40.0, kd: 38.0 },
+            // The real FINken's Paparazzi gains (PHI_PGAIN 650, PHI_DGAIN 300, IGAIN 0) in SI
+            // units; see docs/model.md for the conversion and why the report's are not used.
+            roll_pitch_pid: PidGains { kp: 280.0, ki: 0.0, kd: 65.0 },
             yaw_pid: PidGains { kp: 40.0, ki: 4.0, kd: 12.0 },
+            // REF_OMEGA_P 800 deg/s, REF_ZETA_P 0.85.
+            attitude_ref_omega_rad_s: 14.0,
+            attitude_ref_zeta: 0.85,
             max_tilt_deg: 30.0,
-            height_kp_n_per_m: 16.0,
-            height_kd_n_s_per_m: 4.0,
+            // Report eq. 3.5 (P = D = 2 m/s of air speed per m and per m/s) in newtons; the
+            // integral is GUIDANCE_V_HOVER_KI's (see docs/model.md).
+            height_kp_n_per_m: 1.4,
+            height_kd_n_s_per_m: 1.4,
+            height_ki_n_per_m_s: 0.065,
             throttle_curve_a: 1.0,
             throttle_curve_b: 1.0,
             crash_impact_speed_m_s: 0.6,
             crash_tilt_deg: 60.0,
+            battery: BatterySpec::default(),
         }
     }
 }
@@ -306,7 +324,10 @@ impl AirframeSpec {
             ("throttle_curve_b", self.throttle_curve_b),
             ("crash_impact_speed_m_s", self.crash_impact_speed_m_s),
         ];
-        let non_negative: [(&'static str, Real); 11] = [
+        let non_negative: [(&'static str, Real); 14] = [
+            ("attitude_ref_omega_rad_s", self.attitude_ref_omega_rad_s),
+            ("attitude_ref_zeta", self.attitude_ref_zeta),
+            ("height_ki_n_per_m_s", self.height_ki_n_per_m_s),
             ("motor_mass_kg", self.motor_mass_kg),
             ("linear_damping", self.linear_damping),
             ("angular_damping", self.angular_damping),
@@ -340,6 +361,9 @@ impl AirframeSpec {
                 };
                 return Err(AirframeError { field, message });
             }
+        }
+        if let Err((field, message)) = self.battery.validate() {
+            return Err(AirframeError { field, message });
         }
         if self.throttle_curve_a > 1.0 {
             return Err(AirframeError {

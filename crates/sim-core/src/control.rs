@@ -95,13 +95,17 @@ pub struct Setpoint {
     pub throttle: Real,
 }
 
-/// Integrator and memory of one PID axis.
+/// Integrator and memory of one PID axis, and its reference model.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Serialize, Deserialize)]
 pub struct PidState {
     /// Integral of the error, rad·s.
     pub integral: Real,
     /// Last error, rad.
     pub last_error: Real,
+    /// The reference model's angle, rad: the setpoint shaped into a reachable trajectory.
+    pub reference_rad: Real,
+    /// The reference model's rate, rad/s.
+    pub reference_rate_rad_s: Real,
 }
 
 impl PidState {
@@ -122,6 +126,21 @@ impl PidState {
             self.integral = self.integral.clamp(-max_i, max_i);
         }
         g.kp * error + g.ki * self.integral - g.kd * rate
+    }
+
+    /// Advances the reference model towards `target`: a second-order filter of natural
+    /// frequency `omega` and damping `zeta` (Paparazzi's attitude reference, `REF_OMEGA_P`,
+    /// `REF_ZETA_P`). With `omega <= 0` the reference is the target itself.
+    #[inline]
+    pub fn track(&mut self, target: Real, omega: Real, zeta: Real, dt: Real) {
+        if omega <= 0.0 {
+            self.reference_rad = target;
+            self.reference_rate_rad_s = 0.0;
+            return;
+        }
+        let acc = omega * omega * (target - self.reference_rad) - 2.0 * zeta * omega * self.reference_rate_rad_s;
+        self.reference_rate_rad_s += acc * dt;
+        self.reference_rad += self.reference_rate_rad_s * dt;
     }
 }
 
@@ -169,20 +188,49 @@ pub fn mix(af: &Airframe, collective_n: Real, torque_n_m: Vec3) -> [Real; 4] {
     out
 }
 
-/// Collective thrust for a setpoint: height hold (`hover + P e − D v_z`, eq. 3.5, divided by
-/// the cosine of the tilt) when a height is set, else the throttle curve.
+/// A height setpoint at most this far above the resting height means "land", m.
+pub const LANDING_BAND_M: Real = 0.02;
+/// The descent rate a landing copter holds, m/s (half the crash speed on the floor).
+pub const LANDING_DESCENT_M_S: Real = 0.3;
+
+/// Collective thrust for a setpoint: height hold (`hover + P e + I ∫e − D v_z`, eq. 3.5 with
+/// an integral as on the real FINken's `GUIDANCE_V`, divided by the cosine of the tilt) when
+/// a height is set, a 0.3 m/s descent when that height is the floor, else the throttle curve. `z_m` and `vz_m_s` are the copter's estimates;
+/// `integral_n` is the loop's integral term, bounded to a quarter of the hover thrust and
+/// reset while no height is held.
 #[inline]
-pub fn collective_thrust_n(af: &Airframe, sp: &Setpoint, z_m: Real, vz_m_s: Real, cos_tilt: Real) -> Real {
-    if sp.height_m > 0.0 {
+pub fn collective_thrust_n(
+    af: &Airframe,
+    sp: &Setpoint,
+    z_m: Real,
+    vz_m_s: Real,
+    cos_tilt: Real,
+    integral_n: &mut Real,
+    dt: Real,
+) -> Real {
+    if sp.height_m > 0.0 && sp.height_m <= af.rest_height_m + LANDING_BAND_M {
+        // A height at the floor: land, holding a gentle descent rate rather than a height the
+        // IR cannot measure there (and that ground effect would float above).
         let hover = 4.0 * af.hover_thrust_per_rotor_n;
-        let t = hover + af.spec.height_kp_n_per_m * (sp.height_m - z_m) - af.spec.height_kd_n_s_per_m * vz_m_s;
+        *integral_n = 0.0;
+        let t = hover + af.spec.height_kd_n_s_per_m * (-LANDING_DESCENT_M_S - vz_m_s);
+        t / cos_tilt.max(0.5)
+    } else if sp.height_m > 0.0 {
+        let hover = 4.0 * af.hover_thrust_per_rotor_n;
+        let e = sp.height_m - z_m;
+        let bound = 0.25 * hover;
+        *integral_n = (*integral_n + af.spec.height_ki_n_per_m_s * e * dt).clamp(-bound, bound);
+        let t = hover + af.spec.height_kp_n_per_m * e + *integral_n - af.spec.height_kd_n_s_per_m * vz_m_s;
         t / cos_tilt.max(0.5)
     } else {
+        *integral_n = 0.0;
         af.throttle_to_thrust_n(sp.throttle)
     }
 }
 
-/// Attitude controller: body torques from the setpoint and the attitude estimate.
+/// Attitude controller: body torques from the setpoint and the attitude estimate. Roll and
+/// pitch follow the reference model's trajectory (angle and rate), as Paparazzi's
+/// `stabilization_attitude_quat_int` does; yaw follows its setpoint.
 #[inline]
 pub fn attitude_torque(
     af: &Airframe,
@@ -195,13 +243,18 @@ pub fn attitude_torque(
     let max_tilt = af.spec.max_tilt_deg.to_radians();
     let roll_target = sp.roll_rad.clamp(-max_tilt, max_tilt);
     let pitch_target = sp.pitch_rad.clamp(-max_tilt, max_tilt);
-    let e_roll = roll_target - rpy_rad[0];
-    let e_pitch = pitch_target - rpy_rad[1];
+    let (omega, zeta) = (af.spec.attitude_ref_omega_rad_s, af.spec.attitude_ref_zeta);
+    pids[0].track(roll_target, omega, zeta, dt);
+    pids[1].track(pitch_target, omega, zeta, dt);
+    let e_roll = pids[0].reference_rad - rpy_rad[0];
+    let e_pitch = pids[1].reference_rad - rpy_rad[1];
     let e_yaw = wrap_angle_rad(sp.yaw_rad - rpy_rad[2]);
     let g = &af.spec.roll_pitch_pid;
     let limit_rp = 0.3 * g.kp;
-    let ax = pids[0].update(g, e_roll, rate_body_rad_s.x, dt, limit_rp);
-    let ay = pids[1].update(g, e_pitch, rate_body_rad_s.y, dt, limit_rp);
+    let rate_x = rate_body_rad_s.x - pids[0].reference_rate_rad_s;
+    let rate_y = rate_body_rad_s.y - pids[1].reference_rate_rad_s;
+    let ax = pids[0].update(g, e_roll, rate_x, dt, limit_rp);
+    let ay = pids[1].update(g, e_pitch, rate_y, dt, limit_rp);
     let gy = &af.spec.yaw_pid;
     let az = pids[2].update(gy, e_yaw, rate_body_rad_s.z, dt, 0.3 * gy.kp);
     let [ix, iy, iz] = af.inertia_kg_m2;
@@ -240,7 +293,7 @@ pub struct WallAvoidSpec {
 ///   false near echoes kick the copters into the walls.
 impl Default for WallAvoidSpec {
     fn default() -> Self {
-        Self { safety_distance_m: 1.0, kp_deg_per_m: 5.0, kd_deg_s_per_m: 5.0, max_tilt_deg: 10.0, rate_filter_s: 0.15 }
+        Self { safety_distance_m: 1.2, kp_deg_per_m: 5.0, kd_deg_s_per_m: 5.0, max_tilt_deg: 10.0, rate_filter_s: 0.15 }
     }
 }
 

@@ -23,8 +23,11 @@
 //! assert_eq!(state.tick, 20);
 //! ```
 
+pub mod airflow;
 pub mod airframe;
+pub mod battery;
 pub mod control;
+pub mod estimate;
 pub mod geometry;
 pub mod math;
 pub mod mixed;

@@ -12,6 +12,7 @@ use std::ops::Range;
 use serde::de::{self, MapAccess, Visitor};
 use serde::{Deserialize, Deserializer, Serialize};
 
+use crate::airflow::AirflowSpec;
 use crate::airframe::{self, Airframe, AirframeSpec};
 use crate::control::{Command, FlightMode};
 use crate::math::{Real, Vec3};
@@ -44,6 +45,9 @@ pub struct SceneSpec {
     /// Sensor models, shared by all copters.
     #[serde(default)]
     pub sensors: SensorSpec,
+    /// Air between copters and surfaces: downwash and ground effect.
+    #[serde(default)]
+    pub airflow: AirflowSpec,
     /// The copters.
     #[serde(default, rename = "copter")]
     pub copters: Vec<CopterSpec>,
@@ -486,7 +490,18 @@ pub fn compile(spec: &SceneSpec) -> Result<World, SceneError> {
     }
     let airframes = cc.airframes;
     let sensors = spec.sensors.compile(&root.clone().key("sensors"))?;
-    Ok(World { name: spec.name.clone(), params, arena, boxes, airframes, copters, sensors, spec: spec.clone() })
+    let airflow = spec.airflow.compile(&root.clone().key("airflow"))?;
+    Ok(World {
+        name: spec.name.clone(),
+        params,
+        arena,
+        boxes,
+        airframes,
+        copters,
+        sensors,
+        airflow,
+        spec: spec.clone(),
+    })
 }
 
 /// Compiles `[[copter]]` tables one by one, tracking names, ac_ids and airframes.
@@ -819,6 +834,7 @@ pub fn grid_swarm(n: usize, spacing_m: Real, height_m: Real, sensors: bool) -> S
         boxes: Vec::new(),
         airframes: BTreeMap::new(),
         sensors: SensorSpec { enabled: sensors, ..SensorSpec::default() },
+        airflow: AirflowSpec::default(),
         copters,
     }
 }

@@ -9,9 +9,9 @@
 use serde::{Deserialize, Serialize};
 
 use crate::control::WallAvoidSpec;
+use crate::estimate::EstimatorSpec;
 use crate::geometry::{Cone, OrientedBox, cone_box_distance, ray_box};
 use crate::math::{Quat, Real, Vec3};
-use crate::rng::Rng32;
 use crate::scene::{FieldPath, PathSeg, SceneError};
 
 /// Sonar names in reading order.
@@ -19,13 +19,15 @@ pub const SONAR_NAMES: [&str; 4] = ["front", "right", "back", "left"];
 /// Sonar axes in the body frame (FLU), in reading order.
 pub const SONAR_AXES_IN_BODY: [Vec3; 4] = [Vec3::X, Vec3::NEG_Y, Vec3::NEG_X, Vec3::Y];
 
-/// How a ping heard by another copter's sonar shortens its reading.
+/// When copters' sonars ping, which sets what a cross-talk ping reads as.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "snake_case")]
 pub enum CrosstalkPhase {
-    /// Both sonars ping together: B reads half the distance between them, `d_AB / 2`.
+    /// Every sonar pings at the same instants: a ping from `d_AB` away reads `d_AB / 2`.
     Synchronous,
-    /// Sonars ping at unrelated times: B reads a uniform draw in `[min range, d_AB]`.
+    /// Each copter's MB1232s run free on their own cycle (nominally 49 ms, each copter's
+    /// oscillator a little off), from a seeded phase: the phases drift against each other,
+    /// and a foreign ping reads `c Δt / 2` with `Δt` its arrival after the listener's own ping.
     #[default]
     FreeRunning,
 }
@@ -50,6 +52,8 @@ pub struct SonarSpec {
     pub mount_offset_m: Real,
     /// A new reading every this many control steps.
     pub period_steps: u32,
+    /// Whether the floor and the ceiling echo when they lie inside a cone.
+    pub floor_echo: bool,
 }
 
 impl Default for SonarSpec {
@@ -63,6 +67,7 @@ impl Default for SonarSpec {
             quantum_m: 0.01,
             mount_offset_m: 0.05,
             period_steps: 1,
+            floor_echo: true,
         }
     }
 }
@@ -115,21 +120,33 @@ impl Default for ImuSpec {
     }
 }
 
-/// `[sensors.crosstalk]`.
+/// `[sensors.crosstalk]`: a ping of one copter's sonar heard by another copter's sonar whose
+/// cone faces it, within range, arriving after the listener's own ping and before its echo.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
 pub struct CrosstalkSpec {
-    /// Whether pings of one copter can be heard by another's sonars.
+    /// Whether pings of one copter can be heard by another's sonars (every real FINken swarm
+    /// has it).
     pub enabled: bool,
-    /// Probability that an eligible ping pair disturbs the reading, per sonar update.
-    pub probability: Real,
-    /// How the disturbed reading is drawn.
+    /// How pings are timed.
     pub phase: CrosstalkPhase,
+    /// Nominal ranging cycle of a free-running sonar, s (MB1232: 49 ms).
+    pub cycle_s: Real,
+    /// Standard deviation of each copter's cycle, relative (its oscillator's tolerance).
+    pub cycle_spread: Real,
+    /// Speed of sound, m/s.
+    pub speed_of_sound_m_s: Real,
 }
 
 impl Default for CrosstalkSpec {
     fn default() -> Self {
-        Self { enabled: false, probability: 0.5, phase: CrosstalkPhase::FreeRunning }
+        Self {
+            enabled: true,
+            phase: CrosstalkPhase::FreeRunning,
+            cycle_s: 0.049,
+            cycle_spread: 0.002,
+            speed_of_sound_m_s: 343.0,
+        }
     }
 }
 
@@ -152,6 +169,8 @@ pub struct SensorSpec {
     pub imu: ImuSpec,
     /// Sonar cross-talk.
     pub crosstalk: CrosstalkSpec,
+    /// Estimators between these sensors and the controllers.
+    pub estimator: EstimatorSpec,
     /// Wall-Avoid behaviour (it runs on these sensors).
     pub wall_avoid: WallAvoidSpec,
 }
@@ -165,6 +184,7 @@ impl Default for SensorSpec {
             ir: IrSpec::default(),
             imu: ImuSpec::default(),
             crosstalk: CrosstalkSpec::default(),
+            estimator: EstimatorSpec::default(),
             wall_avoid: WallAvoidSpec::default(),
         }
     }
@@ -249,10 +269,18 @@ impl SensorSpec {
                 return Err(err("imu", field, format!("must be finite and not negative, got {v}")));
             }
         }
-        let p = self.crosstalk.probability;
-        if !(0.0..=1.0).contains(&p) {
-            return Err(err("crosstalk", "probability", format!("must be in [0, 1], got {p}")));
+        let ct = &self.crosstalk;
+        for (field, v) in [("cycle_s", ct.cycle_s), ("speed_of_sound_m_s", ct.speed_of_sound_m_s)] {
+            if !v.is_finite() || v <= 0.0 {
+                return Err(err("crosstalk", field, format!("must be positive and finite, got {v}")));
+            }
         }
+        if !(0.0..0.5).contains(&ct.cycle_spread) {
+            return Err(err("crosstalk", "cycle_spread", format!("must be in [0, 0.5), got {}", ct.cycle_spread)));
+        }
+        let mut est_path = path.clone();
+        est_path.0.push(PathSeg::Key("estimator".into()));
+        self.estimator.validate(&est_path)?;
         let w = &self.wall_avoid;
         for (field, v) in [
             ("safety_distance_m", w.safety_distance_m),
@@ -288,7 +316,16 @@ pub struct SensorReadings {
     pub ir_m: Option<Real>,
     /// Noise-free IR distance, m (may be out of range).
     pub ir_truth_m: Real,
-    /// AHRS attitude estimate: roll, pitch, yaw (yaw includes the drifting bias), rad.
+    /// The height estimate the height loop holds (from the IR), m.
+    pub height_est_m: Real,
+    /// Battery terminal voltage, V (what the autopilot's ADC reads).
+    pub battery_v: Real,
+    /// Battery state of charge, in [0, 1].
+    pub battery_charge: Real,
+    /// Battery current, A.
+    pub battery_a: Real,
+    /// AHRS attitude estimate: roll, pitch, yaw (yaw includes the drifting bias), rad: what the
+    /// attitude loop read last.
     pub attitude_rad: [Real; 3],
     /// Current yaw bias, rad.
     pub yaw_bias_rad: Real,
@@ -636,16 +673,16 @@ pub fn crosstalk_eligible(a: &Cone, b: &Cone, max_range_m: Real) -> Option<Real>
     (u.dot(a.axis) >= a.cos_h && (-u).dot(b.axis) >= b.cos_h).then_some(dist)
 }
 
-/// Draws the shortened reading of a cross-talk event.
+/// The distance a listener reads from a foreign ping: `c Δt / 2`, with `Δt` the delay from
+/// the listener's own ping at `listen_s` to the arrival of the emitter's first ping that
+/// arrives after it. The emitter pings at `phase_s + m cycle_s`; the ping travels `dist_m`.
+/// Times are `f64` seconds (a run's clock would lose its milliseconds in `f32`).
 #[inline]
-pub fn crosstalk_reading(spec: &SonarSpec, phase: CrosstalkPhase, dist_m: Real, rng: &mut Rng32) -> Real {
-    match phase {
-        CrosstalkPhase::Synchronous => dist_m / 2.0,
-        CrosstalkPhase::FreeRunning => {
-            let lo = spec.min_range_m.min(dist_m);
-            lo + rng.uniform() * (dist_m - lo)
-        }
-    }
+pub fn crosstalk_reading(listen_s: f64, phase_s: f64, cycle_s: f64, dist_m: Real, speed_m_s: Real) -> Real {
+    let travel = f64::from(dist_m) / f64::from(speed_m_s);
+    let m = ((listen_s - travel - phase_s) / cycle_s).ceil();
+    let delay = phase_s + m * cycle_s + travel - listen_s;
+    (delay.max(0.0) * f64::from(speed_m_s) / 2.0) as Real
 }
 
 #[cfg(test)]

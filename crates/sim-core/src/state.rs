@@ -8,7 +8,9 @@ use rapier3d::prelude::{
 };
 use serde::{Deserialize, Serialize};
 
+use crate::battery::BatteryState;
 use crate::control::{PidState, Setpoint, WallAvoidState};
+use crate::estimate::Estimate;
 use crate::geometry::OrientedBox;
 use crate::math::{Quat, Real, Vec3, euler_from_quat};
 use crate::rng::Rng32;
@@ -101,6 +103,14 @@ pub struct CopterState {
     pub yaw_bias_rad: Real,
     /// Velocity at the previous control step (for the accelerometer), m/s.
     pub prev_vel_m_s: Vec3,
+    /// Estimators: height, attitude, rates, thrust gain. What the controllers read.
+    pub estimate: Estimate,
+    /// The flight battery.
+    pub battery: BatteryState,
+    /// Time of one of its sonars' pings, s (free-running cross-talk).
+    pub sonar_phase_s: f64,
+    /// Its sonars' ranging cycle, s.
+    pub sonar_cycle_s: f64,
     /// Set once it has crashed; its motors stay off.
     pub crash: Option<CrashCause>,
     /// Tick it first left the floor.
@@ -119,6 +129,16 @@ impl CopterState {
         // its motion comes from that copter's telemetry. (Drawn anyway: same random stream.)
         let rotor_tolerance = if world.copters[id].kind == crate::CopterKind::Real { [1.0; 4] } else { drawn };
         let cmd = &world.copters[id].initial_command;
+        let def = &world.copters[id];
+        let ct = &world.sensors.spec.crosstalk;
+        let (sonar_phase_s, sonar_cycle_s) = match ct.phase {
+            crate::sensors::CrosstalkPhase::Synchronous => (0.0, f64::from(ct.cycle_s)),
+            crate::sensors::CrosstalkPhase::FreeRunning => {
+                let cycle = f64::from(ct.cycle_s) * f64::from(1.0 + ct.cycle_spread * rng.normal()).max(0.5);
+                (f64::from(rng.uniform()) * cycle, cycle)
+            }
+        };
+        let estimate = Estimate::new(&world.sensors.spec.estimator, def.start_pos_m.z, def.start_yaw_rad, &mut rng);
         Self {
             body,
             collider,
@@ -131,6 +151,10 @@ impl CopterState {
             sensors: SensorReadings::default(),
             yaw_bias_rad: 0.0,
             prev_vel_m_s: Vec3::ZERO,
+            estimate,
+            battery: BatteryState::new(&af.spec.battery),
+            sonar_phase_s,
+            sonar_cycle_s,
             crash: None,
             took_off_tick: None,
             rng,
@@ -248,6 +272,12 @@ pub(crate) struct Scratch {
     pub(crate) crash_cos_tilt: Vec<Real>,
     /// Each airframe's motor-lag blend factor for one physics step.
     pub(crate) motor_alpha: Vec<Real>,
+    /// Every copter's wake this control step.
+    pub(crate) wakes: Vec<crate::airflow::Wake>,
+    /// The wakes' reach (radius in `half.x`), for `wake_grid`.
+    pub(crate) wake_reach: Vec<OrientedBox>,
+    /// A grid over `wake_reach`.
+    pub(crate) wake_grid: CopterGrid,
     /// Worker threads (`World::params.threads` > 1), built on first use.
     pub(crate) pool: Option<rayon::ThreadPool>,
 }
@@ -274,4 +304,10 @@ pub(crate) struct Lane {
     pub(crate) reach_m: Real,
     /// Bounding radius of the copter's colliders plus `reach_m`, m.
     pub(crate) reserved_m: Real,
+    /// Height of the surface below (floor or box top), m, for ground effect.
+    pub(crate) ground_m: Real,
+    /// Downwash force on the copter this control step, world frame, N.
+    pub(crate) downwash_force_n: Vec3,
+    /// Its torque about the centre of mass, world frame, N·m.
+    pub(crate) downwash_torque_n_m: Vec3,
 }

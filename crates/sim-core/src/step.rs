@@ -12,6 +12,7 @@
 
 use serde::Serialize;
 
+use crate::airflow::{Wake, ground_effect_ratio};
 use crate::airframe::{Airframe, ParticleNoise, ROTOR_YAW_SIGN};
 use crate::control::{self, Command, FlightMode, Inputs, Setpoint};
 use crate::geometry::OrientedBox;
@@ -138,9 +139,10 @@ fn step_on(world: &World, state: &mut State, inputs: &Inputs, parallel: bool) ->
     for_each_lane(parallel, &mut state.copters, &mut state.scratch.lanes, |i, c, lane| {
         let af = &world.airframes[world.copters[i].airframe];
         let yaw = euler_from_quat(lane.rot)[2];
-        c.setpoint = outer_loop(world, af, c, command(i), lane.pos_m, lane.vel_m_s, yaw, dt_control, tick);
+        c.setpoint = outer_loop(world, i, af, c, command(i), lane.pos_m, lane.vel_m_s, yaw, dt_control, tick);
     });
 
+    airflow(world, state, parallel);
     reserve_free_flight(world, state, parallel);
 
     // Physics substeps.
@@ -151,6 +153,7 @@ fn step_on(world: &World, state: &mut State, inputs: &Inputs, parallel: bool) ->
     scratch.crash_cos_tilt.extend(world.airframes.iter().map(|af| af.spec.crash_tilt_deg.to_radians().cos()));
     scratch.motor_alpha.clear();
     scratch.motor_alpha.extend(world.airframes.iter().map(|af| motor_alpha(af, dt)));
+    let inner = InnerParams::new(world, dt);
     for _ in 0..world.params.substeps {
         // Inner loops and rotors of every copter; free copters also move.
         let scratch = &mut state.scratch;
@@ -158,13 +161,17 @@ fn step_on(world: &World, state: &mut State, inputs: &Inputs, parallel: bool) ->
         for_each_lane(parallel, &mut state.copters, &mut scratch.lanes, |i, c, lane| {
             let airframe = world.copters[i].airframe;
             let af = &world.airframes[airframe];
-            let (thrust_n, torque_body_n_m) =
-                if c.crash.is_some() { (0.0, Vec3::ZERO) } else { inner_loop(af, c, lane, dt, alphas[airframe]) };
+            let twin = world.copters[i].kind == CopterKind::Real;
+            let (thrust_n, torque_body_n_m) = if c.crash.is_some() {
+                (0.0, Vec3::ZERO)
+            } else {
+                inner_loop(af, &inner, twin, c, lane, dt, alphas[airframe])
+            };
             if lane.free {
                 integrate_free(af, lane, thrust_n, torque_body_n_m, dt);
             } else {
-                lane.force_n = lane.rot * Vec3::new(0.0, 0.0, thrust_n);
-                lane.torque_n_m = lane.rot * torque_body_n_m;
+                lane.force_n = lane.rot * Vec3::new(0.0, 0.0, thrust_n) + lane.downwash_force_n;
+                lane.torque_n_m = lane.rot * torque_body_n_m + lane.downwash_torque_n_m;
             }
         });
         // The others go through Rapier.
@@ -236,7 +243,9 @@ fn reserve_free_flight(world: &World, state: &mut State, parallel: bool) {
     for (i, (lane, c)) in scratch.lanes.iter_mut().zip(&state.copters).enumerate() {
         let af = &world.airframes[world.copters[i].airframe];
         let tol = c.rotor_tolerance.iter().copied().fold(1.0, Real::max);
-        let a_max = FREE_ACCEL_HEADROOM * 4.0 * af.max_thrust_per_rotor_n * tol / af.mass_kg + GRAVITY_M_S2;
+        let a_max = FREE_ACCEL_HEADROOM * 4.0 * af.max_thrust_per_rotor_n * tol / af.mass_kg
+            + GRAVITY_M_S2
+            + lane.downwash_force_n.length() / af.mass_kg;
         lane.anchor_m = lane.pos_m;
         lane.reach_m = lane.vel_m_s.length() * t + 0.5 * a_max * t * t;
         let radius = af.radius_m.hypot(af.spec.body_size_m[2] / 2.0) + 0.01;
@@ -283,28 +292,208 @@ fn reserve_free_flight(world: &World, state: &mut State, parallel: bool) {
     }
 }
 
-/// Attitude PIDs, height hold, mixer and rotor model of a flying copter. Returns the total
-/// thrust along body z, N, and the torque in the body frame, N·m.
+/// Air for this control step: the surface below each copter (ground effect) and the
+/// downwash force and torque each copter feels from the wakes of the others, from the motion
+/// and rotor thrusts at the start of the step (see [`crate::airflow`]).
+///
+/// Wakes are indexed in a grid by their origin and reach, so each copter only visits the
+/// wakes that can touch it: the cost grows with the copters, not with their pairs. Twins make
+/// wakes (their real copters blow on the virtual ones) but feel none (their motion is their
+/// real copter's). Crashed copters neither make nor feel any.
+fn airflow(world: &World, state: &mut State, parallel: bool) {
+    let spec = &world.airflow.spec;
+    let scratch = &mut state.scratch;
+    for (i, lane) in scratch.lanes.iter_mut().enumerate() {
+        let twin = world.copters[i].kind == CopterKind::Real;
+        lane.ground_m = if spec.ground_effect { ground_below(world, lane.pos_m, twin) } else { 0.0 };
+        lane.downwash_force_n = Vec3::ZERO;
+        lane.downwash_torque_n_m = Vec3::ZERO;
+    }
+    if !spec.downwash || world.copters.len() < 2 {
+        return;
+    }
+    let width_per_m = world.airflow.width_per_m;
+    scratch.wakes.clear();
+    scratch.wake_reach.clear();
+    let mut any = false;
+    for (i, (lane, c)) in scratch.lanes.iter().zip(&state.copters).enumerate() {
+        let af = &world.airframes[world.copters[i].airframe];
+        let thrust: Real = c.rotor_thrust_n.iter().sum();
+        let dir = lane.rot * Vec3::NEG_Z;
+        let origin = lane.pos_m + lane.rot * Vec3::new(0.0, 0.0, af.rotor_pos_in_body_m[0].z);
+        let active = c.crash.is_none() && thrust > 0.1 * af.hover_thrust_per_rotor_n && dir.z < -0.2 && origin.z > 0.0;
+        let wake = if active {
+            let rho_a = af.spec.air_density_kg_m3 * af.disc_area_m2;
+            Wake {
+                origin,
+                dir,
+                v0_m_s: (0.5 * thrust / rho_a).sqrt(),
+                b0_m: af.spec.rotor_diameter_m,
+                length_m: origin.z / -dir.z,
+            }
+        } else {
+            Wake::default()
+        };
+        let reach = if active { wake.reach_m(width_per_m) } else { 0.0 };
+        any |= active;
+        scratch.wakes.push(wake);
+        scratch.wake_reach.push(OrientedBox {
+            center: origin,
+            rotation: Quat::IDENTITY,
+            half: Vec3::new(reach, 0.0, 0.0),
+        });
+    }
+    if !any {
+        return;
+    }
+    scratch.wake_grid.build(&scratch.wake_reach, GRID_CELL_M);
+    let (wakes, grid) = (&scratch.wakes, &scratch.wake_grid);
+    let turbulence = spec.wake_turbulence;
+    for_each_lane(parallel, &mut state.copters, &mut scratch.lanes, |i, c, lane| {
+        if c.crash.is_some() || world.copters[i].kind == CopterKind::Real {
+            return;
+        }
+        let af = &world.airframes[world.copters[i].airframe];
+        let loss = spec.wake_thrust_loss_n_s_per_m;
+        let (mut force, mut torque) = (Vec3::ZERO, Vec3::ZERO);
+        let radius = af.radius_m;
+        grid.visit_near(lane.pos_m, radius, |j| {
+            let w = &wakes[j];
+            if j == i || w.length_m <= 0.0 {
+                return radius;
+            }
+            for arm in &af.rotor_pos_in_body_m {
+                let arm = lane.rot * *arm;
+                let v = w.speed_at(lane.pos_m + arm, width_per_m);
+                if v > MIN_WAKE_SPEED_M_S {
+                    let v = v * (1.0 + turbulence * c.rng.triangular()).max(0.0);
+                    let f = w.dir * (loss * v);
+                    force += f;
+                    torque += arm.cross(f);
+                }
+            }
+            radius
+        });
+        lane.downwash_force_n = force;
+        lane.downwash_torque_n_m = torque;
+    });
+}
+
+/// Wake speeds below this are not applied, m/s (their force is under 4 mN per rotor).
+const MIN_WAKE_SPEED_M_S: Real = 0.05;
+
+/// Height of the surface below a point: the floor, or the top of a box under it. Twins skip
+/// boxes that exist only in the simulation (their real copters fly over nothing there).
+fn ground_below(world: &World, p: Vec3, twin: bool) -> Real {
+    let mut ground = 0.0;
+    for b in &world.boxes {
+        let top = b.center_m.z + b.half_extents_m.z;
+        if top <= ground || top > p.z || p.z - top > 1.0 || (twin && b.virtual_only) {
+            continue;
+        }
+        let local = Quat::from_rotation_z(-b.yaw_rad) * (p - b.center_m);
+        if local.x.abs() <= b.half_extents_m.x && local.y.abs() <= b.half_extents_m.y {
+            ground = top;
+        }
+    }
+    ground
+}
+
+/// What the inner loop needs of the world, computed once per step.
+#[derive(Clone, Copy)]
+struct InnerParams {
+    /// The AHRS lag's blend factor for one physics step.
+    ahrs_alpha: Real,
+    att_sigma: Real,
+    rate_sigma: Real,
+    noise: bool,
+    ideal: bool,
+    ground_effect: bool,
+    ground_effect_min_radii: Real,
+}
+
+impl InnerParams {
+    fn new(world: &World, dt: Real) -> Self {
+        let spec = &world.sensors.spec;
+        let lag = spec.estimator.ahrs_lag_s;
+        Self {
+            ahrs_alpha: if lag > 0.0 { 1.0 - (-dt / lag).exp() } else { 1.0 },
+            att_sigma: spec.imu.attitude_noise_deg.to_radians(),
+            rate_sigma: spec.imu.rate_noise_deg_s.to_radians(),
+            noise: spec.noise && spec.enabled,
+            ideal: spec.estimator.ideal || !spec.enabled,
+            ground_effect: world.airflow.spec.ground_effect,
+            ground_effect_min_radii: world.airflow.spec.ground_effect_min_height_radii,
+        }
+    }
+}
+
+/// AHRS, height hold, attitude PIDs, mixer, rotor model and battery of a flying copter.
+/// Returns the total thrust along body z, N, and the torque in the body frame, N·m.
+///
+/// The controllers read the copter's estimates (twins and `ideal` estimation: the truth).
 #[inline]
-fn inner_loop(af: &Airframe, c: &mut CopterState, lane: &Lane, dt: Real, alpha: Real) -> (Real, Vec3) {
+fn inner_loop(
+    af: &Airframe,
+    p: &InnerParams,
+    twin: bool,
+    c: &mut CopterState,
+    lane: &Lane,
+    dt: Real,
+    alpha: Real,
+) -> (Real, Vec3) {
     let rot = lane.rot;
     let rate_body = rot.inverse() * lane.angvel_rad_s;
     let rpy = euler_from_quat(rot);
-    let rpy_est = [rpy[0], rpy[1], wrap_angle_rad(rpy[2] + c.yaw_bias_rad)];
-    let cos_tilt = (rot * Vec3::Z).z;
-    let collective = control::collective_thrust_n(af, &c.setpoint, lane.pos_m.z, lane.vel_m_s.z, cos_tilt);
-    let torque = control::attitude_torque(af, &mut c.pids, &c.setpoint, rpy_est, rate_body, dt);
+    let rate = [rate_body.x, rate_body.y, rate_body.z];
+    let truth = twin || p.ideal;
+    let (z, vz, cos_tilt) = if truth {
+        c.estimate.ideal(rpy, c.yaw_bias_rad, rate);
+        (lane.pos_m.z, lane.vel_m_s.z, (rot * Vec3::Z).z)
+    } else {
+        let rng = if p.noise { Some(&mut c.rng) } else { None };
+        c.estimate.ahrs(rpy, c.yaw_bias_rad, rate, p.ahrs_alpha, p.att_sigma, p.rate_sigma, rng);
+        let e = &c.estimate;
+        (e.height_m, e.vz_m_s, e.attitude_rad[0].cos() * e.attitude_rad[1].cos())
+    };
+    let e = &mut c.estimate;
+    let mut collective = control::collective_thrust_n(af, &c.setpoint, z, vz, cos_tilt, &mut e.height_integral_n, dt);
+    if !twin {
+        collective /= e.thrust_gain;
+    }
+    e.collective_sum_n += collective;
+    e.collective_steps += 1;
+    let torque = control::attitude_torque(af, &mut c.pids, &c.setpoint, e.attitude_rad, Vec3::from(e.rate_rad_s), dt);
     let wanted = control::mix(af, collective, torque);
-    let yaw_torque = rotor_model(af, c, wanted, dt, alpha);
+    let mut ground = [1.0; 4];
+    let radius = 0.5 * af.spec.rotor_diameter_m;
+    let height = lane.pos_m.z - lane.ground_m;
+    if p.ground_effect && height < GROUND_EFFECT_RADII * radius {
+        for (g, arm) in ground.iter_mut().zip(&af.rotor_pos_in_body_m) {
+            *g = ground_effect_ratio(radius, height + (rot * *arm).z, p.ground_effect_min_radii);
+        }
+    }
+    let spec = &af.spec.battery;
+    let scale = if twin { 1.0 } else { c.battery.speed_scale(spec) };
+    let yaw_torque = rotor_model(af, c, wanted, dt, alpha, ground, scale);
     let mut thrust = 0.0;
     let mut torque_body = Vec3::new(0.0, 0.0, yaw_torque);
+    let mut induced_power = 0.0;
     for r in 0..4 {
         let f = c.rotor_thrust_n[r];
         thrust += f;
+        induced_power += f * f.max(0.0).sqrt();
         torque_body += af.rotor_pos_in_body_m[r].cross(Vec3::new(0.0, 0.0, f));
+    }
+    if !twin {
+        let power = induced_power / (2.0 * af.spec.air_density_kg_m3 * af.disc_area_m2).sqrt() / spec.efficiency;
+        c.battery.draw(spec, power, dt);
     }
     (thrust, torque_body)
 }
+
+/// Ground effect is computed only below this many rotor radii (above, it is under 0.2 %).
+const GROUND_EFFECT_RADII: Real = 12.0;
 
 /// One physics step of a free-flying copter in closed form: gravity, thrust, torque, Rapier's
 /// linear and angular damping (`v / (1 + c dt)`) and its explicit, momentum-preserving
@@ -312,9 +501,11 @@ fn inner_loop(af: &Airframe, c: &mut CopterState, lane: &Lane, dt: Real, alpha: 
 #[inline]
 fn integrate_free(af: &Airframe, lane: &mut Lane, thrust_n: Real, torque_body_n_m: Vec3, dt: Real) {
     let rot = lane.rot;
-    let acc = rot * Vec3::new(0.0, 0.0, thrust_n / af.mass_kg) - Vec3::new(0.0, 0.0, GRAVITY_M_S2);
+    let acc = rot * Vec3::new(0.0, 0.0, thrust_n / af.mass_kg) + lane.downwash_force_n / af.mass_kg
+        - Vec3::new(0.0, 0.0, GRAVITY_M_S2);
     let vel = (lane.vel_m_s + acc * dt) * (1.0 / (1.0 + dt * af.spec.linear_damping));
     let inertia = Vec3::from(af.inertia_kg_m2);
+    let torque_body_n_m = torque_body_n_m + rot.inverse() * lane.downwash_torque_n_m;
     let mut w_b = rot.inverse() * lane.angvel_rad_s + torque_body_n_m / inertia * dt;
     let l = inertia * w_b;
     let l_gyro = l - w_b.cross(l) * dt;
@@ -332,17 +523,29 @@ fn integrate_free(af: &Airframe, lane: &mut Lane, thrust_n: Real, torque_body_n_
     lane.rot = (rot + dq).normalize();
 }
 
-/// Motor lag, saturation, tolerance and particle noise. Writes the rotor speeds and thrusts;
-/// returns the yaw drag torque about body z, N·m.
+/// Motor lag, saturation, battery voltage, ground effect, tolerance and particle noise.
+/// Writes the rotor speeds and thrusts; returns the yaw drag torque about body z, N·m.
+///
+/// The ESC's command is the speed the wanted thrust needs at the calibration voltage (at most
+/// full duty); the rotor turns `speed_scale` times that. `ground[r]` multiplies rotor `r`'s
+/// thrust.
 #[inline]
-fn rotor_model(af: &Airframe, c: &mut CopterState, wanted_n: [Real; 4], dt: Real, alpha: Real) -> Real {
+fn rotor_model(
+    af: &Airframe,
+    c: &mut CopterState,
+    wanted_n: [Real; 4],
+    dt: Real,
+    alpha: Real,
+    ground: [Real; 4],
+    speed_scale: Real,
+) -> Real {
     let mut yaw = 0.0;
     for r in 0..4 {
-        let omega_cmd = (wanted_n[r].max(0.0) / af.k_n_s2).sqrt().min(af.omega_max_rad_s);
+        let omega_cmd = (wanted_n[r].max(0.0) / af.k_n_s2).sqrt().min(af.omega_max_rad_s) * speed_scale;
         let omega = c.rotor_speed_rad_s[r] + alpha * (omega_cmd - c.rotor_speed_rad_s[r]);
         c.rotor_speed_rad_s[r] = omega;
         let tol = c.rotor_tolerance[r];
-        let mean = tol * af.thrust_at(omega);
+        let mean = tol * af.thrust_at(omega) * ground[r];
         // Particles: rate ṅ = (ρA / 2 m_px) v_final, v_final = c ω; each carries m_px v_final.
         let lambda = af.particle_rate_per_v_final_per_m * af.v_final_per_omega_m * omega * dt;
         let thrust = match af.spec.particle_noise {
@@ -370,6 +573,7 @@ fn motor_alpha(af: &Airframe, dt: Real) -> Real {
 #[allow(clippy::too_many_arguments)]
 fn outer_loop(
     world: &World,
+    id: usize,
     af: &Airframe,
     c: &mut CopterState,
     cmd: &Command,
@@ -425,6 +629,12 @@ fn outer_loop(
             }
         }
     }
+    // A copter holding height on its IR cannot hold one beyond the IR's range: the setpoint
+    // stays 0.1 m inside it (twins and ideal estimation hold any height).
+    let est = &world.sensors.spec;
+    if sp.height_m > 0.0 && world.copters[id].kind != CopterKind::Real && !est.estimator.ideal && est.enabled {
+        sp.height_m = sp.height_m.min(est.ir.max_range_m - 0.1);
+    }
     sp
 }
 
@@ -436,6 +646,12 @@ pub fn fill_sonar_scene(world: &World, physics: &PhysicsWorld, copters: &[Copter
     scene.walls.clear();
     if world.arena.walls {
         scene.walls.extend([(Vec3::X, hx), (Vec3::X, -hx), (Vec3::Y, hy), (Vec3::Y, -hy)]);
+    }
+    if world.sensors.spec.sonar.floor_echo {
+        scene.walls.push((Vec3::Z, 0.0));
+        if world.arena.walls {
+            scene.walls.push((Vec3::Z, world.arena.height_m));
+        }
     }
     scene.boxes.clear();
     scene.boxes.extend(world.boxes.iter().map(|b| OrientedBox {
@@ -480,9 +696,7 @@ fn sense(world: &World, state: &mut State, inputs: &Inputs, sonar_due: bool, par
 
     let noise = spec.noise;
     let walk = spec.imu.yaw_bias_walk_deg_per_sqrt_s.to_radians() * dt_control.sqrt();
-    let att_sigma = spec.imu.attitude_noise_deg.to_radians();
-    let yaw_sigma = spec.imu.yaw_noise_deg.to_radians();
-    let rate_sigma = spec.imu.rate_noise_deg_s.to_radians();
+    let ideal = spec.estimator.ideal;
     for_each_lane(parallel, &mut state.copters, &mut scratch.lanes, |i, c, lane| {
         let (pos, rot, vel, angvel) = (lane.pos_m, lane.rot, lane.vel_m_s, lane.angvel_rad_s);
         let r = &mut c.sensors;
@@ -508,37 +722,68 @@ fn sense(world: &World, state: &mut State, inputs: &Inputs, sonar_due: bool, par
         };
         let ir = ir_truth + ir_noise;
         r.ir_m = (ir_truth.is_finite() && (spec.ir.min_range_m..=spec.ir.max_range_m).contains(&ir)).then_some(ir);
-        // AHRS and IMU. A twin's are ideal: it flies by its real copter's telemetry, and
-        // noise or a drifting yaw of its own would only add to its error.
-        let noise = noise && world.copters[i].kind != CopterKind::Real;
-        let rpy = euler_from_quat(rot);
+        // IMU. A twin's is ideal: it flies by its real copter's telemetry, and noise or a
+        // drifting yaw of its own would only add to its error.
+        let twin = world.copters[i].kind == CopterKind::Real;
+        let noise = noise && !twin;
         if noise {
             c.yaw_bias_rad = wrap_angle_rad(c.yaw_bias_rad + walk * c.rng.normal());
         }
-        let mut nrm = |sigma: Real| if noise { sigma * c.rng.normal() } else { 0.0 };
-        r.attitude_rad = [
-            rpy[0] + nrm(att_sigma),
-            rpy[1] + nrm(att_sigma),
-            wrap_angle_rad(rpy[2] + c.yaw_bias_rad + nrm(yaw_sigma)),
-        ];
-        r.yaw_bias_rad = c.yaw_bias_rad;
-        let rate_b = rot.inverse() * angvel;
-        r.rate_body_rad_s = [rate_b.x + nrm(rate_sigma), rate_b.y + nrm(rate_sigma), rate_b.z + nrm(rate_sigma)];
         let acc_world = if tick == 0 { Vec3::ZERO } else { (vel - c.prev_vel_m_s) / dt_control };
         let specific = rot.inverse() * (acc_world + Vec3::new(0.0, 0.0, GRAVITY_M_S2));
+        let mut nrm = |sigma: Real| if noise { sigma * c.rng.normal() } else { 0.0 };
         let a_sigma = spec.imu.accel_noise_m_s2;
-        r.accel_body_m_s2 = [specific.x + nrm(a_sigma), specific.y + nrm(a_sigma), specific.z + nrm(a_sigma)];
+        let accel = Vec3::new(specific.x + nrm(a_sigma), specific.y + nrm(a_sigma), specific.z + nrm(a_sigma));
+        r.accel_body_m_s2 = accel.into();
         c.prev_vel_m_s = vel;
+        // Estimators: height from the IR, the AHRS's slow biases, the thrust gain.
+        let est = &mut c.estimate;
+        if twin || ideal {
+            let rpy = euler_from_quat(rot);
+            let rate_b = rot.inverse() * angvel;
+            est.ideal(rpy, c.yaw_bias_rad, rate_b.into());
+            est.ideal_height(pos.z, vel.z);
+        } else {
+            let cos_tilt = est.attitude_rad[0].cos() * est.attitude_rad[1].cos();
+            let az = (rot * accel).z - GRAVITY_M_S2;
+            est.update_height(&spec.estimator, &spec.ir, ir, cos_tilt, az, dt_control);
+            if noise {
+                est.wander_bias(&spec.estimator, dt_control, &mut c.rng);
+            }
+        }
+        // The thrust gain (ideal estimation adapts too: it is a parameter, not a state).
+        let af = &world.airframes[world.copters[i].airframe];
+        let cos_tilt = est.attitude_rad[0].cos() * est.attitude_rad[1].cos();
+        let flying = c.crash.is_none() && c.took_off_tick.is_some() && est.height_m > 0.1 && cos_tilt > 0.8;
+        if flying && !twin {
+            est.adapt_thrust(&spec.estimator, af.mass_kg, 4.0 * af.hover_thrust_per_rotor_n, accel.z, dt_control);
+        } else {
+            est.collective_sum_n = 0.0;
+            est.collective_steps = 0;
+        }
+        // The AHRS output the attitude loop last read (telemetry sends these).
+        r.attitude_rad = est.attitude_rad;
+        r.yaw_bias_rad = c.yaw_bias_rad;
+        r.rate_body_rad_s = est.rate_rad_s;
+        r.height_est_m = est.height_m;
+        r.battery_v = c.battery.voltage_v;
+        r.battery_charge = c.battery.charge;
+        r.battery_a = c.battery.current_a;
     });
     let scene = &state.scratch.sonar_scene;
 
-    // Cross-talk: copter A's pings heard by copter B's sonars, for B in id order, with B's
-    // random stream.
+    // Cross-talk: copter A's pings heard by copter B's sonars, for B in id order. Each copter's
+    // sonars ping on its own cycle; B's reading is shortened when a ping of A arrives after
+    // B's own ping and before its echo.
     if sonar_due && spec.crosstalk.enabled && n > 1 {
+        let ct = &spec.crosstalk;
+        let now_s = world.time_at(tick);
         let near = &mut state.scratch.near;
         for b in 0..n {
             let body_b = &state.physics.bodies[state.copters[b].body];
             let cones_b = sonar_cones(params, body_b.translation(), *body_b.rotation());
+            let (phase_b, cycle_b) = (state.copters[b].sonar_phase_s, state.copters[b].sonar_cycle_s);
+            let listen_s = phase_b + ((now_s - phase_b) / cycle_b).floor() * cycle_b;
             near.clear();
             let reach = spec.sonar.max_range_m + 1.0;
             scene.grid.visit_near(body_b.translation(), reach, |a| {
@@ -554,22 +799,21 @@ fn sense(world: &World, state: &mut State, inputs: &Inputs, sonar_due: bool, par
                 if (pa - body_b.translation()).length() > spec.sonar.max_range_m + 1.0 {
                     continue;
                 }
+                let (phase_a, cycle_a) = (state.copters[a].sonar_phase_s, state.copters[a].sonar_cycle_s);
                 let cones_a = sonar_cones(params, pa, *body_a.rotation());
                 for cone_a in &cones_a {
                     for (k, cone_b) in cones_b.iter().enumerate() {
-                        if let Some(d) = crosstalk_eligible(cone_a, cone_b, spec.sonar.max_range_m) {
-                            let c = &mut state.copters[b];
-                            if c.rng.uniform() < spec.crosstalk.probability {
-                                let v = crosstalk_reading(&spec.sonar, spec.crosstalk.phase, d, &mut c.rng);
-                                let q = sensors::quantise(
-                                    v.clamp(spec.sonar.min_range_m, spec.sonar.cap_m),
-                                    spec.sonar.quantum_m,
-                                );
-                                if q < c.sensors.sonar_m[k] {
-                                    c.sensors.sonar_m[k] = q;
-                                    c.sensors.sonar_crosstalk[k] = true;
-                                }
-                            }
+                        let Some(d) = crosstalk_eligible(cone_a, cone_b, spec.sonar.max_range_m) else { continue };
+                        let v = crosstalk_reading(listen_s, phase_a, cycle_a, d, ct.speed_of_sound_m_s);
+                        if v > spec.sonar.max_range_m {
+                            continue;
+                        }
+                        let q =
+                            sensors::quantise(v.clamp(spec.sonar.min_range_m, spec.sonar.cap_m), spec.sonar.quantum_m);
+                        let c = &mut state.copters[b];
+                        if q < c.sensors.sonar_m[k] {
+                            c.sensors.sonar_m[k] = q;
+                            c.sensors.sonar_crosstalk[k] = true;
                         }
                     }
                 }

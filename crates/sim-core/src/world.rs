@@ -3,6 +3,7 @@
 use rapier3d::prelude::{ActiveEvents, ColliderBuilder, MassProperties, PhysicsWorld, RigidBodyBuilder};
 use serde::{Deserialize, Serialize};
 
+use crate::airflow::AirflowParams;
 use crate::airframe::Airframe;
 use crate::control::{Command, Inputs};
 use crate::math::{GRAVITY_M_S2, Quat, Real, Vec3, Vector};
@@ -116,6 +117,8 @@ pub struct World {
     pub copters: Vec<CopterDef>,
     /// Sensor models.
     pub sensors: SensorParams,
+    /// Downwash and ground effect.
+    pub airflow: AirflowParams,
     /// The scene this was compiled from.
     #[serde(skip)]
     pub spec: SceneSpec,

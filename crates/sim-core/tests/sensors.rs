@@ -40,6 +40,9 @@ height_m = 4.0
 [sensors]
 noise = false
 
+[sensors.sonar]
+floor_echo = false
+
 {boxes}
 
 [[copter]]
@@ -172,6 +175,9 @@ seed = 11
 [arena]
 size_m = [3.1, 20.0]
 height_m = 3.0
+
+[sensors.sonar]
+floor_echo = false
 
 [[copter]]
 name = "still"

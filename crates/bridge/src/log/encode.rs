@@ -350,7 +350,11 @@ impl Encoder {
             j.raw(",\"attitude_rad\":").f32s(&r.attitude_rad);
             j.raw(",\"yaw_bias_rad\":").f32(r.yaw_bias_rad);
             j.raw(",\"rate_body_rad_s\":").f32s(&r.rate_body_rad_s);
-            j.raw(",\"accel_body_m_s2\":").f32s(&r.accel_body_m_s2).raw("}");
+            j.raw(",\"accel_body_m_s2\":").f32s(&r.accel_body_m_s2);
+            j.raw(",\"height_est_m\":").f32(r.height_est_m);
+            j.raw(",\"battery_v\":").f32(r.battery_v);
+            j.raw(",\"battery_charge\":").f32(r.battery_charge);
+            j.raw(",\"battery_a\":").f32(r.battery_a).raw("}");
             sink(Topic::Sensors, lt, b)?;
 
             let cmd = &c.command;

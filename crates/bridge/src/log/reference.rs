@@ -50,6 +50,10 @@ pub(crate) struct SensorsMsg<'a> {
     pub yaw_bias_rad: f32,
     pub rate_body_rad_s: [f32; 3],
     pub accel_body_m_s2: [f32; 3],
+    pub height_est_m: f32,
+    pub battery_v: f32,
+    pub battery_charge: f32,
+    pub battery_a: f32,
 }
 
 /// `twinswarm.CopterCommand`.
@@ -151,6 +155,10 @@ pub(super) fn encode_step(enc: &Encoder, world: &World, frame: &StepFrame) -> Ve
                 yaw_bias_rad: r.yaw_bias_rad,
                 rate_body_rad_s: r.rate_body_rad_s,
                 accel_body_m_s2: r.accel_body_m_s2,
+                height_est_m: r.height_est_m,
+                battery_v: r.battery_v,
+                battery_charge: r.battery_charge,
+                battery_a: r.battery_a,
             },
         );
         let cmd = &c.command;

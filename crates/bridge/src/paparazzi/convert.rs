@@ -270,7 +270,7 @@ pub fn telemetry_text(
             ("FINKEN_SENSOR_MODEL", "distance_diff_y") => sonar[3] - sonar[1],
             ("FINKEN_SENSOR_MODEL", "pos_x") => x,
             ("FINKEN_SENSOR_MODEL", "pos_y") => y,
-            ("FINKEN_SENSOR_MODEL", "pos_z") => se.ir_m.map_or(z, f64::from),
+            ("FINKEN_SENSOR_MODEL", "pos_z") => f64::from(se.height_est_m),
             ("FINKEN_SENSOR_MODEL", "pos_pitch") | ("ATTITUDE" | "ROTORCRAFT_FP", "theta") => theta,
             ("FINKEN_SENSOR_MODEL", "pos_roll") | ("ATTITUDE" | "ROTORCRAFT_FP", "phi") => phi,
             ("FINKEN_SENSOR_MODEL", "pos_yaw") | ("ATTITUDE" | "ROTORCRAFT_FP", "psi") => psi,
@@ -309,8 +309,8 @@ pub fn telemetry_text(
             ("ROTORCRAFT_STATUS", "ap_in_flight") => f64::from(u8::from(z > 0.05)),
             ("ROTORCRAFT_STATUS", "ap_motors_on") => f64::from(u8::from(thrust_n > 0.0)),
             ("ROTORCRAFT_STATUS", "ap_h_mode" | "ap_v_mode") => 6.0,
-            // A full 3S battery; battery drain is not modelled.
-            ("ROTORCRAFT_STATUS", "vsupply") => 124.0,
+            // Decivolts.
+            ("ROTORCRAFT_STATUS", "vsupply") => (f64::from(se.battery_v) * 10.0).round(),
             ("ROTORCRAFT_STATUS", "cpu_time") => st.time_s.min(65_535.0),
             _ => return None,
         })
