@@ -357,9 +357,10 @@ fn record(
     events.push(FailsafeEvent { copter, kind });
 }
 
-/// Level, no steering, holding height `z_m` (at least 5 cm, so height hold stays on). A
-/// Wall-Avoid copter keeps avoiding what its sonars see (as a real FINken's autopilot would:
-/// the avoidance runs on board) but stops cruising; any other mode becomes level flight.
+/// Level, no steering, holding height `z_m`; a copter lower than 5 cm (on the floor) stays
+/// there, motors off, rather than lifting off into ground effect. A Wall-Avoid copter keeps
+/// avoiding what its sonars see (as a real FINken's autopilot would: the avoidance runs on
+/// board) but stops cruising; any other mode becomes level flight.
 fn level_and_hold(cmd: &mut Command, z_m: f32) {
     if cmd.mode != FlightMode::WallAvoid {
         cmd.mode = FlightMode::MixedManual;
@@ -367,7 +368,11 @@ fn level_and_hold(cmd: &mut Command, z_m: f32) {
     (cmd.roll_rad, cmd.pitch_rad) = (0.0, 0.0);
     cmd.velocity_m_s = None;
     cmd.target_m = None;
-    cmd.height_m = z_m.max(0.05);
+    if z_m < 0.05 {
+        (cmd.height_m, cmd.throttle) = (0.0, 0.0);
+    } else {
+        cmd.height_m = z_m;
+    }
 }
 
 #[cfg(test)]
@@ -401,9 +406,11 @@ mod tests {
             let cmd = &inputs.commands[0];
             match action {
                 ClientLostAction::Hover => {
-                    // Level, no cruise, holding the height it has now (on the floor: 5 cm).
+                    // Level, no cruise, holding the height it has now (on the floor: staying
+                    // there, motors off).
                     assert_eq!((cmd.pitch_rad, cmd.velocity_m_s), (0.0, None));
-                    assert_eq!(cmd.height_m, state.pose(0).pos_m.z.max(0.05));
+                    assert!(state.pose(0).pos_m.z < 0.05);
+                    assert_eq!((cmd.height_m, cmd.throttle), (0.0, 0.0));
                     assert!(fs.active(0) && ev.len() == 1);
                 }
                 ClientLostAction::Scene => {

@@ -614,19 +614,23 @@ fn outer_loop(
             } else {
                 (c.wall_avoid.out_rad != [0.0; 2]).then_some((c.wall_avoid.out_rad[0], c.wall_avoid.out_rad[1]))
             };
-            match (avoid, cmd.velocity_m_s) {
-                (Some((pitch, roll)), _) => {
-                    sp.pitch_rad = pitch;
-                    sp.roll_rad = roll;
-                }
-                (None, Some([v_fwd, v_left])) => {
-                    // Open loop: the tilt whose steady state against the linear damping is v.
+            // The velocity command, open loop: the tilt whose steady state against the linear
+            // damping is v. Avoidance adds to it: a copter sent towards a wall stops where the
+            // wall's push balances the command, inside the safety distance.
+            let (mut pitch, mut roll) = match cmd.velocity_m_s {
+                Some([v_fwd, v_left]) => {
                     let k = af.spec.linear_damping / GRAVITY_M_S2;
-                    sp.pitch_rad = (k * v_fwd).atan();
-                    sp.roll_rad = -(k * v_left).atan();
+                    ((k * v_fwd).atan(), -(k * v_left).atan())
                 }
-                (None, None) => {}
+                None => (sp.pitch_rad, sp.roll_rad),
+            };
+            if let Some((p, r)) = avoid {
+                let max = spec.max_tilt_deg.to_radians();
+                pitch = if cmd.velocity_m_s.is_some() { (pitch + p).clamp(-max, max) } else { p };
+                roll = if cmd.velocity_m_s.is_some() { (roll + r).clamp(-max, max) } else { r };
             }
+            sp.pitch_rad = pitch;
+            sp.roll_rad = roll;
         }
     }
     // A copter holding height on its IR cannot hold one beyond the IR's range: the setpoint
