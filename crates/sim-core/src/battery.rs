@@ -75,7 +75,7 @@ impl BatterySpec {
                 return Err((field, format!("must be positive and finite, got {v}")));
             }
         }
-        if !(self.efficiency <= 1.0) {
+        if self.efficiency > 1.0 {
             return Err(("battery.efficiency", format!("must be at most 1, got {}", self.efficiency)));
         }
         if !self.internal_resistance_ohm.is_finite() || self.internal_resistance_ohm < 0.0 {

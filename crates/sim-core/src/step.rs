@@ -615,10 +615,21 @@ fn outer_loop(
                 (c.wall_avoid.out_rad != [0.0; 2]).then_some((c.wall_avoid.out_rad[0], c.wall_avoid.out_rad[1]))
             };
             // The velocity command, open loop: the tilt whose steady state against the linear
-            // damping is v. Avoidance adds to it: a copter sent towards a wall stops where the
-            // wall's push balances the command, inside the safety distance.
+            // damping is v. It is obeyed as long as it keeps a safe distance (paper, III): a
+            // component towards a sonar that sees something inside the safety distance is
+            // dropped, the rest flies, and avoidance adds its push.
             let (mut pitch, mut roll) = match cmd.velocity_m_s {
-                Some([v_fwd, v_left]) => {
+                Some([mut v_fwd, mut v_left]) => {
+                    if avoid.is_some() {
+                        let inside = |k: usize| fused[k] < spec.safety_distance_m;
+                        let [front, right, back, left] = [0, 1, 2, 3];
+                        if (v_fwd > 0.0 && inside(front)) || (v_fwd < 0.0 && inside(back)) {
+                            v_fwd = 0.0;
+                        }
+                        if (v_left > 0.0 && inside(left)) || (v_left < 0.0 && inside(right)) {
+                            v_left = 0.0;
+                        }
+                    }
                     let k = af.spec.linear_damping / GRAVITY_M_S2;
                     ((k * v_fwd).atan(), -(k * v_left).atan())
                 }

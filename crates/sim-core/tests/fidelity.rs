@@ -371,7 +371,7 @@ fn crosstalk_comes_from_free_running_sonar_cycles() {
     // fraction of the beat, in bursts rather than independently each cycle.
     assert!(free > 0.03 && free < 0.6, "{free}");
     assert!(runs >= 1 && f64::from(runs) < 0.25 * free * 1200.0, "bursts, not independent draws: {runs}");
-    let (lo, hi) = sync_readings.iter().fold((Real::MAX, 0.0 as Real), |(lo, hi), &r| (lo.min(r), hi.max(r)));
+    let (lo, hi) = sync_readings.iter().fold((Real::MAX, Real::MIN), |(lo, hi), &r| (lo.min(r), hi.max(r)));
     println!("synchronous readings {lo}–{hi} m");
     assert!(sync > 0.95 && lo > 0.7 && hi < 0.8, "d/2 when synchronous");
 }

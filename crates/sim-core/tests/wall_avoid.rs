@@ -142,7 +142,10 @@ fn a_single_wall_avoid_copter_keeps_about_1_2_m_from_the_walls_for_9_minutes() {
     let mut all_mean = Vec::new();
     let mut all_min: f32 = f32::MAX;
     for seed in [2016u64, 1, 2, 3, 4] {
-        let world = match sim_core::scene::load("wall_avoid_single.toml", &text.replace("seed = 2016", &format!("seed = {seed}"))) {
+        let world = match sim_core::scene::load(
+            "wall_avoid_single.toml",
+            &text.replace("seed = 2016", &format!("seed = {seed}")),
+        ) {
             Ok((_, w)) => w,
             Err(e) => panic!("{e}"),
         };
