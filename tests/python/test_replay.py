@@ -14,7 +14,10 @@ STATE_KEYS = {
     "name", "kind", "ac_id", "tick", "time_s", "mode", "pos_m", "vel_m_s", "attitude_rad",
     "angvel_rad_s", "quat_xyzw", "rotor_thrust_n", "crashed",
 }
-SENSOR_KEYS = {"name", "tick", "time_s", "sonar_m", "sonar_fused_m", "ir_m", "attitude_rad", "rate_body_rad_s", "accel_body_m_s2"}
+SENSOR_KEYS = {
+    "name", "tick", "time_s", "sonar_m", "sonar_fused_m", "ir_m", "attitude_rad", "rate_body_rad_s", "accel_body_m_s2",
+    "height_est_m", "battery_v", "battery_charge",
+}
 
 
 def session_to(endpoint):

@@ -375,3 +375,44 @@ fn crosstalk_comes_from_free_running_sonar_cycles() {
     println!("synchronous readings {lo}–{hi} m");
     assert!(sync > 0.95 && lo > 0.7 && hi < 0.8, "d/2 when synchronous");
 }
+
+/// RMS of the AHRS's roll and pitch error against the truth while hovering, deg.
+fn ahrs_error_rms_deg(ideal: bool) -> Real {
+    let world = load(&format!(
+        r#"
+[sim]
+seed = 6
+[arena]
+size_m = [4.0, 3.0]
+height_m = 2.5
+[sensors.estimator]
+ideal = {ideal}
+[[copter]]
+name = "f"
+start = {{ pos_m = [0.0, 0.0] }}
+mode = "target"
+command = {{ target_m = [0.0, 0.0, 0.8] }}
+"#
+    ));
+    let mut sq = Vec::new();
+    fly(&world, 60.0, |t, s| {
+        if t > 5.0 {
+            let truth = s.pose(0).rpy_rad;
+            // What the attitude loop read in the last physics step (one step before the pose).
+            let est = s.copters[0].estimate.attitude_rad;
+            sq.push((est[0] - truth[0]).powi(2) + (est[1] - truth[1]).powi(2));
+        }
+    });
+    (mean(&sq) / 2.0).sqrt().to_degrees()
+}
+
+#[test]
+fn the_attitude_loop_reads_an_ahrs_with_noise_bias_and_lag() {
+    let est = ahrs_error_rms_deg(false);
+    let ideal = ahrs_error_rms_deg(true);
+    println!("AHRS roll/pitch error rms while hovering: {est:.2}° (ideal estimation: {ideal:.4}°)");
+    // 0.5° white noise, a 0.25° wandering bias and a 5 ms lag; the ideal reading differs from
+    // the pose only by the one physics step between them.
+    assert!((0.3..1.5).contains(&est), "{est}");
+    assert!(ideal < 0.25 * est, "{ideal}");
+}
