@@ -182,12 +182,10 @@ command = {{ target_m = [{dx}, 0.0, {h}] }}
     (drop, std_dev(&z), tilt_rms)
 }
 
-#[test]
-fn a_copter_below_another_loses_height_and_shakes() {
-    let (drop, sd, tilt) = pair_flight(0.0, 0.5, true);
-    let (drop0, sd0, tilt0) = pair_flight(0.0, 0.5, false);
+/// A pair flight with and without downwash, described in one line.
+fn describe(what: &str, (drop, sd, tilt): (Real, Real, Real), (drop0, sd0, tilt0): (Real, Real, Real)) {
     println!(
-        "0.5 m below another: drops {:.0} mm, height σ {:.1} mm, tilt rms {:.2}° (downwash off: {:.0} mm, {:.1} mm, {:.2}°)",
+        "{what}: drops {:.1} mm, height σ {:.2} mm, tilt rms {:.3}° (downwash off: {:.1} mm, {:.2} mm, {:.3}°)",
         drop * 1000.0,
         sd * 1000.0,
         tilt.to_degrees(),
@@ -195,23 +193,22 @@ fn a_copter_below_another_loses_height_and_shakes() {
         sd0 * 1000.0,
         tilt0.to_degrees()
     );
+}
+
+#[test]
+fn a_copter_below_another_loses_height_and_shakes() {
+    let (on, off) = (pair_flight(0.0, 0.5, true), pair_flight(0.0, 0.5, false));
+    describe("0.5 m below another", on, off);
+    let ((drop, _, tilt), (drop0, _, tilt0)) = (on, off);
     assert!(drop > 0.1 && drop > 5.0 * drop0.max(0.005), "the wake pushes the lower copter down");
     assert!(tilt > 3.0 * tilt0, "and shakes it");
 }
 
 #[test]
 fn side_by_side_copters_barely_feel_each_other() {
-    let (drop, sd, tilt) = pair_flight(0.5, 0.0, true);
-    let (drop0, sd0, tilt0) = pair_flight(0.5, 0.0, false);
-    println!(
-        "0.5 m beside another: drops {:.1} mm, height σ {:.2} mm, tilt rms {:.3}° (downwash off: {:.1} mm, {:.2} mm, {:.3}°)",
-        drop * 1000.0,
-        sd * 1000.0,
-        tilt.to_degrees(),
-        drop0 * 1000.0,
-        sd0 * 1000.0,
-        tilt0.to_degrees()
-    );
+    let (on, off) = (pair_flight(0.5, 0.0, true), pair_flight(0.5, 0.0, false));
+    describe("0.5 m beside another", on, off);
+    let ((drop, sd, tilt), (drop0, sd0, tilt0)) = (on, off);
     assert!((drop - drop0).abs() < 0.005 && (sd - sd0).abs() < 0.002 && (tilt - tilt0).abs() < 0.1f32.to_radians());
 }
 
