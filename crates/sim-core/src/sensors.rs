@@ -136,6 +136,10 @@ pub struct CrosstalkSpec {
     pub cycle_spread: Real,
     /// Speed of sound, m/s.
     pub speed_of_sound_m_s: Real,
+    /// The FINken firmware's schedule instead of four sonars pinging together: one sonar per
+    /// quarter cycle, round robin (front, right, back, left), each every `cycle_s` (the
+    /// firmware's 50 ms tick gives `cycle_s = 0.2`).
+    pub round_robin: bool,
 }
 
 impl Default for CrosstalkSpec {
@@ -146,6 +150,7 @@ impl Default for CrosstalkSpec {
             cycle_s: 0.049,
             cycle_spread: 0.002,
             speed_of_sound_m_s: 343.0,
+            round_robin: false,
         }
     }
 }

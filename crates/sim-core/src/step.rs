@@ -793,12 +793,17 @@ fn sense(world: &World, state: &mut State, inputs: &Inputs, sonar_due: bool, par
     if sonar_due && spec.crosstalk.enabled && n > 1 {
         let ct = &spec.crosstalk;
         let now_s = world.time_at(tick);
+        let stagger = if ct.round_robin { 0.25 } else { 0.0 };
         let near = &mut state.scratch.near;
         for b in 0..n {
             let body_b = &state.physics.bodies[state.copters[b].body];
             let cones_b = sonar_cones(params, body_b.translation(), *body_b.rotation());
             let (phase_b, cycle_b) = (state.copters[b].sonar_phase_s, state.copters[b].sonar_cycle_s);
-            let listen_s = phase_b + ((now_s - phase_b) / cycle_b).floor() * cycle_b;
+            // Sonar k's own last ping before now (all four together, or one per quarter cycle).
+            let listen_s = |k: usize| {
+                let phase = phase_b + stagger * k as f64 * cycle_b;
+                phase + ((now_s - phase) / cycle_b).floor() * cycle_b
+            };
             near.clear();
             let reach = spec.sonar.max_range_m + 1.0;
             scene.grid.visit_near(body_b.translation(), reach, |a| {
@@ -816,10 +821,11 @@ fn sense(world: &World, state: &mut State, inputs: &Inputs, sonar_due: bool, par
                 }
                 let (phase_a, cycle_a) = (state.copters[a].sonar_phase_s, state.copters[a].sonar_cycle_s);
                 let cones_a = sonar_cones(params, pa, *body_a.rotation());
-                for cone_a in &cones_a {
+                for (j, cone_a) in cones_a.iter().enumerate() {
                     for (k, cone_b) in cones_b.iter().enumerate() {
                         let Some(d) = crosstalk_eligible(cone_a, cone_b, spec.sonar.max_range_m) else { continue };
-                        let v = crosstalk_reading(listen_s, phase_a, cycle_a, d, ct.speed_of_sound_m_s);
+                        let emitted_s = phase_a + stagger * j as f64 * cycle_a;
+                        let v = crosstalk_reading(listen_s(k), emitted_s, cycle_a, d, ct.speed_of_sound_m_s);
                         if v > spec.sonar.max_range_m {
                             continue;
                         }
