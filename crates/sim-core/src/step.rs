@@ -1,12 +1,16 @@
 //! `step(&World, &mut State, &Inputs) -> StepReport`: one control step.
 //!
 //! A control step (default 50 ms) is, in order:
-//! 1. **sense** (every `sonar.period_steps` control steps): sonar cones, cross-talk, IR, IMU,
-//!    from the state at the start of the step;
+//! 1. **sense** (sonars every `sonar.period_steps` control steps): sonar cones with floor and
+//!    ceiling, cross-talk, IR, IMU, from the state at the start of the step; then the
+//!    estimators (IR height, AHRS biases, thrust gain, see [`crate::estimate`]);
 //! 2. **outer loop**: each copter's flight mode turns its command and readings into a
 //!    [`Setpoint`];
-//! 3. **physics substeps** (default 10 × 5 ms), each: attitude PIDs, height hold, mixer, rotor
-//!    model (motor lag, particle noise), forces, one Rapier step, crash detection.
+//! 3. **airflow**: the surface below each copter and the downwash each one feels from the
+//!    others' wakes (see [`crate::airflow`]);
+//! 4. **physics substeps** (default 10 × 5 ms), each: AHRS, attitude PIDs, height hold, mixer,
+//!    rotor model (battery voltage, ground effect, motor lag, particle noise), battery, forces,
+//!    one Rapier step, crash detection.
 //!
 //! Copters are processed in id order; every random draw comes from the copter's own stream.
 
