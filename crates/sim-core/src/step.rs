@@ -639,10 +639,13 @@ fn outer_loop(
                 }
                 None => (sp.pitch_rad, sp.roll_rad),
             };
-            if let Some((p, r)) = avoid {
-                let max = spec.max_tilt_deg.to_radians();
-                pitch = if cmd.velocity_m_s.is_some() { (pitch + p).clamp(-max, max) } else { p };
-                roll = if cmd.velocity_m_s.is_some() { (roll + r).clamp(-max, max) } else { r };
+            match (avoid, cmd.velocity_m_s) {
+                (Some((p, r)), Some(_)) => {
+                    let max = spec.max_tilt_deg.to_radians();
+                    (pitch, roll) = ((pitch + p).clamp(-max, max), (roll + r).clamp(-max, max));
+                }
+                (Some(avoid), None) => (pitch, roll) = avoid,
+                (None, _) => {}
             }
             sp.pitch_rad = pitch;
             sp.roll_rad = roll;
