@@ -3,11 +3,13 @@
 //! thread. Only sim-core, so that it also builds at older commits (copy this file there).
 //!
 //! ```text
-//! cargo run --release -p sim-core --example model_cost -- N SIM_SECONDS [takeoff] [spacing=S] [ideal] [no-airflow] [no-battery] [no-crosstalk] [no-floor-echo]
+//! cargo run --release -p sim-core --example model_cost -- N SIM_SECONDS [dense] [takeoff] [spacing=S] [ideal] [no-airflow] [no-battery] [no-crosstalk] [no-floor-echo]
 //! ```
 //!
 //! `takeoff`: the copters start on the floor (1.5 m grid) instead of in the air (2 m grid).
 //! `spacing=S`: an S m grid instead.
+//! `dense`: `scene::dense_swarm` (1.5 m grid, 10 pillars, Wall-Avoid at 1 m; with `takeoff`
+//! from the floor).
 
 use sim_core::{scene, step};
 
@@ -34,7 +36,9 @@ fn main() {
             c.start.pos_m = g.start.pos_m;
         }
     }
-    if has("takeoff") {
+    if has("dense") {
+        spec = scene::dense_swarm(n, spacing.unwrap_or(1.5), has("takeoff"), 10, 0);
+    } else if has("takeoff") {
         let grid = scene::grid_swarm(n, spacing.unwrap_or(1.5), 0.8, true);
         spec.arena = grid.arena;
         for (c, g) in spec.copters.iter_mut().zip(grid.copters) {
@@ -67,6 +71,19 @@ fn main() {
     }
     let cpu = cpu_s() - t0;
     let crashed = state.copters.iter().filter(|c| c.crash.is_some()).count();
+    let mut causes = std::collections::BTreeMap::<&str, usize>::new();
+    for c in state.copters.iter().filter_map(|c| c.crash) {
+        let name = match c {
+            sim_core::CrashCause::Wall => "wall",
+            sim_core::CrashCause::Ceiling => "ceiling",
+            sim_core::CrashCause::Box { .. } => "box",
+            sim_core::CrashCause::Floor { .. } => "floor",
+            sim_core::CrashCause::Copter { .. } => "copter",
+            sim_core::CrashCause::Tilt { .. } => "tilt",
+        };
+        *causes.entry(name).or_default() += 1;
+    }
+    eprintln!("crash causes: {causes:?}");
     println!(
         "{{\"N\": {n}, \"sim_s\": {seconds}, \"cpu_s\": {cpu:.3}, \"rtf_cpu\": {:.2}, \"crashed\": {crashed}, \"flags\": {:?}}}",
         seconds / cpu,

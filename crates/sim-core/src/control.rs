@@ -193,6 +193,12 @@ pub const LANDING_BAND_M: Real = 0.02;
 /// The descent rate a landing copter holds, m/s (half the crash speed on the floor).
 pub const LANDING_DESCENT_M_S: Real = 0.3;
 
+/// A landing whose vertical speed stays below this, m/s, …
+pub const LANDED_VZ_M_S: Real = 0.1;
+
+/// … for this long, s, is on the ground: its motors stop.
+pub const LANDED_AFTER_S: Real = 0.5;
+
 /// Collective thrust for a setpoint: height hold (`hover + P e + I ∫e − D v_z`, eq. 3.5 with
 /// an integral as on the real FINken's `GUIDANCE_V`, divided by the cosine of the tilt) when
 /// a height is set, a 0.3 m/s descent when that height is the floor, else the throttle curve. `z_m` and `vz_m_s` are the copter's estimates;
@@ -206,16 +212,24 @@ pub fn collective_thrust_n(
     vz_m_s: Real,
     cos_tilt: Real,
     integral_n: &mut Real,
+    stalled_s: &mut Real,
     dt: Real,
 ) -> Real {
     if sp.height_m > 0.0 && sp.height_m <= af.rest_height_m + LANDING_BAND_M {
         // A height at the floor: land, holding a gentle descent rate rather than a height the
-        // IR cannot measure there (and that ground effect would float above).
+        // IR cannot measure there (and that ground effect would float above). A descent that
+        // has stalled for a while is on the ground: the motors stop (Paparazzi's ground
+        // detection, then its throttle kill).
+        *stalled_s = if vz_m_s.abs() < LANDED_VZ_M_S { *stalled_s + dt } else { 0.0 };
+        if *stalled_s >= LANDED_AFTER_S {
+            return 0.0;
+        }
         let hover = 4.0 * af.hover_thrust_per_rotor_n;
         *integral_n = 0.0;
         let t = hover + af.spec.height_kd_n_s_per_m * (-LANDING_DESCENT_M_S - vz_m_s);
         t / cos_tilt.max(0.5)
     } else if sp.height_m > 0.0 {
+        *stalled_s = 0.0;
         let hover = 4.0 * af.hover_thrust_per_rotor_n;
         let e = sp.height_m - z_m;
         let bound = 0.25 * hover;
@@ -224,6 +238,7 @@ pub fn collective_thrust_n(
         t / cos_tilt.max(0.5)
     } else {
         *integral_n = 0.0;
+        *stalled_s = 0.0;
         af.throttle_to_thrust_n(sp.throttle)
     }
 }

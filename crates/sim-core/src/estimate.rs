@@ -129,6 +129,9 @@ pub struct Estimate {
     pub collective_steps: u32,
     /// Height loop integral, N.
     pub height_integral_n: Real,
+    /// How long a landing's descent has stalled (ground detection), s.
+    #[serde(default)]
+    pub landing_stalled_s: Real,
 }
 
 impl Estimate {
@@ -150,6 +153,7 @@ impl Estimate {
             collective_sum_n: 0.0,
             collective_steps: 0,
             height_integral_n: 0.0,
+            landing_stalled_s: 0.0,
         }
     }
 

@@ -73,11 +73,16 @@ pub struct SimSpec {
     /// parallel and merge in id order): `1` (the default) steps on the caller's thread only.
     /// The results are the same bits for any value; only the wall-clock time changes.
     pub threads: usize,
+    /// Copters that nothing can touch within a control step fly in closed form, and free
+    /// flight meets the floor in closed form (take-off, landing, floor crashes); only contact
+    /// candidates and wrecks go through Rapier. `false`: every copter goes through Rapier at
+    /// every substep, the reference the closed form is tested against (slow).
+    pub closed_form: bool,
 }
 
 impl Default for SimSpec {
     fn default() -> Self {
-        Self { physics_dt_s: 0.005, control_dt_s: 0.05, seed: 1, duration_s: 90.0, threads: 1 }
+        Self { physics_dt_s: 0.005, control_dt_s: 0.05, seed: 1, duration_s: 90.0, threads: 1, closed_form: true }
     }
 }
 
@@ -424,6 +429,7 @@ pub fn compile(spec: &SceneSpec) -> Result<World, SceneError> {
         seed: sim.seed,
         duration_s: sim.duration_s,
         threads: sim.threads,
+        closed_form: sim.closed_form,
     };
 
     // [arena]
@@ -837,6 +843,49 @@ pub fn grid_swarm(n: usize, spacing_m: Real, height_m: Real, sensors: bool) -> S
         airflow: AirflowSpec::default(),
         copters,
     }
+}
+
+/// An experiment-like swarm, the scene of the real-time issue and of `pybullet`'s peer: `n`
+/// FINkens on a square grid `spacing_m` apart in an arena 2 m wider on each side, flying
+/// Wall-Avoid at 1 m and 0.3 m/s forward (headings spread by the golden angle), with
+/// `n_boxes` pillars (0.5–2 m high, at most 0.45 m wide) placed at random grid-cell corners,
+/// so never on a copter. `takeoff`: the copters start on the floor, else in the air at 1 m.
+/// The pillars' placement comes from `seed`.
+pub fn dense_swarm(n: usize, spacing_m: Real, takeoff: bool, n_boxes: usize, seed: u64) -> SceneSpec {
+    let mut spec = cruising_swarm(n, 1);
+    let cols = (n as f64).sqrt().ceil().max(1.0) as usize;
+    let rows = n.div_ceil(cols).max(1);
+    let margin = 2.0;
+    spec.name = "dense_swarm".into();
+    spec.sim.seed = seed;
+    spec.arena.size_m = [cols as Real * spacing_m + 2.0 * margin, rows as Real * spacing_m + 2.0 * margin];
+    spec.arena.height_m = 3.0;
+    let x0 = -(cols as Real - 1.0) * spacing_m / 2.0;
+    let y0 = -(rows as Real - 1.0) * spacing_m / 2.0;
+    for (i, c) in spec.copters.iter_mut().enumerate() {
+        let (cx, cy) = ((i % cols) as Real, (i / cols) as Real);
+        c.start.pos_m = [x0 + cx * spacing_m, y0 + cy * spacing_m];
+        c.start.z_m = if takeoff { None } else { Some(1.0) };
+        c.command.height_m = 1.0;
+    }
+    let mut rng = crate::rng::Rng32::new(seed, u64::MAX);
+    let half = (0.15 * spacing_m).min(0.225);
+    spec.boxes = (0..n_boxes)
+        .map(|k| {
+            let i = ((rng.uniform() * (cols.max(2) - 1) as Real) as usize).min(cols.saturating_sub(2));
+            let j = ((rng.uniform() * (rows.max(2) - 1) as Real) as usize).min(rows.saturating_sub(2));
+            let h = 0.5 + 1.5 * rng.uniform();
+            BoxSpec {
+                name: Some(format!("pillar{k}")),
+                pos_m: [x0 + (i as Real + 0.5) * spacing_m, y0 + (j as Real + 0.5) * spacing_m],
+                z_m: 0.0,
+                size_m: [2.0 * half, 2.0 * half, h],
+                yaw_deg: 0.0,
+                virtual_only: false,
+            }
+        })
+        .collect();
+    spec
 }
 
 /// [`grid_swarm`] with sensors, every copter flying Wall-Avoid at 0.3 m/s forward, headings

@@ -115,6 +115,10 @@ pub struct CopterState {
     pub crash: Option<CrashCause>,
     /// Tick it first left the floor.
     pub took_off_tick: Option<u64>,
+    /// Resting level on the floor, held there in closed form (see `step`): before take-off,
+    /// after a landing. Only meaningful while it flies free of Rapier.
+    #[serde(default)]
+    pub grounded: bool,
     /// Its random stream.
     pub rng: Rng32,
 }
@@ -157,6 +161,7 @@ impl CopterState {
             sonar_cycle_s,
             crash: None,
             took_off_tick: None,
+            grounded: def.start_pos_m.z <= af.rest_height_m + 1e-4,
             rng,
         }
     }
@@ -261,7 +266,8 @@ pub(crate) struct Scratch {
     pub(crate) started: Vec<(ColliderHandle, ColliderHandle)>,
     pub(crate) vel_before: Vec<Vec3>,
     pub(crate) sonar_scene: SonarScene,
-    pub(crate) near: Vec<usize>,
+    /// Every copter's sonar cones and ping timing, for cross-talk.
+    pub(crate) pingers: Vec<Pinger>,
     /// One lane per copter: its motion during the step and its free-flight reservation.
     pub(crate) lanes: Vec<Lane>,
     /// Reserved spheres of all copters (radius in `half.x`), for the free-flight test.
@@ -280,6 +286,15 @@ pub(crate) struct Scratch {
     pub(crate) wake_grid: CopterGrid,
     /// Worker threads (`World::params.threads` > 1), built on first use.
     pub(crate) pool: Option<rayon::ThreadPool>,
+}
+
+/// A copter's sonars as an emitter of pings: its centre, cones and ping timing.
+#[derive(Clone, Copy, Debug)]
+pub(crate) struct Pinger {
+    pub(crate) pos_m: Vec3,
+    pub(crate) cones: [crate::geometry::Cone; 4],
+    pub(crate) phase_s: f64,
+    pub(crate) cycle_s: f64,
 }
 
 /// A copter's motion during one control step, and whether it flies free of Rapier.
@@ -306,6 +321,9 @@ pub(crate) struct Lane {
     pub(crate) reserved_m: Real,
     /// Height of the surface below (floor or box top), m, for ground effect.
     pub(crate) ground_m: Real,
+    /// Speed at which it hit the floor in free flight this substep, too fast to land (a
+    /// crash for the serial pass to record), m/s; 0 if none.
+    pub(crate) floor_impact_m_s: Real,
     /// Downwash force on the copter this control step, world frame, N.
     pub(crate) downwash_force_n: Vec3,
     /// Its torque about the centre of mass, world frame, N·m.

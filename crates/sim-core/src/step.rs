@@ -24,9 +24,9 @@ use crate::math::{GRAVITY_M_S2, Quat, Real, Vec3, euler_from_quat, wrap_angle_ra
 use crate::sensors::{
     self, SensorParams, SonarScene, crosstalk_eligible, crosstalk_reading, sonar_cones, sonar_reading,
 };
-use crate::state::{CopterState, CrashCause, Lane, State};
+use crate::state::{CopterState, CrashCause, Lane, Pinger, State};
 use crate::world::{ColliderTag, CopterKind, World};
-use rapier3d::prelude::PhysicsWorld;
+use rapier3d::prelude::{PhysicsWorld, RigidBodyActivation};
 
 /// Something that happened during a step.
 #[derive(Clone, Debug, PartialEq, Serialize)]
@@ -172,7 +172,16 @@ fn step_on(world: &World, state: &mut State, inputs: &Inputs, parallel: bool) ->
                 inner_loop(af, &inner, twin, c, lane, dt, alphas[airframe])
             };
             if lane.free {
+                let vel_before = lane.vel_m_s;
+                if c.grounded && !lifts_off(af, lane, thrust_n) {
+                    return;
+                }
+                c.grounded = false;
                 integrate_free(af, lane, thrust_n, torque_body_n_m, dt);
+                let below = lowest_point_below_centre(af, lane.rot);
+                if lane.pos_m.z - below < 0.0 {
+                    touch_floor(af, c, lane, vel_before, below);
+                }
             } else {
                 lane.force_n = lane.rot * Vec3::new(0.0, 0.0, thrust_n) + lane.downwash_force_n;
                 lane.torque_n_m = lane.rot * torque_body_n_m + lane.downwash_torque_n_m;
@@ -187,8 +196,12 @@ fn step_on(world: &World, state: &mut State, inputs: &Inputs, parallel: bool) ->
             if lane.free {
                 continue;
             }
-            any_near = true;
             let body = &mut state.physics.bodies[c.body];
+            // A crashed copter at rest sleeps until something hits it.
+            if body.is_sleeping() {
+                continue;
+            }
+            any_near = true;
             body.reset_forces(false);
             body.reset_torques(false);
             if c.crash.is_none() {
@@ -267,7 +280,8 @@ fn reserve_free_flight(world: &World, state: &mut State, parallel: bool) {
     let (hx, hy) = (arena.size_m[0] / 2.0, arena.size_m[1] / 2.0);
     for_each_lane(parallel, &mut state.copters, &mut scratch.lanes, |i, c, lane| {
         let (p, r) = (lane.pos_m, lane.reserved_m + FREE_GAP_M);
-        let mut free = c.crash.is_none() && p.z > r;
+        // The floor needs no clearance: free flight meets it in closed form.
+        let mut free = c.crash.is_none() && world.params.closed_form;
         if free && arena.walls {
             free = p.x.abs() + r < hx && p.y.abs() + r < hy && p.z + r < arena.height_m;
         }
@@ -283,12 +297,16 @@ fn reserve_free_flight(world: &World, state: &mut State, parallel: bool) {
             });
         }
         lane.free = free;
+        lane.floor_impact_m_s = 0.0;
+        // Rapier keeps a copter on the floor itself; back in free flight it lands anew.
+        c.grounded &= free;
     });
     for (lane, c) in state.scratch.lanes.iter().zip(&state.copters) {
         let body = &mut state.physics.bodies[c.body];
-        if lane.free && !body.is_sleeping() {
-            body.sleep();
-        } else if !lane.free && body.is_sleeping() {
+        if lane.free && body.is_enabled() {
+            body.set_enabled(false);
+        } else if !lane.free && !body.is_enabled() {
+            body.set_enabled(true);
             body.wake_up(true);
             body.set_linvel(lane.vel_m_s, false);
             body.set_angvel(lane.angvel_rad_s, false);
@@ -461,7 +479,16 @@ fn inner_loop(
         (e.height_m, e.vz_m_s, e.attitude_rad[0].cos() * e.attitude_rad[1].cos())
     };
     let e = &mut c.estimate;
-    let mut collective = control::collective_thrust_n(af, &c.setpoint, z, vz, cos_tilt, &mut e.height_integral_n, dt);
+    let mut collective = control::collective_thrust_n(
+        af,
+        &c.setpoint,
+        z,
+        vz,
+        cos_tilt,
+        &mut e.height_integral_n,
+        &mut e.landing_stalled_s,
+        dt,
+    );
     if !twin {
         collective /= e.thrust_gain;
     }
@@ -525,6 +552,51 @@ fn integrate_free(af: &Airframe, lane: &mut Lane, thrust_n: Real, torque_body_n_
     let half_w = w * (0.5 * dt);
     let dq = Quat::from_xyzw(half_w.x, half_w.y, half_w.z, 0.0) * rot;
     lane.rot = (rot + dq).normalize();
+}
+
+/// Whether a copter resting on the floor leaves it this substep: its thrust and the downwash
+/// on it lift more than its weight.
+#[inline]
+fn lifts_off(af: &Airframe, lane: &Lane, thrust_n: Real) -> bool {
+    (lane.rot * Vec3::new(0.0, 0.0, thrust_n)).z + lane.downwash_force_n.z > af.mass_kg * GRAVITY_M_S2
+}
+
+/// How far the lowest point of a copter's colliders (body box, rotor discs) lies below its
+/// centre of mass at attitude `rot`, m.
+#[inline]
+fn lowest_point_below_centre(af: &Airframe, rot: Quat) -> Real {
+    let [bx, by, bz] = af.spec.body_size_m;
+    // Row z of the rotation matrix: the world z of each body axis.
+    let (ex, ey, ez) = ((rot * Vec3::X).z, (rot * Vec3::Y).z, (rot * Vec3::Z).z);
+    let body = 0.5 * (bx * ex.abs() + by * ey.abs() + bz * ez.abs());
+    // A disc of radius r with axis body z reaches r·sin(tilt) below its centre (plus its half
+    // thickness along the axis).
+    let reach =
+        0.5 * af.spec.rotor_diameter_m * (1.0 - ez * ez).max(0.0).sqrt() + ROTOR_DISC_HALF_THICKNESS_M * ez.abs();
+    af.rotor_pos_in_body_m.iter().fold(body, |low, arm| low.max(reach - (rot * *arm).z))
+}
+
+/// Half the thickness of a rotor disc collider, m.
+pub(crate) const ROTOR_DISC_HALF_THICKNESS_M: Real = 0.005;
+
+/// A free copter's colliders reached the floor during this substep. Slower than the crash
+/// impact speed (Rapier's rule: the speed before the substep), it lands: level at its rest
+/// height, heading kept, at rest, held there until its thrust lifts it. Faster, it is lifted
+/// back onto the floor's surface and marked for the crash that the serial pass records (the
+/// wreck then falls in Rapier).
+fn touch_floor(af: &Airframe, c: &mut CopterState, lane: &mut Lane, vel_before: Vec3, below: Real) {
+    let speed = vel_before.length();
+    if speed > af.spec.crash_impact_speed_m_s {
+        lane.pos_m.z = below;
+        lane.floor_impact_m_s = speed;
+        return;
+    }
+    let fwd = lane.rot * Vec3::X;
+    lane.rot = Quat::from_rotation_z(fwd.y.atan2(fwd.x));
+    lane.pos_m.z = af.rest_height_m;
+    lane.vel_m_s = Vec3::ZERO;
+    lane.angvel_rad_s = Vec3::ZERO;
+    c.grounded = true;
 }
 
 /// Motor lag, saturation, battery voltage, ground effect, tolerance and particle noise.
@@ -720,6 +792,10 @@ fn sense(world: &World, state: &mut State, inputs: &Inputs, sonar_due: bool, par
     let walk = spec.imu.yaw_bias_walk_deg_per_sqrt_s.to_radians() * dt_control.sqrt();
     let ideal = spec.estimator.ideal;
     for_each_lane(parallel, &mut state.copters, &mut scratch.lanes, |i, c, lane| {
+        // A wreck's sensors stop: its readings keep their last values.
+        if c.crash.is_some() {
+            return;
+        }
         let (pos, rot, vel, angvel) = (lane.pos_m, lane.rot, lane.vel_m_s, lane.angvel_rad_s);
         let r = &mut c.sensors;
         if sonar_due {
@@ -792,8 +868,6 @@ fn sense(world: &World, state: &mut State, inputs: &Inputs, sonar_due: bool, par
         r.battery_charge = c.battery.charge;
         r.battery_a = c.battery.current_a;
     });
-    let scene = &state.scratch.sonar_scene;
-
     // Cross-talk: copter A's pings heard by copter B's sonars, for B in id order. Each copter's
     // sonars ping on its own cycle; B's reading is shortened when a ping of A arrives after
     // B's own ping and before its echo.
@@ -801,52 +875,66 @@ fn sense(world: &World, state: &mut State, inputs: &Inputs, sonar_due: bool, par
         let ct = &spec.crosstalk;
         let now_s = world.time_at(tick);
         let stagger = if ct.round_robin { 0.25 } else { 0.0 };
-        let near = &mut state.scratch.near;
-        for b in 0..n {
-            let body_b = &state.physics.bodies[state.copters[b].body];
-            let cones_b = sonar_cones(params, body_b.translation(), *body_b.rotation());
-            let (phase_b, cycle_b) = (state.copters[b].sonar_phase_s, state.copters[b].sonar_cycle_s);
+        let sonar = &spec.sonar;
+        let crate::state::Scratch { sonar_scene: scene, pingers, lanes, .. } = &mut state.scratch;
+        // Every copter's cones and ping timing, gathered once.
+        pingers.clear();
+        pingers.extend(lanes.iter().zip(&state.copters).map(|(lane, c)| Pinger {
+            pos_m: lane.pos_m,
+            cones: sonar_cones(params, lane.pos_m, lane.rot),
+            phase_s: c.sonar_phase_s,
+            cycle_s: c.sonar_cycle_s,
+        }));
+        let (pingers, scene) = (&*pingers, &*scene);
+        // Emitter sonar j can reach listener sonar k only if each apex lies in the other's
+        // cone. With apexes `mount_offset_m` from the centres, that needs
+        // `(p_b − p_a)·axis_j ≥ cos_h (|p_b − p_a| − 2 offset)` and the same for k: a necessary
+        // condition on the centres that skips most of the 16 exact tests.
+        let slack = 2.0 * sonar.mount_offset_m;
+        let cos_h = params.sonar_cos_half;
+        let reach = sonar.max_range_m + slack;
+        for_each_lane(parallel, &mut state.copters, lanes, |b, c, _| {
+            if c.crash.is_some() {
+                return;
+            }
+            let me = &pingers[b];
             // Sonar k's own last ping before now (all four together, or one per quarter cycle).
             let listen_s = |k: usize| {
-                let phase = phase_b + stagger * k as f64 * cycle_b;
-                phase + ((now_s - phase) / cycle_b).floor() * cycle_b
+                let phase = me.phase_s + stagger * k as f64 * me.cycle_s;
+                phase + ((now_s - phase) / me.cycle_s).floor() * me.cycle_s
             };
-            near.clear();
-            let reach = spec.sonar.max_range_m + 1.0;
-            scene.grid.visit_near(body_b.translation(), reach, |a| {
-                if a != b {
-                    near.push(a);
+            scene.grid.visit_near(me.pos_m, reach, |a| {
+                let other = &pingers[a];
+                let d_c = me.pos_m - other.pos_m;
+                let dist_c = d_c.length();
+                if a == b || dist_c > reach {
+                    return reach;
                 }
-                reach
-            });
-            near.sort_unstable();
-            for &a in near.iter() {
-                let body_a = &state.physics.bodies[state.copters[a].body];
-                let pa = body_a.translation();
-                if (pa - body_b.translation()).length() > spec.sonar.max_range_m + 1.0 {
-                    continue;
-                }
-                let (phase_a, cycle_a) = (state.copters[a].sonar_phase_s, state.copters[a].sonar_cycle_s);
-                let cones_a = sonar_cones(params, pa, *body_a.rotation());
-                for (j, cone_a) in cones_a.iter().enumerate() {
-                    for (k, cone_b) in cones_b.iter().enumerate() {
-                        let Some(d) = crosstalk_eligible(cone_a, cone_b, spec.sonar.max_range_m) else { continue };
-                        let emitted_s = phase_a + stagger * j as f64 * cycle_a;
-                        let v = crosstalk_reading(listen_s(k), emitted_s, cycle_a, d, ct.speed_of_sound_m_s);
-                        if v > spec.sonar.max_range_m {
+                let need = cos_h * (dist_c - slack) - 1e-4;
+                for (j, cone_a) in other.cones.iter().enumerate() {
+                    if d_c.dot(cone_a.axis) < need {
+                        continue;
+                    }
+                    for (k, cone_b) in me.cones.iter().enumerate() {
+                        if -d_c.dot(cone_b.axis) < need {
                             continue;
                         }
-                        let q =
-                            sensors::quantise(v.clamp(spec.sonar.min_range_m, spec.sonar.cap_m), spec.sonar.quantum_m);
-                        let c = &mut state.copters[b];
+                        let Some(d) = crosstalk_eligible(cone_a, cone_b, sonar.max_range_m) else { continue };
+                        let emitted_s = other.phase_s + stagger * j as f64 * other.cycle_s;
+                        let v = crosstalk_reading(listen_s(k), emitted_s, other.cycle_s, d, ct.speed_of_sound_m_s);
+                        if v > sonar.max_range_m {
+                            continue;
+                        }
+                        let q = sensors::quantise(v.clamp(sonar.min_range_m, sonar.cap_m), sonar.quantum_m);
                         if q < c.sensors.sonar_m[k] {
                             c.sensors.sonar_m[k] = q;
                             c.sensors.sonar_crosstalk[k] = true;
                         }
                     }
                 }
-            }
-        }
+                reach
+            });
+        });
     }
 
     for i in 0..n {
@@ -905,12 +993,17 @@ fn detect_tilt_and_takeoff(world: &World, state: &mut State, report: &mut StepRe
                 crash(state, i, CrashCause::Tilt { tilt_deg }, report);
             }
         }
+        if lane.free && lane.floor_impact_m_s > 0.0 && state.copters[i].crash.is_none() {
+            crash(state, i, CrashCause::Floor { speed_m_s: lane.floor_impact_m_s }, report);
+            continue;
+        }
         if lane.free && (lane.pos_m - lane.anchor_m).length() > lane.reach_m {
             let body = &mut state.physics.bodies[state.copters[i].body];
             body.set_translation(lane.pos_m, false);
             body.set_rotation(lane.rot, false);
             body.set_linvel(lane.vel_m_s, false);
             body.set_angvel(lane.angvel_rad_s, false);
+            body.set_enabled(true);
             body.wake_up(true);
             state.scratch.lanes[i].free = false;
         }
@@ -928,8 +1021,26 @@ fn detect_tilt_and_takeoff(world: &World, state: &mut State, report: &mut StepRe
     }
 }
 
+/// How long a wreck lies still (Rapier's thresholds: 0.05 m/s, 0.5 rad/s) before it sleeps, s.
+const WRECK_TIME_UNTIL_SLEEP_S: Real = 0.2;
+
 fn crash(state: &mut State, i: usize, cause: CrashCause, report: &mut StepReport) {
     let c = &mut state.copters[i];
+    // From now on Rapier may put it to sleep once it lies still; a sleeping wreck costs nothing until something hits it.
+    if let Some(body) = state.physics.bodies.get_mut(c.body) {
+        let activation = body.activation_mut();
+        *activation = RigidBodyActivation::active();
+        activation.time_until_sleep = WRECK_TIME_UNTIL_SLEEP_S;
+        // A copter that crashed in free flight (tilt) falls in Rapier from here.
+        if let Some(lane) = state.scratch.lanes.get_mut(i).filter(|l| l.free) {
+            body.set_enabled(true);
+            body.set_translation(lane.pos_m, false);
+            body.set_rotation(lane.rot, false);
+            body.set_linvel(lane.vel_m_s, false);
+            body.set_angvel(lane.angvel_rad_s, false);
+            lane.free = false;
+        }
+    }
     c.crash = Some(cause);
     c.rotor_speed_rad_s = [0.0; 4];
     c.rotor_thrust_n = [0.0; 4];

@@ -38,6 +38,9 @@ pub struct SimParams {
     /// Worker threads for one step (`[sim] threads`); any value gives the same bits. A
     /// caller may change it between steps (e.g. from a command-line flag).
     pub threads: usize,
+    /// Free flight and floor contact in closed form (`[sim] closed_form`); `false`: every
+    /// copter through Rapier.
+    pub closed_form: bool,
 }
 
 /// The arena: a floor rectangle centred on the origin, walls and a ceiling.
@@ -197,6 +200,10 @@ impl World {
         let mut physics = PhysicsWorld::new();
         physics.gravity = Vector::new(0.0, 0.0, -GRAVITY_M_S2);
         physics.integration_parameters.dt = self.physics_dt();
+        // No continuous collision detection: at 5 ms a copter moves at most a few cm, less
+        // than the walls' and floor's thickness; CCD's sweeps cost more than the rest of a
+        // wreck's step.
+        physics.integration_parameters.max_ccd_substeps = 0;
         self.insert_static_geometry(&mut physics);
         let mut state = State { tick: 0, physics, copters: Vec::new(), scratch: Scratch::default() };
         for id in 0..self.copters.len() {
@@ -295,7 +302,7 @@ impl World {
         let collider = physics.insert_collider(main, Some(handle));
         let rotor_radius = af.spec.rotor_diameter_m / 2.0;
         for p in af.rotor_pos_in_body_m {
-            let disc = ColliderBuilder::cylinder(0.005, rotor_radius)
+            let disc = ColliderBuilder::cylinder(crate::step::ROTOR_DISC_HALF_THICKNESS_M, rotor_radius)
                 .rotation(Vec3::new(std::f32::consts::FRAC_PI_2, 0.0, 0.0))
                 .translation(p)
                 .density(0.0)
