@@ -205,6 +205,7 @@ pub const LANDED_AFTER_S: Real = 0.5;
 /// `integral_n` is the loop's integral term, bounded to a quarter of the hover thrust and
 /// reset while no height is held.
 #[inline]
+#[allow(clippy::too_many_arguments)]
 pub fn collective_thrust_n(
     af: &Airframe,
     sp: &Setpoint,
