@@ -274,6 +274,8 @@ pub(crate) struct Scratch {
     pub(crate) spheres: Vec<OrientedBox>,
     /// A grid over `spheres`.
     pub(crate) sphere_grid: CopterGrid,
+    /// Which copters are wrecks at rest that no flying copter can reach this control step.
+    pub(crate) still: Vec<bool>,
     /// cos of each airframe's crash tilt.
     pub(crate) crash_cos_tilt: Vec<Real>,
     /// Each airframe's motor-lag blend factor for one physics step.
@@ -295,6 +297,8 @@ pub(crate) struct Pinger {
     pub(crate) cones: [crate::geometry::Cone; 4],
     pub(crate) phase_s: f64,
     pub(crate) cycle_s: f64,
+    /// Whether it pings at all (a wreck does not).
+    pub(crate) pings: bool,
 }
 
 /// A copter's motion during one control step, and whether it flies free of Rapier.

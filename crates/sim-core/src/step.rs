@@ -26,7 +26,7 @@ use crate::sensors::{
 };
 use crate::state::{CopterState, CrashCause, Lane, Pinger, State};
 use crate::world::{ColliderTag, CopterKind, World};
-use rapier3d::prelude::{PhysicsWorld, RigidBodyActivation};
+use rapier3d::prelude::{PhysicsWorld, RigidBodyActivation, RigidBodyType};
 
 /// Something that happened during a step.
 #[derive(Clone, Debug, PartialEq, Serialize)]
@@ -198,7 +198,7 @@ fn step_on(world: &World, state: &mut State, inputs: &Inputs, parallel: bool) ->
             }
             let body = &mut state.physics.bodies[c.body];
             // A crashed copter at rest sleeps until something hits it.
-            if body.is_sleeping() {
+            if body.is_sleeping() || body.is_fixed() {
                 continue;
             }
             any_near = true;
@@ -260,9 +260,14 @@ fn reserve_free_flight(world: &World, state: &mut State, parallel: bool) {
     for (i, (lane, c)) in scratch.lanes.iter_mut().zip(&state.copters).enumerate() {
         let af = &world.airframes[world.copters[i].airframe];
         let tol = c.rotor_tolerance.iter().copied().fold(1.0, Real::max);
-        let a_max = FREE_ACCEL_HEADROOM * 4.0 * af.max_thrust_per_rotor_n * tol / af.mass_kg
-            + GRAVITY_M_S2
-            + lane.downwash_force_n.length() / af.mass_kg;
+        // A wreck's motors are off: only gravity and contacts move it.
+        let a_max = if c.crash.is_some() {
+            GRAVITY_M_S2
+        } else {
+            FREE_ACCEL_HEADROOM * 4.0 * af.max_thrust_per_rotor_n * tol / af.mass_kg
+                + GRAVITY_M_S2
+                + lane.downwash_force_n.length() / af.mass_kg
+        };
         lane.anchor_m = lane.pos_m;
         lane.reach_m = lane.vel_m_s.length() * t + 0.5 * a_max * t * t;
         let radius = af.radius_m.hypot(af.spec.body_size_m[2] / 2.0) + 0.01;
@@ -278,10 +283,30 @@ fn reserve_free_flight(world: &World, state: &mut State, parallel: bool) {
     let grid = &scratch.sphere_grid;
     let arena = &world.arena;
     let (hx, hy) = (arena.size_m[0] / 2.0, arena.size_m[1] / 2.0);
+    let closed_form = world.params.closed_form;
+    let crashed = |j: usize| state.copters[j].crash.is_some();
+    let bodies = &state.physics.bodies;
+    // Wrecks at rest that no flying copter can reach this step.
+    scratch.still.clear();
+    scratch.still.extend(state.copters.iter().zip(&scratch.spheres).enumerate().map(|(i, (c, sphere))| {
+        let body = &bodies[c.body];
+        let resting = c.crash.is_some() && (body.is_fixed() || body.is_sleeping());
+        let (p, r) = (sphere.center, sphere.half.x + FREE_GAP_M);
+        let mut alone = resting && closed_form;
+        if alone {
+            grid.visit_near(p, r, |j| {
+                if j != i && !crashed(j) && (spheres[j].center - p).length() <= r + spheres[j].half.x {
+                    alone = false;
+                }
+                if alone { r } else { -1.0 }
+            });
+        }
+        alone
+    }));
     for_each_lane(parallel, &mut state.copters, &mut scratch.lanes, |i, c, lane| {
         let (p, r) = (lane.pos_m, lane.reserved_m + FREE_GAP_M);
         // The floor needs no clearance: free flight meets it in closed form.
-        let mut free = c.crash.is_none() && world.params.closed_form;
+        let mut free = c.crash.is_none() && closed_form;
         if free && arena.walls {
             free = p.x.abs() + r < hx && p.y.abs() + r < hy && p.z + r < arena.height_m;
         }
@@ -301,8 +326,20 @@ fn reserve_free_flight(world: &World, state: &mut State, parallel: bool) {
         // Rapier keeps a copter on the floor itself; back in free flight it lands anew.
         c.grounded &= free;
     });
-    for (lane, c) in state.scratch.lanes.iter().zip(&state.copters) {
+    for ((lane, c), &still) in state.scratch.lanes.iter().zip(&state.copters).zip(&state.scratch.still) {
         let body = &mut state.physics.bodies[c.body];
+        if c.crash.is_some() {
+            // A wreck at rest that no flying copter can reach is fixed (Rapier makes no contacts
+            // between fixed bodies, so it costs nothing); when one comes near, it is a sleeping
+            // dynamic body again, which a hit wakes.
+            if still && body.is_dynamic() {
+                body.set_body_type(RigidBodyType::Fixed, false);
+            } else if !still && body.is_fixed() {
+                body.set_body_type(RigidBodyType::Dynamic, false);
+                body.sleep();
+            }
+            continue;
+        }
         if lane.free && body.is_enabled() {
             body.set_enabled(false);
         } else if !lane.free && !body.is_enabled() {
@@ -792,7 +829,8 @@ fn sense(world: &World, state: &mut State, inputs: &Inputs, sonar_due: bool, par
     let walk = spec.imu.yaw_bias_walk_deg_per_sqrt_s.to_radians() * dt_control.sqrt();
     let ideal = spec.estimator.ideal;
     for_each_lane(parallel, &mut state.copters, &mut scratch.lanes, |i, c, lane| {
-        // A wreck's sensors stop: its readings keep their last values.
+        // A wreck's sensors stop (and its sonars no longer ping): its readings keep their
+        // last values.
         if c.crash.is_some() {
             return;
         }
@@ -884,6 +922,7 @@ fn sense(world: &World, state: &mut State, inputs: &Inputs, sonar_due: bool, par
             cones: sonar_cones(params, lane.pos_m, lane.rot),
             phase_s: c.sonar_phase_s,
             cycle_s: c.sonar_cycle_s,
+            pings: c.crash.is_none(),
         }));
         let (pingers, scene) = (&*pingers, &*scene);
         // Emitter sonar j can reach listener sonar k only if each apex lies in the other's
@@ -907,7 +946,7 @@ fn sense(world: &World, state: &mut State, inputs: &Inputs, sonar_due: bool, par
                 let other = &pingers[a];
                 let d_c = me.pos_m - other.pos_m;
                 let dist_c = d_c.length();
-                if a == b || dist_c > reach {
+                if a == b || !other.pings || dist_c > reach {
                     return reach;
                 }
                 let need = cos_h * (dist_c - slack) - 1e-4;
