@@ -1,10 +1,22 @@
-//! Real-time factor of a swarm: N FINkens flying Wall-Avoid on their own sensors (4 sonar
-//! cones, IR, IMU noise), 50 ms control steps of 10 × 5 ms physics substeps, one copter per
-//! 2 m × 2 m cell, each heading its own way at 0.3 m/s. Prints one JSON line per run, in the
-//! spirit of `peer_pybullet.py bench`, so `scripts/bench-peers.sh` can put them side by side.
+//! Real-time factor of a swarm: N FINkens flying Wall-Avoid on their full model (4 sonar
+//! cones with cross-talk, IR, IMU, estimators, battery, downwash), 50 ms control steps of
+//! 10 × 5 ms physics substeps. Prints one JSON line per run, in the spirit of
+//! `peer_pybullet.py bench`, so `scripts/bench-peers.sh` can put them side by side.
+//!
+//! Scenes (`--scene`):
+//! - `cruise` (default): `scene::cruising_swarm`, one copter per 2 m × 2 m cell, starting in
+//!   the air, each heading its own way at 0.3 m/s; 1 s of warm-up is not measured.
+//! - `dense`: `scene::dense_swarm`, the experiment: a 1.5 m grid taking off from the floor,
+//!   10 pillars among the copters, Wall-Avoid at 1 m; measured from the floor (tick 0), so
+//!   take-off, crowding and the crashes piling up all count.
+//! - `dense-air`: the same, starting in the air at 1 m.
+//!
+//! Each run also reports the process's resident memory after building the world and at the
+//! end (`rss_mib`), and the growth per copter (`bytes_per_copter`: one run per process gives a
+//! clean figure).
 //!
 //! ```text
-//! cargo bench -p twinswarm --bench swarm_rt -- --n 100 1000 --threads 1 2 [--log] [--sim-seconds S]
+//! cargo bench -p twinswarm --bench swarm_rt -- --n 100 1000 --threads 1 2 [--scene dense] [--log] [--sim-seconds S]
 //! cargo bench -p twinswarm --bench swarm_rt -- --n 100 1000 --log-cost ROUNDS [--zstd-level L] [--zstd-level-behind L]
 //! cargo bench -p twinswarm --bench swarm_rt -- --plot docs/img/scaling.png
 //! ```
@@ -22,6 +34,7 @@ use sim_core::{World, scene, step};
 /// One measured run.
 #[derive(Debug)]
 struct Run {
+    scene: Scene,
     n: usize,
     threads: usize,
     log: bool,
@@ -35,6 +48,34 @@ struct Run {
     log_bytes: u64,
     /// Chunks compressed at the faster level because the writer was behind.
     fast_chunks: u64,
+    /// Resident memory before the world was built, after, and at the end, bytes.
+    rss: [u64; 3],
+}
+
+/// Which swarm a run flies.
+#[derive(Clone, Copy, Debug, PartialEq)]
+enum Scene {
+    Cruise,
+    Dense,
+    DenseAir,
+}
+
+impl Scene {
+    fn name(self) -> &'static str {
+        match self {
+            Scene::Cruise => "cruise",
+            Scene::Dense => "dense_takeoff",
+            Scene::DenseAir => "dense_air",
+        }
+    }
+}
+
+/// Resident memory of this process, bytes (Linux; 0 elsewhere).
+fn rss_bytes() -> u64 {
+    std::fs::read_to_string("/proc/self/status")
+        .ok()
+        .and_then(|s| s.lines().find(|l| l.starts_with("VmRSS:"))?.split_whitespace().nth(1)?.parse::<u64>().ok())
+        .map_or(0, |kib| kib * 1024)
 }
 
 impl Run {
@@ -47,9 +88,11 @@ impl Run {
         let steps = self.sim_s / 0.05;
         let cpu = |v: Option<f64>| v.map_or("null".to_string(), |v| format!("{v:.4}"));
         format!(
-            "{{\"sim\": \"twinswarm\", \"scenario\": \"wall_avoid_sensors_on\", \"N\": {}, \"threads\": {}, \"log\": {}, \
+            "{{\"sim\": \"twinswarm\", \"scenario\": \"{}\", \"N\": {}, \"threads\": {}, \"log\": {}, \
              \"sim_s\": {:.2}, \"wall_clock_s\": {:.4}, \"cpu_s\": {}, \"rtf_wallclock\": {:.3}, \"rtf_cpu\": {}, \
-             \"ms_per_step\": {:.4}, \"us_per_copter_step\": {:.4}, \"crashed\": {}}}",
+             \"ms_per_step\": {:.4}, \"us_per_copter_step\": {:.4}, \"crashed\": {}, \"rss_mib\": [{:.1}, {:.1}], \
+             \"bytes_per_copter\": {}}}",
+            self.scene.name(),
             self.n,
             self.threads,
             self.log,
@@ -61,6 +104,9 @@ impl Run {
             1e3 * self.wall_s / steps,
             self.us_per_copter_step(),
             self.crashed,
+            self.rss[1] as f64 / (1024.0 * 1024.0),
+            self.rss[2] as f64 / (1024.0 * 1024.0),
+            self.rss[2].saturating_sub(self.rss[0]) / self.n.max(1) as u64,
         )
     }
 }
@@ -70,10 +116,14 @@ fn thread_cpu_s() -> Option<f64> {
     bridge::log::thread_cpu_ns().map(|ns| ns as f64 * 1e-9)
 }
 
-/// The swarm: `scene::cruising_swarm` (Wall-Avoid, 0.3 m/s forward, headings spread by the
-/// golden angle).
-fn world(n: usize, threads: usize) -> World {
-    let spec = scene::cruising_swarm(n, threads);
+/// The swarm of `scene` (see the module docs).
+fn world(scene: Scene, n: usize, threads: usize) -> World {
+    let mut spec = match scene {
+        Scene::Cruise => scene::cruising_swarm(n, threads),
+        Scene::Dense => scene::dense_swarm(n, 1.5, true, 10, 1),
+        Scene::DenseAir => scene::dense_swarm(n, 1.5, false, 10, 1),
+    };
+    spec.sim.threads = threads;
     match scene::compile(&spec) {
         Ok(w) => w,
         Err(e) => panic!("{e}"),
@@ -92,13 +142,18 @@ fn log_options() -> bridge::log::LogOptions {
     o
 }
 
-fn run(n: usize, threads: usize, log: bool, sim_s: f64, dir: &Path) -> Run {
-    let world = world(n, threads);
+fn run(scene: Scene, n: usize, threads: usize, log: bool, sim_s: f64, dir: &Path) -> Run {
+    let rss0 = rss_bytes();
+    let world = world(scene, n, threads);
     let mut state = world.initial_state();
     let inputs = world.initial_inputs();
-    // Warm-up (1 s): buffers grow, the thread pool starts.
-    for _ in 0..20 {
-        step(&world, &mut state, &inputs);
+    let rss1 = rss_bytes();
+    // The cruising swarm warms up (1 s: buffers grow, the thread pool starts); the experiments
+    // are measured from the floor.
+    if scene == Scene::Cruise {
+        for _ in 0..20 {
+            step(&world, &mut state, &inputs);
+        }
     }
     let steps = (sim_s / world.params.control_dt_s).round().max(1.0) as usize;
     let mut logger = log.then(|| {
@@ -139,16 +194,17 @@ fn run(n: usize, threads: usize, log: bool, sim_s: f64, dir: &Path) -> Run {
     let wall_s = t0.elapsed().as_secs_f64();
     let crashed = state.copters.iter().filter(|c| c.crash.is_some()).count();
     let sim_s = steps as f64 * world.params.control_dt_s;
-    Run { n, threads, log, sim_s, wall_s, cpu_s, crashed, writer_cpu_s, log_bytes, fast_chunks }
+    let rss = [rss0, rss1, rss_bytes()];
+    Run { scene, n, threads, log, sim_s, wall_s, cpu_s, crashed, writer_cpu_s, log_bytes, fast_chunks, rss }
 }
 
 /// The cost of logging at `n` copters: `rounds` pairs of runs, logging off then on; the
 /// overhead is the median of the pairs' ratios, the other numbers are medians over the runs.
-fn log_cost(n: usize, threads: usize, rounds: usize, sim_s: f64, dir: &Path) -> String {
+fn log_cost(scene: Scene, n: usize, threads: usize, rounds: usize, sim_s: f64, dir: &Path) -> String {
     let (mut off, mut on) = (Vec::new(), Vec::new());
     for _ in 0..rounds {
-        off.push(run(n, threads, false, sim_s, dir));
-        on.push(run(n, threads, true, sim_s, dir));
+        off.push(run(scene, n, threads, false, sim_s, dir));
+        on.push(run(scene, n, threads, true, sim_s, dir));
     }
     let steps = |r: &Run| r.sim_s / 0.05;
     let median = |runs: &[Run], f: &dyn Fn(&Run) -> Option<f64>| {
@@ -169,10 +225,11 @@ fn log_cost(n: usize, threads: usize, rounds: usize, sim_s: f64, dir: &Path) -> 
     ratios.sort_by(f64::total_cmp);
     let ratio = ratios[ratios.len() / 2];
     format!(
-        "{{\"sim\": \"twinswarm\", \"scenario\": \"log_cost\", \"N\": {n}, \"threads\": {threads}, \"rounds\": {rounds}, \
+        "{{\"sim\": \"twinswarm\", \"scenario\": \"log_cost_{}\", \"N\": {n}, \"threads\": {threads}, \"rounds\": {rounds}, \
          \"sim_s\": {sim_s:.1}, \"ms_per_step_off\": {wall_off:.4}, \"ms_per_step_on\": {wall_on:.4}, \
          \"overhead_pct\": {:.1}, \"overhead_pct_min_max\": [{:.1}, {:.1}], \"step_thread_cpu_ms_off\": {cpu_off:.4}, \
          \"step_thread_cpu_ms_on\": {cpu_on:.4}, \"writer_cpu_ms_per_step\": {writer:.4}, \"log_kib_per_step\": {:.1}, \"fast_chunks\": {fast}}}",
+        scene.name(),
         100.0 * (ratio - 1.0),
         100.0 * (ratios[0] - 1.0),
         100.0 * (ratios[ratios.len() - 1] - 1.0),
@@ -239,6 +296,7 @@ fn main() {
     let mut log_cost_rounds = None;
     let mut sim_s = None;
     let mut plot_to: Option<PathBuf> = None;
+    let mut scene = Scene::Cruise;
     let mut args = std::env::args().skip(1).peekable();
     let mut list = None;
     while let Some(a) = args.next() {
@@ -250,6 +308,15 @@ fn main() {
             "--zstd-level" | "--zstd-level-behind" => (_, list) = (args.next(), None),
             "--sim-seconds" => (sim_s, list) = (args.next().and_then(|v| v.parse::<f64>().ok()), None),
             "--plot" => (plot_to, list) = (args.next().map(PathBuf::from), None),
+            "--scene" => {
+                scene = match args.next().as_deref() {
+                    Some("cruise") => Scene::Cruise,
+                    Some("dense") => Scene::Dense,
+                    Some("dense-air") => Scene::DenseAir,
+                    other => panic!("--scene takes cruise, dense or dense-air, not {other:?}"),
+                };
+                list = None;
+            }
             // `cargo bench` passes `--bench`; other flags are not ours.
             s if s.starts_with("--") => list = None,
             s => match (list, s.parse::<usize>()) {
@@ -267,7 +334,7 @@ fn main() {
         let mut runs = Vec::new();
         for t in [1, 2] {
             for n in [1, 10, 100, 1000, 10_000] {
-                let r = run(n, t, false, sim_s.unwrap_or(default_sim_s(n) / 2.0), &dir);
+                let r = run(scene, n, t, false, sim_s.unwrap_or(default_sim_s(n) / 2.0), &dir);
                 println!("{}", r.json());
                 runs.push(r);
             }
@@ -292,10 +359,11 @@ fn main() {
         }
         for &t in &threads {
             for &n in &ns {
-                let sim_s = sim_s.unwrap_or(default_sim_s(n));
+                // Experiments run long enough for crashes to pile up.
+                let sim_s = sim_s.unwrap_or(if scene == Scene::Cruise { default_sim_s(n) } else { 60.0 });
                 match log_cost_rounds {
-                    Some(rounds) => println!("{}", log_cost(n, t, rounds.max(1), sim_s, &dir)),
-                    None => println!("{}", run(n, t, log, sim_s, &dir).json()),
+                    Some(rounds) => println!("{}", log_cost(scene, n, t, rounds.max(1), sim_s, &dir)),
+                    None => println!("{}", run(scene, n, t, log, sim_s, &dir).json()),
                 }
             }
         }

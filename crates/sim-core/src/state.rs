@@ -276,6 +276,8 @@ pub(crate) struct Scratch {
     pub(crate) sphere_grid: CopterGrid,
     /// Which copters are wrecks at rest that no flying copter can reach this control step.
     pub(crate) still: Vec<bool>,
+    /// Copters on watch and what they may meet this step, (on watch, other) once per pair.
+    pub(crate) watch_pairs: Vec<(u32, u32)>,
     /// cos of each airframe's crash tilt.
     pub(crate) crash_cos_tilt: Vec<Real>,
     /// Each airframe's motor-lag blend factor for one physics step.
@@ -315,8 +317,13 @@ pub(crate) struct Lane {
     /// Force and torque (world frame) for Rapier to apply this substep, N and N·m.
     pub(crate) force_n: Vec3,
     pub(crate) torque_n_m: Vec3,
-    /// Flies free this control step: integrated in closed form, its Rapier body asleep.
+    /// Flies free this control step: integrated in closed form, its Rapier body disabled.
     pub(crate) free: bool,
+    /// Flies free but near other copters: each substep checks whether it may touch one, and
+    /// if so hands it to Rapier (see `step::watch_contacts`).
+    pub(crate) watch: bool,
+    /// Bounding radius plus the reach of its acceleration within one substep, m.
+    pub(crate) substep_reserved_m: Real,
     /// Centre of the reservation at the start of the step, m.
     pub(crate) anchor_m: Vec3,
     /// How far the centre may move during the step and stay free, m.

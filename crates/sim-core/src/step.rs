@@ -159,6 +159,7 @@ fn step_on(world: &World, state: &mut State, inputs: &Inputs, parallel: bool) ->
     scratch.motor_alpha.extend(world.airframes.iter().map(|af| motor_alpha(af, dt)));
     let inner = InnerParams::new(world, dt);
     for _ in 0..world.params.substeps {
+        watch_contacts(state, dt);
         // Inner loops and rotors of every copter; free copters also move.
         let scratch = &mut state.scratch;
         let alphas = &scratch.motor_alpha;
@@ -255,6 +256,7 @@ fn step_on(world: &World, state: &mut State, inputs: &Inputs, parallel: bool) ->
 /// Euler, Rapier's damping and gyroscopic terms). Crashed copters always stay with Rapier.
 fn reserve_free_flight(world: &World, state: &mut State, parallel: bool) {
     let t = world.params.control_dt_s as Real;
+    let dt = world.physics_dt();
     let scratch = &mut state.scratch;
     scratch.spheres.clear();
     for (i, (lane, c)) in scratch.lanes.iter_mut().zip(&state.copters).enumerate() {
@@ -272,6 +274,7 @@ fn reserve_free_flight(world: &World, state: &mut State, parallel: bool) {
         lane.reach_m = lane.vel_m_s.length() * t + 0.5 * a_max * t * t;
         let radius = af.radius_m.hypot(af.spec.body_size_m[2] / 2.0) + 0.01;
         lane.reserved_m = radius + lane.reach_m;
+        lane.substep_reserved_m = radius + 0.5 * a_max * dt * dt;
         scratch.spheres.push(OrientedBox {
             center: lane.pos_m,
             rotation: crate::math::Quat::IDENTITY,
@@ -313,19 +316,35 @@ fn reserve_free_flight(world: &World, state: &mut State, parallel: bool) {
         if free {
             free = world.boxes.iter().all(|b| b.distance_to_point(p) > r);
         }
+        // Clear of the walls and boxes but near other copters: on watch.
+        let mut watch = false;
         if free {
             grid.visit_near(p, r, |j| {
                 if j != i && (spheres[j].center - p).length() <= r + spheres[j].half.x {
-                    free = false;
+                    watch = true;
                 }
-                if free { r } else { -1.0 }
+                if watch { -1.0 } else { r }
             });
         }
         lane.free = free;
+        lane.watch = watch;
         lane.floor_impact_m_s = 0.0;
         // Rapier keeps a copter on the floor itself; back in free flight it lands anew.
         c.grounded &= free;
     });
+    // Everything a copter on watch may come close to this step (once per pair).
+    let scratch = &mut state.scratch;
+    scratch.watch_pairs.clear();
+    for (i, lane) in scratch.lanes.iter().enumerate().filter(|(_, l)| l.watch) {
+        let (p, r) = (lane.pos_m, lane.reserved_m + FREE_GAP_M);
+        let (spheres, lanes, pairs) = (&scratch.spheres, &scratch.lanes, &mut scratch.watch_pairs);
+        scratch.sphere_grid.visit_near(p, r, |j| {
+            if j != i && !(lanes[j].watch && j < i) && (spheres[j].center - p).length() <= r + spheres[j].half.x {
+                pairs.push((i as u32, j as u32));
+            }
+            r
+        });
+    }
     for ((lane, c), &still) in state.scratch.lanes.iter().zip(&state.copters).zip(&state.scratch.still) {
         let body = &mut state.physics.bodies[c.body];
         if c.crash.is_some() {
@@ -347,6 +366,41 @@ fn reserve_free_flight(world: &World, state: &mut State, parallel: bool) {
             body.wake_up(true);
             body.set_linvel(lane.vel_m_s, false);
             body.set_angvel(lane.angvel_rad_s, false);
+        }
+    }
+}
+
+/// Hands copters on watch to Rapier when they may touch something within this substep: two
+/// copters whose spheres (bounding radius plus `|v| dt + a_max dt² / 2` and [`FREE_GAP_M`])
+/// meet both go to Rapier (a copter already in Rapier, a wreck for one, is there), for the rest
+/// of the control step. Copters on watch never meet anything else: their reservations overlap
+/// only each other's.
+fn watch_contacts(state: &mut State, dt: Real) {
+    let scratch = &mut state.scratch;
+    for &(i, j) in &scratch.watch_pairs {
+        let (i, j) = (i as usize, j as usize);
+        let (a, b) = (&scratch.lanes[i], &scratch.lanes[j]);
+        if !(a.watch || b.watch) {
+            continue;
+        }
+        let reach = |l: &Lane| l.substep_reserved_m + l.vel_m_s.length() * dt;
+        if (a.pos_m - b.pos_m).length() > reach(a) + reach(b) + FREE_GAP_M {
+            continue;
+        }
+        for k in [i, j] {
+            let lane = &mut scratch.lanes[k];
+            if !lane.watch {
+                continue;
+            }
+            let c = &mut state.copters[k];
+            let body = &mut state.physics.bodies[c.body];
+            body.set_translation(lane.pos_m, false);
+            body.set_rotation(lane.rot, false);
+            body.set_linvel(lane.vel_m_s, false);
+            body.set_angvel(lane.angvel_rad_s, false);
+            body.set_enabled(true);
+            body.wake_up(true);
+            (lane.free, lane.watch, c.grounded) = (false, false, false);
         }
     }
 }
@@ -1044,7 +1098,8 @@ fn detect_tilt_and_takeoff(world: &World, state: &mut State, report: &mut StepRe
             body.set_angvel(lane.angvel_rad_s, false);
             body.set_enabled(true);
             body.wake_up(true);
-            state.scratch.lanes[i].free = false;
+            (state.scratch.lanes[i].free, state.scratch.lanes[i].watch) = (false, false);
+            state.copters[i].grounded = false;
         }
     }
     for i in 0..world.copters.len() {
@@ -1077,7 +1132,7 @@ fn crash(state: &mut State, i: usize, cause: CrashCause, report: &mut StepReport
             body.set_rotation(lane.rot, false);
             body.set_linvel(lane.vel_m_s, false);
             body.set_angvel(lane.angvel_rad_s, false);
-            lane.free = false;
+            (lane.free, lane.watch) = (false, false);
         }
     }
     c.crash = Some(cause);
