@@ -501,14 +501,14 @@ fn medusa_for(world: &World, slots: &[usize]) -> anyhow::Result<Medusa> {
 
 /// The sonar scene exactly as sim-core's `sense` builds it, from the current state.
 fn sonar_scene(world: &World, state: &State, scene: &mut SonarScene) {
-    sim_core::step::fill_sonar_scene(world, &state.physics, &state.copters, scene);
+    sim_core::step::fill_sonar_scene(world, &state.copters, scene);
 }
 
 /// Readings of the four synthetic diagonal sonars (slots 4..8) at the current state.
 fn diagonal_readings(world: &World, state: &State, scene: &SonarScene, id: usize, rng: &mut Rng32) -> [Real; 4] {
     let spec = &world.sensors.spec.sonar;
-    let body = &state.physics.bodies[state.copters[id].body];
-    let (pos, rot) = (body.translation(), *body.rotation());
+    let m = &state.copters[id].motion;
+    let (pos, rot) = (m.pos_m, m.rot);
     std::array::from_fn(|k| {
         let a = SLOT_ANGLES_DEG[4 + k].to_radians() as Real;
         let axis = rot * Vec3::new(a.cos(), a.sin(), 0.0);

@@ -39,7 +39,7 @@ impl VirtualSonar {
         self.ids.clear();
         for (i, def) in world.copters.iter().enumerate() {
             if def.kind == CopterKind::Virtual {
-                scene.copters.push(copter_box(world, &state.physics, &state.copters, i));
+                scene.copters.push(copter_box(world, &state.copters, i));
                 self.ids.push(i);
             }
         }
@@ -50,8 +50,8 @@ impl VirtualSonar {
     /// virtual-only object in each cone, m; `INFINITY` when there is none within range. Call
     /// [`VirtualSonar::prepare`] first in the same state.
     pub fn readings(&self, world: &World, state: &State, i: usize) -> [Real; 4] {
-        let body = &state.physics.bodies[state.copters[i].body];
-        let cones = sonar_cones(&world.sensors, body.translation(), *body.rotation());
+        let m = &state.copters[i].motion;
+        let cones = sonar_cones(&world.sensors, m.pos_m, m.rot);
         let range = world.sensors.spec.sonar.max_range_m;
         // A twin is not in the scene; a virtual copter asking must not see itself.
         let self_id = self.ids.binary_search(&i).unwrap_or(usize::MAX);

@@ -121,6 +121,22 @@ pub struct CopterState {
     pub grounded: bool,
     /// Its random stream.
     pub rng: Rng32,
+    /// Its pose and velocities at the end of the last step: the truth everything reads. Its
+    /// Rapier body follows only while Rapier steps it (near something, or a wreck).
+    pub motion: Motion,
+}
+
+/// A copter's pose and velocities, world frame.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct Motion {
+    /// Centre of mass, m.
+    pub pos_m: Vec3,
+    /// World-from-body rotation.
+    pub rot: Quat,
+    /// Velocity, m/s.
+    pub vel_m_s: Vec3,
+    /// Angular velocity, rad/s.
+    pub angvel_rad_s: Vec3,
 }
 
 impl CopterState {
@@ -161,6 +177,12 @@ impl CopterState {
             sonar_cycle_s,
             crash: None,
             took_off_tick: None,
+            motion: Motion {
+                pos_m: def.start_pos_m,
+                rot: Quat::from_rotation_z(def.start_yaw_rad),
+                vel_m_s: Vec3::ZERO,
+                angvel_rad_s: Vec3::ZERO,
+            },
             grounded: def.start_pos_m.z <= af.rest_height_m + 1e-4,
             rng,
         }
@@ -185,13 +207,13 @@ pub struct CopterPose {
 impl State {
     /// Pose of copter `id`.
     pub fn pose(&self, id: usize) -> CopterPose {
-        let b = &self.physics.bodies[self.copters[id].body];
-        let q = *b.rotation();
+        let m = &self.copters[id].motion;
+        let q = m.rot;
         CopterPose {
-            pos_m: b.translation(),
-            vel_m_s: b.linvel(),
+            pos_m: m.pos_m,
+            vel_m_s: m.vel_m_s,
             rpy_rad: euler_from_quat(q),
-            angvel_rad_s: b.angvel(),
+            angvel_rad_s: m.angvel_rad_s,
             quat_xyzw: [q.x, q.y, q.z, q.w],
         }
     }
@@ -209,13 +231,16 @@ impl State {
     /// how a bridge corrects a twin's position (bounded steps, never teleports). Explicit, so
     /// determinism holds: the same shifts give the same run.
     pub fn shift_copter(&mut self, id: usize, delta_m: [Real; 2]) {
-        let Some(c) = self.copters.get(id) else { return };
+        let Some(c) = self.copters.get_mut(id) else { return };
         if !delta_m.iter().all(|v| v.is_finite()) {
             return;
         }
-        if let Some(b) = self.physics.bodies.get_mut(c.body) {
-            let p = b.translation();
-            b.set_translation(Vec3::new(p.x + delta_m[0], p.y + delta_m[1], p.z), true);
+        let p = &mut c.motion.pos_m;
+        *p = Vec3::new(p.x + delta_m[0], p.y + delta_m[1], p.z);
+        if let Some(b) = self.physics.bodies.get_mut(c.body)
+            && b.is_enabled()
+        {
+            b.set_translation(*p, true);
         }
     }
 

@@ -24,9 +24,9 @@ use crate::math::{GRAVITY_M_S2, Quat, Real, Vec3, euler_from_quat, wrap_angle_ra
 use crate::sensors::{
     self, SensorParams, SonarScene, crosstalk_eligible, crosstalk_reading, sonar_cones, sonar_reading,
 };
-use crate::state::{CopterState, CrashCause, Lane, Pinger, State};
+use crate::state::{CopterState, CrashCause, Lane, Motion, Pinger, State};
 use crate::world::{ColliderTag, CopterKind, World};
-use rapier3d::prelude::{PhysicsWorld, RigidBodyActivation, RigidBodyType};
+use rapier3d::prelude::{RigidBodyActivation, RigidBodyType};
 
 /// Something that happened during a step.
 #[derive(Clone, Debug, PartialEq, Serialize)]
@@ -125,11 +125,8 @@ fn step_on(world: &World, state: &mut State, inputs: &Inputs, parallel: bool) ->
     let lanes = &mut state.scratch.lanes;
     lanes.resize(n, Lane::default());
     for (lane, c) in lanes.iter_mut().zip(&state.copters) {
-        let body = &state.physics.bodies[c.body];
-        lane.pos_m = body.translation();
-        lane.rot = *body.rotation();
-        lane.vel_m_s = body.linvel();
-        lane.angvel_rad_s = body.angvel();
+        let m = &c.motion;
+        (lane.pos_m, lane.rot, lane.vel_m_s, lane.angvel_rad_s) = (m.pos_m, m.rot, m.vel_m_s, m.angvel_rad_s);
     }
 
     let sonar_period = world.sensors.spec.sonar.period_steps.max(1) as u64;
@@ -231,15 +228,9 @@ fn step_on(world: &World, state: &mut State, inputs: &Inputs, parallel: bool) ->
         detect_tilt_and_takeoff(world, state, &mut report);
     }
 
-    // Free copters' bodies catch up with their motion (they stay asleep in Rapier).
-    for (lane, c) in state.scratch.lanes.iter().zip(&state.copters) {
-        if lane.free {
-            let body = &mut state.physics.bodies[c.body];
-            body.set_translation(lane.pos_m, false);
-            body.set_rotation(lane.rot, false);
-            body.set_linvel(lane.vel_m_s, false);
-            body.set_angvel(lane.angvel_rad_s, false);
-        }
+    // The step's motion is the copters' (free copters' Rapier bodies stay where they were).
+    for (lane, c) in state.scratch.lanes.iter().zip(&mut state.copters) {
+        c.motion = Motion { pos_m: lane.pos_m, rot: lane.rot, vel_m_s: lane.vel_m_s, angvel_rad_s: lane.angvel_rad_s };
     }
     state.tick += 1;
     report.tick = state.tick;
@@ -364,6 +355,8 @@ fn reserve_free_flight(world: &World, state: &mut State, parallel: bool) {
         } else if !lane.free && !body.is_enabled() {
             body.set_enabled(true);
             body.wake_up(true);
+            body.set_translation(lane.pos_m, false);
+            body.set_rotation(lane.rot, false);
             body.set_linvel(lane.vel_m_s, false);
             body.set_angvel(lane.angvel_rad_s, false);
         }
@@ -826,7 +819,7 @@ fn outer_loop(
 /// Gathers what sonars can see in the current state: the arena walls, the static boxes and
 /// every copter's body (crashed ones too), indexed in the copter grid. `sense` uses it; so can
 /// tools that need the same geometry (e.g. extra virtual sonars).
-pub fn fill_sonar_scene(world: &World, physics: &PhysicsWorld, copters: &[CopterState], scene: &mut SonarScene) {
+pub fn fill_sonar_scene(world: &World, copters: &[CopterState], scene: &mut SonarScene) {
     let (hx, hy) = (world.arena.size_m[0] / 2.0, world.arena.size_m[1] / 2.0);
     scene.walls.clear();
     if world.arena.walls {
@@ -845,7 +838,7 @@ pub fn fill_sonar_scene(world: &World, physics: &PhysicsWorld, copters: &[Copter
         half: b.half_extents_m,
     }));
     scene.copters.clear();
-    scene.copters.extend((0..copters.len()).map(|i| copter_box(world, physics, copters, i)));
+    scene.copters.extend((0..copters.len()).map(|i| copter_box(world, copters, i)));
     // About one copter per cell: sparse swarms visit fewer empty cells (any cell size gives
     // the same readings).
     let area_m2 = world.arena.size_m[0] * world.arena.size_m[1];
@@ -854,13 +847,13 @@ pub fn fill_sonar_scene(world: &World, physics: &PhysicsWorld, copters: &[Copter
 }
 
 /// The box a sonar sees of copter `i`: its rotor disc square and body height.
-pub fn copter_box(world: &World, physics: &PhysicsWorld, copters: &[CopterState], i: usize) -> OrientedBox {
-    let body = &physics.bodies[copters[i].body];
+pub fn copter_box(world: &World, copters: &[CopterState], i: usize) -> OrientedBox {
+    let m = &copters[i].motion;
     let af = &world.airframes[world.copters[i].airframe];
     let half_xy = af.spec.arm_length_m / std::f32::consts::SQRT_2 + af.spec.rotor_diameter_m / 2.0;
     OrientedBox {
-        center: body.translation(),
-        rotation: *body.rotation(),
+        center: m.pos_m,
+        rotation: m.rot,
         half: Vec3::new(half_xy, half_xy, af.spec.body_size_m[2] / 2.0 + 0.01),
     }
 }
@@ -876,7 +869,7 @@ fn sense(world: &World, state: &mut State, inputs: &Inputs, sonar_due: bool, par
 
     // What the sonars can see, gathered once.
     let scratch = &mut state.scratch;
-    fill_sonar_scene(world, &state.physics, &state.copters, &mut scratch.sonar_scene);
+    fill_sonar_scene(world, &state.copters, &mut scratch.sonar_scene);
     let scene = &scratch.sonar_scene;
 
     let noise = spec.noise;
