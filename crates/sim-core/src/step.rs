@@ -874,6 +874,7 @@ fn sense(world: &World, state: &mut State, inputs: &Inputs, sonar_due: bool, par
 
     let noise = spec.noise;
     let walk = spec.imu.yaw_bias_walk_deg_per_sqrt_s.to_radians() * dt_control.sqrt();
+    let yaw_sigma = spec.imu.yaw_noise_deg.to_radians();
     let ideal = spec.estimator.ideal;
     for_each_lane(parallel, &mut state.copters, &mut scratch.lanes, |i, c, lane| {
         // A wreck's sensors stop (and its sonars no longer ping): its readings keep their
@@ -944,8 +945,12 @@ fn sense(world: &World, state: &mut State, inputs: &Inputs, sonar_due: bool, par
             est.collective_sum_n = 0.0;
             est.collective_steps = 0;
         }
-        // The AHRS output the attitude loop last read (telemetry sends these).
+        // The AHRS output the attitude loop last read (telemetry sends these), with the
+        // reported heading's own noise (`yaw_noise_deg`, per reading, as the telemetry's yaw).
         r.attitude_rad = est.attitude_rad;
+        if noise && !ideal {
+            r.attitude_rad[2] = wrap_angle_rad(r.attitude_rad[2] + yaw_sigma * c.rng.normal());
+        }
         r.yaw_bias_rad = c.yaw_bias_rad;
         r.rate_body_rad_s = est.rate_rad_s;
         r.height_est_m = est.height_m;

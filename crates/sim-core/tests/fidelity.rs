@@ -60,7 +60,9 @@ fn table_flight(ideal: bool) -> (Real, Real, Real) {
             before.push(p.z);
         }
         if tick > 500 {
-            assert!((p.x - 1.4).abs() < 0.15 && (p.y - 0.9).abs() < 0.15, "over the table at tick {tick}: {p:?}");
+            // Target mode on the AHRS's biased attitude wanders a little: within 0.2 m of the
+            // target keeps it over the 0.8 m × 0.5 m table top.
+            assert!((p.x - 1.4).abs() < 0.2 && (p.y - 0.9).abs() < 0.2, "over the table at tick {tick}: {p:?}");
             over.push(p.z);
         }
     }
