@@ -14,7 +14,7 @@ use std::sync::mpsc::{Receiver, TryRecvError};
 use std::time::{Duration, Instant};
 
 use sim_core::scene::CopterSpec;
-use sim_core::{Inputs, State, StepReport, World, step};
+use sim_core::{Inputs, State, StepReport, World, step_into};
 
 use crate::failsafe::{Failsafe, FailsafeEvent, FailsafeKind, FailsafeOptions};
 use crate::mixed::{Outbox, OutboxOptions, PprzOut, Sample, Summary};
@@ -256,6 +256,8 @@ pub fn run_loop(
     let mut outbox = opts.outbox.clone().map(Outbox::new);
     let mut failsafe = Failsafe::new(opts.failsafe.clone());
     let mut fs_events: Vec<FailsafeEvent> = Vec::new();
+    // One report for the whole run: its event list keeps its capacity.
+    let mut report = StepReport::default();
     let mut sync = opts.sync.clone().and_then(|o| match TwinSync::new(&world, o) {
         Ok(s) => Some(s),
         Err(e) => {
@@ -376,7 +378,7 @@ pub fn run_loop(
         if let Some(sync) = &sync {
             sync.adjust_commands(&mut inputs);
         }
-        let report = step(&world, &mut state, &inputs);
+        step_into(&world, &mut state, &inputs, &mut report);
         observer.after_step(&world, &state, &inputs, &report);
         stats.steps += 1;
         track_twins(&world, &state, &mut stats.twins);
@@ -412,7 +414,7 @@ pub fn run_loop(
                 time_s: state.time_s(&world),
                 states: (0..n).map(|i| state_msg(&world, &state, &inputs, i)).collect(),
                 sensors: if sensed { (0..n).map(|i| sensors_msg(&world, &state, i)).collect() } else { Vec::new() },
-                report,
+                report: report.clone(),
                 pprz_out,
                 stepped_at: Instant::now(),
             };

@@ -368,22 +368,34 @@ pub struct CopterGrid {
     cursor: Vec<u32>,
     max_radius_m: Real,
     built_for: usize,
+    /// A rectangle (x0, y0, x1, y1) the grid always covers, whatever the items' span.
+    cover: Option<[Real; 4]>,
 }
 
 impl CopterGrid {
     /// Cells per axis at most (bounds memory for sparse, huge arenas).
     const MAX_CELLS_PER_AXIS: usize = 1024;
 
+    /// Makes every later [`CopterGrid::build`] cover the rectangle `[x0, y0, x1, y1]` (the
+    /// arena) as well as its items: the grid's size then stays the same from step to step, so
+    /// rebuilding it never allocates once it has been built.
+    pub fn set_cover(&mut self, rect: [Real; 4]) {
+        self.cover = Some(rect);
+    }
+
     /// Indexes `boxes` by the cell of their centre.
     pub fn build(&mut self, boxes: &[OrientedBox], cell_m: Real) {
         self.built_for = boxes.len();
         self.max_radius_m = boxes.iter().map(OrientedBox::bounding_radius).fold(0.0, Real::max);
-        let (mut lo, mut hi) = ([Real::MAX; 2], [Real::MIN; 2]);
+        let (mut lo, mut hi) = match self.cover {
+            Some([x0, y0, x1, y1]) => ([x0, y0], [x1, y1]),
+            None => ([Real::MAX; 2], [Real::MIN; 2]),
+        };
         for b in boxes {
             lo = [lo[0].min(b.center.x), lo[1].min(b.center.y)];
             hi = [hi[0].max(b.center.x), hi[1].max(b.center.y)];
         }
-        if boxes.is_empty() {
+        if boxes.is_empty() && self.cover.is_none() {
             (lo, hi) = ([0.0; 2], [0.0; 2]);
         }
         let span = (hi[0] - lo[0]).max(hi[1] - lo[1]);

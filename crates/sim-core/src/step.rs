@@ -53,6 +53,9 @@ pub struct StepReport {
     pub tick: u64,
     /// Events, in the order they happened (copter id order within a substep).
     pub events: Vec<Event>,
+    /// Physics substeps in which Rapier stepped (some copter near something, or a wreck
+    /// moving); the others were closed form only.
+    pub rapier_substeps: u32,
 }
 
 /// Cell size of the copter grid used by sonars and cross-talk, m.
@@ -76,9 +79,21 @@ const FREE_ACCEL_HEADROOM: Real = 2.0;
 /// thread pool owned by the state; everything is merged in id order, so the result is the
 /// same bits for any thread count.
 pub fn step(world: &World, state: &mut State, inputs: &Inputs) -> StepReport {
+    let mut report = StepReport::default();
+    step_into(world, state, inputs, &mut report);
+    report
+}
+
+/// [`step`] into a report the caller keeps: its event list is cleared and refilled, so a
+/// loop that reuses one report does not allocate for events once it has seen its busiest step.
+pub fn step_into(world: &World, state: &mut State, inputs: &Inputs, report: &mut StepReport) {
+    report.events.clear();
+    // Room for a take-off or a crash of every copter at once, kept from step to step.
+    report.events.reserve(2 * world.copters.len());
+    report.rapier_substeps = 0;
     let threads = world.params.threads.max(1);
     if threads == 1 {
-        return step_on(world, state, inputs, false);
+        return step_on(world, state, inputs, false, report);
     }
     let pool = match state.scratch.pool.take() {
         Some(pool) if pool.current_num_threads() == threads => Some(pool),
@@ -86,12 +101,11 @@ pub fn step(world: &World, state: &mut State, inputs: &Inputs) -> StepReport {
     };
     match pool {
         Some(pool) => {
-            let report = pool.install(|| step_on(world, state, inputs, true));
+            pool.install(|| step_on(world, state, inputs, true, report));
             state.scratch.pool = Some(pool);
-            report
         }
         // No threads to be had: the same step, on this thread.
-        None => step_on(world, state, inputs, false),
+        None => step_on(world, state, inputs, false, report),
     }
 }
 
@@ -116,8 +130,7 @@ where
     }
 }
 
-fn step_on(world: &World, state: &mut State, inputs: &Inputs, parallel: bool) -> StepReport {
-    let mut report = StepReport::default();
+fn step_on(world: &World, state: &mut State, inputs: &Inputs, parallel: bool, report: &mut StepReport) {
     let n = world.copters.len();
     let command = |i: usize| -> &Command { inputs.commands.get(i).unwrap_or(&world.copters[i].initial_command) };
 
@@ -194,11 +207,13 @@ fn step_on(world: &World, state: &mut State, inputs: &Inputs, parallel: bool) ->
             if lane.free {
                 continue;
             }
-            let body = &mut state.physics.bodies[c.body];
-            // A crashed copter at rest sleeps until something hits it.
+            // A crashed copter at rest sleeps until something hits it. (Looked at first: a
+            // mutable borrow marks a Rapier body modified, and Rapier then revisits it.)
+            let body = &state.physics.bodies[c.body];
             if body.is_sleeping() || body.is_fixed() {
                 continue;
             }
+            let body = &mut state.physics.bodies[c.body];
             any_near = true;
             body.reset_forces(false);
             body.reset_torques(false);
@@ -208,6 +223,7 @@ fn step_on(world: &World, state: &mut State, inputs: &Inputs, parallel: bool) ->
             }
         }
         if any_near {
+            report.rapier_substeps += 1;
             state.physics.step_with_events(&(), &scratch.collisions);
             // Poisoned only if Rapier's event collector panicked; its events are still good,
             // and losing them would lose crash detection.
@@ -223,9 +239,9 @@ fn step_on(world: &World, state: &mut State, inputs: &Inputs, parallel: bool) ->
                     lane.angvel_rad_s = body.angvel();
                 }
             }
-            detect_collision_crashes(world, state, &mut report);
+            detect_collision_crashes(world, state, report);
         }
-        detect_tilt_and_takeoff(world, state, &mut report);
+        detect_tilt_and_takeoff(world, state, report);
     }
 
     // The step's motion is the copters' (free copters' Rapier bodies stay where they were).
@@ -234,7 +250,6 @@ fn step_on(world: &World, state: &mut State, inputs: &Inputs, parallel: bool) ->
     }
     state.tick += 1;
     report.tick = state.tick;
-    report
 }
 
 /// Decides which copters fly free of Rapier for this control step.
@@ -272,6 +287,7 @@ fn reserve_free_flight(world: &World, state: &mut State, parallel: bool) {
             half: Vec3::new(lane.reserved_m, 0.0, 0.0),
         });
     }
+    scratch.sphere_grid.set_cover(arena_rect(world));
     scratch.sphere_grid.build(&scratch.spheres, GRID_CELL_M);
     let spheres = &scratch.spheres;
     let grid = &scratch.sphere_grid;
@@ -326,6 +342,8 @@ fn reserve_free_flight(world: &World, state: &mut State, parallel: bool) {
     // Everything a copter on watch may come close to this step (once per pair).
     let scratch = &mut state.scratch;
     scratch.watch_pairs.clear();
+    // A few neighbours per copter, kept from step to step.
+    scratch.watch_pairs.reserve(4 * scratch.lanes.len());
     for (i, lane) in scratch.lanes.iter().enumerate().filter(|(_, l)| l.watch) {
         let (p, r) = (lane.pos_m, lane.reserved_m + FREE_GAP_M);
         let (spheres, lanes, pairs) = (&scratch.spheres, &scratch.lanes, &mut scratch.watch_pairs);
@@ -337,6 +355,17 @@ fn reserve_free_flight(world: &World, state: &mut State, parallel: bool) {
         });
     }
     for ((lane, c), &still) in state.scratch.lanes.iter().zip(&state.copters).zip(&state.scratch.still) {
+        // Borrowed mutably only when something changes: a mutable borrow marks a Rapier body
+        // modified, and Rapier's next step revisits every modified body.
+        let body = &state.physics.bodies[c.body];
+        let change = if c.crash.is_some() {
+            (still && body.is_dynamic()) || (!still && body.is_fixed())
+        } else {
+            lane.free == body.is_enabled()
+        };
+        if !change {
+            continue;
+        }
         let body = &mut state.physics.bodies[c.body];
         if c.crash.is_some() {
             // A wreck at rest that no flying copter can reach is fixed (Rapier makes no contacts
@@ -452,6 +481,7 @@ fn airflow(world: &World, state: &mut State, parallel: bool) {
     if !any {
         return;
     }
+    scratch.wake_grid.set_cover(arena_rect(world));
     scratch.wake_grid.build(&scratch.wake_reach, GRID_CELL_M);
     let (wakes, grid) = (&scratch.wakes, &scratch.wake_grid);
     let turbulence = spec.wake_turbulence;
@@ -843,7 +873,14 @@ pub fn fill_sonar_scene(world: &World, copters: &[CopterState], scene: &mut Sona
     // the same readings).
     let area_m2 = world.arena.size_m[0] * world.arena.size_m[1];
     let cell_m = (area_m2 / copters.len().max(1) as Real).sqrt().clamp(GRID_CELL_M, 4.0 * GRID_CELL_M);
+    scene.grid.set_cover(arena_rect(world));
     scene.index_copters(cell_m);
+}
+
+/// The arena's floor rectangle, `[x0, y0, x1, y1]`, m.
+fn arena_rect(world: &World) -> [Real; 4] {
+    let (hx, hy) = (world.arena.size_m[0] / 2.0, world.arena.size_m[1] / 2.0);
+    [-hx, -hy, hx, hy]
 }
 
 /// The box a sonar sees of copter `i`: its rotor disc square and body height.
