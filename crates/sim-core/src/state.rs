@@ -112,6 +112,7 @@ pub struct CopterState {
     /// Its sonars' ranging cycle, s.
     pub sonar_cycle_s: f64,
     /// Set once it has crashed; its motors stay off.
+    #[serde(with = "crash_snapshot")]
     pub crash: Option<CrashCause>,
     /// Tick it first left the floor.
     pub took_off_tick: Option<u64>,
@@ -124,6 +125,42 @@ pub struct CopterState {
     /// Its pose and velocities at the end of the last step: the truth everything reads. Its
     /// Rapier body follows only while Rapier steps it (near something, or a wreck).
     pub motion: Motion,
+}
+
+/// A crash cause in a snapshot: `(kind, speed or tilt, index)` rather than [`CrashCause`]'s
+/// tagged form (logs and JSON keep that one), which positional formats such as postcard cannot
+/// read back.
+mod crash_snapshot {
+    use super::{CrashCause, Real};
+    use serde::{Deserialize, Deserializer, Serialize, Serializer};
+
+    type Raw = Option<(u8, Real, u64)>;
+
+    pub fn serialize<S: Serializer>(crash: &Option<CrashCause>, s: S) -> Result<S::Ok, S::Error> {
+        let raw: Raw = crash.map(|c| match c {
+            CrashCause::Wall => (0, 0.0, 0),
+            CrashCause::Ceiling => (1, 0.0, 0),
+            CrashCause::Box { index } => (2, 0.0, index as u64),
+            CrashCause::Floor { speed_m_s } => (3, speed_m_s, 0),
+            CrashCause::Copter { other, speed_m_s } => (4, speed_m_s, other as u64),
+            CrashCause::Tilt { tilt_deg } => (5, tilt_deg, 0),
+        });
+        raw.serialize(s)
+    }
+
+    pub fn deserialize<'de, D: Deserializer<'de>>(d: D) -> Result<Option<CrashCause>, D::Error> {
+        let raw = Raw::deserialize(d)?;
+        raw.map(|(kind, v, i)| match kind {
+            0 => Ok(CrashCause::Wall),
+            1 => Ok(CrashCause::Ceiling),
+            2 => Ok(CrashCause::Box { index: i as usize }),
+            3 => Ok(CrashCause::Floor { speed_m_s: v }),
+            4 => Ok(CrashCause::Copter { other: i as usize, speed_m_s: v }),
+            5 => Ok(CrashCause::Tilt { tilt_deg: v }),
+            k => Err(serde::de::Error::custom(format!("unknown crash kind {k} in a snapshot"))),
+        })
+        .transpose()
+    }
 }
 
 /// A copter's pose and velocities, world frame.

@@ -118,3 +118,49 @@ fn lab_threads(threads: usize) -> World {
     spec.sim.threads = threads;
     scene::compile(&spec).unwrap()
 }
+
+/// The experiment: 150 copters taking off from a 1.5 m grid among pillars, crowding and
+/// crashing (grounded copters, copters on watch, wrecks falling, asleep and fixed).
+fn dense(threads: usize) -> World {
+    let mut spec = scene::dense_swarm(150, 1.5, true, 10, 3);
+    spec.sim.threads = threads;
+    scene::compile(&spec).unwrap()
+}
+
+#[test]
+fn the_dense_take_off_gives_the_same_bits_on_one_two_and_three_threads() {
+    let worlds = [dense(1), dense(2), dense(3)];
+    let inputs = worlds[0].initial_inputs();
+    let mut states: Vec<State> = worlds.iter().map(World::initial_state).collect();
+    let (mut crashes, mut rapier) = (0, 0);
+    for _ in 0..300 {
+        let reports: Vec<_> = worlds.iter().zip(&mut states).map(|(w, s)| step(w, s, &inputs)).collect();
+        assert_eq!(reports[0], reports[1], "1 and 2 threads: the same events in the same order");
+        assert_eq!(reports[0], reports[2], "1 and 3 threads: the same events in the same order");
+        crashes += reports[0].events.iter().filter(|e| matches!(e, sim_core::Event::Crashed { .. })).count();
+        rapier += usize::from(reports[0].rapier_substeps > 0);
+    }
+    assert!(crashes > 5 && rapier > 0, "{crashes} crashes, {rapier} steps with Rapier");
+    let bytes: Vec<Vec<u8>> = states.iter().map(|s| postcard::to_allocvec(s).unwrap()).collect();
+    assert_eq!(bytes[0], bytes[1], "1 and 2 threads: the whole state, byte for byte ({crashes} crashes)");
+    assert_eq!(bytes[0], bytes[2], "1 and 3 threads: the whole state, byte for byte");
+}
+
+#[test]
+fn a_dense_snapshot_with_wrecks_continues_bit_for_bit() {
+    let world = dense(1);
+    let inputs = world.initial_inputs();
+    let mut straight = world.initial_state();
+    for _ in 0..200 {
+        step(&world, &mut straight, &inputs);
+    }
+    assert!(straight.copters.iter().any(|c| c.crash.is_some()), "some copters crashed by now");
+    let bytes = postcard::to_allocvec(&straight).unwrap();
+    let mut restored: State = postcard::from_bytes(&bytes).unwrap();
+    for _ in 0..100 {
+        let a = step(&world, &mut straight, &inputs);
+        let b = step(&world, &mut restored, &inputs);
+        assert_eq!(a, b);
+    }
+    assert_eq!(postcard::to_allocvec(&straight).unwrap(), postcard::to_allocvec(&restored).unwrap());
+}
