@@ -742,7 +742,8 @@ fn rotor_model(
             ParticleNoise::Off => mean,
             _ if lambda <= 0.0 => 0.0,
             ParticleNoise::Dither => {
-                let count = (lambda + c.rng.uniform()).floor();
+                // floor() of a non-negative number, as a truncating cast (no libm call).
+                let count = (lambda + c.rng.uniform()) as u32 as Real;
                 mean * count / lambda
             }
             ParticleNoise::Poisson => mean * c.rng.poisson(lambda) as Real / lambda,
