@@ -488,10 +488,40 @@ pub fn compile(spec: &SceneSpec) -> Result<World, SceneError> {
         ac_ids: BTreeMap::new(),
     };
     let mut copters: Vec<CopterDef> = Vec::with_capacity(spec.copters.len());
+    // Start points hashed in 1 m cells: a new copter can only overlap copters within its
+    // radius plus the largest radius so far, a few cells around it (O(N), not O(N²)).
+    const CELL_M: Real = 1.0;
+    let cell_of = |p: Vec3| ((p.x / CELL_M).floor() as i64, (p.y / CELL_M).floor() as i64);
+    let mut cells: std::collections::HashMap<(i64, i64), Vec<usize>> = std::collections::HashMap::new();
+    let mut max_r: Real = 0.0;
     for (i, c) in spec.copters.iter().enumerate() {
-        let occupied: Vec<(String, Vec3, Real)> =
-            copters.iter().map(|o| (o.name.clone(), o.start_pos_m, cc.airframes[o.airframe].radius_m)).collect();
-        let def = cc.compile(i, c, &occupied)?;
+        let def = cc.compile(i, c, &[])?;
+        let (pos, r) = (def.start_pos_m, cc.airframes[def.airframe].radius_m);
+        let k = ((r + max_r) / CELL_M).ceil() as i64;
+        let (cx, cy) = cell_of(pos);
+        // The lowest id it overlaps, as a scan in id order would report.
+        let overlap = (-k..=k)
+            .flat_map(|dx| (-k..=k).map(move |dy| (cx + dx, cy + dy)))
+            .filter_map(|cell| cells.get(&cell))
+            .flatten()
+            .copied()
+            .filter(|&o| copters[o].start_pos_m.distance(pos) < r + cc.airframes[copters[o].airframe].radius_m)
+            .min();
+        if let Some(o) = overlap {
+            let r_other = cc.airframes[copters[o].airframe].radius_m;
+            return Err(SceneError::invalid(
+                FieldPath::default().key("copter").index(i).key("start").key("pos_m"),
+                format!(
+                    "copter {:?} overlaps copter {:?}: centres {:.3} m apart, need at least {:.3} m",
+                    c.name,
+                    copters[o].name,
+                    copters[o].start_pos_m.distance(pos),
+                    r + r_other
+                ),
+            ));
+        }
+        cells.entry((cx, cy)).or_default().push(i);
+        max_r = max_r.max(r);
         copters.push(def);
     }
     let airframes = cc.airframes;
