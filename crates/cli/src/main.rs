@@ -48,6 +48,8 @@ enum Command {
         /// The scene file (TOML).
         scene: PathBuf,
     },
+    /// Write a generated swarm scene (TOML) to stdout: the benchmarks' experiments.
+    Scene(SceneArgs),
     /// Print each copter's derived model: mass, inertia, rotor and particle numbers.
     Inspect {
         /// The scene file (TOML); default: the embedded FINken lab.
@@ -81,6 +83,51 @@ enum Command {
         #[arg(long, value_name = "NAME")]
         copter: Option<String>,
     },
+}
+
+#[derive(Debug, clap::Args)]
+struct SceneArgs {
+    /// `dense`: a 1.5 m grid taking off from the floor among 10 pillars, Wall-Avoid at 1 m
+    /// (the experiment of `swarm_rt --scene dense`); `cruise`: a 2 m grid in the air, each
+    /// copter heading its own way at 0.3 m/s.
+    #[arg(value_enum)]
+    kind: SceneKind,
+    /// Number of copters.
+    #[arg(long, value_name = "N")]
+    n: usize,
+    /// `dense` only: grid spacing, m.
+    #[arg(long, value_name = "M", default_value_t = 1.5)]
+    spacing: f32,
+    /// `dense` only: start in the air at 1 m instead of on the floor.
+    #[arg(long)]
+    air: bool,
+    /// `dense` only: number of pillars.
+    #[arg(long, value_name = "K", default_value_t = 10)]
+    pillars: usize,
+    /// Seed of the scene (pillar placement and every random draw of the run).
+    #[arg(long, value_name = "S", default_value_t = 1)]
+    seed: u64,
+}
+
+#[derive(Clone, Copy, Debug, clap::ValueEnum)]
+enum SceneKind {
+    Dense,
+    Cruise,
+}
+
+/// `twinswarm scene`: the generated scene as TOML, checked by compiling it back.
+fn scene_cmd(a: &SceneArgs) -> anyhow::Result<()> {
+    anyhow::ensure!(a.n > 0, "--n must be at least 1");
+    anyhow::ensure!(a.spacing.is_finite() && a.spacing > 0.0, "--spacing must be a positive number of metres");
+    let mut spec = match a.kind {
+        SceneKind::Dense => sim_core::scene::dense_swarm(a.n, a.spacing, !a.air, a.pillars, a.seed),
+        SceneKind::Cruise => sim_core::scene::cruising_swarm(a.n, 1),
+    };
+    spec.sim.seed = a.seed;
+    let text = toml::to_string(&spec)?;
+    sim_core::scene::load("generated scene", &text)?;
+    print!("{text}");
+    Ok(())
 }
 
 #[derive(Debug, Subcommand)]
@@ -301,6 +348,7 @@ fn main() -> ExitCode {
         Command::Copter(args) => standin::run(args),
         Command::Ivy(args) => ivycmd::run(args),
         Command::Check { scene } => check(&scene),
+        Command::Scene(args) => scene_cmd(&args),
         Command::Inspect { scene, json } => inspect(scene.as_deref(), json),
         Command::Localize(args) => localize::run(args),
         Command::Log(LogCommand::Info { file }) => logcmd::info(&file),

@@ -131,6 +131,10 @@ impl Summary {
                 String::new()
             }
         );
+        if self.copters.len() > PER_COPTER_ROWS_UP_TO {
+            self.aggregate_text(&mut s);
+            return s;
+        }
         if self.crashes.is_empty() {
             let _ = writeln!(s, "  crashes: none");
         } else {
@@ -157,6 +161,95 @@ impl Summary {
             );
         }
         s
+    }
+}
+
+/// Up to this many copters the text summary has a row per copter; above, aggregates (the
+/// per-copter detail is in `--json` and the log).
+const PER_COPTER_ROWS_UP_TO: usize = 20;
+
+/// How many of the first crashes and of the worst height holds a large swarm's summary lists.
+const WORST_FEW: usize = 5;
+
+/// A crash cause's kind, for counting.
+fn cause_kind(c: &sim_core::CrashCause) -> &'static str {
+    use sim_core::CrashCause as C;
+    match c {
+        C::Wall => "wall",
+        C::Ceiling => "ceiling",
+        C::Box { .. } => "box",
+        C::Floor { .. } => "floor",
+        C::Copter { .. } => "copter",
+        C::Tilt { .. } => "tilt",
+    }
+}
+
+/// The `q` quantile of sorted values (nearest rank).
+fn quantile(sorted: &[f32], q: f64) -> f32 {
+    let i = ((sorted.len() as f64 - 1.0) * q).round() as usize;
+    sorted[i.min(sorted.len() - 1)]
+}
+
+impl Summary {
+    /// The summary of a swarm too large for a row per copter: counts, crashes by cause with
+    /// their timing and the first few, height-hold percentiles and the worst few.
+    fn aggregate_text(&self, s: &mut String) {
+        let crashed = self.copters.iter().filter(|c| c.crashed).count();
+        let flew = self.copters.iter().filter(|c| c.worst_height_error_m.is_some()).count();
+        let _ = writeln!(
+            s,
+            "  copters: {} flew, {} crashed, {} flying or landed at the end (a row per copter: --json, or the log)",
+            flew,
+            crashed,
+            self.copters.len() - crashed
+        );
+        if self.crashes.is_empty() {
+            let _ = writeln!(s, "  crashes: none");
+        } else {
+            let mut by_cause: std::collections::BTreeMap<&str, usize> = std::collections::BTreeMap::new();
+            for c in &self.crashes {
+                *by_cause.entry(cause_kind(&c.cause)).or_default() += 1;
+            }
+            let causes: Vec<String> = by_cause.iter().map(|(k, n)| format!("{k} {n}")).collect();
+            let mut times: Vec<f32> = self.crashes.iter().map(|c| c.time_s as f32).collect();
+            times.sort_by(f32::total_cmp);
+            let _ = writeln!(
+                s,
+                "  crashes: {} ({}); times: first {:.2} s, median {:.2} s, last {:.2} s",
+                self.crashes.len(),
+                causes.join(", "),
+                times[0],
+                quantile(&times, 0.5),
+                times[times.len() - 1]
+            );
+            for c in self.crashes.iter().take(WORST_FEW) {
+                let _ = writeln!(s, "    {} at {:.2} s: {:?}", c.copter, c.time_s, c.cause);
+            }
+            if self.crashes.len() > WORST_FEW {
+                let _ = writeln!(s, "    … and {} more", self.crashes.len() - WORST_FEW);
+            }
+        }
+        let mut held: Vec<(&str, f32)> = self
+            .copters
+            .iter()
+            .filter(|c| !c.crashed)
+            .filter_map(|c| Some((c.name.as_str(), c.worst_height_error_m?)))
+            .collect();
+        if held.is_empty() {
+            return;
+        }
+        held.sort_by(|a, b| b.1.total_cmp(&a.1));
+        let mut errs: Vec<f32> = held.iter().map(|h| h.1 * 100.0).collect();
+        errs.sort_by(f32::total_cmp);
+        let _ = writeln!(
+            s,
+            "  worst |dz| of the {} that did not crash (cm): median {:.2}, p95 {:.2}, max {:.2}; worst: {}",
+            held.len(),
+            quantile(&errs, 0.5),
+            quantile(&errs, 0.95),
+            errs[errs.len() - 1],
+            held.iter().take(WORST_FEW).map(|(n, e)| format!("{n} {:.2}", e * 100.0)).collect::<Vec<_>>().join(", ")
+        );
     }
 }
 

@@ -888,6 +888,7 @@ pub fn dense_swarm(n: usize, spacing_m: Real, takeoff: bool, n_boxes: usize, see
     let margin = 2.0;
     spec.name = "dense_swarm".into();
     spec.sim.seed = seed;
+    spec.sim.duration_s = 60.0;
     spec.arena.size_m = [cols as Real * spacing_m + 2.0 * margin, rows as Real * spacing_m + 2.0 * margin];
     spec.arena.height_m = 3.0;
     let x0 = -(cols as Real - 1.0) * spacing_m / 2.0;

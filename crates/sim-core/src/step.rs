@@ -9,8 +9,13 @@
 //! 3. **airflow**: the surface below each copter and the downwash each one feels from the
 //!    others' wakes (see [`crate::airflow`]);
 //! 4. **physics substeps** (default 10 × 5 ms), each: AHRS, attitude PIDs, height hold, mixer,
-//!    rotor model (battery voltage, ground effect, motor lag, particle noise), battery, forces,
-//!    one Rapier step, crash detection.
+//!    rotor model (battery voltage, ground effect, motor lag, particle noise), battery; then
+//!    free copters move in closed form (floor contact included) and the others through one
+//!    Rapier step, if any needs it; crash detection.
+//!
+//! Only copters that may touch something go through Rapier (see [`reserve_free_flight`]);
+//! `[sim] closed_form = false` sends every copter through it, the reference for the closed
+//! form's crash decisions.
 //!
 //! Copters are processed in id order; every random draw comes from the copter's own stream.
 
@@ -256,10 +261,13 @@ fn step_on(world: &World, state: &mut State, inputs: &Inputs, parallel: bool, re
 ///
 /// A copter flies free when the sphere it can reach within the step (its colliders' bounding
 /// radius plus `|v| T + a_max T² / 2`, with `a_max` from its maximum thrust with headroom and
-/// gravity) keeps [`FREE_GAP_M`] from the floor, the walls, the ceiling, the boxes and every
-/// other copter's reachable sphere. Nothing can then touch it during the step, so Rapier has
-/// nothing to do for it: its body sleeps and it is integrated in closed form (semi-implicit
-/// Euler, Rapier's damping and gyroscopic terms). Crashed copters always stay with Rapier.
+/// gravity) keeps [`FREE_GAP_M`] from the walls, the ceiling, the boxes and every other
+/// copter's reachable sphere. Nothing but the floor can then touch it during the step, and the
+/// floor is met in closed form ([`touch_floor`]), so Rapier has nothing to do for it: its body
+/// is disabled and it is integrated in closed form (semi-implicit Euler, Rapier's damping and
+/// gyroscopic terms). A copter whose sphere meets only other copters' flies free on watch
+/// ([`watch_contacts`]). Wrecks stay with Rapier; one at rest that no flying copter can reach
+/// becomes a fixed body (no contact pairs) until one can.
 fn reserve_free_flight(world: &World, state: &mut State, parallel: bool) {
     let t = world.params.control_dt_s as Real;
     let dt = world.physics_dt();
