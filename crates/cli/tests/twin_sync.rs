@@ -80,7 +80,10 @@ fn the_twin_stays_within_bounds_while_tracking_drops_out() {
     println!("{r}");
     let during = cm(r, "error_in_dropout_cm", "max");
     assert!(r["sync"]["tracking_updates"].as_u64().unwrap() > 1000, "{r}");
-    assert!(during < 30.0, "max {during} cm during the dropout");
+    // 34 cm since the 2° yaw noise on the reported heading is applied again (issue 14; the
+    // 10-minute eval's MEDUSA-only maximum is 34 cm too): MEDUSA alone carries the twin for two
+    // minutes here.
+    assert!(during < 40.0, "max {during} cm during the dropout");
     assert!(cm(r, "error_cm", "median") < 10.0, "{r}");
     assert_eq!(r["steps_outside_arena"], 0, "{r}");
 }
