@@ -31,7 +31,7 @@ use crate::sensors::{
 };
 use crate::state::{CopterState, CrashCause, Lane, Motion, Pinger, State};
 use crate::world::{ColliderTag, CopterKind, World};
-use rapier3d::prelude::{RigidBodyActivation, RigidBodyType};
+use rapier3d::prelude::{RigidBody, RigidBodyActivation, RigidBodyType};
 
 /// Something that happened during a step.
 #[derive(Clone, Debug, PartialEq, Serialize)]
@@ -390,14 +390,19 @@ fn reserve_free_flight(world: &World, state: &mut State, parallel: bool) {
         if lane.free && body.is_enabled() {
             body.set_enabled(false);
         } else if !lane.free && !body.is_enabled() {
-            body.set_enabled(true);
-            body.wake_up(true);
-            body.set_translation(lane.pos_m, false);
-            body.set_rotation(lane.rot, false);
-            body.set_linvel(lane.vel_m_s, false);
-            body.set_angvel(lane.angvel_rad_s, false);
+            enter_rapier(body, lane);
         }
     }
+}
+
+/// A copter enters Rapier: its body takes the lane's pose and velocities, enabled and awake.
+fn enter_rapier(body: &mut RigidBody, lane: &Lane) {
+    body.set_enabled(true);
+    body.wake_up(true);
+    body.set_translation(lane.pos_m, false);
+    body.set_rotation(lane.rot, false);
+    body.set_linvel(lane.vel_m_s, false);
+    body.set_angvel(lane.angvel_rad_s, false);
 }
 
 /// Hands copters on watch to Rapier when they may touch something within this substep: two
@@ -423,13 +428,7 @@ fn watch_contacts(state: &mut State, dt: Real) {
                 continue;
             }
             let c = &mut state.copters[k];
-            let body = &mut state.physics.bodies[c.body];
-            body.set_translation(lane.pos_m, false);
-            body.set_rotation(lane.rot, false);
-            body.set_linvel(lane.vel_m_s, false);
-            body.set_angvel(lane.angvel_rad_s, false);
-            body.set_enabled(true);
-            body.wake_up(true);
+            enter_rapier(&mut state.physics.bodies[c.body], lane);
             (lane.free, lane.watch, c.grounded) = (false, false, false);
         }
     }
@@ -1135,13 +1134,7 @@ fn detect_tilt_and_takeoff(world: &World, state: &mut State, report: &mut StepRe
             continue;
         }
         if lane.free && (lane.pos_m - lane.anchor_m).length() > lane.reach_m {
-            let body = &mut state.physics.bodies[state.copters[i].body];
-            body.set_translation(lane.pos_m, false);
-            body.set_rotation(lane.rot, false);
-            body.set_linvel(lane.vel_m_s, false);
-            body.set_angvel(lane.angvel_rad_s, false);
-            body.set_enabled(true);
-            body.wake_up(true);
+            enter_rapier(&mut state.physics.bodies[state.copters[i].body], &lane);
             (state.scratch.lanes[i].free, state.scratch.lanes[i].watch) = (false, false);
             state.copters[i].grounded = false;
         }
@@ -1171,11 +1164,7 @@ fn crash(state: &mut State, i: usize, cause: CrashCause, report: &mut StepReport
         activation.time_until_sleep = WRECK_TIME_UNTIL_SLEEP_S;
         // A copter that crashed in free flight (tilt) falls in Rapier from here.
         if let Some(lane) = state.scratch.lanes.get_mut(i).filter(|l| l.free) {
-            body.set_enabled(true);
-            body.set_translation(lane.pos_m, false);
-            body.set_rotation(lane.rot, false);
-            body.set_linvel(lane.vel_m_s, false);
-            body.set_angvel(lane.angvel_rad_s, false);
+            enter_rapier(body, lane);
             (lane.free, lane.watch) = (false, false);
         }
     }
