@@ -1029,54 +1029,112 @@ fn sense(world: &World, state: &mut State, inputs: &Inputs, sonar_due: bool, par
         let slack = 2.0 * sonar.mount_offset_m;
         let cos_h = params.sonar_cos_half;
         let reach = sonar.max_range_m + slack;
-        for_each_lane(parallel, &mut state.copters, lanes, |b, c, _| {
-            if c.crash.is_some() {
+        let heard = |listener: &Pinger, k: usize, emitter: &Pinger, j: usize, d: Real| {
+            heard_reading(listener, k, emitter, j, d, now_s, stagger, sonar, ct.speed_of_sound_m_s)
+        };
+        // The eligible sonar pairs (j of `a`, k of `b`) of two copters and their distance:
+        // eligibility is symmetric (`crosstalk_eligible` gives the same bits both ways), so one
+        // visit serves both directions.
+        let eligible = |b: usize, a: usize, each: &mut dyn FnMut(usize, usize, Real)| {
+            let (me, other) = (&pingers[b], &pingers[a]);
+            let d_c = me.pos_m - other.pos_m;
+            let dist_c = d_c.length();
+            if dist_c > reach {
                 return;
             }
-            let me = &pingers[b];
-            // Sonar k's own last ping before now (all four together, or one per quarter cycle).
-            let listen_s = |k: usize| {
-                let phase = me.phase_s + stagger * k as f64 * me.cycle_s;
-                phase + ((now_s - phase) / me.cycle_s).floor() * me.cycle_s
-            };
-            scene.grid.visit_near(me.pos_m, reach, |a| {
-                let other = &pingers[a];
-                let d_c = me.pos_m - other.pos_m;
-                let dist_c = d_c.length();
-                if a == b || !other.pings || dist_c > reach {
-                    return reach;
+            let need = cos_h * (dist_c - slack) - 1e-4;
+            for (j, cone_a) in other.cones.iter().enumerate() {
+                if d_c.dot(cone_a.axis) < need {
+                    continue;
                 }
-                let need = cos_h * (dist_c - slack) - 1e-4;
-                for (j, cone_a) in other.cones.iter().enumerate() {
-                    if d_c.dot(cone_a.axis) < need {
+                for (k, cone_b) in me.cones.iter().enumerate() {
+                    if -d_c.dot(cone_b.axis) < need {
                         continue;
                     }
-                    for (k, cone_b) in me.cones.iter().enumerate() {
-                        if -d_c.dot(cone_b.axis) < need {
-                            continue;
-                        }
-                        let Some(d) = crosstalk_eligible(cone_a, cone_b, sonar.max_range_m) else { continue };
-                        let emitted_s = other.phase_s + stagger * j as f64 * other.cycle_s;
-                        let v = crosstalk_reading(listen_s(k), emitted_s, other.cycle_s, d, ct.speed_of_sound_m_s);
-                        if v > sonar.max_range_m {
-                            continue;
-                        }
-                        let q = sensors::quantise(v.clamp(sonar.min_range_m, sonar.cap_m), sonar.quantum_m);
-                        if q < c.sensors.sonar_m[k] {
-                            c.sensors.sonar_m[k] = q;
-                            c.sensors.sonar_crosstalk[k] = true;
-                        }
+                    if let Some(d) = crosstalk_eligible(cone_a, cone_b, sonar.max_range_m) {
+                        each(j, k, d);
                     }
                 }
-                reach
+            }
+        };
+        if parallel {
+            // Each listener on its own: it writes only its own readings.
+            for_each_lane(true, &mut state.copters, lanes, |b, c, _| {
+                if !pingers[b].pings {
+                    return;
+                }
+                scene.grid.visit_near(pingers[b].pos_m, reach, |a| {
+                    if a != b && pingers[a].pings {
+                        eligible(b, a, &mut |j, k, d| {
+                            if let Some(q) = heard(&pingers[b], k, &pingers[a], j, d) {
+                                lower_reading(&mut c.sensors, k, q);
+                            }
+                        });
+                    }
+                    reach
+                });
             });
-        });
+        } else {
+            // Each pair once (a > b), both directions: half the visits, the same bits (a
+            // reading is a minimum, and a minimum does not depend on the order).
+            let copters = &mut state.copters;
+            for b in 0..n {
+                if !pingers[b].pings {
+                    continue;
+                }
+                scene.grid.visit_near(pingers[b].pos_m, reach, |a| {
+                    if a > b && pingers[a].pings {
+                        eligible(b, a, &mut |j, k, d| {
+                            if let Some(q) = heard(&pingers[b], k, &pingers[a], j, d) {
+                                lower_reading(&mut copters[b].sensors, k, q);
+                            }
+                            if let Some(q) = heard(&pingers[a], j, &pingers[b], k, d) {
+                                lower_reading(&mut copters[a].sensors, j, q);
+                            }
+                        });
+                    }
+                    reach
+                });
+            }
+        }
     }
 
     for i in 0..n {
         let virt = inputs.commands.get(i).and_then(|c| c.virtual_sonar_m);
         let r = &mut state.copters[i].sensors;
         r.sonar_fused_m = sensors::fuse_min(r.sonar_m, virt);
+    }
+}
+
+/// What listener sonar `k` reads of emitter sonar `j`'s ping, `d` apart, if it arrives within
+/// range: after the listener's own last ping before `now_s` and before its echo (each copter's
+/// sonars ping on its own cycle, staggered by a quarter cycle each in round robin).
+#[allow(clippy::too_many_arguments)]
+#[inline]
+fn heard_reading(
+    listener: &Pinger,
+    k: usize,
+    emitter: &Pinger,
+    j: usize,
+    d: Real,
+    now_s: f64,
+    stagger: f64,
+    sonar: &sensors::SonarSpec,
+    speed_of_sound_m_s: Real,
+) -> Option<Real> {
+    let phase = listener.phase_s + stagger * k as f64 * listener.cycle_s;
+    let listen_s = phase + ((now_s - phase) / listener.cycle_s).floor() * listener.cycle_s;
+    let emitted_s = emitter.phase_s + stagger * j as f64 * emitter.cycle_s;
+    let v = crosstalk_reading(listen_s, emitted_s, emitter.cycle_s, d, speed_of_sound_m_s);
+    (v <= sonar.max_range_m).then(|| sensors::quantise(v.clamp(sonar.min_range_m, sonar.cap_m), sonar.quantum_m))
+}
+
+/// A cross-talk reading replaces sonar `k`'s when it is shorter.
+#[inline]
+fn lower_reading(r: &mut sensors::SensorReadings, k: usize, q: Real) {
+    if q < r.sonar_m[k] {
+        r.sonar_m[k] = q;
+        r.sonar_crosstalk[k] = true;
     }
 }
 
