@@ -102,7 +102,8 @@ pub struct AirframeSpec {
     pub throttle_curve_a: Real,
     /// Throttle curve parameter `b` (width of the flat zone around hover).
     pub throttle_curve_b: Real,
-    /// Contact with the floor or another copter faster than this crashes, m/s.
+    /// Hitting the floor downward faster than this, or another copter at a relative speed
+    /// above it, crashes, m/s.
     pub crash_impact_speed_m_s: Real,
     /// A tilt beyond this crashes, deg.
     pub crash_tilt_deg: Real,

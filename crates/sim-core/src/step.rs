@@ -701,12 +701,13 @@ fn lowest_point_below_centre(af: &Airframe, rot: Quat) -> Real {
 pub(crate) const ROTOR_DISC_HALF_THICKNESS_M: Real = 0.005;
 
 /// A free copter's colliders reached the floor during this substep. Slower than the crash
-/// impact speed (Rapier's rule: the speed before the substep), it lands: level at its rest
+/// impact speed (the rule of Rapier's floor contacts: the downward speed before the
+/// substep), it lands: level at its rest
 /// height, heading kept, at rest, held there until its thrust lifts it. Faster, it is lifted
 /// back onto the floor's surface and marked for the crash that the serial pass records (the
 /// wreck then falls in Rapier).
 fn touch_floor(af: &Airframe, c: &mut CopterState, lane: &mut Lane, vel_before: Vec3, below: Real) {
-    let speed = vel_before.length();
+    let speed = -vel_before.z;
     if speed > af.spec.crash_impact_speed_m_s {
         lane.pos_m.z = below;
         lane.floor_impact_m_s = speed;
@@ -1157,7 +1158,9 @@ fn detect_collision_crashes(world: &World, state: &mut State, report: &mut StepR
                 ColliderTag::Wall => Some(CrashCause::Wall),
                 ColliderTag::Ceiling => Some(CrashCause::Ceiling),
                 ColliderTag::Box(index) => Some(CrashCause::Box { index }),
-                ColliderTag::Floor => (v.length() > limit).then_some(CrashCause::Floor { speed_m_s: v.length() }),
+                // The floor: its normal speed (a copter drifting sideways as it lands is not an
+                // impact).
+                ColliderTag::Floor => (-v.z > limit).then_some(CrashCause::Floor { speed_m_s: -v.z }),
                 ColliderTag::Copter(j) if j != i => {
                     let vj = state.scratch.vel_before.get(j).copied().unwrap_or(Vec3::ZERO);
                     let rel = (v - vj).length();
