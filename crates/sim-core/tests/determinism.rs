@@ -52,20 +52,23 @@ fn a_different_seed_gives_different_noise() {
     assert_ne!(pose_bits(&a), pose_bits(&b));
 }
 
-#[test]
-fn snapshot_round_trip_continues_bit_for_bit() {
-    let world = lab(5);
+/// Steps `before` control steps, snapshots the state (postcard), restores it, then steps the
+/// original and the restored state `after` more: the same events, poses and bytes. `check`
+/// looks at the state at the snapshot.
+fn snapshot_continues_bit_for_bit(world: &World, before: usize, after: usize, check: impl Fn(&State)) {
     let inputs = world.initial_inputs();
     let mut straight = world.initial_state();
-    for _ in 0..150 {
-        step(&world, &mut straight, &inputs);
+    for _ in 0..before {
+        step(world, &mut straight, &inputs);
     }
+    check(&straight);
     let bytes = postcard::to_allocvec(&straight).unwrap();
     let mut restored: State = postcard::from_bytes(&bytes).unwrap();
     assert_eq!(postcard::to_allocvec(&restored).unwrap(), bytes, "restore is exact");
-    for _ in 0..150 {
-        step(&world, &mut straight, &inputs);
-        step(&world, &mut restored, &inputs);
+    for _ in 0..after {
+        let a = step(world, &mut straight, &inputs);
+        let b = step(world, &mut restored, &inputs);
+        assert_eq!(a, b, "the same events");
     }
     assert_eq!(pose_bits(&straight), pose_bits(&restored));
     assert_eq!(
@@ -73,6 +76,11 @@ fn snapshot_round_trip_continues_bit_for_bit() {
         postcard::to_allocvec(&restored).unwrap(),
         "the whole state, byte for byte"
     );
+}
+
+#[test]
+fn snapshot_round_trip_continues_bit_for_bit() {
+    snapshot_continues_bit_for_bit(&lab(5), 150, 150, |_| {});
 }
 
 #[test]
@@ -148,19 +156,7 @@ fn the_dense_take_off_gives_the_same_bits_on_one_two_and_three_threads() {
 
 #[test]
 fn a_dense_snapshot_with_wrecks_continues_bit_for_bit() {
-    let world = dense(1);
-    let inputs = world.initial_inputs();
-    let mut straight = world.initial_state();
-    for _ in 0..200 {
-        step(&world, &mut straight, &inputs);
-    }
-    assert!(straight.copters.iter().any(|c| c.crash.is_some()), "some copters crashed by now");
-    let bytes = postcard::to_allocvec(&straight).unwrap();
-    let mut restored: State = postcard::from_bytes(&bytes).unwrap();
-    for _ in 0..100 {
-        let a = step(&world, &mut straight, &inputs);
-        let b = step(&world, &mut restored, &inputs);
-        assert_eq!(a, b);
-    }
-    assert_eq!(postcard::to_allocvec(&straight).unwrap(), postcard::to_allocvec(&restored).unwrap());
+    snapshot_continues_bit_for_bit(&dense(1), 200, 100, |state| {
+        assert!(state.copters.iter().any(|c| c.crash.is_some()), "some copters crashed by now");
+    });
 }
