@@ -84,8 +84,17 @@ fn main() {
         *causes.entry(name).or_default() += 1;
     }
     eprintln!("crash causes: {causes:?}");
+    // FNV-1a over every copter's final motion bits: equal digests, equal trajectories.
+    let mut digest: u64 = 0xcbf2_9ce4_8422_2325;
+    for c in &state.copters {
+        let m = &c.motion;
+        let v = [m.pos_m.to_array(), m.vel_m_s.to_array(), m.angvel_rad_s.to_array()];
+        for x in v.iter().flatten().chain(&m.rot.to_array()) {
+            digest = (digest ^ u64::from(x.to_bits())).wrapping_mul(0x100_0000_01b3);
+        }
+    }
     println!(
-        "{{\"N\": {n}, \"sim_s\": {seconds}, \"cpu_s\": {cpu:.3}, \"rtf_cpu\": {:.2}, \"crashed\": {crashed}, \"flags\": {:?}}}",
+        "{{\"N\": {n}, \"sim_s\": {seconds}, \"cpu_s\": {cpu:.3}, \"rtf_cpu\": {:.2}, \"crashed\": {crashed}, \"digest\": \"{digest:016x}\", \"flags\": {:?}}}",
         seconds / cpu,
         args.iter().skip(2).collect::<Vec<_>>()
     );

@@ -383,19 +383,31 @@ impl CopterGrid {
         self.cover = Some(rect);
     }
 
-    /// Indexes `boxes` by the cell of their centre.
+    /// Indexes `boxes` by the cell of their centre; the ids are their indices.
     pub fn build(&mut self, boxes: &[OrientedBox], cell_m: Real) {
-        self.built_for = boxes.len();
-        self.max_radius_m = boxes.iter().map(OrientedBox::bounding_radius).fold(0.0, Real::max);
+        let max_radius_m = boxes.iter().map(OrientedBox::bounding_radius).fold(0.0, Real::max);
+        self.build_from(boxes.len(), |k| (k as u32, boxes[k].center), max_radius_m, cell_m);
+    }
+
+    /// Indexes points `(id, position)` (bounding radius 0). With `points` in ascending id
+    /// order, each cell lists its ids ascending, as [`CopterGrid::build`] does.
+    pub fn build_points(&mut self, points: &[(u32, Vec3)], cell_m: Real) {
+        self.build_from(points.len(), |k| points[k], 0.0, cell_m);
+    }
+
+    fn build_from(&mut self, n: usize, item: impl Fn(usize) -> (u32, Vec3), max_radius_m: Real, cell_m: Real) {
+        self.built_for = n;
+        self.max_radius_m = max_radius_m;
         let (mut lo, mut hi) = match self.cover {
             Some([x0, y0, x1, y1]) => ([x0, y0], [x1, y1]),
             None => ([Real::MAX; 2], [Real::MIN; 2]),
         };
-        for b in boxes {
-            lo = [lo[0].min(b.center.x), lo[1].min(b.center.y)];
-            hi = [hi[0].max(b.center.x), hi[1].max(b.center.y)];
+        for k in 0..n {
+            let p = item(k).1;
+            lo = [lo[0].min(p.x), lo[1].min(p.y)];
+            hi = [hi[0].max(p.x), hi[1].max(p.y)];
         }
-        if boxes.is_empty() && self.cover.is_none() {
+        if n == 0 && self.cover.is_none() {
             (lo, hi) = ([0.0; 2], [0.0; 2]);
         }
         let span = (hi[0] - lo[0]).max(hi[1] - lo[1]);
@@ -407,8 +419,8 @@ impl CopterGrid {
         self.starts.clear();
         self.starts.resize(n_cells + 1, 0);
         self.cells.clear();
-        for b in boxes {
-            let (ix, iy) = self.cell_of(b.center);
+        for k in 0..n {
+            let (ix, iy) = self.cell_of(item(k).1);
             let c = (iy as usize) * self.nx + ix as usize;
             self.cells.push(c as u32);
             self.starts[c + 1] += 1;
@@ -417,13 +429,13 @@ impl CopterGrid {
             self.starts[c + 1] += self.starts[c];
         }
         self.items.clear();
-        self.items.resize(boxes.len(), 0);
-        // Fill in id order, so each cell lists ids ascending.
+        self.items.resize(n, 0);
+        // Fill in item order, so each cell lists its items in that order.
         self.cursor.clear();
         self.cursor.extend_from_slice(&self.starts[..n_cells]);
-        for (id, &c) in self.cells.iter().enumerate() {
+        for (k, &c) in self.cells.iter().enumerate() {
             let slot = &mut self.cursor[c as usize];
-            self.items[*slot as usize] = id as u32;
+            self.items[*slot as usize] = item(k).0;
             *slot += 1;
         }
     }
@@ -512,10 +524,29 @@ impl SonarScene {
         }
         let mut best = [max_range_m; 4];
         let mut hit = [false; 4];
-        for k in 0..4 {
-            (best[k], hit[k]) = self.static_cone_distance(&cones[k], max_range_m);
+        for (k, cone) in cones.iter().enumerate() {
+            for &(n, c) in &self.walls {
+                if let Some(d) = cone.distance_to_plane(n, c)
+                    && d < best[k]
+                {
+                    best[k] = d;
+                    hit[k] = true;
+                }
+            }
         }
         let off = cones.iter().map(|c| (c.apex - origin).length()).fold(0.0, Real::max);
+        // Boxes: one sphere test from `origin` skips a box for all four cones when every
+        // apex is too far from it (`consider_box` would return at its first test; the margin
+        // covers rounding in the triangle inequality).
+        for b in &self.boxes {
+            let far = (b.center - origin).length() - b.bounding_radius() - off - 1e-4;
+            if far >= best.iter().copied().fold(0.0, Real::max) {
+                continue;
+            }
+            for k in 0..4 {
+                consider_box(&cones[k], b, &mut best[k], &mut hit[k]);
+            }
+        }
         let radius = |best: &[Real; 4]| best.iter().copied().fold(0.0, Real::max) + off;
         self.grid.visit_near(origin, radius(&best), |id| {
             if id == self_id {
@@ -571,7 +602,11 @@ impl SonarScene {
     pub fn ir_distance(&self, origin: Vec3, dir: Vec3, self_id: usize) -> Real {
         let mut best = if dir.z < -1e-6 { origin.z / -dir.z } else { Real::INFINITY };
         for b in &self.boxes {
-            if let Some(t) = ray_box(origin, dir, b) {
+            // A hit lies at least the bounding sphere's distance away (the margin covers
+            // rounding), so a box beyond `best` cannot lower it.
+            if (b.center - origin).length() - b.bounding_radius() - 1e-4 < best
+                && let Some(t) = ray_box(origin, dir, b)
+            {
                 best = best.min(t);
             }
         }

@@ -330,6 +330,10 @@ pub(crate) struct Scratch {
     pub(crate) sonar_scene: SonarScene,
     /// Every copter's sonar cones and ping timing, for cross-talk.
     pub(crate) pingers: Vec<Pinger>,
+    /// The positions of the copters that ping (flyers), and their grid: wrecks are silent, so
+    /// the cross-talk pass need not visit them.
+    pub(crate) ping_points: Vec<(u32, Vec3)>,
+    pub(crate) ping_grid: CopterGrid,
     /// One lane per copter: its motion during the step and its free-flight reservation.
     pub(crate) lanes: Vec<Lane>,
     /// Reserved spheres of all copters (radius in `half.x`), for the free-flight test.

@@ -878,12 +878,15 @@ pub fn fill_sonar_scene(world: &World, copters: &[CopterState], scene: &mut Sona
     }));
     scene.copters.clear();
     scene.copters.extend((0..copters.len()).map(|i| copter_box(world, copters, i)));
-    // About one copter per cell: sparse swarms visit fewer empty cells (any cell size gives
-    // the same readings).
-    let area_m2 = world.arena.size_m[0] * world.arena.size_m[1];
-    let cell_m = (area_m2 / copters.len().max(1) as Real).sqrt().clamp(GRID_CELL_M, 4.0 * GRID_CELL_M);
     scene.grid.set_cover(arena_rect(world));
-    scene.index_copters(cell_m);
+    scene.index_copters(grid_cell_m(world, copters.len()));
+}
+
+/// A copter grid's cell size for `n` items: about one item per cell, so sparse swarms visit
+/// fewer empty cells (any cell size gives the same readings).
+fn grid_cell_m(world: &World, n: usize) -> Real {
+    let area_m2 = world.arena.size_m[0] * world.arena.size_m[1];
+    (area_m2 / n.max(1) as Real).sqrt().clamp(GRID_CELL_M, 4.0 * GRID_CELL_M)
 }
 
 /// The arena's floor rectangle, `[x0, y0, x1, y1]`, m.
@@ -1012,7 +1015,7 @@ fn sense(world: &World, state: &mut State, inputs: &Inputs, sonar_due: bool, par
         let now_s = world.time_at(tick);
         let stagger = if ct.round_robin { 0.25 } else { 0.0 };
         let sonar = &spec.sonar;
-        let crate::state::Scratch { sonar_scene: scene, pingers, lanes, .. } = &mut state.scratch;
+        let crate::state::Scratch { pingers, ping_points, ping_grid, lanes, .. } = &mut state.scratch;
         // Every copter's cones and ping timing, gathered once.
         pingers.clear();
         pingers.extend(lanes.iter().zip(&state.copters).map(|(lane, c)| Pinger {
@@ -1022,7 +1025,11 @@ fn sense(world: &World, state: &mut State, inputs: &Inputs, sonar_due: bool, par
             cycle_s: c.sonar_cycle_s,
             pings: c.crash.is_none(),
         }));
-        let (pingers, scene) = (&*pingers, &*scene);
+        ping_points.clear();
+        ping_points.extend(pingers.iter().enumerate().filter(|(_, p)| p.pings).map(|(i, p)| (i as u32, p.pos_m)));
+        ping_grid.set_cover(arena_rect(world));
+        ping_grid.build_points(ping_points, grid_cell_m(world, ping_points.len()));
+        let (pingers, grid) = (&*pingers, &*ping_grid);
         // Emitter sonar j can reach listener sonar k only if each apex lies in the other's
         // cone. With apexes `mount_offset_m` from the centres, that needs
         // `(p_b − p_a)·axis_j ≥ cos_h (|p_b − p_a| − 2 offset)` and the same for k: a necessary
@@ -1064,8 +1071,8 @@ fn sense(world: &World, state: &mut State, inputs: &Inputs, sonar_due: bool, par
                 if !pingers[b].pings {
                     return;
                 }
-                scene.grid.visit_near(pingers[b].pos_m, reach, |a| {
-                    if a != b && pingers[a].pings {
+                grid.visit_near(pingers[b].pos_m, reach, |a| {
+                    if a != b {
                         eligible(b, a, &mut |j, k, d| {
                             if let Some(q) = heard(&pingers[b], k, &pingers[a], j, d) {
                                 lower_reading(&mut c.sensors, k, q);
@@ -1083,8 +1090,8 @@ fn sense(world: &World, state: &mut State, inputs: &Inputs, sonar_due: bool, par
                 if !pingers[b].pings {
                     continue;
                 }
-                scene.grid.visit_near(pingers[b].pos_m, reach, |a| {
-                    if a > b && pingers[a].pings {
+                grid.visit_near(pingers[b].pos_m, reach, |a| {
+                    if a > b {
                         eligible(b, a, &mut |j, k, d| {
                             if let Some(q) = heard(&pingers[b], k, &pingers[a], j, d) {
                                 lower_reading(&mut copters[b].sensors, k, q);
