@@ -7,7 +7,7 @@ use std::sync::atomic::AtomicBool;
 
 use anyhow::Context;
 use bridge::log::{
-    EventKind, LogEvent, LogFile, LogMeta, LogReadError, LogStats, Logger, format_utc_basic, now_unix_ns,
+    EventKind, LogEvent, LogFile, LogMeta, LogOptions, LogReadError, LogStats, Logger, format_utc_basic, now_unix_ns,
 };
 use sim_core::World;
 
@@ -46,9 +46,13 @@ pub fn start_run_log(
     world: &World,
     scene_path: Option<&Path>,
     scene_origin: &str,
+    live: Option<Arc<bridge::live::LiveServer>>,
 ) -> anyhow::Result<Option<Logger>> {
     if no_log {
-        return Ok(None);
+        return match live {
+            Some(live) => Ok(Some(Logger::live_only(world, live, LogOptions::default())?)),
+            None => Ok(None),
+        };
     }
     let epoch_ns = now_unix_ns();
     let path = match log {
@@ -67,7 +71,8 @@ pub fn start_run_log(
         scene_origin: scene_origin.to_owned(),
         epoch_ns: Some(epoch_ns),
     };
-    Ok(Some(Logger::create(&path, world, &scene_text, meta)?))
+    let options = LogOptions { live, ..LogOptions::default() };
+    Ok(Some(Logger::with_options(&path, world, &scene_text, meta, options)?))
 }
 
 /// SIGINT and SIGTERM set the returned flag (the run loop stops and finishes the log); a
@@ -106,6 +111,10 @@ pub fn log_overrun(log: &mut Option<Logger>, tick: u64, late_s: f64) -> anyhow::
 /// Finishes the log of a run.
 pub fn finish_run_log(log: Option<Logger>, interrupted_at_tick: Option<u64>) -> anyhow::Result<Option<LogStats>> {
     let Some(mut log) = log else { return Ok(None) };
+    if !log.has_file() {
+        log.finish()?;
+        return Ok(None);
+    }
     if let Some(tick) = interrupted_at_tick {
         log.log_event(LogEvent {
             tick,

@@ -241,6 +241,12 @@ struct RunArgs {
     /// readable after `twinswarm log recover`.
     #[arg(long, value_name = "WHAT", default_value = "stop")]
     on_log_error: OnLogError,
+    /// Serve a live view on the Foxglove WebSocket protocol at ADDR (default
+    /// 127.0.0.1:8765): in Foxglove, "Open connection", "Foxglove WebSocket",
+    /// ws://ADDR. The same channels as the log; a slow client loses messages (counted), the
+    /// run never waits for it.
+    #[arg(long, value_name = "ADDR", num_args = 0..=1, default_missing_value = bridge::live::DEFAULT_ADDR)]
+    foxglove: Option<String>,
 }
 
 /// `--on-log-error`.
@@ -443,7 +449,23 @@ fn run(args: RunArgs) -> anyhow::Result<()> {
     };
     failsafe.validate().map_err(|e| BadInput(anyhow::anyhow!("--link-hold/--link-land/--descent: {e}")))?;
     let ticks = world.default_ticks();
-    let log = logcmd::start_run_log(args.log.as_deref(), args.no_log, &world, args.scene.as_deref(), &origin)?;
+    let rt = tokio::runtime::Builder::new_multi_thread().worker_threads(2).enable_all().build()?;
+    let live = match &args.foxglove {
+        None => None,
+        Some(a) => {
+            let addr: std::net::SocketAddr = a.parse().map_err(|e| {
+                BadInput(anyhow::anyhow!("--foxglove: {a:?} is not an address like 127.0.0.1:8765: {e}"))
+            })?;
+            let server = bridge::live::LiveServer::start(addr, "twinswarm", rt.handle())
+                .with_context(|| format!("--foxglove: cannot listen on {addr}"))?;
+            if !args.json {
+                eprintln!("live view: ws://{} (Foxglove: Open connection, Foxglove WebSocket)", server.local_addr());
+            }
+            Some(std::sync::Arc::new(server))
+        }
+    };
+    let log =
+        logcmd::start_run_log(args.log.as_deref(), args.no_log, &world, args.scene.as_deref(), &origin, live.clone())?;
     let stop = logcmd::install_stop_flag()?;
     let progress = (!args.json && !args.realtime && std::io::stderr().is_terminal()).then(|| {
         let bar = indicatif::ProgressBar::new(ticks);
@@ -472,7 +494,7 @@ fn run(args: RunArgs) -> anyhow::Result<()> {
         failsafe,
     };
     let stop_on_log_error = (args.on_log_error == OnLogError::Stop).then(|| stop.clone());
-    let log_path = log.as_ref().map(|l| l.path().to_owned());
+    let log_path = log.as_ref().filter(|l| l.has_file()).map(|l| l.path().to_owned());
     let mut observer = RunObserver {
         tracker: report::Tracker::new(&world),
         log,
@@ -484,7 +506,7 @@ fn run(args: RunArgs) -> anyhow::Result<()> {
         progress,
     };
     let started = Instant::now();
-    let outcome = runner::run(world, ticks, args.realtime, &bus, &mut observer, stop)?;
+    let outcome = runner::run(&rt, world, ticks, args.realtime, &bus, &mut observer, stop)?;
     let wall_s = started.elapsed().as_secs_f64();
     let RunObserver { tracker, log, log_error, log_error_tick, failsafe_events, progress, .. } = observer;
     if let Some(bar) = progress {
@@ -511,6 +533,8 @@ fn run(args: RunArgs) -> anyhow::Result<()> {
         }
     }
     let log_stats = logcmd::finish_run_log(log, interrupted)?;
+    let live_stats = live.as_ref().map(|l| l.stats());
+    drop(live);
     let log_error = log_error.map(|e| {
         let tick = log_error_tick.unwrap_or(0);
         let path = log_path.as_ref().map_or("the log".to_owned(), |p| p.display().to_string());
@@ -529,6 +553,7 @@ fn run(args: RunArgs) -> anyhow::Result<()> {
     if args.json {
         let mut json = serde_json::to_value(&summary)?;
         json["log"] = log_stats.as_ref().map_or(serde_json::Value::Null, |l| l.path.display().to_string().into());
+        json["live"] = serde_json::to_value(&live_stats)?;
         json["interrupted"] = interrupted.is_some().into();
         json["bus"] = serde_json::to_value(&outcome.bus)?;
         json["frames_dropped"] = outcome.stats.frames_dropped.into();
@@ -542,6 +567,19 @@ fn run(args: RunArgs) -> anyhow::Result<()> {
     } else {
         out!("{}", summary.to_text());
         outln!("  log: {}", log_stats.as_ref().map_or("off (--no-log)".into(), logcmd::describe));
+        if let Some(l) = &live_stats {
+            outln!(
+                "  live view: ws://{}; {} clients, {} subscriptions, {} messages sent, {} dropped (slow clients), {} protocol errors ({} clients closed), {} handshakes refused",
+                l.address,
+                l.clients,
+                l.subscriptions,
+                l.messages_sent,
+                l.messages_dropped,
+                l.protocol_errors,
+                l.clients_closed,
+                l.handshakes_refused
+            );
+        }
         match outcome.bus.as_ref().map(|b| (b, &b.prefix)) {
             Some((b, Some(prefix))) => {
                 outln!(

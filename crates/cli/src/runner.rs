@@ -186,6 +186,7 @@ pub fn zenoh_config(opts: &BusOptions) -> anyhow::Result<zenoh::Config> {
 
 /// Runs `ticks` control steps of `world`.
 pub fn run(
+    rt: &tokio::runtime::Runtime,
     world: World,
     ticks: u64,
     realtime: bool,
@@ -207,7 +208,6 @@ pub fn run(
     }
 
     let prefix = bus.prefix.clone().unwrap_or_else(|| node::default_prefix(&world));
-    let rt = tokio::runtime::Builder::new_multi_thread().worker_threads(2).enable_all().build()?;
     let world_arc = Arc::new(world.clone());
     let mut node = match bus.no_bus {
         true => None,

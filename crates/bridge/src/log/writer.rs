@@ -19,6 +19,7 @@ use super::mcapw::{ChunkOptions, McapWriter};
 use super::pprz::PprzChannels;
 use super::schemas::schema_for;
 use super::time::{format_utc_iso, now_unix_ns, thread_cpu_ns};
+use crate::live::{LiveChannel, LiveServer};
 
 /// Why logging failed.
 #[derive(Debug, thiserror::Error)]
@@ -75,11 +76,21 @@ pub struct LogOptions {
     pub chunk_size: usize,
     /// Steps that may wait for the writer thread before `log_step` blocks (default 4).
     pub queue_steps: usize,
+    /// A live view that gets every message too, as it is encoded for the file (the channels
+    /// are added to it when the logger starts; `/bus` on first use).
+    pub live: Option<Arc<LiveServer>>,
 }
 
 impl Default for LogOptions {
     fn default() -> Self {
-        Self { flush_interval_s: 1.0, zstd_level: 1, zstd_level_behind: -20, chunk_size: 1 << 20, queue_steps: 4 }
+        Self {
+            flush_interval_s: 1.0,
+            zstd_level: 1,
+            zstd_level_behind: -20,
+            chunk_size: 1 << 20,
+            queue_steps: 4,
+            live: None,
+        }
     }
 }
 
@@ -152,6 +163,9 @@ type McapOut = McapWriter<BufWriter<File>>;
 #[derive(Debug)]
 pub struct Logger {
     path: PathBuf,
+    /// Whether there is a file (else the messages go to the live view only).
+    has_file: bool,
+    live: Option<Arc<LiveServer>>,
     jobs: Option<SyncSender<Job>>,
     free: Receiver<Box<StepFrame>>,
     thread: Option<JoinHandle<Result<LogStats, LogError>>>,
@@ -180,51 +194,87 @@ impl Logger {
         meta: LogMeta,
         options: LogOptions,
     ) -> Result<Self, LogError> {
-        let file = File::create(path).map_err(|source| LogError::Create { path: path.to_owned(), source })?;
-        let werr = |source| LogError::Write { path: path.to_owned(), source };
-        let chunking = ChunkOptions {
-            chunk_size: options.chunk_size,
-            zstd_level: options.zstd_level,
-            library: format!("twinswarm {}", env!("CARGO_PKG_VERSION")),
-        };
-        let mut out = McapWriter::new(BufWriter::with_capacity(1 << 16, file), chunking).map_err(werr)?;
+        Self::start(Some(path), world, scene_text, meta, options)
+    }
+
+    /// A logger without a file: the messages go to the live view only, and only while a
+    /// client subscribes to something (else [`Logger::log_step`] does nothing).
+    pub fn live_only(world: &World, live: Arc<LiveServer>, options: LogOptions) -> Result<Self, LogError> {
+        let options = LogOptions { live: Some(live), ..options };
+        Self::start(None, world, "", LogMeta::default(), options)
+    }
+
+    fn start(
+        file_path: Option<&Path>,
+        world: &World,
+        scene_text: &str,
+        meta: LogMeta,
+        options: LogOptions,
+    ) -> Result<Self, LogError> {
+        let path = file_path.map_or_else(|| PathBuf::from("<live view>"), Path::to_owned);
+        let werr = |source| LogError::Write { path: path.clone(), source };
         let epoch_ns = meta.epoch_ns.unwrap_or_else(now_unix_ns);
         let mut encoder = Encoder::new(world, epoch_ns);
-        let now = now_unix_ns();
-        for (name, text) in [("scene.toml", scene_text.to_owned()), ("scene.effective.toml", world.spec.to_toml())] {
-            out.attach(&Attachment {
-                log_time: epoch_ns,
-                create_time: now,
-                name: name.into(),
-                media_type: "application/toml".into(),
-                data: text.into_bytes().into(),
-            })
-            .map_err(werr)?;
-        }
-        out.write_metadata(&metadata_record(world, &meta, epoch_ns, encoder.control_dt_ns())).map_err(werr)?;
         let mut channels = [0u16; Topic::ALL.len()];
-        for topic in Topic::ALL {
-            if topic == Topic::Bus {
-                continue; // added on first use
+        let out = match file_path {
+            None => None,
+            Some(p) => {
+                let file = File::create(p).map_err(|source| LogError::Create { path: path.clone(), source })?;
+                let chunking = ChunkOptions {
+                    chunk_size: options.chunk_size,
+                    zstd_level: options.zstd_level,
+                    library: format!("twinswarm {}", env!("CARGO_PKG_VERSION")),
+                };
+                let mut out = McapWriter::new(BufWriter::with_capacity(1 << 16, file), chunking).map_err(werr)?;
+                let now = now_unix_ns();
+                for (name, text) in
+                    [("scene.toml", scene_text.to_owned()), ("scene.effective.toml", world.spec.to_toml())]
+                {
+                    out.attach(&Attachment {
+                        log_time: epoch_ns,
+                        create_time: now,
+                        name: name.into(),
+                        media_type: "application/toml".into(),
+                        data: text.into_bytes().into(),
+                    })
+                    .map_err(werr)?;
+                }
+                out.write_metadata(&metadata_record(world, &meta, epoch_ns, encoder.control_dt_ns())).map_err(werr)?;
+                for topic in Topic::ALL {
+                    if topic == Topic::Bus {
+                        continue; // added on first use
+                    }
+                    channels[topic.index()] = add_channel(&mut out, topic).map_err(werr)?;
+                }
+                Some(out)
             }
-            channels[topic.index()] = add_channel(&mut out, topic).map_err(werr)?;
-        }
+        };
+        let live = options.live.clone().map(|server| {
+            let mut ids = [0u32; Topic::ALL.len()];
+            for topic in Topic::ALL {
+                if topic != Topic::Bus {
+                    ids[topic.index()] = server.add_channel(live_channel(topic));
+                }
+            }
+            LiveOut { server, channels: ids }
+        });
         let mut state = WriterState {
             out,
             channels,
+            live,
             sequences: [0; Topic::ALL.len()],
-            stats: LogStats { path: path.to_owned(), ..LogStats::default() },
+            stats: LogStats { path: path.clone(), ..LogStats::default() },
             publish_override: None,
             pprz: PprzChannels::new(),
         };
         let dt_ns = encoder.control_dt_ns();
         encoder.encode_arena(world, &mut |topic, lt, data: &[u8]| state.write(topic, lt, data)).map_err(werr)?;
-        state.out.flush().map_err(werr)?;
+        state.flush().map_err(werr)?;
 
         let flush_every = ((options.flush_interval_s / world.params.control_dt_s).round() as u64).max(1);
         let (jobs, rx) = sync_channel::<Job>(options.queue_steps.max(1));
         let (free_tx, free) = sync_channel::<Box<StepFrame>>(options.queue_steps.max(1) + 2);
-        let thread_path = path.to_owned();
+        let thread_path = path.clone();
         let pending = Arc::new(AtomicUsize::new(0));
         let backlog = Arc::clone(&pending);
         let (level, level_behind) = (options.zstd_level, options.zstd_level_behind);
@@ -245,8 +295,13 @@ impl Logger {
                                 2 => (level + level_behind) / 2,
                                 _ => level_behind,
                             };
-                            state.out.set_zstd_level(chosen);
+                            if let Some(out) = &mut state.out {
+                                out.set_zstd_level(chosen);
+                            }
                             encoder.encode_step(&frame, &mut |t, lt, d: &[u8]| state.write(t, lt, d)).map_err(werr)?;
+                            if let Some(live) = &state.live {
+                                live.server.broadcast_time(encoder.log_time(frame.tick));
+                            }
                             backlog.fetch_sub(1, Ordering::Relaxed);
                             state.stats.last_tick = frame.tick;
                             // Recycling only: with the pool full (or the Logger gone) the frame
@@ -254,7 +309,7 @@ impl Logger {
                             let _ = free_tx.try_send(frame);
                             since_flush += 1;
                             if since_flush >= flush_every {
-                                state.out.flush().map_err(werr)?;
+                                state.flush().map_err(werr)?;
                                 since_flush = 0;
                             }
                         }
@@ -262,10 +317,7 @@ impl Logger {
                             encoder.encode_event(&ev, &mut |t, lt, d: &[u8]| state.write(t, lt, d)).map_err(werr)?
                         }
                         Job::Bus(batch) => {
-                            if state.channels[Topic::Bus.index()] == 0 {
-                                state.channels[Topic::Bus.index()] =
-                                    add_channel(&mut state.out, Topic::Bus).map_err(werr)?;
-                            }
+                            state.add_bus_channel().map_err(werr)?;
                             for BusJob { tick, key, direction, text, received_ns } in batch {
                                 state.publish_override = Some(received_ns);
                                 let r = encoder.encode_bus(tick, &key, direction, &text, &mut |t, lt, d: &[u8]| {
@@ -274,26 +326,32 @@ impl Logger {
                                 state.publish_override = None;
                                 r.map_err(werr)?;
                                 let log_time = epoch_ns + tick * dt_ns;
-                                state
-                                    .pprz
-                                    .write(&mut state.out, tick, log_time, received_ns, &key, direction, &text)
-                                    .map_err(werr)?;
+                                if let Some(out) = &mut state.out {
+                                    state
+                                        .pprz
+                                        .write(out, tick, log_time, received_ns, &key, direction, &text)
+                                        .map_err(werr)?;
+                                }
                             }
                             state.stats.pprz_messages = state.pprz.written;
                         }
-                        Job::Flush => state.out.flush().map_err(werr)?,
+                        Job::Flush => state.flush().map_err(werr)?,
                     }
                 }
-                state.out.finish().map_err(werr)?;
-                state.stats.fast_chunks = state.out.fast_chunks();
+                if let Some(out) = &mut state.out {
+                    out.finish().map_err(werr)?;
+                    state.stats.fast_chunks = out.fast_chunks();
+                }
                 if let (Some(a), Some(b)) = (cpu0, thread_cpu_ns()) {
                     state.stats.writer_cpu_s = Some(b.saturating_sub(a) as f64 * 1e-9);
                 }
                 Ok(state.stats.clone())
             })
-            .map_err(|source| LogError::Create { path: path.to_owned(), source })?;
+            .map_err(|source| LogError::Create { path: path.clone(), source })?;
         Ok(Self {
-            path: path.to_owned(),
+            has_file: file_path.is_some(),
+            live: options.live,
+            path,
             jobs: Some(jobs),
             free,
             thread: Some(thread),
@@ -305,9 +363,21 @@ impl Logger {
         })
     }
 
-    /// The file.
+    /// The file (`<live view>` without one).
     pub fn path(&self) -> &Path {
         &self.path
+    }
+
+    /// Whether it writes a file (else it feeds a live view only).
+    pub fn has_file(&self) -> bool {
+        self.has_file
+    }
+
+    /// Whether messages are wanted now: always with a file, else while a live client
+    /// subscribes to something.
+    #[inline]
+    fn wanted(&self) -> bool {
+        self.has_file || self.live.as_ref().is_some_and(|l| l.active())
     }
 
     /// Unix time of tick 0, ns.
@@ -330,10 +400,13 @@ impl Logger {
         inputs: &Inputs,
         report: &StepReport,
     ) -> Result<(), LogError> {
+        self.last_tick = state.tick;
+        if !self.wanted() {
+            return Ok(());
+        }
         // A frame the writer has finished with, or a new one while the pool fills.
         let mut frame = self.free.try_recv().unwrap_or_default();
         frame.capture(world, state, inputs, report);
-        self.last_tick = state.tick;
         self.pending.fetch_add(1, Ordering::Relaxed);
         self.send(Job::Step(frame))
     }
@@ -341,6 +414,9 @@ impl Logger {
     /// Logs an event (spawn, pairing, rejected input, step overrun, interruption) on
     /// `/events` and `/log`.
     pub fn log_event(&mut self, event: LogEvent) -> Result<(), LogError> {
+        if !self.wanted() {
+            return Ok(());
+        }
         self.send(Job::Event(event))
     }
 
@@ -355,6 +431,9 @@ impl Logger {
     ) -> Result<(), LogError> {
         if self.jobs.is_none() {
             return Err(LogError::WriterGone { path: self.path.clone() });
+        }
+        if !self.wanted() {
+            return Ok(());
         }
         self.bus.push(BusJob {
             tick: self.last_tick,
@@ -431,12 +510,19 @@ impl Drop for Logger {
 }
 
 struct WriterState {
-    out: McapOut,
+    out: Option<McapOut>,
     channels: [u16; Topic::ALL.len()],
+    live: Option<LiveOut>,
     sequences: [u32; Topic::ALL.len()],
     stats: LogStats,
     publish_override: Option<u64>,
     pprz: PprzChannels,
+}
+
+/// The live view's side of the writer: the server and its channel id per topic.
+struct LiveOut {
+    server: Arc<LiveServer>,
+    channels: [u32; Topic::ALL.len()],
 }
 
 impl WriterState {
@@ -445,13 +531,50 @@ impl WriterState {
         let seq = self.sequences[i];
         self.sequences[i] = seq.wrapping_add(1);
         self.stats.messages[i] += 1;
+        if let Some(live) = &self.live {
+            live.server.publish(live.channels[i], log_time, data);
+        }
+        let Some(out) = &mut self.out else { return Ok(()) };
         let header = MessageHeader {
             channel_id: self.channels[i],
             sequence: seq,
             log_time,
             publish_time: self.publish_override.unwrap_or(log_time),
         };
-        self.out.write_to_known_channel(&header, data)
+        out.write_to_known_channel(&header, data)
+    }
+
+    fn flush(&mut self) -> std::io::Result<()> {
+        self.out.as_mut().map_or(Ok(()), McapWriter::flush)
+    }
+
+    /// `/bus`, in the file and the live view, on first use.
+    fn add_bus_channel(&mut self) -> std::io::Result<()> {
+        let i = Topic::Bus.index();
+        if let Some(live) = &mut self.live
+            && live.channels[i] == 0
+        {
+            live.channels[i] = live.server.add_channel(live_channel(Topic::Bus));
+        }
+        if let Some(out) = &mut self.out
+            && self.channels[i] == 0
+        {
+            self.channels[i] = add_channel(out, Topic::Bus)?;
+        }
+        Ok(())
+    }
+}
+
+/// A topic's channel in the live view: the log's encoding and schema; the static scene is
+/// latched (each new subscriber gets it).
+fn live_channel(topic: Topic) -> LiveChannel {
+    LiveChannel {
+        topic: topic.name().to_owned(),
+        encoding: "json".to_owned(),
+        schema_name: topic.schema().to_owned(),
+        schema_encoding: "jsonschema".to_owned(),
+        schema: schema_for(topic.schema()).map_or("{}", |s| s.json).to_owned(),
+        latched: topic == Topic::SceneArena,
     }
 }
 
