@@ -28,9 +28,8 @@
 //! Frames over [`MAX_CLIENT_MESSAGE_BYTES`] close the connection too (counted).
 
 use std::net::SocketAddr;
-use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, AtomicU32, AtomicU64, Ordering};
-use std::sync::{Mutex, MutexGuard, PoisonError};
+use std::sync::{Arc, Mutex};
 
 use futures_util::{SinkExt, StreamExt};
 use serde::Serialize;
@@ -41,6 +40,8 @@ use tokio_tungstenite::tungstenite::http::{HeaderValue, StatusCode};
 use tokio_tungstenite::tungstenite::protocol::frame::coding::CloseCode;
 use tokio_tungstenite::tungstenite::protocol::{CloseFrame, WebSocketConfig};
 use tokio_tungstenite::tungstenite::{Bytes, Message, Utf8Bytes};
+
+use crate::lock;
 
 /// The subprotocol of the Foxglove WebSocket protocol.
 pub const SUBPROTOCOL: &str = "foxglove.websocket.v1";
@@ -74,6 +75,49 @@ pub struct LiveChannel {
     pub latched: bool,
 }
 
+impl LiveChannel {
+    /// A channel with a schema as a file stores it: text schemas (`jsonschema`, `ros2msg`, …)
+    /// as they are, binary ones (`protobuf`, `flatbuffer`) in base64, as the protocol wants.
+    pub fn from_schema_bytes(
+        topic: &str,
+        encoding: &str,
+        schema_name: &str,
+        schema_encoding: &str,
+        schema: &[u8],
+    ) -> Self {
+        let schema = match schema_encoding {
+            "protobuf" | "flatbuffer" => base64(schema),
+            _ => String::from_utf8_lossy(schema).into_owned(),
+        };
+        Self {
+            topic: topic.to_owned(),
+            encoding: encoding.to_owned(),
+            schema_name: schema_name.to_owned(),
+            schema_encoding: schema_encoding.to_owned(),
+            schema,
+            latched: false,
+        }
+    }
+}
+
+/// Standard base64 with padding (RFC 4648).
+fn base64(data: &[u8]) -> String {
+    const ALPHABET: &[u8; 64] = b"ABCDEFGHIJKLMNOPQRSTUVWXYZabcdefghijklmnopqrstuvwxyz0123456789+/";
+    let mut out = String::with_capacity(data.len().div_ceil(3) * 4);
+    for chunk in data.chunks(3) {
+        let b = [chunk[0], chunk.get(1).copied().unwrap_or(0), chunk.get(2).copied().unwrap_or(0)];
+        let n = (u32::from(b[0]) << 16) | (u32::from(b[1]) << 8) | u32::from(b[2]);
+        for k in 0..4 {
+            if k <= chunk.len() {
+                out.push(ALPHABET[(n >> (18 - 6 * k)) as usize & 63] as char);
+            } else {
+                out.push('=');
+            }
+        }
+    }
+    out
+}
+
 /// What the server did, for the run's summary.
 #[derive(Clone, Debug, Default, Serialize)]
 pub struct LiveStats {
@@ -94,6 +138,9 @@ pub struct LiveStats {
     pub protocol_errors: u64,
     /// Clients closed for too many protocol errors or an oversized frame.
     pub clients_closed: u64,
+    /// Control steps not encoded for the view because its encoder was behind (a run without
+    /// a log file; with one, the file's writer sets the pace).
+    pub steps_skipped: u64,
 }
 
 #[derive(Debug, Default)]
@@ -105,6 +152,7 @@ struct Counters {
     messages_dropped: AtomicU64,
     protocol_errors: AtomicU64,
     clients_closed: AtomicU64,
+    steps_skipped: AtomicU64,
 }
 
 #[derive(Debug)]
@@ -136,12 +184,6 @@ struct Shared {
     next_client: AtomicU64,
     counters: Counters,
     stopped: AtomicBool,
-}
-
-/// Locks a mutex; a panic elsewhere while it was held left consistent data (every update is
-/// a single assignment or push), so the poison is ignored.
-fn lock<T>(m: &Mutex<T>) -> MutexGuard<'_, T> {
-    m.lock().unwrap_or_else(PoisonError::into_inner)
 }
 
 /// A running live-view server. Dropping it stops accepting clients and closes them.
@@ -263,7 +305,13 @@ impl LiveServer {
             messages_dropped: l(&c.messages_dropped),
             protocol_errors: l(&c.protocol_errors),
             clients_closed: l(&c.clients_closed),
+            steps_skipped: l(&c.steps_skipped),
         }
+    }
+
+    /// Counts a control step its publisher skipped because it was behind.
+    pub fn count_skipped_step(&self) {
+        self.shared.counters.steps_skipped.fetch_add(1, Ordering::Relaxed);
     }
 
     fn queue(&self, c: &ClientEntry, m: Message) {
@@ -382,6 +430,7 @@ async fn serve_client(stream: TcpStream, peer: SocketAddr, shared: Arc<Shared>) 
         "sessionId": shared.session_id,
     })
     .to_string();
+    // The queue is new and empty: these two cannot find it full.
     let _ = tx.try_send(Message::Text(info.into()));
     {
         // Holding the channel list while listing the client: a channel added meanwhile is
@@ -569,5 +618,20 @@ fn handle_text(shared: &Shared, id: u64, text: &str) -> Result<(), String> {
             Err(format!("op \"{op}\" is not supported by this server (see serverInfo capabilities)"))
         }
         other => Err(format!("unknown op \"{}\"", other.chars().take(64).collect::<String>())),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn base64_matches_rfc4648_vectors() {
+        let cases =
+            [("", ""), ("f", "Zg=="), ("fo", "Zm8="), ("foo", "Zm9v"), ("foob", "Zm9vYg=="), ("fooba", "Zm9vYmE=")];
+        for (plain, coded) in cases {
+            assert_eq!(base64(plain.as_bytes()), coded, "{plain:?}");
+        }
+        assert_eq!(base64(&[0xfb, 0xff]), "+/8=");
     }
 }

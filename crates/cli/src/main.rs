@@ -569,12 +569,13 @@ fn run(args: RunArgs) -> anyhow::Result<()> {
         outln!("  log: {}", log_stats.as_ref().map_or("off (--no-log)".into(), logcmd::describe));
         if let Some(l) = &live_stats {
             outln!(
-                "  live view: ws://{}; {} clients, {} subscriptions, {} messages sent, {} dropped (slow clients), {} protocol errors ({} clients closed), {} handshakes refused",
+                "  live view: ws://{}; {} clients, {} subscriptions, {} messages sent, {} dropped (slow clients), {} steps skipped (encoder behind), {} protocol errors ({} clients closed), {} handshakes refused",
                 l.address,
                 l.clients,
                 l.subscriptions,
                 l.messages_sent,
                 l.messages_dropped,
+                l.steps_skipped,
                 l.protocol_errors,
                 l.clients_closed,
                 l.handshakes_refused

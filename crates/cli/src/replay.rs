@@ -67,6 +67,14 @@ pub struct ReplayArgs {
     /// Wait this long after opening the session (and after any subscriber wait) before sending.
     #[arg(long, value_name = "MS", default_value_t = 0)]
     pub start_delay_ms: u64,
+    /// Also serve the log on the Foxglove WebSocket protocol at ADDR (default
+    /// 127.0.0.1:8765): every channel, with the file's schemas, at the log's pace (`--speed`).
+    /// With `--wait-for-subscriber`, waits for a live subscription too.
+    #[arg(long, value_name = "ADDR", num_args = 0..=1, default_missing_value = bridge::live::DEFAULT_ADDR)]
+    pub foxglove: Option<String>,
+    /// Do not republish on Zenoh (with `--foxglove`: the live view only).
+    #[arg(long, requires = "foxglove")]
+    pub no_bus: bool,
 }
 
 /// The fields of a logged `twinswarm.CopterState` the live message needs.
@@ -186,6 +194,20 @@ fn recorded_prefix(meta: Option<&std::collections::BTreeMap<String, String>>) ->
     meta.get("world").map(|w| format!("twinswarm/{w}"))
 }
 
+/// Sleeps until `deadline`; false if `stop` is set meanwhile.
+fn wait_until(stop: &AtomicBool, deadline: Instant) -> bool {
+    loop {
+        if stop.load(Ordering::Relaxed) {
+            return false;
+        }
+        let now = Instant::now();
+        if now >= deadline {
+            return true;
+        }
+        std::thread::sleep((deadline - now).min(Duration::from_millis(100)));
+    }
+}
+
 /// Moves a logged bus key from the recorded prefix to the replay prefix.
 fn rekey(key: &str, recorded: Option<&str>, prefix: &str) -> String {
     match recorded.and_then(|r| key.strip_prefix(r)) {
@@ -194,9 +216,19 @@ fn rekey(key: &str, recorded: Option<&str>, prefix: &str) -> String {
     }
 }
 
-/// Replays into a Zenoh session.
+/// The live view of a replay: the server and its channel id per topic.
+struct LiveReplay {
+    server: Arc<bridge::live::LiveServer>,
+    channels: HashMap<String, u32>,
+    /// The log time last announced (time messages go out once per log time).
+    last_time: Option<u64>,
+    sent: u64,
+}
+
+/// Replays into a Zenoh session, a live view, or both.
 struct Replayer<'a> {
-    session: &'a zenoh::Session,
+    session: Option<&'a zenoh::Session>,
+    live: Option<LiveReplay>,
     prefix: String,
     recorded: Option<String>,
     publishers: HashMap<String, zenoh::pubsub::Publisher<'static>>,
@@ -212,8 +244,8 @@ struct Replayer<'a> {
 impl Replayer<'_> {
     fn publisher(&mut self, key: &str) -> anyhow::Result<&zenoh::pubsub::Publisher<'static>> {
         if !self.publishers.contains_key(key) {
-            let p = self
-                .session
+            let session = self.session.ok_or_else(|| anyhow::anyhow!("no Zenoh session (--no-bus)"))?;
+            let p = session
                 .declare_publisher(key.to_owned())
                 .congestion_control(CongestionControl::Block)
                 .wait()
@@ -235,21 +267,28 @@ impl Replayer<'_> {
     /// Sleeps until the deadline of `log_time_ns`; false if stopped meanwhile.
     fn wait_until(&self, log_time_ns: u64) -> bool {
         let offset_s = log_time_ns.saturating_sub(self.t0_ns) as f64 / 1e9 / self.speed;
-        let deadline = self.start + Duration::from_secs_f64(offset_s);
-        loop {
-            if self.stop.load(Ordering::Relaxed) {
-                return false;
-            }
-            let now = Instant::now();
-            if now >= deadline {
-                return true;
-            }
-            std::thread::sleep((deadline - now).min(Duration::from_millis(100)));
-        }
+        wait_until(&self.stop, self.start + Duration::from_secs_f64(offset_s))
     }
 
     /// Handles one message. `Ok(false)`: stopped by a signal.
     fn message(&mut self, path: &Path, topic: &str, log_time: u64, data: &[u8]) -> anyhow::Result<bool> {
+        if let Some(live) = &mut self.live
+            && let Some(&id) = live.channels.get(topic)
+        {
+            let offset_s = log_time.saturating_sub(self.t0_ns) as f64 / 1e9 / self.speed;
+            if !wait_until(&self.stop, self.start + Duration::from_secs_f64(offset_s)) {
+                return Ok(false);
+            }
+            if live.last_time != Some(log_time) {
+                live.last_time = Some(log_time);
+                live.server.broadcast_time(log_time);
+            }
+            live.server.publish(id, log_time, data);
+            live.sent += 1;
+        }
+        if self.session.is_none() {
+            return Ok(true);
+        }
         let json_err =
             |source| read_error(LogReadError::Json { path: path.to_owned(), topic: topic.to_owned(), source });
         match topic {
@@ -324,7 +363,11 @@ pub fn run(args: ReplayArgs) -> anyhow::Result<()> {
         )));
     };
     let count = |topic: &str| info.channels.iter().find(|c| c.topic == topic).map_or(0, |c| c.messages);
-    let replayable = count("/copters/state") + count("/copters/sensors") + count("/bus");
+    let replayable = if args.foxglove.is_some() {
+        info.messages
+    } else {
+        count("/copters/state") + count("/copters/sensors") + count("/bus")
+    };
     let Some((t0_ns, t1_ns)) = info.time_range_ns.filter(|_| replayable > 0) else {
         return Err(bad(format!("{}: no state, sensor or bus messages to replay", path.display())));
     };
@@ -346,11 +389,41 @@ pub fn run(args: ReplayArgs) -> anyhow::Result<()> {
         prefix: Some(prefix.clone()),
         ..BusOptions::default()
     };
-    let config = zenoh_config(&bus)?;
-    let session =
-        zenoh::open(config).wait().map_err(|e| anyhow::anyhow!("{e}")).context("cannot open the Zenoh session")?;
+    let rt = tokio::runtime::Builder::new_multi_thread().worker_threads(1).enable_all().build()?;
+    let live = match &args.foxglove {
+        None => None,
+        Some(a) => {
+            let addr: std::net::SocketAddr =
+                a.parse().map_err(|e| bad(format!("--foxglove: {a:?} is not an address like 127.0.0.1:8765: {e}")))?;
+            let server = bridge::live::LiveServer::start(addr, "twinswarm replay", rt.handle())
+                .with_context(|| format!("--foxglove: cannot listen on {addr}"))?;
+            let mut channels = HashMap::new();
+            for c in file.channel_defs() {
+                let def = bridge::live::LiveChannel::from_schema_bytes(
+                    &c.topic,
+                    &c.encoding,
+                    &c.schema_name,
+                    &c.schema_encoding,
+                    &c.schema,
+                );
+                channels.insert(c.topic.clone(), server.add_channel(def));
+            }
+            outln!("  live view: ws://{} ({} channels)", server.local_addr(), channels.len());
+            Some(LiveReplay { server: Arc::new(server), channels, last_time: None, sent: 0 })
+        }
+    };
+    let session = match args.no_bus {
+        true => None,
+        false => Some(
+            zenoh::open(zenoh_config(&bus)?)
+                .wait()
+                .map_err(|e| anyhow::anyhow!("{e}"))
+                .context("cannot open the Zenoh session")?,
+        ),
+    };
     let mut r = Replayer {
-        session: &session,
+        session: session.as_ref(),
+        live,
         prefix: prefix.clone(),
         recorded,
         publishers: HashMap::new(),
@@ -372,14 +445,31 @@ pub fn run(args: ReplayArgs) -> anyhow::Result<()> {
     let result = replay(&mut r, &file, &copters, &args);
     let wall_s = r.start.elapsed().as_secs_f64();
     let counts = r.counts;
+    let live = r.live.take();
     let publishers = std::mem::take(&mut r.publishers);
     drop(r);
-    // Let the last samples leave the transmission queue, then close explicitly.
+    // Let the last samples leave the transmission queue (and the live clients' queues), then
+    // close explicitly.
     std::thread::sleep(Duration::from_millis(200));
     drop(publishers);
-    let closed = session.close().wait().map_err(|e| anyhow::anyhow!("{e}")).context("closing the Zenoh session");
+    let closed = match session {
+        Some(s) => s.close().wait().map_err(|e| anyhow::anyhow!("{e}")).context("closing the Zenoh session"),
+        None => Ok(()),
+    };
     let interrupted = result?;
     closed?;
+    if let Some(l) = &live {
+        let st = l.server.stats();
+        outln!(
+            "  live view: {} messages published; {} clients, {} subscriptions, {} messages sent, {} dropped (slow clients), {} protocol errors",
+            l.sent,
+            st.clients,
+            st.subscriptions,
+            st.messages_sent,
+            st.messages_dropped,
+            st.protocol_errors
+        );
+    }
     outln!(
         "  republished {} messages: {} clock, {} state, {} sensors, {} bus{}",
         counts.clock + counts.state + counts.sensors + counts.bus,
@@ -412,10 +502,13 @@ pub fn run(args: ReplayArgs) -> anyhow::Result<()> {
 
 /// Waits for subscribers, then replays. `Ok(true)`: interrupted by a signal.
 fn replay(r: &mut Replayer<'_>, file: &LogFile, copters: &[String], args: &ReplayArgs) -> anyhow::Result<bool> {
-    let mut keys = vec![format!("{}/clock", r.prefix)];
-    for c in copters {
-        keys.push(format!("{}/copters/{c}/state", r.prefix));
-        keys.push(format!("{}/copters/{c}/sensors", r.prefix));
+    let mut keys = Vec::new();
+    if r.session.is_some() {
+        keys.push(format!("{}/clock", r.prefix));
+        for c in copters {
+            keys.push(format!("{}/copters/{c}/state", r.prefix));
+            keys.push(format!("{}/copters/{c}/sensors", r.prefix));
+        }
     }
     for k in &keys {
         r.publisher(k)?;
@@ -424,7 +517,8 @@ fn replay(r: &mut Replayer<'_>, file: &LogFile, copters: &[String], args: &Repla
         outln!("  waiting up to {wait_s} s for a subscriber");
         let until = Instant::now() + Duration::from_secs_f64(wait_s);
         let matched = |r: &Replayer<'_>| {
-            keys.iter().any(|k| r.publishers[k].matching_status().wait().is_ok_and(|m| m.matching()))
+            r.live.as_ref().is_some_and(|l| l.server.active())
+                || keys.iter().any(|k| r.publishers[k].matching_status().wait().is_ok_and(|m| m.matching()))
         };
         while !matched(r) {
             if r.stop.load(Ordering::Relaxed) {
@@ -450,19 +544,20 @@ fn replay(r: &mut Replayer<'_>, file: &LogFile, copters: &[String], args: &Repla
     let mut failure: Option<anyhow::Result<bool>> = None;
     let path = file.path().to_owned();
     let sentinel = || LogReadError::Io { path: path.clone(), source: std::io::Error::other("replay stopped") };
-    let read = file.for_each_message(&["/copters/state", "/copters/sensors", "/bus"], |topic, log_time, data| match r
-        .message(&path, topic, log_time, data)
-    {
-        Ok(true) => Ok(()),
-        Ok(false) => {
-            failure = Some(Ok(true));
-            Err(sentinel())
-        }
-        Err(e) => {
-            failure = Some(Err(e));
-            Err(sentinel())
-        }
-    });
+    let all = r.live.is_some();
+    let wanted = |t: &str| all || ["/copters/state", "/copters/sensors", "/bus"].contains(&t);
+    let read =
+        file.for_each_message_where(wanted, |topic, log_time, data| match r.message(&path, topic, log_time, data) {
+            Ok(true) => Ok(()),
+            Ok(false) => {
+                failure = Some(Ok(true));
+                Err(sentinel())
+            }
+            Err(e) => {
+                failure = Some(Err(e));
+                Err(sentinel())
+            }
+        });
     if let Some(f) = failure {
         return f;
     }

@@ -59,7 +59,7 @@ mod writer;
 
 pub use capture::{CopterSample, StepFrame};
 pub use encode::{Encoder, EventKind, LogEvent, SCENE_COPTERS_PERIOD_S, Sink, Topic};
-pub use read::{ChannelInfo, LogFile, LogInfo, LogReadError, RecoverReport, recover};
+pub use read::{ChannelDef, ChannelInfo, LogFile, LogInfo, LogReadError, RecoverReport, recover};
 pub use schemas::{SCHEMAS, SchemaDef, schema_for};
 pub use time::{format_utc_basic, format_utc_iso, now_unix_ns, thread_cpu_ns};
 pub use writer::{LogError, LogMeta, LogOptions, LogStats, Logger};

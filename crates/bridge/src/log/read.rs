@@ -101,6 +101,21 @@ pub struct ChannelInfo {
     pub messages: u64,
 }
 
+/// A channel of a log with its schema ([`LogFile::channel_defs`]).
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct ChannelDef {
+    /// Topic.
+    pub topic: String,
+    /// Message encoding (`json`, `protobuf`, …).
+    pub encoding: String,
+    /// Schema name (empty if none).
+    pub schema_name: String,
+    /// Schema encoding (`jsonschema`, `protobuf`, …; empty if none).
+    pub schema_encoding: String,
+    /// The schema's bytes.
+    pub schema: Vec<u8>,
+}
+
 /// What `twinswarm log info` shows.
 #[derive(Clone, Debug, Default)]
 pub struct LogInfo {
@@ -411,11 +426,36 @@ impl LogFile {
         Ok(None)
     }
 
+    /// Every channel with its encoding and schema, in channel id order.
+    pub fn channel_defs(&self) -> Vec<ChannelDef> {
+        let mut channels: Vec<_> = self.summary.channels.values().collect();
+        channels.sort_by_key(|c| c.id);
+        channels
+            .into_iter()
+            .map(|c| ChannelDef {
+                topic: c.topic.clone(),
+                encoding: c.message_encoding.clone(),
+                schema_name: c.schema.as_ref().map_or(String::new(), |s| s.name.clone()),
+                schema_encoding: c.schema.as_ref().map_or(String::new(), |s| s.encoding.clone()),
+                schema: c.schema.as_ref().map_or(Vec::new(), |s| s.data.to_vec()),
+            })
+            .collect()
+    }
+
     /// Calls `f(topic, log_time_ns, payload)` for every message on one of `topics`, in file
     /// order (chunk CRCs checked).
     pub fn for_each_message(
         &self,
         topics: &[&str],
+        f: impl FnMut(&str, u64, &[u8]) -> Result<(), LogReadError>,
+    ) -> Result<(), LogReadError> {
+        self.for_each_message_where(|t| topics.contains(&t), f)
+    }
+
+    /// [`LogFile::for_each_message`] for the topics `wanted` accepts.
+    pub fn for_each_message_where(
+        &self,
+        wanted: impl Fn(&str) -> bool,
         mut f: impl FnMut(&str, u64, &[u8]) -> Result<(), LogReadError>,
     ) -> Result<(), LogReadError> {
         let corrupt = |source| LogReadError::Corrupt { path: self.path.clone(), source };
@@ -426,7 +466,7 @@ impl LogFile {
                     channels.insert(c.id, c.topic);
                 }
                 Record::Message { header, data } => match channels.get(&header.channel_id) {
-                    Some(topic) if topics.contains(&topic.as_str()) => f(topic, header.log_time, &data)?,
+                    Some(topic) if wanted(topic) => f(topic, header.log_time, &data)?,
                     Some(_) => {}
                     None => return Err(corrupt(McapError::UnknownChannel(header.sequence, header.channel_id))),
                 },

@@ -408,7 +408,24 @@ impl Logger {
         let mut frame = self.free.try_recv().unwrap_or_default();
         frame.capture(world, state, inputs, report);
         self.pending.fetch_add(1, Ordering::Relaxed);
-        self.send(Job::Step(frame))
+        if self.has_file {
+            return self.send(Job::Step(frame));
+        }
+        // The live view alone is lossy: a step the encoder has no room for is skipped (and
+        // counted) rather than waited for.
+        self.send_bus_batch()?;
+        let Some(jobs) = &self.jobs else { return Err(LogError::WriterGone { path: self.path.clone() }) };
+        match jobs.try_send(Job::Step(frame)) {
+            Ok(()) => Ok(()),
+            Err(std::sync::mpsc::TrySendError::Full(_)) => {
+                self.pending.fetch_sub(1, Ordering::Relaxed);
+                if let Some(live) = &self.live {
+                    live.count_skipped_step();
+                }
+                Ok(())
+            }
+            Err(std::sync::mpsc::TrySendError::Disconnected(job)) => self.send_job(job),
+        }
     }
 
     /// Logs an event (spawn, pairing, rejected input, step overrun, interruption) on
