@@ -79,6 +79,10 @@ pub struct LogOptions {
     /// A live view that gets every message too, as it is encoded for the file (the channels
     /// are added to it when the logger starts; `/bus` on first use).
     pub live: Option<Arc<LiveServer>>,
+    /// The live view gets a step's messages at most this often per second of wall-clock time
+    /// (default 30: about a display's rate; a `--realtime` run at 20 Hz sends every step).
+    /// A run faster than real time is sampled; the file still gets every step.
+    pub live_max_hz: f64,
 }
 
 impl Default for LogOptions {
@@ -90,6 +94,7 @@ impl Default for LogOptions {
             chunk_size: 1 << 20,
             queue_steps: 4,
             live: None,
+            live_max_hz: 30.0,
         }
     }
 }
@@ -163,6 +168,9 @@ type McapOut = McapWriter<BufWriter<File>>;
 #[derive(Debug)]
 pub struct Logger {
     path: PathBuf,
+    /// The live view's sampling without a file ([`Logger::live_step_due`]).
+    live_last: Option<std::time::Instant>,
+    live_every: std::time::Duration,
     /// Whether there is a file (else the messages go to the live view only).
     has_file: bool,
     live: Option<Arc<LiveServer>>,
@@ -256,12 +264,14 @@ impl Logger {
                     ids[topic.index()] = server.add_channel(live_channel(topic));
                 }
             }
-            LiveOut { server, channels: ids }
+            LiveOut { server, channels: ids, last: None }
         });
+        let live_every = std::time::Duration::from_secs_f64(1.0 / options.live_max_hz.max(1e-3));
         let mut state = WriterState {
             out,
             channels,
             live,
+            live_due: true,
             sequences: [0; Topic::ALL.len()],
             stats: LogStats { path: path.clone(), ..LogStats::default() },
             publish_override: None,
@@ -298,10 +308,21 @@ impl Logger {
                             if let Some(out) = &mut state.out {
                                 out.set_zstd_level(chosen);
                             }
+                            let now = std::time::Instant::now();
+                            // Without a file the stepping thread has sampled already.
+                            let live_only = state.out.is_none();
+                            state.live_due = state.live.as_ref().is_some_and(|l| {
+                                l.server.active()
+                                    && (live_only || l.last.is_none_or(|t| now.duration_since(t) >= live_every))
+                            });
                             encoder.encode_step(&frame, &mut |t, lt, d: &[u8]| state.write(t, lt, d)).map_err(werr)?;
-                            if let Some(live) = &state.live {
+                            if let Some(live) = &mut state.live
+                                && state.live_due
+                            {
+                                live.last = Some(now);
                                 live.server.broadcast_time(encoder.log_time(frame.tick));
                             }
+                            state.live_due = true;
                             backlog.fetch_sub(1, Ordering::Relaxed);
                             state.stats.last_tick = frame.tick;
                             // Recycling only: with the pool full (or the Logger gone) the frame
@@ -349,6 +370,8 @@ impl Logger {
             })
             .map_err(|source| LogError::Create { path: path.clone(), source })?;
         Ok(Self {
+            live_last: None,
+            live_every,
             has_file: file_path.is_some(),
             live: options.live,
             path,
@@ -380,6 +403,18 @@ impl Logger {
         self.has_file || self.live.as_ref().is_some_and(|l| l.active())
     }
 
+    /// Without a file: whether this step is due for the live view ([`LogOptions::live_max_hz`]
+    /// of wall-clock time), so that a run faster than real time is sampled on the stepping
+    /// thread before anything is copied.
+    fn live_step_due(&mut self) -> bool {
+        let now = std::time::Instant::now();
+        if self.live_last.is_some_and(|t| now.duration_since(t) < self.live_every) {
+            return false;
+        }
+        self.live_last = Some(now);
+        true
+    }
+
     /// Unix time of tick 0, ns.
     pub fn epoch_ns(&self) -> u64 {
         self.epoch_ns
@@ -401,7 +436,7 @@ impl Logger {
         report: &StepReport,
     ) -> Result<(), LogError> {
         self.last_tick = state.tick;
-        if !self.wanted() {
+        if !self.wanted() || (!self.has_file && !self.live_step_due()) {
             return Ok(());
         }
         // A frame the writer has finished with, or a new one while the pool fills.
@@ -530,6 +565,9 @@ struct WriterState {
     out: Option<McapOut>,
     channels: [u16; Topic::ALL.len()],
     live: Option<LiveOut>,
+    /// Whether a step's messages go to the live view too (a step not sampled for it does
+    /// not; events, log lines, the static scene and bus messages always do).
+    live_due: bool,
     sequences: [u32; Topic::ALL.len()],
     stats: LogStats,
     publish_override: Option<u64>,
@@ -540,6 +578,8 @@ struct WriterState {
 struct LiveOut {
     server: Arc<LiveServer>,
     channels: [u32; Topic::ALL.len()],
+    /// When the view last got a step.
+    last: Option<std::time::Instant>,
 }
 
 impl WriterState {
@@ -548,7 +588,9 @@ impl WriterState {
         let seq = self.sequences[i];
         self.sequences[i] = seq.wrapping_add(1);
         self.stats.messages[i] += 1;
-        if let Some(live) = &self.live {
+        if let Some(live) = &self.live
+            && (self.live_due || matches!(topic, Topic::Events | Topic::Log | Topic::SceneArena | Topic::Bus))
+        {
             live.server.publish(live.channels[i], log_time, data);
         }
         let Some(out) = &mut self.out else { return Ok(()) };
