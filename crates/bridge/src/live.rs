@@ -28,7 +28,7 @@
 //! Frames over [`MAX_CLIENT_MESSAGE_BYTES`] close the connection too (counted).
 
 use std::net::SocketAddr;
-use std::sync::atomic::{AtomicBool, AtomicU32, AtomicU64, Ordering};
+use std::sync::atomic::{AtomicU32, AtomicU64, Ordering};
 use std::sync::{Arc, Mutex};
 
 use futures_util::{SinkExt, StreamExt};
@@ -183,7 +183,6 @@ struct Shared {
     active: AtomicU32,
     next_client: AtomicU64,
     counters: Counters,
-    stopped: AtomicBool,
 }
 
 /// A running live-view server. Dropping it stops accepting clients and closes them.
@@ -212,7 +211,6 @@ impl LiveServer {
             active: AtomicU32::new(0),
             next_client: AtomicU64::new(1),
             counters: Counters::default(),
-            stopped: AtomicBool::new(false),
         });
         let accept = rt.spawn(accept_loop(listener, Arc::clone(&shared)));
         Ok(Self { shared, addr, accept })
@@ -233,7 +231,7 @@ impl LiveServer {
         };
         let text = advertise_json(&[(id, &entry.def)]);
         for c in lock(&self.shared.clients).iter() {
-            self.queue(c, Message::Text(text.clone().into()));
+            queue(&self.shared, c, Message::Text(text.clone().into()));
         }
         id
     }
@@ -242,13 +240,6 @@ impl LiveServer {
     #[inline]
     pub fn active(&self) -> bool {
         self.shared.active.load(Ordering::Relaxed) > 0
-    }
-
-    /// Whether any client subscribes to channel `id`.
-    #[inline]
-    pub fn wants(&self, id: u32) -> bool {
-        let channels = lock(&self.shared.channels);
-        channels.get(id as usize - 1).is_some_and(|c| c.subscribers.load(Ordering::Relaxed) > 0)
     }
 
     /// Sends a message of channel `id` with timestamp `time_ns` to its subscribers, without
@@ -266,7 +257,7 @@ impl LiveServer {
         for c in lock(&self.shared.clients).iter() {
             for &(sub, ch) in &c.subs {
                 if ch == id {
-                    self.queue(c, Message::Binary(message_data(sub, time_ns, payload)));
+                    queue(&self.shared, c, Message::Binary(message_data(sub, time_ns, payload)));
                 }
             }
         }
@@ -283,13 +274,8 @@ impl LiveServer {
         frame.extend_from_slice(&time_ns.to_le_bytes());
         let frame = Bytes::from(frame);
         for c in clients.iter() {
-            self.queue(c, Message::Binary(frame.clone()));
+            queue(&self.shared, c, Message::Binary(frame.clone()));
         }
-    }
-
-    /// Clients connected now.
-    pub fn client_count(&self) -> usize {
-        lock(&self.shared.clients).len()
     }
 
     /// The counters so far.
@@ -313,15 +299,10 @@ impl LiveServer {
     pub fn count_skipped_step(&self) {
         self.shared.counters.steps_skipped.fetch_add(1, Ordering::Relaxed);
     }
-
-    fn queue(&self, c: &ClientEntry, m: Message) {
-        queue(&self.shared, c, m);
-    }
 }
 
 impl Drop for LiveServer {
     fn drop(&mut self) {
-        self.shared.stopped.store(true, Ordering::Relaxed);
         self.accept.abort();
         // Closing the queues ends each client's task, which closes its socket.
         lock(&self.shared.clients).clear();
