@@ -6,8 +6,8 @@
 //!   model (`COM_DL_LOSS_T`, then `NAV_DLL_ACT`): after [`FailsafeOptions::hold_after_s`] of
 //!   silence the twin levels out and holds its height (it would otherwise fly on with the
 //!   last attitude it was given); after [`FailsafeOptions::land_after_s`] it descends at
-//!   [`FailsafeOptions::descent_m_s`], and once it has rested on the floor for
-//!   [`SETTLE_S`] its motors stop. When telemetry comes back, at any point, it follows again.
+//!   [`FailsafeOptions::descent_m_s`]; once down it stops steering (level, Wall-Avoid off),
+//!   and once it has rested on the floor for [`SETTLE_S`] its motors stop. When telemetry comes back, at any point, it follows again.
 //! - **A virtual copter commanded over Zenoh** has a controller: the client whose liveliness
 //!   claim came first (see [`crate::zenoh_net::node`]). When that client's token disappears
 //!   (the process died, the network went), the copter does what
@@ -187,7 +187,8 @@ enum Phase {
     Landing {
         target_m: f32,
     },
-    /// Down since `since` (wall clock), motors on, pressing onto the floor.
+    /// Down since `since` (wall clock), motors on, level (no steering), pressing onto the
+    /// floor.
     Settling {
         since: Instant,
     },
@@ -313,6 +314,11 @@ impl Failsafe {
                     let target_m = (target_m - opts.descent_m_s * dt).max(rest - PRESS_M);
                     cmd.height_m = target_m.max(1e-3);
                     g.phase = if z <= rest + TOUCHDOWN_M {
+                        // Down: no more steering. Wall-Avoid's pushes would tilt a copter
+                        // that sits on its thrust and skid it along the floor into whatever
+                        // it was avoiding (a landing crashed into the lab's crate that way).
+                        cmd.mode = FlightMode::MixedManual;
+                        (cmd.roll_rad, cmd.pitch_rad) = (0.0, 0.0);
                         Phase::Settling { since: now }
                     } else {
                         Phase::Landing { target_m }
