@@ -228,7 +228,12 @@ pub fn collective_thrust_n(
         let hover = 4.0 * af.hover_thrust_per_rotor_n;
         *integral_n = 0.0;
         let t = hover + af.spec.height_kd_n_s_per_m * (-LANDING_DESCENT_M_S - vz_m_s);
-        t / cos_tilt.max(0.5)
+        // While stalled the thrust ramps down to nothing over the detection time, as a
+        // descent-rate loop's integral winds down against the floor: the copter's weight
+        // comes onto its feet, and friction stops a drift. (At hover thrust it would sit on
+        // its rotors' lift and skid along the floor.)
+        let ramp = 1.0 - *stalled_s / LANDED_AFTER_S;
+        t * ramp / cos_tilt.max(0.5)
     } else if sp.height_m > 0.0 {
         *stalled_s = 0.0;
         let hover = 4.0 * af.hover_thrust_per_rotor_n;
