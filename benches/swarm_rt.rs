@@ -17,7 +17,7 @@
 //!
 //! ```text
 //! cargo bench -p twinswarm --bench swarm_rt -- --n 100 1000 --threads 1 2 [--scene dense] [--log] [--sim-seconds S]
-//! cargo bench -p twinswarm --bench swarm_rt -- --n 100 1000 --log-cost ROUNDS [--zstd-level L] [--zstd-level-behind L]
+//! cargo bench -p twinswarm --bench swarm_rt -- --n 100 1000 --log-cost ROUNDS [--zstd-level L] [--log-rate HZ]
 //! cargo bench -p twinswarm --bench swarm_rt -- --plot docs/img/scaling.png
 //! ```
 //!
@@ -46,8 +46,6 @@ struct Run {
     writer_cpu_s: Option<f64>,
     /// Size of the log file, bytes (logging runs).
     log_bytes: u64,
-    /// Chunks compressed at the faster level because the writer was behind.
-    fast_chunks: u64,
     /// Resident memory before the world was built, after, and at the end, bytes.
     rss: [u64; 3],
 }
@@ -130,7 +128,7 @@ fn world(scene: Scene, n: usize, threads: usize) -> World {
     }
 }
 
-/// The logger's options: the defaults, or `--zstd-level L`.
+/// The logger's options: the defaults, or `--zstd-level L` and `--log-rate HZ`.
 fn log_options() -> bridge::log::LogOptions {
     let mut o = bridge::log::LogOptions::default();
     let args: Vec<String> = std::env::args().collect();
@@ -138,7 +136,10 @@ fn log_options() -> bridge::log::LogOptions {
     if let Some(l) = value("--zstd-level") {
         o.zstd_level = l;
     }
-    o.zstd_level_behind = value("--zstd-level-behind").unwrap_or(o.zstd_level_behind);
+    let rate = args.iter().position(|a| a == "--log-rate").and_then(|i| args.get(i + 1)?.parse::<f64>().ok());
+    if let Some(hz) = rate {
+        o.every_ticks = bridge::log::LogOptions::every_ticks_for_rate(hz, 0.05).unwrap_or(1);
+    }
     o
 }
 
@@ -179,12 +180,11 @@ fn run(scene: Scene, n: usize, threads: usize, log: bool, sim_s: f64, dir: &Path
     };
     // The run ends when everything is on disk: draining the writer's queue and the summary
     // section count against logging.
-    let (mut writer_cpu_s, mut log_bytes, mut fast_chunks) = (None, 0, 0);
+    let (mut writer_cpu_s, mut log_bytes) = (None, 0);
     if let Some(l) = logger {
         match l.finish() {
             Ok(stats) => {
                 writer_cpu_s = stats.writer_cpu_s;
-                fast_chunks = stats.fast_chunks;
                 log_bytes = std::fs::metadata(&stats.path).map_or(0, |m| m.len());
                 let _ = std::fs::remove_file(&stats.path);
             }
@@ -195,7 +195,7 @@ fn run(scene: Scene, n: usize, threads: usize, log: bool, sim_s: f64, dir: &Path
     let crashed = state.copters.iter().filter(|c| c.crash.is_some()).count();
     let sim_s = steps as f64 * world.params.control_dt_s;
     let rss = [rss0, rss1, rss_bytes()];
-    Run { scene, n, threads, log, sim_s, wall_s, cpu_s, crashed, writer_cpu_s, log_bytes, fast_chunks, rss }
+    Run { scene, n, threads, log, sim_s, wall_s, cpu_s, crashed, writer_cpu_s, log_bytes, rss }
 }
 
 /// The cost of logging at `n` copters: `rounds` pairs of runs, logging off then on; the
@@ -218,7 +218,6 @@ fn log_cost(scene: Scene, n: usize, threads: usize, rounds: usize, sim_s: f64, d
     let cpu_on = median(&on, &|r| r.cpu_s.map(|c| 1e3 * c / steps(r)));
     let writer = median(&on, &|r| r.writer_cpu_s.map(|c| 1e3 * c / steps(r)));
     let bytes = median(&on, &|r| Some(r.log_bytes as f64 / steps(r)));
-    let fast: u64 = on.iter().map(|r| r.fast_chunks).sum();
     // The overhead of each pair (on / off of the same round), then their median: a pair runs
     // back to back, so a noisy stretch of the machine shifts both of its runs.
     let mut ratios: Vec<f64> = off.iter().zip(&on).map(|(a, b)| b.wall_s / a.wall_s).collect();
@@ -228,7 +227,7 @@ fn log_cost(scene: Scene, n: usize, threads: usize, rounds: usize, sim_s: f64, d
         "{{\"sim\": \"twinswarm\", \"scenario\": \"log_cost_{}\", \"N\": {n}, \"threads\": {threads}, \"rounds\": {rounds}, \
          \"sim_s\": {sim_s:.1}, \"ms_per_step_off\": {wall_off:.4}, \"ms_per_step_on\": {wall_on:.4}, \
          \"overhead_pct\": {:.1}, \"overhead_pct_min_max\": [{:.1}, {:.1}], \"step_thread_cpu_ms_off\": {cpu_off:.4}, \
-         \"step_thread_cpu_ms_on\": {cpu_on:.4}, \"writer_cpu_ms_per_step\": {writer:.4}, \"log_kib_per_step\": {:.1}, \"fast_chunks\": {fast}}}",
+         \"step_thread_cpu_ms_on\": {cpu_on:.4}, \"writer_cpu_ms_per_step\": {writer:.4}, \"log_kib_per_step\": {:.1}}}",
         scene.name(),
         100.0 * (ratio - 1.0),
         100.0 * (ratios[0] - 1.0),

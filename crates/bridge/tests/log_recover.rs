@@ -22,10 +22,7 @@ fn recover_rescues_complete_chunks_at_every_cut() {
     let n = world.copters.len() as u64;
     let mut state = world.initial_state();
     let inputs = world.initial_inputs();
-    // One zstd level throughout: with the adaptation on, the level (so where the bytes of a
-    // second end) depends on how the writer thread was scheduled, and the cuts below assume
-    // bytes roughly linear in time.
-    let options = LogOptions { zstd_level_behind: 1, ..LogOptions::default() };
+    let options = LogOptions::default();
     let mut log = Logger::with_options(&path, &world, text, LogMeta::default(), options).unwrap();
     for _ in 0..STEPS {
         let r = sim_core::step(&world, &mut state, &inputs);
@@ -57,14 +54,14 @@ fn recover_rescues_complete_chunks_at_every_cut() {
         std::fs::write(&broken, &bytes[..cut]).unwrap();
         let fixed = dir.join(format!("fixed-{cut}.mcap"));
         let r = recover(&broken, &fixed).unwrap_or_else(|e| panic!("cut at {cut}: {e}"));
-        // The result is a complete file: footer, summary, CRCs and JSON all check.
+        // The result is a complete file: footer, summary, CRCs and messages all check.
         let file = LogFile::open(&fixed).unwrap_or_else(|e| panic!("cut at {cut}: {e}"));
         let info = file.info().unwrap();
         assert_eq!(info.messages, r.total_messages());
         assert_eq!(info.attachments.len(), 2, "cut at {cut}: attachments come first");
         assert!(info.metadata.contains_key("twinswarm"));
-        let states = file.messages::<serde_json::Value>("/copters/state").unwrap();
-        let ticks: Vec<u64> = states.iter().map(|(_, v)| v["tick"].as_u64().unwrap()).collect();
+        let states = file.messages::<bridge::log::proto::CopterState>("/copters/state").unwrap();
+        let ticks: Vec<u64> = states.iter().map(|(_, v)| v.tick).collect();
         assert!(ticks.windows(2).all(|w| w[0] <= w[1]));
         assert!(states.len() >= last_states, "cut at {cut}: fewer messages than an earlier cut");
         last_states = states.len();

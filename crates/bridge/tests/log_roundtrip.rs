@@ -1,11 +1,13 @@
 //! The logger round trip: a short run of the lab written with `Logger` and read back with the
-//! `mcap` crate (channels, counts, times, attachments, metadata, JSON against the schemas'
-//! required fields), plus bad input files.
+//! `mcap` crate (channels, counts, times, attachments, metadata, every message decoded with
+//! its protobuf type), the JSON logs of before, plus bad input files.
 
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 
-use bridge::log::{LogFile, LogMeta, LogReadError, Logger, SCHEMAS, Topic};
+use bridge::log::{LogFile, LogMeta, LogReadError, Logger, Topic, proto, schema_data};
+use foxglove::messages as fg;
+use prost::Message as _;
 
 fn temp_dir(tag: &str) -> PathBuf {
     let dir = std::env::temp_dir().join(format!("twinswarm-log-{tag}-{}", std::process::id()));
@@ -58,15 +60,24 @@ fn a_logged_run_reads_back_with_every_channel_count_and_record() {
         let m = m.unwrap();
         let topic = m.channel.topic.clone();
         let schema = m.channel.schema.as_ref().expect("every channel has a schema");
-        assert_eq!(schema.encoding, "jsonschema");
-        assert_eq!(m.channel.message_encoding, "json");
-        // Every message is JSON with the top-level fields its schema requires.
-        let v: serde_json::Value = serde_json::from_slice(&m.data).unwrap();
-        let s: serde_json::Value = serde_json::from_slice(&schema.data).unwrap();
-        assert_eq!(s["title"], schema.name.as_str());
-        for key in s["required"].as_array().unwrap() {
-            assert!(v.get(key.as_str().unwrap()).is_some(), "{topic}: missing {key} in {v}");
-        }
+        assert_eq!(schema.encoding, "protobuf");
+        assert_eq!(m.channel.message_encoding, "protobuf");
+        assert_eq!(schema.data.as_ref(), schema_data(&schema.name).unwrap().as_ref(), "{topic}: its schema");
+        // Every message decodes as its schema's type, and nothing is left over.
+        let d = &m.data[..];
+        let reencoded = match schema.name.as_str() {
+            "twinswarm.CopterState" => proto::CopterState::decode(d).unwrap().encode_to_vec(),
+            "twinswarm.CopterSensors" => proto::CopterSensors::decode(d).unwrap().encode_to_vec(),
+            "twinswarm.CopterCommand" => proto::CopterCommand::decode(d).unwrap().encode_to_vec(),
+            "twinswarm.CopterControl" => proto::CopterControl::decode(d).unwrap().encode_to_vec(),
+            "twinswarm.Event" => proto::Event::decode(d).unwrap().encode_to_vec(),
+            "twinswarm.BusMessage" => proto::BusMessage::decode(d).unwrap().encode_to_vec(),
+            "foxglove.Log" => fg::Log::decode(d).unwrap().encode_to_vec(),
+            "foxglove.FrameTransform" => fg::FrameTransform::decode(d).unwrap().encode_to_vec(),
+            "foxglove.SceneUpdate" => fg::SceneUpdate::decode(d).unwrap().encode_to_vec(),
+            other => panic!("{topic}: unexpected schema {other}"),
+        };
+        assert_eq!(reencoded, d, "{topic}: decodes and re-encodes to the same bytes");
         let prev = last_time.insert(topic.clone(), m.log_time).unwrap_or(0);
         assert!(m.log_time >= prev, "{topic}: log_time goes back");
         if topic == "/bus" {
@@ -76,8 +87,8 @@ fn a_logged_run_reads_back_with_every_channel_count_and_record() {
         }
         if topic == "/copters/state" && first_state_time.is_none() {
             first_state_time = Some(m.log_time);
-            assert_eq!(v["tick"], 1);
-            assert_eq!(v["copter"], "finken1");
+            let v = proto::CopterState::decode(d).unwrap();
+            assert_eq!((v.tick, v.copter.as_str(), v.pos_m.len()), (1, "finken1", 3));
         }
         *counts.entry(topic).or_insert(0) += 1;
     }
@@ -131,7 +142,7 @@ fn a_logged_run_reads_back_with_every_channel_count_and_record() {
     let state = info.channels.iter().find(|c| c.topic == "/copters/state").unwrap();
     assert_eq!(
         (state.schema.as_str(), state.encoding.as_str(), state.messages),
-        ("twinswarm.CopterState", "json", STEPS * n)
+        ("twinswarm.CopterState", "protobuf", STEPS * n)
     );
     let (a, b) = info.time_range_ns.unwrap();
     assert_eq!(b - a, STEPS * 50_000_000);
@@ -139,13 +150,44 @@ fn a_logged_run_reads_back_with_every_channel_count_and_record() {
 }
 
 #[test]
-fn the_embedded_schemas_are_the_checked_in_files_and_name_themselves() {
-    for s in SCHEMAS {
-        let v: serde_json::Value = serde_json::from_str(s.json).unwrap();
-        assert_eq!(v["title"], s.name);
-        let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("schemas").join(format!("{}.json", s.name));
-        assert_eq!(std::fs::read_to_string(&path).unwrap(), s.json, "{}", path.display());
+fn every_schema_is_a_descriptor_set_that_defines_it() {
+    for topic in Topic::ALL {
+        let name = topic.schema();
+        let set = prost_types::FileDescriptorSet::decode(schema_data(name).unwrap().as_ref()).unwrap();
+        let (package, message) = name.rsplit_once('.').unwrap();
+        let defined = set
+            .file
+            .iter()
+            .filter(|f| f.package() == package)
+            .any(|f| f.message_type.iter().any(|m| m.name() == message));
+        assert!(defined, "{name} is not in its descriptor set");
     }
+}
+
+/// A JSON log written before protobuf (`tests/fixtures/log-json-v1.mcap`: the lab, 2 s, by
+/// the last JSON version) reads with the same types.
+#[test]
+fn json_logs_of_before_still_read() {
+    let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../tests/fixtures/log-json-v1.mcap");
+    let file = LogFile::open(&path).unwrap();
+    assert_eq!(file.encoding("/copters/state"), Some("json"));
+    let states = file.messages::<proto::CopterState>("/copters/state").unwrap();
+    assert_eq!(states.len(), 80);
+    let (_, last) = states.last().unwrap();
+    assert_eq!(
+        (last.tick, last.copter.as_str(), last.kind.as_str(), last.ac_id),
+        (40, "finken2", "virtual", Some(202))
+    );
+    assert!(last.pos_m.len() == 3 && last.pos_m[2] > 0.5, "{last:?}");
+    let sensors = file.messages::<proto::CopterSensors>("/copters/sensors").unwrap();
+    assert!(sensors.iter().all(|(_, s)| s.sonar_m.len() == 4 && s.attitude_rad.len() == 3));
+    let commands = file.messages::<proto::CopterCommand>("/copters/command").unwrap();
+    assert_eq!(commands[0].1.mode, "wall_avoid");
+    let events = file.messages::<proto::Event>("/events").unwrap();
+    assert!(events.iter().all(|(_, e)| e.kind == "took_off" && e.copter.is_some()), "{events:?}");
+    assert!(
+        file.messages::<proto::CopterControl>("/copters/control").unwrap().iter().all(|(_, c)| c.setpoint.is_some())
+    );
 }
 
 #[test]
@@ -179,7 +221,7 @@ fn bad_files_give_clear_errors_not_panics() {
     }
     let p = write("damaged.mcap", &damaged);
     if let Ok(f) = LogFile::open(&p) {
-        assert!(f.messages::<serde_json::Value>("/copters/state").is_err(), "damage went unnoticed");
+        assert!(f.messages::<proto::CopterState>("/copters/state").is_err(), "damage went unnoticed");
     }
     // Damaged lengths: a chunk that says it unpacks to exabytes, a record longer than the
     // file. The `mcap` reader would try to allocate them and abort the process; these are

@@ -39,10 +39,11 @@ pub fn default_log_path(world: &World, epoch_ns: u64) -> PathBuf {
 }
 
 /// Starts the log of a run, unless `no_log`. `scene_path`: the scene file (`None`: the
-/// embedded lab).
+/// embedded lab). `every_ticks`: [`LogOptions::every_ticks`].
 pub fn start_run_log(
     log: Option<&Path>,
     no_log: bool,
+    every_ticks: u64,
     world: &World,
     scene_path: Option<&Path>,
     scene_origin: &str,
@@ -50,7 +51,9 @@ pub fn start_run_log(
 ) -> anyhow::Result<Option<Logger>> {
     if no_log {
         return match live {
-            Some(live) => Ok(Some(Logger::live_only(world, live, LogOptions::default())?)),
+            Some(live) => {
+                Ok(Some(Logger::live_only(world, live, LogOptions { every_ticks, ..LogOptions::default() })?))
+            }
             None => Ok(None),
         };
     }
@@ -71,7 +74,7 @@ pub fn start_run_log(
         scene_origin: scene_origin.to_owned(),
         epoch_ns: Some(epoch_ns),
     };
-    let options = LogOptions { live, ..LogOptions::default() };
+    let options = LogOptions { live, every_ticks, ..LogOptions::default() };
     Ok(Some(Logger::with_options(&path, world, &scene_text, meta, options)?))
 }
 

@@ -89,7 +89,7 @@ enum Command {
 struct SceneArgs {
     /// `dense`: a 1.5 m grid taking off from the floor among 10 pillars, Wall-Avoid at 1 m
     /// (the experiment of `swarm_rt --scene dense`); `cruise`: a 2 m grid in the air, each
-    /// copter heading its own way at 0.3 m/s.
+    /// copter heading its own way at 0.3 m/s; `hover`: a 2 m grid hovering at 0.8 m.
     #[arg(value_enum)]
     kind: SceneKind,
     /// Number of copters.
@@ -113,6 +113,7 @@ struct SceneArgs {
 enum SceneKind {
     Dense,
     Cruise,
+    Hover,
 }
 
 /// `twinswarm scene`: the generated scene as TOML, checked by compiling it back.
@@ -122,6 +123,7 @@ fn scene_cmd(a: &SceneArgs) -> anyhow::Result<()> {
     let mut spec = match a.kind {
         SceneKind::Dense => sim_core::scene::dense_swarm(a.n, a.spacing, !a.air, a.pillars, a.seed),
         SceneKind::Cruise => sim_core::scene::cruising_swarm(a.n, 1),
+        SceneKind::Hover => sim_core::scene::grid_swarm(a.n, 2.0, 0.8, true),
     };
     spec.sim.seed = a.seed;
     let text = toml::to_string(&spec)?;
@@ -241,6 +243,11 @@ struct RunArgs {
     /// readable after `twinswarm log recover`.
     #[arg(long, value_name = "WHAT", default_value = "stop")]
     on_log_error: OnLogError,
+    /// Log the per-step messages (state, sensors, command, control, transforms) at this rate,
+    /// Hz, instead of every control step (20 Hz); events, log lines and bus traffic are always
+    /// logged. E.g. `--log-rate 5` cuts a file to a quarter.
+    #[arg(long, value_name = "HZ")]
+    log_rate: Option<f64>,
     /// Serve a live view on the Foxglove WebSocket protocol at ADDR (default
     /// 127.0.0.1:8765): in Foxglove, "Open connection", "Foxglove WebSocket",
     /// ws://ADDR. The same channels as the log; a slow client loses messages (counted), the
@@ -448,6 +455,11 @@ fn run(args: RunArgs) -> anyhow::Result<()> {
         client_lost: args.on_client_lost,
     };
     failsafe.validate().map_err(|e| BadInput(anyhow::anyhow!("--link-hold/--link-land/--descent: {e}")))?;
+    let log_every = match args.log_rate {
+        None => 1,
+        Some(hz) => bridge::log::LogOptions::every_ticks_for_rate(hz, world.params.control_dt_s)
+            .ok_or_else(|| BadInput(anyhow::anyhow!("--log-rate: {hz} is not a positive rate in Hz")))?,
+    };
     let ticks = world.default_ticks();
     let rt = tokio::runtime::Builder::new_multi_thread().worker_threads(2).enable_all().build()?;
     let live = match &args.foxglove {
@@ -464,8 +476,15 @@ fn run(args: RunArgs) -> anyhow::Result<()> {
             Some(std::sync::Arc::new(server))
         }
     };
-    let log =
-        logcmd::start_run_log(args.log.as_deref(), args.no_log, &world, args.scene.as_deref(), &origin, live.clone())?;
+    let log = logcmd::start_run_log(
+        args.log.as_deref(),
+        args.no_log,
+        log_every,
+        &world,
+        args.scene.as_deref(),
+        &origin,
+        live.clone(),
+    )?;
     let stop = logcmd::install_stop_flag()?;
     let progress = (!args.json && !args.realtime && std::io::stderr().is_terminal()).then(|| {
         let bar = indicatif::ProgressBar::new(ticks);

@@ -5,7 +5,7 @@ use std::path::Path;
 use std::sync::Once;
 
 use anyhow::Context;
-use bridge::log::LogFile;
+use bridge::log::{LogFile, proto};
 use plotters::coord::Shift;
 use plotters::prelude::*;
 use serde::Deserialize;
@@ -41,7 +41,7 @@ const MAX_ARENA_M: f64 = 10_000.0;
 /// Copters drawn in one line plot.
 const MAX_LINES: usize = 8;
 
-#[derive(Debug, Deserialize)]
+#[derive(Debug)]
 struct StateRow {
     t_s: f64,
     id: usize,
@@ -49,7 +49,7 @@ struct StateRow {
     rpy_rad: [f32; 3],
 }
 
-#[derive(Debug, Deserialize)]
+#[derive(Debug)]
 struct CommandRow {
     t_s: f64,
     id: usize,
@@ -57,7 +57,7 @@ struct CommandRow {
     pitch_rad: f32,
 }
 
-#[derive(Debug, Deserialize)]
+#[derive(Debug)]
 struct SensorRow {
     t_s: f64,
     id: usize,
@@ -128,15 +128,55 @@ impl PlotData {
                 bad(anyhow::anyhow!("metadata \"control_dt_s\" = {text:?} is not a positive number of seconds"))
             })?,
         };
-        let states =
-            file.messages::<StateRow>("/copters/state").map_err(read_error)?.into_iter().map(|m| m.1).collect();
+        // A message with a vector of the wrong length is bad input, named with its place.
+        fn rows<R>(
+            bad: &impl Fn(anyhow::Error) -> anyhow::Error,
+            topic: &str,
+            rows: Vec<(u64, Result<R, String>)>,
+        ) -> anyhow::Result<Vec<R>> {
+            rows.into_iter()
+                .map(|(t, r)| r.map_err(|e| bad(anyhow::anyhow!("{topic} at log time {t} ns: {e}"))))
+                .collect()
+        }
+        let states = file.messages::<proto::CopterState>("/copters/state").map_err(read_error)?;
+        let states = rows(
+            &bad,
+            "/copters/state",
+            states
+                .into_iter()
+                .map(|(t, m)| {
+                    let row = || {
+                        Ok(StateRow {
+                            t_s: m.t_s,
+                            id: m.id as usize,
+                            pos_m: proto::fixed("pos_m", &m.pos_m)?,
+                            rpy_rad: proto::fixed("rpy_rad", &m.rpy_rad)?,
+                        })
+                    };
+                    (t, row())
+                })
+                .collect(),
+        )?;
         let commands = if need_commands {
-            file.messages::<CommandRow>("/copters/command").map_err(read_error)?.into_iter().map(|m| m.1).collect()
+            let msgs = file.messages::<proto::CopterCommand>("/copters/command").map_err(read_error)?;
+            let rows_of = msgs.into_iter().map(|(t, m)| {
+                (t, Ok(CommandRow { t_s: m.t_s, id: m.id as usize, roll_rad: m.roll_rad, pitch_rad: m.pitch_rad }))
+            });
+            rows(&bad, "/copters/command", rows_of.collect())?
         } else {
             Vec::new()
         };
         let sensors = if need_sensors {
-            file.messages::<SensorRow>("/copters/sensors").map_err(read_error)?.into_iter().map(|m| m.1).collect()
+            let msgs = file.messages::<proto::CopterSensors>("/copters/sensors").map_err(read_error)?;
+            let rows_of = msgs.into_iter().map(|(t, m)| {
+                let row = proto::fixed("sonar_m", &m.sonar_m).map(|sonar_m| SensorRow {
+                    t_s: m.t_s,
+                    id: m.id as usize,
+                    sonar_m,
+                });
+                (t, row)
+            });
+            rows(&bad, "/copters/sensors", rows_of.collect())?
         } else {
             Vec::new()
         };

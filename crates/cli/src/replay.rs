@@ -29,9 +29,9 @@ use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::{Duration, Instant};
 
 use anyhow::Context;
+use bridge::log::proto::{self, LogRecord};
 use bridge::log::{LogFile, LogReadError};
 use bridge::wire::{ClockMsg, SensorsMsg, SonarMsg, StateMsg};
-use serde::Deserialize;
 use zenoh::Wait;
 use zenoh::qos::CongestionControl;
 
@@ -77,90 +77,42 @@ pub struct ReplayArgs {
     pub no_bus: bool,
 }
 
-/// The fields of a logged `twinswarm.CopterState` the live message needs.
-#[derive(Debug, Deserialize)]
-struct LoggedState {
-    tick: u64,
-    t_s: f64,
-    copter: String,
-    ac_id: Option<u8>,
-    kind: String,
-    mode: String,
-    crashed: bool,
-    pos_m: [f32; 3],
-    vel_m_s: [f32; 3],
-    rpy_rad: [f32; 3],
-    angvel_rad_s: [f32; 3],
-    quat_xyzw: [f32; 4],
-    rotor_thrust_n: [f32; 4],
+/// The live state message of a logged `twinswarm.CopterState` (either encoding).
+fn state_msg(s: proto::CopterState) -> Result<StateMsg, String> {
+    Ok(StateMsg {
+        kind: if s.kind == "real" { "twin".into() } else { s.kind },
+        ac_id: s.ac_id.and_then(|a| u8::try_from(a).ok()),
+        tick: s.tick,
+        time_s: s.t_s,
+        mode: s.mode,
+        pos_m: proto::fixed("pos_m", &s.pos_m)?,
+        vel_m_s: proto::fixed("vel_m_s", &s.vel_m_s)?,
+        attitude_rad: proto::fixed("rpy_rad", &s.rpy_rad)?,
+        angvel_rad_s: proto::fixed("angvel_rad_s", &s.angvel_rad_s)?,
+        quat_xyzw: proto::fixed("quat_xyzw", &s.quat_xyzw)?,
+        rotor_thrust_n: proto::fixed("rotor_thrust_n", &s.rotor_thrust_n)?,
+        crashed: s.crashed,
+        name: s.copter,
+    })
 }
 
-/// The fields of a logged `twinswarm.CopterSensors` the live message needs.
-#[derive(Debug, Deserialize)]
-struct LoggedSensors {
-    tick: u64,
-    t_s: f64,
-    copter: String,
-    sonar_tick: u64,
-    sonar_m: [f32; 4],
-    sonar_fused_m: [f32; 4],
-    ir_m: Option<f32>,
-    attitude_rad: [f32; 3],
-    rate_body_rad_s: [f32; 3],
-    accel_body_m_s2: [f32; 3],
-    // Logs written before the estimators and the battery have none of these.
-    #[serde(default)]
-    height_est_m: f32,
-    #[serde(default)]
-    battery_v: f32,
-    #[serde(default)]
-    battery_charge: f32,
-}
-
-/// A logged `twinswarm.BusMessage`.
-#[derive(Debug, Deserialize)]
-struct LoggedBus {
-    key: String,
-    text: String,
-}
-
-impl From<LoggedState> for StateMsg {
-    fn from(s: LoggedState) -> Self {
-        StateMsg {
-            name: s.copter,
-            kind: if s.kind == "real" { "twin".into() } else { s.kind },
-            ac_id: s.ac_id,
-            tick: s.tick,
-            time_s: s.t_s,
-            mode: s.mode,
-            pos_m: s.pos_m,
-            vel_m_s: s.vel_m_s,
-            attitude_rad: s.rpy_rad,
-            angvel_rad_s: s.angvel_rad_s,
-            quat_xyzw: s.quat_xyzw,
-            rotor_thrust_n: s.rotor_thrust_n,
-            crashed: s.crashed,
-        }
-    }
-}
-
-impl From<LoggedSensors> for SensorsMsg {
-    fn from(s: LoggedSensors) -> Self {
-        SensorsMsg {
-            name: s.copter,
-            tick: s.tick,
-            time_s: s.t_s,
-            sonar_m: SonarMsg::from(s.sonar_m),
-            sonar_fused_m: SonarMsg::from(s.sonar_fused_m),
-            ir_m: s.ir_m,
-            attitude_rad: s.attitude_rad,
-            rate_body_rad_s: s.rate_body_rad_s,
-            accel_body_m_s2: s.accel_body_m_s2,
-            height_est_m: s.height_est_m,
-            battery_v: s.battery_v,
-            battery_charge: s.battery_charge,
-        }
-    }
+/// The live sensors message of a logged `twinswarm.CopterSensors` (either encoding; logs
+/// written before the estimators and the battery have zeros there).
+fn sensors_msg(s: proto::CopterSensors) -> Result<SensorsMsg, String> {
+    Ok(SensorsMsg {
+        tick: s.tick,
+        time_s: s.t_s,
+        sonar_m: SonarMsg::from(proto::fixed::<4>("sonar_m", &s.sonar_m)?),
+        sonar_fused_m: SonarMsg::from(proto::fixed::<4>("sonar_fused_m", &s.sonar_fused_m)?),
+        ir_m: s.ir_m,
+        attitude_rad: proto::fixed("attitude_rad", &s.attitude_rad)?,
+        rate_body_rad_s: proto::fixed("rate_body_rad_s", &s.rate_body_rad_s)?,
+        accel_body_m_s2: proto::fixed("accel_body_m_s2", &s.accel_body_m_s2)?,
+        height_est_m: s.height_est_m,
+        battery_v: s.battery_v,
+        battery_charge: s.battery_charge,
+        name: s.copter,
+    })
 }
 
 /// Messages republished, per key class.
@@ -271,7 +223,13 @@ impl Replayer<'_> {
     }
 
     /// Handles one message. `Ok(false)`: stopped by a signal.
-    fn message(&mut self, path: &Path, topic: &str, log_time: u64, data: &[u8]) -> anyhow::Result<bool> {
+    fn message(
+        &mut self,
+        path: &Path,
+        (topic, encoding): (&str, &str),
+        log_time: u64,
+        data: &[u8],
+    ) -> anyhow::Result<bool> {
         if let Some(live) = &mut self.live
             && let Some(&id) = live.channels.get(topic)
         {
@@ -289,11 +247,12 @@ impl Replayer<'_> {
         if self.session.is_none() {
             return Ok(true);
         }
-        let json_err =
-            |source| read_error(LogReadError::Json { path: path.to_owned(), topic: topic.to_owned(), source });
+        let bad = |what: String| {
+            read_error(LogReadError::Decode { path: path.to_owned(), topic: topic.to_owned(), log_time, what })
+        };
         match topic {
             "/copters/state" => {
-                let s: LoggedState = serde_json::from_slice(data).map_err(json_err)?;
+                let s = proto::CopterState::decode_as(encoding, data).map_err(bad)?;
                 if !self.wait_until(log_time) {
                     return Ok(false);
                 }
@@ -304,11 +263,11 @@ impl Replayer<'_> {
                     self.counts.clock += 1;
                 }
                 let key = format!("{}/copters/{}/state", self.prefix, s.copter);
-                self.put(&key, serde_json::to_vec(&StateMsg::from(s))?)?;
+                self.put(&key, serde_json::to_vec(&state_msg(s).map_err(bad)?)?)?;
                 self.counts.state += 1;
             }
             "/copters/sensors" => {
-                let s: LoggedSensors = serde_json::from_slice(data).map_err(json_err)?;
+                let s = proto::CopterSensors::decode_as(encoding, data).map_err(bad)?;
                 if self.last_sonar_tick.get(&s.copter) == Some(&s.sonar_tick) {
                     return Ok(true);
                 }
@@ -317,11 +276,11 @@ impl Replayer<'_> {
                     return Ok(false);
                 }
                 let key = format!("{}/copters/{}/sensors", self.prefix, s.copter);
-                self.put(&key, serde_json::to_vec(&SensorsMsg::from(s))?)?;
+                self.put(&key, serde_json::to_vec(&sensors_msg(s).map_err(bad)?)?)?;
                 self.counts.sensors += 1;
             }
             "/bus" => {
-                let b: LoggedBus = serde_json::from_slice(data).map_err(json_err)?;
+                let b = proto::BusMessage::decode_as(encoding, data).map_err(bad)?;
                 let key = rekey(&b.key, self.recorded.as_deref(), &self.prefix);
                 if zenoh::key_expr::KeyExpr::try_from(key.as_str()).is_err() {
                     tracing::warn!("skipping a /bus message: {key:?} is not a valid key expression");
@@ -546,8 +505,8 @@ fn replay(r: &mut Replayer<'_>, file: &LogFile, copters: &[String], args: &Repla
     let sentinel = || LogReadError::Io { path: path.clone(), source: std::io::Error::other("replay stopped") };
     let all = r.live.is_some();
     let wanted = |t: &str| all || ["/copters/state", "/copters/sensors", "/bus"].contains(&t);
-    let read =
-        file.for_each_message_where(wanted, |topic, log_time, data| match r.message(&path, topic, log_time, data) {
+    let read = file.for_each_message_where(wanted, |topic, log_time, data| {
+        match r.message(&path, (topic, file.encoding(topic).unwrap_or("")), log_time, data) {
             Ok(true) => Ok(()),
             Ok(false) => {
                 failure = Some(Ok(true));
@@ -557,7 +516,8 @@ fn replay(r: &mut Replayer<'_>, file: &LogFile, copters: &[String], args: &Repla
                 failure = Some(Err(e));
                 Err(sentinel())
             }
-        });
+        }
+    });
     if let Some(f) = failure {
         return f;
     }
@@ -589,25 +549,28 @@ mod tests {
 
     #[test]
     fn logged_state_maps_to_the_live_shape() {
-        let logged = LoggedState {
+        let logged = proto::CopterState {
             tick: 3,
             t_s: 0.15,
             copter: "finken1".into(),
             ac_id: Some(201),
             kind: "real".into(),
             mode: "wall_avoid".into(),
-            crashed: false,
-            pos_m: [1.0, 2.0, 3.0],
-            vel_m_s: [0.0; 3],
-            rpy_rad: [0.1, 0.2, 0.3],
-            angvel_rad_s: [0.0; 3],
-            quat_xyzw: [0.0, 0.0, 0.0, 1.0],
-            rotor_thrust_n: [0.5; 4],
+            pos_m: vec![1.0, 2.0, 3.0],
+            vel_m_s: vec![0.0; 3],
+            rpy_rad: vec![0.1, 0.2, 0.3],
+            angvel_rad_s: vec![0.0; 3],
+            quat_xyzw: vec![0.0, 0.0, 0.0, 1.0],
+            rotor_thrust_n: vec![0.5; 4],
+            ..Default::default()
         };
-        let s = StateMsg::from(logged);
+        let s = state_msg(logged.clone()).expect("a whole state");
         assert_eq!(
-            (s.name.as_str(), s.kind.as_str(), s.time_s, s.attitude_rad),
-            ("finken1", "twin", 0.15, [0.1, 0.2, 0.3])
+            (s.name.as_str(), s.kind.as_str(), s.time_s, s.attitude_rad, s.ac_id),
+            ("finken1", "twin", 0.15, [0.1, 0.2, 0.3], Some(201))
         );
+        let short = proto::CopterState { pos_m: vec![1.0], ..logged };
+        let err = state_msg(short).unwrap_err();
+        assert!(err.contains("pos_m") && err.contains('1'), "{err}");
     }
 }

@@ -209,7 +209,7 @@ pub fn mcap(data: &[u8]) {
     {
         let topics: Vec<&str> = info.channels.iter().map(|c| c.topic.as_str()).collect();
         let _ = file.for_each_message(&topics, |_, _, _| Ok(()));
-        let _ = file.messages::<serde_json::Value>("/copters/state");
+        let _ = file.messages::<bridge::log::proto::CopterState>("/copters/state");
         for (name, _, _) in &info.attachments {
             let _ = file.attachment(name);
         }

@@ -1,13 +1,20 @@
-//! Turns captured steps, events and the static scene into JSON messages (sans I/O): each
+//! Turns captured steps, events and the static scene into protobuf messages (sans I/O): each
 //! message goes to a sink as `(topic, log_time_ns, bytes)`.
+//!
+//! The per-step messages are prost structs kept in the [`Encoder`] and refilled in place
+//! (their vectors and strings keep their capacity), so encoding a warm step allocates
+//! nothing; `/scene/copters` is likewise one `SceneUpdate` built once and updated.
 
+use std::borrow::Cow;
+
+use foxglove::Encode as _;
+use foxglove::messages as fg;
 use serde::Serialize;
 use sim_core::control::FlightMode;
-use sim_core::{CopterKind, Event, World};
+use sim_core::{CopterKind, CrashCause, Event, World};
 
 use super::capture::StepFrame;
-use super::json::{Json, quoted};
-use super::msg::*;
+use super::proto;
 
 /// A channel of the log.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, PartialOrd, Ord)]
@@ -65,7 +72,7 @@ impl Topic {
         }
     }
 
-    /// The schema name (see [`super::SCHEMAS`]).
+    /// The schema name (see [`schema_data`]).
     pub fn schema(self) -> &'static str {
         match self {
             Topic::State => "twinswarm.CopterState",
@@ -114,17 +121,52 @@ pub enum EventKind {
 
 impl EventKind {
     /// `foxglove.Log` level.
-    fn level(self) -> u8 {
+    fn level(self) -> fg::log::Level {
+        use fg::log::Level;
         match self {
-            EventKind::TookOff | EventKind::Spawned | EventKind::Paired | EventKind::BusReport => 2,
+            EventKind::TookOff | EventKind::Spawned | EventKind::Paired | EventKind::BusReport => Level::Info,
             EventKind::InputRejected
             | EventKind::StepOverrun
             | EventKind::Interrupted
             | EventKind::Failsafe
-            | EventKind::FrameDropped => 3,
-            EventKind::Crashed => 4,
+            | EventKind::FrameDropped => Level::Warning,
+            EventKind::Crashed => Level::Error,
         }
     }
+
+    /// The name in the log (`took_off`, …), as serde writes it.
+    pub fn as_str(self) -> &'static str {
+        match self {
+            EventKind::TookOff => "took_off",
+            EventKind::Crashed => "crashed",
+            EventKind::Spawned => "spawned",
+            EventKind::Paired => "paired",
+            EventKind::InputRejected => "input_rejected",
+            EventKind::StepOverrun => "step_overrun",
+            EventKind::Interrupted => "interrupted",
+            EventKind::Failsafe => "failsafe",
+            EventKind::FrameDropped => "frame_dropped",
+            EventKind::BusReport => "bus_report",
+        }
+    }
+}
+
+/// Every schema name the log uses and its protobuf descriptor set: the project's own
+/// (`twinswarm.*`, from `twinswarm.proto`) and Foxglove's well-known ones as the `foxglove`
+/// crate ships them.
+pub fn schema_data(name: &str) -> Option<Cow<'static, [u8]>> {
+    if let Some(own) = name.strip_prefix("twinswarm.") {
+        let known = ["CopterState", "CopterSensors", "CopterCommand", "CopterControl", "Event", "BusMessage"];
+        let pprz = ["PprzText", "PprzDecoded"];
+        return (known.contains(&own) || pprz.contains(&own)).then_some(Cow::Borrowed(proto::DESCRIPTOR_SET));
+    }
+    let schema = match name {
+        "foxglove.SceneUpdate" => fg::SceneUpdate::get_schema(),
+        "foxglove.FrameTransform" => fg::FrameTransform::get_schema(),
+        "foxglove.Log" => fg::Log::get_schema(),
+        _ => None,
+    }?;
+    Some(schema.data)
 }
 
 /// An event to log on `/events` and `/log`.
@@ -174,16 +216,20 @@ impl LogEvent {
 #[derive(Clone, Debug)]
 struct CopterInfo {
     name: String,
-    /// The name as a JSON string.
-    name_json: String,
-    /// `"copter/<name>"` as a JSON string: its `/scene/copters` entity.
-    entity_id_json: String,
-    /// `,"copter":<name>,"id":<id>`: in every per-copter message.
-    ident: String,
-    /// `,"ac_id":…,"kind":…`: in `/copters/state`.
-    state_ident: String,
+    ac_id: Option<u32>,
     kind: CopterKind,
     body_size_m: [f32; 3],
+    /// The crash cause last written and its JSON text, so a wreck's text is made once.
+    crash: Option<(CrashCause, String)>,
+}
+
+impl CopterInfo {
+    fn kind_str(&self) -> &'static str {
+        match self.kind {
+            CopterKind::Real => "real",
+            CopterKind::Virtual => "virtual",
+        }
+    }
 }
 
 /// Sonar cone drawing constants.
@@ -196,22 +242,31 @@ struct SonarGeometry {
     safety_m: f32,
 }
 
-/// Rotation taking +z to each sonar axis (front +x, right −y, back −x, left +y).
-const SONAR_Z_TO_AXIS: [Q; 4] = {
-    const H: f32 = std::f32::consts::FRAC_1_SQRT_2;
-    [
-        Q { x: 0.0, y: H, z: 0.0, w: H },
-        Q { x: H, y: 0.0, z: 0.0, w: H },
-        Q { x: 0.0, y: -H, z: 0.0, w: H },
-        Q { x: -H, y: 0.0, z: 0.0, w: H },
-    ]
-};
+const H: f64 = std::f64::consts::FRAC_1_SQRT_2;
+/// Rotation taking +z to each sonar axis (front +x, right −y, back −x, left +y), x y z w.
+const SONAR_Z_TO_AXIS: [[f64; 4]; 4] = [[0.0, H, 0.0, H], [H, 0.0, 0.0, H], [0.0, -H, 0.0, H], [-H, 0.0, 0.0, H]];
 const SONAR_AXES: [[f32; 3]; 4] = [[1.0, 0.0, 0.0], [0.0, -1.0, 0.0], [-1.0, 0.0, 0.0], [0.0, 1.0, 0.0]];
+/// Cone colours: crosstalk, no echo, closer than the safety distance, echo.
+const CONE_COLORS: [[f64; 4]; 4] =
+    [[1.0, 0.55, 0.0, 0.45], [0.5, 0.5, 0.5, 0.06], [0.9, 0.2, 0.2, 0.3], [0.2, 0.6, 1.0, 0.2]];
+const CRASHED_COLOR: [f64; 4] = [0.85, 0.1, 0.1, 1.0];
 
 /// `/scene/copters` (bodies and sonar cones for Foxglove) is written at most this often, s:
 /// the cones are for the eye; the readings themselves are on `/copters/sensors` every step.
 /// At every 50 ms step it was about half the bytes of a log.
 pub const SCENE_COPTERS_PERIOD_S: f64 = 0.2;
+
+/// The per-copter messages, refilled in place each step.
+#[derive(Debug, Default)]
+struct Reused {
+    state: proto::CopterState,
+    sensors: proto::CopterSensors,
+    command: proto::CopterCommand,
+    control: proto::CopterControl,
+    tf: fg::FrameTransform,
+    /// `/scene/copters`: one entity per copter (body box, four cones).
+    scene: fg::SceneUpdate,
+}
 
 /// Encodes messages into a reused buffer. Built once per run from the [`World`].
 #[derive(Debug)]
@@ -222,43 +277,79 @@ pub struct Encoder {
     sonar: SonarGeometry,
     buf: Vec<u8>,
     scene_every: u64,
-    scene_text: SceneText,
+    msg: Reused,
 }
 
-/// A sink for encoded messages: topic, log time (ns), JSON bytes.
+/// A sink for encoded messages: topic, log time (ns), protobuf bytes.
 pub trait Sink<E>: FnMut(Topic, u64, &[u8]) -> Result<(), E> {}
 impl<E, F: FnMut(Topic, u64, &[u8]) -> Result<(), E>> Sink<E> for F {}
 
 const WORLD_FRAME: &str = "world";
 
+fn timestamp(ns: u64) -> fg::Timestamp {
+    fg::Timestamp::new(u32::try_from(ns / 1_000_000_000).unwrap_or(u32::MAX), (ns % 1_000_000_000) as u32)
+}
+
+/// A lifetime of zero: until replaced or deleted.
+fn forever() -> Option<fg::Duration> {
+    Some(fg::Duration::new(0, 0))
+}
+
+fn v3(x: f32, y: f32, z: f32) -> fg::Vector3 {
+    fg::Vector3 { x: x.into(), y: y.into(), z: z.into() }
+}
+
+fn rgba([r, g, b, a]: [f64; 4]) -> Option<fg::Color> {
+    Some(fg::Color { r, g, b, a })
+}
+
+fn quat([x, y, z, w]: [f64; 4]) -> fg::Quaternion {
+    fg::Quaternion { x, y, z, w }
+}
+
+fn at(x: f32, y: f32, z: f32) -> Option<fg::Pose> {
+    Some(fg::Pose { position: Some(v3(x, y, z)), orientation: Some(quat([0.0, 0.0, 0.0, 1.0])) })
+}
+
+/// Rotation about z by `yaw_rad`.
+fn yaw(yaw_rad: f32) -> fg::Quaternion {
+    let (s, c) = (f64::from(yaw_rad) / 2.0).sin_cos();
+    quat([0.0, 0.0, s, c])
+}
+
+/// Replaces `v`'s contents with `x`, keeping its capacity.
+fn set<T: Copy>(v: &mut Vec<T>, x: &[T]) {
+    v.clear();
+    v.extend_from_slice(x);
+}
+
+/// Replaces `s` with `x`, keeping its capacity.
+fn set_str(s: &mut String, x: &str) {
+    s.clear();
+    s.push_str(x);
+}
+
 impl Encoder {
     /// An encoder for a run of `world` whose tick 0 is at `epoch_ns` (Unix ns).
     pub fn new(world: &World, epoch_ns: u64) -> Self {
-        let copters = world
+        let copters: Vec<CopterInfo> = world
             .copters
             .iter()
-            .enumerate()
-            .map(|(id, c)| {
-                let af = &world.airframes[c.airframe];
-                let name_json = quoted(&c.name);
-                let ac_id = c.ac_id.map_or("null".to_owned(), |a| a.to_string());
-                CopterInfo {
-                    name: c.name.clone(),
-                    ident: format!(",\"copter\":{name_json},\"id\":{id}"),
-                    state_ident: format!(
-                        ",\"ac_id\":{ac_id},\"kind\":{}",
-                        serde_json::to_string(&c.kind).unwrap_or_default()
-                    ),
-                    entity_id_json: quoted(&format!("copter/{}", c.name)),
-                    name_json,
-                    kind: c.kind,
-                    body_size_m: af.spec.body_size_m,
-                }
+            .map(|c| CopterInfo {
+                name: c.name.clone(),
+                ac_id: c.ac_id.map(u32::from),
+                kind: c.kind,
+                body_size_m: world.airframes[c.airframe].spec.body_size_m,
+                crash: None,
             })
-            .collect::<Vec<_>>();
+            .collect();
         let s = &world.sensors.spec;
+        let mut msg = Reused::default();
+        msg.tf.parent_frame_id = WORLD_FRAME.to_owned();
+        msg.control.setpoint = Some(proto::Setpoint::default());
+        msg.control.wall_avoid = Some(proto::WallAvoid::default());
+        msg.scene.entities = copters.iter().map(copter_entity).collect();
         Self {
-            scene_text: SceneText::new(&copters),
             epoch_ns,
             dt_ns: (world.params.control_dt_s * 1e9).round() as u64,
             copters,
@@ -271,6 +362,7 @@ impl Encoder {
             },
             buf: Vec::with_capacity(64 * 1024),
             scene_every: ((SCENE_COPTERS_PERIOD_S / world.params.control_dt_s).round() as u64).max(1),
+            msg,
         }
     }
 
@@ -293,104 +385,113 @@ impl Encoder {
         (tick * self.dt_ns) as f64 / 1e9
     }
 
-    fn emit<E, T: Serialize>(
-        &mut self,
+    fn emit<E>(
+        buf: &mut Vec<u8>,
         topic: Topic,
         log_time: u64,
-        msg: &T,
+        msg: &impl prost::Message,
         sink: &mut impl Sink<E>,
     ) -> Result<(), E> {
-        self.buf.clear();
-        // Serialising plain structs of numbers and strings into a Vec cannot fail.
-        let _ = serde_json::to_writer(&mut self.buf, msg);
-        sink(topic, log_time, &self.buf)
+        buf.clear();
+        // A Vec grows as needed: encoding into it cannot fail.
+        let _ = msg.encode(buf);
+        sink(topic, log_time, buf)
     }
 
     /// Every per-step message of a captured step: state, sensors, command, control and `/tf`
     /// per copter, one `/scene/copters` update every [`Encoder::scene_every_ticks`], and the
-    /// step's events. Written with [`Json`] (same text as serde's, several times faster).
+    /// step's events.
     pub fn encode_step<E>(&mut self, frame: &StepFrame, sink: &mut impl Sink<E>) -> Result<(), E> {
         let tick = frame.tick;
         let lt = self.log_time(tick);
         let t_s = self.t_s(tick);
-        // The part every copter message starts with: `{"tick":…,"t_s":…`.
-        let mut head = Vec::with_capacity(32);
-        Json(&mut head).raw("{\"tick\":").u64(tick).raw(",\"t_s\":").f64(t_s);
-        for (info, c) in self.copters.iter().zip(&frame.copters) {
-            let b = &mut self.buf;
+        let m = &mut self.msg;
+        let b = &mut self.buf;
+        for (id, (info, c)) in self.copters.iter_mut().zip(&frame.copters).enumerate() {
             let p = &c.pose;
-            let mode = c.command.mode;
+            let mode = c.command.mode.as_str();
+            let id = id as u32;
 
-            let j = &mut Json::starting(b, &head);
-            j.raw(&info.ident).raw(&info.state_ident).raw(",\"mode\":\"").raw(mode.as_str()).raw("\"");
-            j.raw(",\"crashed\":").bool(c.crash.is_some()).raw(",\"crash_cause\":");
-            match &c.crash {
-                Some(cause) => j.serde(cause),
-                None => j.raw("null"),
-            };
-            j.raw(",\"took_off\":").bool(c.took_off_tick.is_some());
-            j.raw(",\"pos_m\":").f32s(&[p.pos_m.x, p.pos_m.y, p.pos_m.z]);
-            j.raw(",\"vel_m_s\":").f32s(&[p.vel_m_s.x, p.vel_m_s.y, p.vel_m_s.z]);
-            j.raw(",\"rpy_rad\":").f32s(&p.rpy_rad);
-            j.raw(",\"angvel_rad_s\":").f32s(&[p.angvel_rad_s.x, p.angvel_rad_s.y, p.angvel_rad_s.z]);
-            j.raw(",\"quat_xyzw\":").f32s(&p.quat_xyzw);
-            j.raw(",\"rotor_thrust_n\":").f32s(&c.rotor_thrust_n);
-            j.raw(",\"rotor_speed_rad_s\":").f32s(&c.rotor_speed_rad_s).raw("}");
-            sink(Topic::State, lt, b)?;
+            let st = &mut m.state;
+            (st.tick, st.t_s, st.id, st.ac_id) = (tick, t_s, id, info.ac_id);
+            set_str(&mut st.copter, &info.name);
+            set_str(&mut st.kind, info.kind_str());
+            set_str(&mut st.mode, mode);
+            st.crashed = c.crash.is_some();
+            match c.crash {
+                Some(cause) => {
+                    if info.crash.as_ref().is_none_or(|(was, _)| *was != cause) {
+                        info.crash = Some((cause, serde_json::to_string(&cause).unwrap_or_default()));
+                    }
+                    set_str(&mut st.crash_cause, info.crash.as_ref().map_or("", |(_, text)| text));
+                }
+                None => st.crash_cause.clear(),
+            }
+            st.took_off = c.took_off_tick.is_some();
+            set(&mut st.pos_m, &[p.pos_m.x, p.pos_m.y, p.pos_m.z]);
+            set(&mut st.vel_m_s, &[p.vel_m_s.x, p.vel_m_s.y, p.vel_m_s.z]);
+            set(&mut st.rpy_rad, &p.rpy_rad);
+            set(&mut st.angvel_rad_s, &[p.angvel_rad_s.x, p.angvel_rad_s.y, p.angvel_rad_s.z]);
+            set(&mut st.quat_xyzw, &p.quat_xyzw);
+            set(&mut st.rotor_thrust_n, &c.rotor_thrust_n);
+            set(&mut st.rotor_speed_rad_s, &c.rotor_speed_rad_s);
+            Self::emit(b, Topic::State, lt, st, sink)?;
 
             let r = &c.sensors;
-            let j = &mut Json::starting(b, &head);
-            j.raw(&info.ident).raw(",\"sonar_tick\":").u64(r.sonar_tick);
-            j.raw(",\"sonar_truth_m\":").f32s(&r.sonar_truth_m);
-            j.raw(",\"sonar_m\":").f32s(&r.sonar_m);
-            j.raw(",\"sonar_fused_m\":").f32s(&r.sonar_fused_m);
-            j.raw(",\"sonar_crosstalk\":").bools(&r.sonar_crosstalk);
-            j.raw(",\"ir_m\":").opt_f32(r.ir_m);
-            j.raw(",\"ir_truth_m\":").opt_f32(r.ir_truth_m.is_finite().then_some(r.ir_truth_m));
-            j.raw(",\"attitude_rad\":").f32s(&r.attitude_rad);
-            j.raw(",\"yaw_bias_rad\":").f32(r.yaw_bias_rad);
-            j.raw(",\"rate_body_rad_s\":").f32s(&r.rate_body_rad_s);
-            j.raw(",\"accel_body_m_s2\":").f32s(&r.accel_body_m_s2);
-            j.raw(",\"height_est_m\":").f32(r.height_est_m);
-            j.raw(",\"battery_v\":").f32(r.battery_v);
-            j.raw(",\"battery_charge\":").f32(r.battery_charge);
-            j.raw(",\"battery_a\":").f32(r.battery_a).raw("}");
-            sink(Topic::Sensors, lt, b)?;
+            let se = &mut m.sensors;
+            (se.tick, se.t_s, se.id, se.sonar_tick) = (tick, t_s, id, r.sonar_tick);
+            set_str(&mut se.copter, &info.name);
+            set(&mut se.sonar_truth_m, &r.sonar_truth_m);
+            set(&mut se.sonar_m, &r.sonar_m);
+            set(&mut se.sonar_fused_m, &r.sonar_fused_m);
+            set(&mut se.sonar_crosstalk, &r.sonar_crosstalk);
+            se.ir_m = r.ir_m;
+            se.ir_truth_m = r.ir_truth_m.is_finite().then_some(r.ir_truth_m);
+            set(&mut se.attitude_rad, &r.attitude_rad);
+            se.yaw_bias_rad = r.yaw_bias_rad;
+            set(&mut se.rate_body_rad_s, &r.rate_body_rad_s);
+            set(&mut se.accel_body_m_s2, &r.accel_body_m_s2);
+            (se.height_est_m, se.battery_v, se.battery_charge, se.battery_a) =
+                (r.height_est_m, r.battery_v, r.battery_charge, r.battery_a);
+            Self::emit(b, Topic::Sensors, lt, se, sink)?;
 
             let cmd = &c.command;
-            let j = &mut Json::starting(b, &head);
-            j.raw(&info.ident).raw(",\"mode\":\"").raw(mode.as_str()).raw("\"");
-            j.raw(",\"roll_rad\":").f32(cmd.roll_rad).raw(",\"pitch_rad\":").f32(cmd.pitch_rad);
-            j.raw(",\"yaw_rad\":").f32(cmd.yaw_rad).raw(",\"throttle\":").f32(cmd.throttle);
-            j.raw(",\"height_m\":").f32(cmd.height_m);
-            j.raw(",\"target_m\":").opt_f32s(cmd.target_m.as_ref().map(|v| &v[..]));
-            j.raw(",\"velocity_m_s\":").opt_f32s(cmd.velocity_m_s.as_ref().map(|v| &v[..]));
-            j.raw(",\"virtual_sonar_m\":").opt_f32s(cmd.virtual_sonar_m.as_ref().map(|v| &v[..])).raw("}");
-            sink(Topic::Command, lt, b)?;
+            let co = &mut m.command;
+            (co.tick, co.t_s, co.id) = (tick, t_s, id);
+            set_str(&mut co.copter, &info.name);
+            set_str(&mut co.mode, mode);
+            (co.roll_rad, co.pitch_rad, co.yaw_rad, co.throttle, co.height_m) =
+                (cmd.roll_rad, cmd.pitch_rad, cmd.yaw_rad, cmd.throttle, cmd.height_m);
+            set(&mut co.target_m, cmd.target_m.as_ref().map_or(&[][..], |v| &v[..]));
+            set(&mut co.velocity_m_s, cmd.velocity_m_s.as_ref().map_or(&[][..], |v| &v[..]));
+            set(&mut co.virtual_sonar_m, cmd.virtual_sonar_m.as_ref().map_or(&[][..], |v| &v[..]));
+            Self::emit(b, Topic::Command, lt, co, sink)?;
 
             let (sp, wa) = (&c.setpoint, &c.wall_avoid);
-            let j = &mut Json::starting(b, &head);
-            j.raw(&info.ident).raw(",\"setpoint\":{\"roll_rad\":").f32(sp.roll_rad);
-            j.raw(",\"pitch_rad\":").f32(sp.pitch_rad).raw(",\"yaw_rad\":").f32(sp.yaw_rad);
-            j.raw(",\"height_m\":").f32(sp.height_m).raw(",\"throttle\":").f32(sp.throttle);
-            let engaged = mode == FlightMode::WallAvoid && wa.out_rad != [0.0; 2];
-            j.raw("},\"wall_avoid\":{\"engaged\":").bool(engaged);
-            j.raw(",\"out_rad\":").f32s(&wa.out_rad).raw(",\"last_m\":").f32s(&wa.last_m);
-            j.raw(",\"rate_m_s\":").f32s(&wa.rate_m_s).raw("}}");
-            sink(Topic::Control, lt, b)?;
+            let ct = &mut m.control;
+            (ct.tick, ct.t_s, ct.id) = (tick, t_s, id);
+            set_str(&mut ct.copter, &info.name);
+            let s = ct.setpoint.get_or_insert_default();
+            (s.roll_rad, s.pitch_rad, s.yaw_rad, s.height_m, s.throttle) =
+                (sp.roll_rad, sp.pitch_rad, sp.yaw_rad, sp.height_m, sp.throttle);
+            let w = ct.wall_avoid.get_or_insert_default();
+            w.engaged = c.command.mode == FlightMode::WallAvoid && wa.out_rad != [0.0; 2];
+            set(&mut w.out_rad, &wa.out_rad);
+            set(&mut w.last_m, &wa.last_m);
+            set(&mut w.rate_m_s, &wa.rate_m_s);
+            Self::emit(b, Topic::Control, lt, ct, sink)?;
 
-            b.clear();
-            let j = &mut Json(b);
-            j.raw("{\"timestamp\":").time(lt).raw(",\"parent_frame_id\":\"").raw(WORLD_FRAME);
-            j.raw("\",\"child_frame_id\":").raw(&info.name_json);
-            j.raw(",\"translation\":").xyz([p.pos_m.x, p.pos_m.y, p.pos_m.z]);
-            j.raw(",\"rotation\":").xyzw(p.quat_xyzw).raw("}");
-            sink(Topic::Tf, lt, b)?;
+            let tf = &mut m.tf;
+            tf.timestamp = Some(timestamp(lt));
+            set_str(&mut tf.child_frame_id, &info.name);
+            tf.translation = Some(v3(p.pos_m.x, p.pos_m.y, p.pos_m.z));
+            let [x, y, z, w] = p.quat_xyzw.map(f64::from);
+            tf.rotation = Some(quat([x, y, z, w]));
+            Self::emit(b, Topic::Tf, lt, tf, sink)?;
         }
         if tick.is_multiple_of(self.scene_every) {
-            self.buf.clear();
-            copter_entities(&mut Json(&mut self.buf), &self.scene_text, frame, self.sonar, lt);
-            sink(Topic::SceneCopters, lt, &self.buf)?;
+            update_copter_entities(&mut m.scene, &self.copters, frame, self.sonar, lt);
+            Self::emit(b, Topic::SceneCopters, lt, &m.scene, sink)?;
         }
         for e in &frame.events {
             let copter = match e {
@@ -406,26 +507,25 @@ impl Encoder {
     /// An event, on `/events` and as a line on `/log`.
     pub fn encode_event<E>(&mut self, ev: &LogEvent, sink: &mut impl Sink<E>) -> Result<(), E> {
         let lt = self.log_time(ev.tick);
-        let name = ev.copter.and_then(|i| self.copters.get(i)).map(|c| c.name.clone());
-        let msg = EventMsg {
+        let msg = proto::Event {
             tick: ev.tick,
             t_s: self.t_s(ev.tick),
-            kind: ev.kind,
-            copter: name.as_deref(),
-            id: ev.copter,
-            detail: ev.detail.as_ref(),
-            message: &ev.message,
+            kind: ev.kind.as_str().to_owned(),
+            copter: ev.copter.and_then(|i| self.copters.get(i)).map(|c| c.name.clone()),
+            id: ev.copter.and_then(|i| u32::try_from(i).ok()),
+            detail: ev.detail.as_ref().and_then(proto::json_to_struct),
+            message: ev.message.clone(),
         };
-        self.emit(Topic::Events, lt, &msg, sink)?;
-        let log = LogMsg {
-            timestamp: Time::from_ns(lt),
-            level: ev.kind.level(),
-            message: &ev.message,
-            name: "twinswarm",
-            file: "",
+        Self::emit(&mut self.buf, Topic::Events, lt, &msg, sink)?;
+        let log = fg::Log {
+            timestamp: Some(timestamp(lt)),
+            level: ev.kind.level() as i32,
+            message: ev.message.clone(),
+            name: "twinswarm".to_owned(),
+            file: String::new(),
             line: 0,
         };
-        self.emit(Topic::Log, lt, &log, sink)
+        Self::emit(&mut self.buf, Topic::Log, lt, &log, sink)
     }
 
     /// A bus message (`/bus`): `log_time` is the simulated time of `tick`, `publish_time`
@@ -439,222 +539,172 @@ impl Encoder {
         sink: &mut impl Sink<E>,
     ) -> Result<(), E> {
         let lt = self.log_time(tick);
-        self.emit(Topic::Bus, lt, &BusMsg { tick, key, direction, text }, sink)
+        let msg =
+            proto::BusMessage { tick, key: key.to_owned(), direction: direction.to_owned(), text: text.to_owned() };
+        Self::emit(&mut self.buf, Topic::Bus, lt, &msg, sink)
     }
 
     /// The static scene on `/scene/arena` at tick 0: floor, walls, outline, boxes with their
     /// names, and per copter its rotor discs, a forward arrow and its name, locked to its frame.
     pub fn encode_arena<E>(&mut self, world: &World, sink: &mut impl Sink<E>) -> Result<(), E> {
         let lt = self.log_time(0);
-        let time = Time::from_ns(lt);
         let [sx, sy] = world.arena.size_m;
         let h = world.arena.height_m;
-        let at = |x, y, z| Pose { position: v3(x, y, z), orientation: IDENTITY };
-        let mut cubes =
-            vec![Cube { pose: at(0.0, 0.0, -0.005), size: v3(sx, sy, 0.01), color: rgba(0.55, 0.55, 0.55, 1.0) }];
+        let cube = |pose, size, color| fg::CubePrimitive { pose, size: Some(size), color: rgba(color) };
+        let mut cubes = vec![cube(at(0.0, 0.0, -0.005), v3(sx, sy, 0.01), [0.55, 0.55, 0.55, 1.0])];
         let mut lines = Vec::new();
         if world.arena.walls {
-            let wall = rgba(0.7, 0.8, 0.9, 0.12);
+            let wall = [0.7, 0.8, 0.9, 0.12];
             let t = 0.02;
-            cubes.push(Cube { pose: at(sx / 2.0, 0.0, h / 2.0), size: v3(t, sy, h), color: wall });
-            cubes.push(Cube { pose: at(-sx / 2.0, 0.0, h / 2.0), size: v3(t, sy, h), color: wall });
-            cubes.push(Cube { pose: at(0.0, sy / 2.0, h / 2.0), size: v3(sx, t, h), color: wall });
-            cubes.push(Cube { pose: at(0.0, -sy / 2.0, h / 2.0), size: v3(sx, t, h), color: wall });
-            let (x, y) = (sx / 2.0, sy / 2.0);
-            let c = [v3(-x, -y, 0.0), v3(x, -y, 0.0), v3(x, y, 0.0), v3(-x, y, 0.0)];
-            let mut pts = Vec::new();
+            cubes.push(cube(at(sx / 2.0, 0.0, h / 2.0), v3(t, sy, h), wall));
+            cubes.push(cube(at(-sx / 2.0, 0.0, h / 2.0), v3(t, sy, h), wall));
+            cubes.push(cube(at(0.0, sy / 2.0, h / 2.0), v3(sx, t, h), wall));
+            cubes.push(cube(at(0.0, -sy / 2.0, h / 2.0), v3(sx, t, h), wall));
+            let (x, y) = (f64::from(sx) / 2.0, f64::from(sy) / 2.0);
+            let p = |x: f64, y: f64, z: f64| fg::Point3 { x, y, z };
+            let c = [(-x, -y), (x, -y), (x, y), (-x, y)];
+            let mut points = Vec::new();
             for i in 0..4 {
-                let (a, b) = (c[i], c[(i + 1) % 4]);
-                pts.extend([v3(a.x, a.y, h), v3(b.x, b.y, h), a, v3(a.x, a.y, h)]);
+                let ((ax, ay), (bx, by)) = (c[i], c[(i + 1) % 4]);
+                let h = f64::from(h);
+                points.extend([p(ax, ay, h), p(bx, by, h), p(ax, ay, 0.0), p(ax, ay, h)]);
             }
-            lines.push(Line {
-                kind: 2,
+            lines.push(fg::LinePrimitive {
+                r#type: fg::line_primitive::Type::LineList as i32,
                 pose: at(0.0, 0.0, 0.0),
                 thickness: 0.01,
                 scale_invariant: false,
-                points: pts,
-                color: rgba(0.2, 0.3, 0.4, 1.0),
-                colors: [],
-                indices: [],
+                points,
+                color: rgba([0.2, 0.3, 0.4, 1.0]),
+                colors: Vec::new(),
+                indices: Vec::new(),
             });
         }
+        let label = |pose, text: &str, color| fg::TextPrimitive {
+            pose,
+            billboard: true,
+            font_size: 14.0,
+            scale_invariant: true,
+            color: rgba(color),
+            text: text.to_owned(),
+        };
         let mut texts = Vec::new();
         for b in &world.boxes {
             let hz = b.half_extents_m;
-            cubes.push(Cube {
-                pose: Pose { position: v3(b.center_m.x, b.center_m.y, b.center_m.z), orientation: Q::yaw(b.yaw_rad) },
-                size: v3(2.0 * hz.x, 2.0 * hz.y, 2.0 * hz.z),
-                color: rgba(0.62, 0.45, 0.28, 0.9),
+            cubes.push(fg::CubePrimitive {
+                pose: Some(fg::Pose {
+                    position: Some(v3(b.center_m.x, b.center_m.y, b.center_m.z)),
+                    orientation: Some(yaw(b.yaw_rad)),
+                }),
+                size: Some(v3(2.0 * hz.x, 2.0 * hz.y, 2.0 * hz.z)),
+                color: rgba([0.62, 0.45, 0.28, 0.9]),
             });
-            texts.push(Text {
-                pose: at(b.center_m.x, b.center_m.y, b.center_m.z + hz.z + 0.1),
-                billboard: true,
-                font_size: 14.0,
-                scale_invariant: true,
-                color: rgba(0.1, 0.1, 0.1, 1.0),
-                text: b.name.clone(),
-            });
+            texts.push(label(at(b.center_m.x, b.center_m.y, b.center_m.z + hz.z + 0.1), &b.name, [0.1, 0.1, 0.1, 1.0]));
         }
-        let arena = Entity {
-            timestamp: time,
-            frame_id: WORLD_FRAME,
-            id: "arena",
-            lifetime: FOREVER,
-            frame_locked: false,
-            metadata: &[KeyValue { key: "world".into(), value: world.name.clone() }],
-            arrows: &[],
-            cubes: &cubes,
-            spheres: [],
-            cylinders: &[],
-            lines: &lines,
-            triangles: [],
-            texts: &texts,
-            models: [],
-        };
-        struct Rig {
-            id: String,
-            cylinders: Vec<Cylinder>,
-            arrows: [Arrow; 1],
-            texts: [Text; 1],
-            metadata: Vec<KeyValue>,
-        }
-        let rigs: Vec<Rig> = world
-            .copters
-            .iter()
-            .map(|c| {
-                let af = &world.airframes[c.airframe];
-                let r = af.spec.rotor_diameter_m;
-                let top = af.spec.body_size_m[2] / 2.0;
-                let cylinders = af
-                    .rotor_pos_in_body_m
-                    .iter()
-                    .map(|p| Cylinder {
-                        pose: at(p.x, p.y, p.z + top),
-                        size: v3(r, r, 0.005),
-                        bottom_scale: 1.0,
-                        top_scale: 1.0,
-                        color: rgba(0.15, 0.15, 0.15, 0.6),
-                    })
-                    .collect();
-                let arrow = Arrow {
-                    pose: at(0.0, 0.0, top + 0.01),
-                    shaft_length: 0.12,
-                    shaft_diameter: 0.01,
-                    head_length: 0.04,
-                    head_diameter: 0.03,
-                    color: rgba(0.9, 0.2, 0.1, 1.0),
-                };
-                let label = Text {
-                    pose: at(0.0, 0.0, 0.15),
-                    billboard: true,
-                    font_size: 14.0,
-                    scale_invariant: true,
-                    color: rgba(0.0, 0.0, 0.0, 1.0),
-                    text: c.name.clone(),
-                };
-                let metadata = vec![
-                    KeyValue { key: "kind".into(), value: format!("{:?}", c.kind).to_lowercase() },
-                    KeyValue { key: "ac_id".into(), value: c.ac_id.map(|a| a.to_string()).unwrap_or_default() },
-                ];
-                Rig { id: format!("rig/{}", c.name), cylinders, arrows: [arrow], texts: [label], metadata }
-            })
-            .collect();
-        let mut entities = vec![arena];
-        for (c, rig) in world.copters.iter().zip(&rigs) {
-            entities.push(Entity {
-                timestamp: time,
-                frame_id: &c.name,
-                id: &rig.id,
-                lifetime: FOREVER,
+        let ts = Some(timestamp(lt));
+        let mut entities = vec![fg::SceneEntity {
+            timestamp: ts,
+            frame_id: WORLD_FRAME.to_owned(),
+            id: "arena".to_owned(),
+            lifetime: forever(),
+            metadata: vec![fg::KeyValuePair { key: "world".into(), value: world.name.clone() }],
+            cubes,
+            lines,
+            texts,
+            ..Default::default()
+        }];
+        for c in &world.copters {
+            let af = &world.airframes[c.airframe];
+            let r = af.spec.rotor_diameter_m;
+            let top = af.spec.body_size_m[2] / 2.0;
+            let cylinders = af
+                .rotor_pos_in_body_m
+                .iter()
+                .map(|p| fg::CylinderPrimitive {
+                    pose: at(p.x, p.y, p.z + top),
+                    size: Some(v3(r, r, 0.005)),
+                    bottom_scale: 1.0,
+                    top_scale: 1.0,
+                    color: rgba([0.15, 0.15, 0.15, 0.6]),
+                })
+                .collect();
+            let arrow = fg::ArrowPrimitive {
+                pose: at(0.0, 0.0, top + 0.01),
+                shaft_length: 0.12,
+                shaft_diameter: 0.01,
+                head_length: 0.04,
+                head_diameter: 0.03,
+                color: rgba([0.9, 0.2, 0.1, 1.0]),
+            };
+            let kind = serde_json::to_value(c.kind).ok().and_then(|v| v.as_str().map(str::to_owned));
+            entities.push(fg::SceneEntity {
+                timestamp: ts,
+                frame_id: c.name.clone(),
+                id: format!("rig/{}", c.name),
+                lifetime: forever(),
                 frame_locked: true,
-                metadata: &rig.metadata,
-                arrows: &rig.arrows,
-                cubes: &[],
-                spheres: [],
-                cylinders: &rig.cylinders,
-                lines: &[],
-                triangles: [],
-                texts: &rig.texts,
-                models: [],
+                metadata: vec![
+                    fg::KeyValuePair { key: "kind".into(), value: kind.unwrap_or_default() },
+                    fg::KeyValuePair { key: "ac_id".into(), value: c.ac_id.map(|a| a.to_string()).unwrap_or_default() },
+                ],
+                arrows: vec![arrow],
+                cylinders,
+                texts: vec![label(at(0.0, 0.0, 0.15), &c.name, [0.0, 0.0, 0.0, 1.0])],
+                ..Default::default()
             });
         }
-        self.emit(Topic::SceneArena, lt, &SceneUpdate { deletions: [], entities: &entities }, sink)
+        Self::emit(&mut self.buf, Topic::SceneArena, lt, &fg::SceneUpdate { deletions: Vec::new(), entities }, sink)
     }
 }
 
-/// The constant parts of the per-step `foxglove.SceneUpdate` of the copters, as JSON text:
-/// written once per run, so an update formats only what changes (time, cone positions and
-/// sizes).
-#[derive(Clone, Debug)]
-struct SceneText {
-    /// Per copter, `(flying, crashed)`: everything from `frame_id` to the opening of
-    /// `cylinders`, the body box coloured by kind, or red when crashed.
-    bodies: Vec<(String, String)>,
-    /// Per sonar, its cone's orientation (`,"orientation":…},"size":`).
-    orientations: [String; 4],
-    /// Per cone colour (crosstalk, no echo, closer than the safety distance, echo), the end
-    /// of the cone (`,"bottom_scale":…,"color":…}`).
-    colors: [String; 4],
+/// A copter's entity in `/scene/copters`, before its first update: its body box coloured by
+/// kind and four sonar cones, locked to its frame.
+fn copter_entity(info: &CopterInfo) -> fg::SceneEntity {
+    let [x, y, z] = info.body_size_m;
+    let cone = |k: usize| fg::CylinderPrimitive {
+        pose: Some(fg::Pose { position: Some(v3(0.0, 0.0, 0.0)), orientation: Some(quat(SONAR_Z_TO_AXIS[k])) }),
+        size: Some(v3(0.0, 0.0, 0.0)),
+        bottom_scale: 0.0,
+        top_scale: 1.0,
+        color: rgba(CONE_COLORS[1]),
+    };
+    fg::SceneEntity {
+        timestamp: Some(timestamp(0)),
+        frame_id: info.name.clone(),
+        id: format!("copter/{}", info.name),
+        lifetime: forever(),
+        frame_locked: true,
+        cubes: vec![fg::CubePrimitive { pose: at(0.0, 0.0, 0.0), size: Some(v3(x, y, z)), color: flying_color(info) }],
+        cylinders: (0..4).map(cone).collect(),
+        ..Default::default()
+    }
 }
 
-impl SceneText {
-    fn new(copters: &[CopterInfo]) -> Self {
-        let text = |f: &dyn Fn(&mut Json<'_>)| {
-            let mut b = Vec::new();
-            f(&mut Json(&mut b));
-            String::from_utf8(b).unwrap_or_default()
-        };
-        let body = |info: &CopterInfo, color: [f32; 4]| {
-            text(&|j| {
-                j.raw(",\"frame_id\":").raw(&info.name_json).raw(",\"id\":").raw(&info.entity_id_json);
-                j.raw(",\"lifetime\":{\"sec\":0,\"nsec\":0},\"frame_locked\":true,\"metadata\":[],\"arrows\":[]");
-                j.raw(",\"cubes\":[{\"pose\":{\"position\":").xyz([0.0; 3]);
-                j.raw(",\"orientation\":").xyzw([0.0, 0.0, 0.0, 1.0]);
-                j.raw("},\"size\":").xyz(info.body_size_m).raw(",\"color\":").rgba(color).raw("}]");
-                j.raw(",\"spheres\":[],\"cylinders\":[");
-            })
-        };
-        let bodies = copters
-            .iter()
-            .map(|info| {
-                let flying = match info.kind {
-                    CopterKind::Real => [0.1, 0.6, 0.2, 1.0],
-                    CopterKind::Virtual => [0.15, 0.35, 0.8, 1.0],
-                };
-                (body(info, flying), body(info, [0.85, 0.1, 0.1, 1.0]))
-            })
-            .collect();
-        let orientations = std::array::from_fn(|k| {
-            let q = SONAR_Z_TO_AXIS[k];
-            text(&|j| {
-                j.raw(",\"orientation\":").xyzw([q.x, q.y, q.z, q.w]).raw("},\"size\":");
-            })
-        });
-        let palette = [[1.0, 0.55, 0.0, 0.45], [0.5, 0.5, 0.5, 0.06], [0.9, 0.2, 0.2, 0.3], [0.2, 0.6, 1.0, 0.2]];
-        let colors = std::array::from_fn(|k| {
-            text(&|j| {
-                j.raw(",\"bottom_scale\":0.0,\"top_scale\":1.0,\"color\":").rgba(palette[k]).raw("}");
-            })
-        });
-        Self { bodies, orientations, colors }
-    }
+fn flying_color(info: &CopterInfo) -> Option<fg::Color> {
+    rgba(match info.kind {
+        CopterKind::Real => [0.1, 0.6, 0.2, 1.0],
+        CopterKind::Virtual => [0.15, 0.35, 0.8, 1.0],
+    })
 }
 
 /// The per-step `foxglove.SceneUpdate` of the copters: per copter its body box, coloured by
-/// kind and status, and its four sonar cones, each as long as its fused reading and coloured
-/// by what it sees; locked to the copter's frame.
-fn copter_entities(j: &mut Json<'_>, text: &SceneText, frame: &StepFrame, g: SonarGeometry, lt: u64) {
-    j.raw("{\"deletions\":[],\"entities\":[");
-    for (i, ((flying, crashed), c)) in text.bodies.iter().zip(&frame.copters).enumerate() {
-        j.raw(if i > 0 { ",{\"timestamp\":" } else { "{\"timestamp\":" }).time(lt);
-        j.raw(if c.crash.is_some() { crashed } else { flying });
-        let cones = c
-            .sensors
-            .sonar_fused_m
-            .iter()
-            .zip(&c.sensors.sonar_crosstalk)
-            .zip(SONAR_AXES.iter().zip(&text.orientations));
-        for (k, ((&reading, &crosstalk), (a, orientation))) in cones.enumerate() {
+/// kind and status (red when crashed), and its four sonar cones, each as long as its fused
+/// reading and coloured by what it sees. Updates the entities in place.
+fn update_copter_entities(
+    scene: &mut fg::SceneUpdate,
+    copters: &[CopterInfo],
+    frame: &StepFrame,
+    g: SonarGeometry,
+    lt: u64,
+) {
+    let ts = timestamp(lt);
+    for ((e, c), info) in scene.entities.iter_mut().zip(&frame.copters).zip(copters) {
+        e.timestamp = Some(ts);
+        if let Some(body) = e.cubes.first_mut() {
+            body.color = if c.crash.is_some() { rgba(CRASHED_COLOR) } else { flying_color(info) };
+        }
+        let cones = c.sensors.sonar_fused_m.iter().zip(&c.sensors.sonar_crosstalk).zip(&SONAR_AXES);
+        for (cyl, ((&reading, &crosstalk), a)) in e.cylinders.iter_mut().zip(cones) {
             let echo = reading < g.cap_m;
             let len = reading.clamp(g.min_m, g.cap_m);
             let color = if crosstalk {
@@ -668,15 +718,11 @@ fn copter_entities(j: &mut Json<'_>, text: &SceneText, frame: &StepFrame, g: Son
             };
             let d = g.mount_offset_m + len / 2.0;
             let width = 2.0 * len * g.tan_half;
-            j.raw(if k > 0 { ",{\"pose\":{\"position\":" } else { "{\"pose\":{\"position\":" });
-            j.xyz([a[0] * d, a[1] * d, a[2] * d]).raw(orientation);
-            j.xyz([width, width, len]).raw(&text.colors[color]);
+            if let Some(pose) = cyl.pose.as_mut() {
+                pose.position = Some(v3(a[0] * d, a[1] * d, a[2] * d));
+            }
+            cyl.size = Some(v3(width, width, len));
+            cyl.color = rgba(CONE_COLORS[color]);
         }
-        j.raw("],\"lines\":[],\"triangles\":[],\"texts\":[],\"models\":[]}");
     }
-    j.raw("]}");
 }
-
-#[cfg(test)]
-#[path = "reference.rs"]
-mod reference;

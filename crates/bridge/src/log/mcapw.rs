@@ -51,8 +51,7 @@ mod op {
 pub(crate) struct ChunkOptions {
     /// Finish a chunk once its uncompressed records pass this many bytes.
     pub chunk_size: usize,
-    /// zstd level of the first chunk (negative: zstd's fast levels); see
-    /// [`McapWriter::set_zstd_level`].
+    /// zstd level of every chunk.
     pub zstd_level: i32,
     /// The Header's `library` field.
     pub library: String,
@@ -202,10 +201,6 @@ pub(crate) struct McapWriter<W: Write> {
     out: Out<W>,
     options: ChunkOptions,
     zstd: zstd::bulk::Compressor<'static>,
-    /// The level `zstd` is set to, and the one asked for the next chunk.
-    level: (i32, i32),
-    /// Chunks written at a level below `options.zstd_level`.
-    fast_chunks: u64,
     compressed: Vec<u8>,
     scratch: Vec<u8>,
     chunk: Chunk,
@@ -232,13 +227,10 @@ impl<W: Write> McapWriter<W> {
     /// Writes the magic and the Header.
     pub fn new(inner: W, options: ChunkOptions) -> io::Result<Self> {
         let zstd = zstd::bulk::Compressor::new(options.zstd_level)?;
-        let options_level = options.zstd_level;
         let mut w = Self {
             out: Out { inner, pos: 0, crc: crc32fast::Hasher::new() },
             options,
             zstd,
-            level: (options_level, options_level),
-            fast_chunks: 0,
             compressed: Vec::new(),
             scratch: Vec::new(),
             chunk: Chunk::default(),
@@ -388,17 +380,6 @@ impl<W: Write> McapWriter<W> {
         Ok(())
     }
 
-    /// The zstd level of the chunks finished from now on (the writer thread lowers it while
-    /// it is behind the simulation).
-    pub fn set_zstd_level(&mut self, level: i32) {
-        self.level.1 = level;
-    }
-
-    /// Chunks compressed below the level of the options.
-    pub fn fast_chunks(&self) -> u64 {
-        self.fast_chunks
-    }
-
     /// Finishes the open chunk and flushes the output: what was written so far is readable
     /// from the file.
     pub fn flush(&mut self) -> io::Result<()> {
@@ -413,13 +394,6 @@ impl<W: Write> McapWriter<W> {
         }
         let records = &self.chunk.records;
         let uncompressed_crc = crc32fast::hash(records);
-        if self.level.0 != self.level.1 {
-            self.zstd.set_compression_level(self.level.1)?;
-            self.level.0 = self.level.1;
-        }
-        if self.level.0 < self.options.zstd_level {
-            self.fast_chunks += 1;
-        }
         self.compressed.clear();
         self.compressed.reserve(zstd::zstd_safe::compress_bound(records.len()));
         self.zstd.compress_to_buffer(records, &mut self.compressed)?;
@@ -672,8 +646,6 @@ mod tests {
             let ch = if i % 3 == 0 { c1 } else { c0 };
             if i == 1000 {
                 w.flush().unwrap();
-                // The second half at a fast level, as the logger does when it is behind.
-                w.set_zstd_level(-20);
                 let late = w.add_channel(s, "/late", "json", &BTreeMap::new()).unwrap();
                 let h = MessageHeader { channel_id: late, sequence: 0, log_time: 10 * i, publish_time: 1 };
                 w.write_to_known_channel(&h, b"{\"late\":true}").unwrap();
@@ -685,7 +657,6 @@ mod tests {
             sent.push((ch, 10 * i, data));
         }
         w.finish().unwrap();
-        assert!(w.fast_chunks() > 0, "the level change took effect");
         let bytes = w.into_inner();
 
         let summary = mcap::Summary::read(&bytes).unwrap().expect("a summary");

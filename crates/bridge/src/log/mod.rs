@@ -4,22 +4,26 @@
 //!
 //! # Channels
 //!
-//! | topic | schema | encoding | rate |
-//! |---|---|---|---|
-//! | `/copters/state` | `twinswarm.CopterState` | json | per step, per copter |
-//! | `/copters/sensors` | `twinswarm.CopterSensors` | json | per step, per copter |
-//! | `/copters/command` | `twinswarm.CopterCommand` | json | per step, per copter |
-//! | `/copters/control` | `twinswarm.CopterControl` | json | per step, per copter |
-//! | `/events` | `twinswarm.Event` | json | when something happens |
-//! | `/log` | `foxglove.Log` | json | the same events, as log lines |
-//! | `/tf` | `foxglove.FrameTransform` | json | per step, per copter (`world` → copter name) |
-//! | `/scene/arena` | `foxglove.SceneUpdate` | json | once: floor, walls, boxes, rotor discs and labels |
-//! | `/scene/copters` | `foxglove.SceneUpdate` | json | per step: bodies and sonar cones |
-//! | `/bus` | `twinswarm.BusMessage` | json | bus traffic, added on first use |
+//! Every message is protobuf: Foxglove's well-known schemas as the `foxglove` crate ships
+//! them, and the project's own from `crates/bridge/proto/twinswarm.proto` ([`proto`]).
 //!
-//! Our own schemas are checked in under `crates/bridge/schemas/` and embedded in the binary;
-//! the Foxglove ones are our own minimal copies of the foxglove-sdk JSON schemas (same titles
-//! and field names), so Foxglove shows the arena and the swarm in its 3D panel.
+//! | topic | schema | rate |
+//! |---|---|---|
+//! | `/copters/state` | `twinswarm.CopterState` | per logged step, per copter |
+//! | `/copters/sensors` | `twinswarm.CopterSensors` | per logged step, per copter |
+//! | `/copters/command` | `twinswarm.CopterCommand` | per logged step, per copter |
+//! | `/copters/control` | `twinswarm.CopterControl` | per logged step, per copter |
+//! | `/events` | `twinswarm.Event` | when something happens |
+//! | `/log` | `foxglove.Log` | the same events, as log lines |
+//! | `/tf` | `foxglove.FrameTransform` | per logged step, per copter (`world` → copter name) |
+//! | `/scene/arena` | `foxglove.SceneUpdate` | once: floor, walls, boxes, rotor discs and labels |
+//! | `/scene/copters` | `foxglove.SceneUpdate` | every 0.2 s: bodies and sonar cones |
+//! | `/bus` | `twinswarm.BusMessage` | bus traffic, added on first use |
+//! | `/pprz/<sender>/<NAME>[/decoded]` | `twinswarm.PprzText`, `twinswarm.PprzDecoded` | Paparazzi traffic |
+//!
+//! A logged step is every control step, or every [`LogOptions::every_ticks`] (`--log-rate`).
+//! The readers ([`LogFile`], [`proto::LogRecord`]) also read the JSON logs written before
+//! protobuf (`json` message encoding, same field names).
 //!
 //! The scene TOML is attached (`scene.toml` as given, `scene.effective.toml` after command-line
 //! overrides), and a metadata record `twinswarm` holds version, seed, command line, scene
@@ -36,9 +40,9 @@
 //! # Crash safety and cost
 //!
 //! The stepping thread only copies each copter's numbers into a reused [`StepFrame`] and hands
-//! it to a writer thread over a bounded channel. The writer thread encodes JSON into reused
-//! buffers (the per-step messages by hand, `json.rs`: serde spent most of its time escaping
-//! keys) and writes the file with its own chunked MCAP writer (`mcapw.rs`): a chunk's records
+//! it to a writer thread over a bounded channel. The writer thread encodes protobuf from
+//! prost messages it refills in place, and writes the file with its own chunked MCAP writer
+//! (`mcapw.rs`, kept for its measured cost: docs/performance.md): a chunk's records
 //! go into one buffer that is compressed by a single zstd call, then written with its message
 //! indexes. Every simulated second (and at the end of setup) the writer finishes the current
 //! chunk and flushes the file, so a `kill -9` loses at most about one simulated second (plus
@@ -48,18 +52,15 @@
 
 mod capture;
 mod encode;
-mod json;
 mod mcapw;
-mod msg;
 mod pprz;
+pub mod proto;
 mod read;
-mod schemas;
 mod time;
 mod writer;
 
 pub use capture::{CopterSample, StepFrame};
-pub use encode::{Encoder, EventKind, LogEvent, SCENE_COPTERS_PERIOD_S, Sink, Topic};
+pub use encode::{Encoder, EventKind, LogEvent, SCENE_COPTERS_PERIOD_S, Sink, Topic, schema_data};
 pub use read::{ChannelDef, ChannelInfo, LogFile, LogInfo, LogReadError, RecoverReport, recover};
-pub use schemas::{SCHEMAS, SchemaDef, schema_for};
 pub use time::{format_utc_basic, format_utc_iso, now_unix_ns, thread_cpu_ns};
 pub use writer::{LogError, LogMeta, LogOptions, LogStats, Logger};

@@ -5,31 +5,13 @@
 use std::collections::BTreeMap;
 
 use mcap::records::MessageHeader;
-use serde::Serialize;
+use prost::Message as _;
 
-use super::schemas::schema_for;
+use super::encode::schema_data;
+use super::proto::{self, PprzDecoded, PprzText};
 use crate::paparazzi::codec::split_header;
 use crate::paparazzi::messages::MessageSet;
-use crate::paparazzi::value::Value;
 use crate::zenoh_net::keyexpr::is_valid_chunk;
-
-#[derive(Serialize)]
-struct TextMsg<'a> {
-    tick: u64,
-    direction: &'a str,
-    key: &'a str,
-    text: &'a str,
-}
-
-#[derive(Serialize)]
-struct DecodedMsg<'a> {
-    tick: u64,
-    direction: &'a str,
-    sender: &'a str,
-    name: &'a str,
-    class: &'a str,
-    fields: BTreeMap<&'a str, &'a Value>,
-}
 
 struct Pair {
     text: u16,
@@ -82,10 +64,7 @@ impl PprzChannels {
         let (text_schema, decoded_schema) = match self.schemas {
             Some(s) => s,
             None => {
-                let mut add = |n: &str| {
-                    let json = schema_for(n).map_or("{}", |s| s.json);
-                    out.add_schema(n, "jsonschema", json.as_bytes())
-                };
+                let mut add = |n: &str| out.add_schema(n, "protobuf", &schema_data(n).unwrap_or_default());
                 let s = (add("twinswarm.PprzText")?, add("twinswarm.PprzDecoded")?);
                 self.schemas = Some(s);
                 s
@@ -94,22 +73,32 @@ impl PprzChannels {
         let id = (sender.to_owned(), name.to_owned());
         if !self.pairs.contains_key(&id) {
             let topic = format!("/pprz/{sender}/{name}");
-            let text_ch = out.add_channel(text_schema, &topic, "json", &BTreeMap::new())?;
-            let decoded_ch = out.add_channel(decoded_schema, &format!("{topic}/decoded"), "json", &BTreeMap::new())?;
+            let text_ch = out.add_channel(text_schema, &topic, "protobuf", &BTreeMap::new())?;
+            let decoded_ch =
+                out.add_channel(decoded_schema, &format!("{topic}/decoded"), "protobuf", &BTreeMap::new())?;
             self.pairs.insert(id.clone(), Pair { text: text_ch, decoded: decoded_ch, seq: 0 });
         }
         let pair = self.pairs.get_mut(&id).expect("inserted above");
         let seq = pair.seq;
         pair.seq = seq.wrapping_add(1);
         let header = |channel_id| MessageHeader { channel_id, sequence: seq, log_time, publish_time };
-        let body = serde_json::to_vec(&TextMsg { tick, direction, key, text }).unwrap_or_default();
-        out.write_to_known_channel(&header(pair.text), &body)?;
+        let body = PprzText { tick, direction: direction.into(), key: key.into(), text: text.into() };
+        out.write_to_known_channel(&header(pair.text), &body.encode_to_vec())?;
         match self.messages.decode(text) {
             Ok(msg) => {
-                let fields = msg.def.fields.iter().map(|f| f.name.as_str()).zip(msg.values.iter()).collect();
-                let decoded = DecodedMsg { tick, direction, sender, name, class: &msg.def.class_name, fields };
-                let body = serde_json::to_vec(&decoded).unwrap_or_default();
-                out.write_to_known_channel(&header(pair.decoded), &body)?;
+                let fields = msg.def.fields.iter().zip(msg.values.iter()).map(|(f, v)| {
+                    let v = serde_json::to_value(v).unwrap_or(serde_json::Value::Null);
+                    (f.name.clone(), proto::json_to_value(&v))
+                });
+                let decoded = PprzDecoded {
+                    tick,
+                    direction: direction.into(),
+                    sender: sender.into(),
+                    name: name.into(),
+                    class: msg.def.class_name.clone(),
+                    fields: Some(prost_types::Struct { fields: fields.collect() }),
+                };
+                out.write_to_known_channel(&header(pair.decoded), &decoded.encode_to_vec())?;
             }
             Err(_) => self.undecodable += 1,
         }

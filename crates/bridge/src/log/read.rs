@@ -8,6 +8,8 @@ use std::path::{Path, PathBuf};
 use mcap::records::Record;
 use mcap::{Attachment, Compression, McapError, WriteOptions};
 
+use super::proto::LogRecord;
+
 /// Why a log file cannot be read.
 #[derive(Debug, thiserror::Error)]
 pub enum LogReadError {
@@ -68,15 +70,17 @@ pub enum LogReadError {
         /// What is wrong.
         what: String,
     },
-    /// A message does not parse.
-    #[error("{path}: a message on {topic} is not valid JSON for this program: {source}")]
-    Json {
+    /// A message does not decode.
+    #[error("{path}: a message on {topic} at log time {log_time} ns is {what}")]
+    Decode {
         /// The file.
         path: PathBuf,
         /// Its topic.
         topic: String,
-        /// The JSON error.
-        source: serde_json::Error,
+        /// Its log time, ns.
+        log_time: u64,
+        /// What is wrong (`not a valid protobuf message: …`).
+        what: String,
     },
     /// Writing the recovered file failed.
     #[error("cannot write {path}: {source}")]
@@ -477,16 +481,26 @@ impl LogFile {
         Ok(())
     }
 
-    /// Parses every message on `topic` as `T`.
-    pub fn messages<T: serde::de::DeserializeOwned>(&self, topic: &str) -> Result<Vec<(u64, T)>, LogReadError> {
+    /// The message encoding of `topic` (`protobuf`, or `json` in logs written before).
+    pub fn encoding(&self, topic: &str) -> Option<&str> {
+        self.summary.channels.values().find(|c| c.topic == topic).map(|c| c.message_encoding.as_str())
+    }
+
+    /// Decodes a message of `topic` as `T`, in the topic's encoding.
+    pub fn decode<T: LogRecord>(&self, topic: &str, log_time: u64, data: &[u8]) -> Result<T, LogReadError> {
+        T::decode_as(self.encoding(topic).unwrap_or(""), data).map_err(|what| LogReadError::Decode {
+            path: self.path.clone(),
+            topic: topic.to_owned(),
+            log_time,
+            what,
+        })
+    }
+
+    /// Decodes every message on `topic` as `T` (either encoding).
+    pub fn messages<T: LogRecord>(&self, topic: &str) -> Result<Vec<(u64, T)>, LogReadError> {
         let mut out = Vec::new();
         self.for_each_message(&[topic], |topic, t, data| {
-            let v = serde_json::from_slice(data).map_err(|source| LogReadError::Json {
-                path: self.path.clone(),
-                topic: topic.to_owned(),
-                source,
-            })?;
-            out.push((t, v));
+            out.push((t, self.decode(topic, t, data)?));
             Ok(())
         })?;
         Ok(out)

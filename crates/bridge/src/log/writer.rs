@@ -14,10 +14,9 @@ use mcap::records::{MessageHeader, Metadata};
 use sim_core::{Inputs, State, StepReport, World};
 
 use super::capture::StepFrame;
-use super::encode::{Encoder, LogEvent, Topic};
+use super::encode::{Encoder, LogEvent, Topic, schema_data};
 use super::mcapw::{ChunkOptions, McapWriter};
 use super::pprz::PprzChannels;
-use super::schemas::schema_for;
 use super::time::{format_utc_iso, now_unix_ns, thread_cpu_ns};
 use crate::live::{LiveChannel, LiveServer};
 
@@ -64,13 +63,13 @@ pub struct LogMeta {
 pub struct LogOptions {
     /// Finish the chunk and flush the file every this many simulated seconds (default 1).
     pub flush_interval_s: f64,
-    /// zstd level of the chunks while the writer keeps up (default 1).
+    /// zstd level of every chunk (default 3, zstd's own default). Fixed: a writer that falls
+    /// behind holds the stepping thread back rather than compress worse.
     pub zstd_level: i32,
-    /// zstd level while the writer is behind, i.e. while two steps or more wait for it
-    /// (default −20: zstd's fast mode, about twice as fast as level 1 on this JSON, files about
-    /// 1.7× bigger); halfway between the two (−9) while exactly one waits besides the one being
-    /// written. The same value as `zstd_level` turns the adaptation off.
-    pub zstd_level_behind: i32,
+    /// Per-step messages (state, sensors, command, control, transforms, the copters' view) are
+    /// written on every this many control steps (default 1: every step); events, log lines
+    /// and bus traffic always. See [`LogOptions::every_ticks_for_rate`].
+    pub every_ticks: u64,
     /// A chunk is finished once it holds this many bytes of records (default 1 MiB), or at
     /// the flush interval.
     pub chunk_size: usize,
@@ -89,8 +88,8 @@ impl Default for LogOptions {
     fn default() -> Self {
         Self {
             flush_interval_s: 1.0,
-            zstd_level: 1,
-            zstd_level_behind: -20,
+            zstd_level: 3,
+            every_ticks: 1,
             chunk_size: 1 << 20,
             queue_steps: 4,
             live: None,
@@ -113,8 +112,15 @@ pub struct LogStats {
     /// CPU time of the writer thread (encoding, compression, I/O), s; `None` where the
     /// platform does not tell.
     pub writer_cpu_s: Option<f64>,
-    /// Chunks compressed below [`LogOptions::zstd_level`] because the writer was behind.
-    pub fast_chunks: u64,
+}
+
+impl LogOptions {
+    /// The [`LogOptions::every_ticks`] that logs steps at `rate_hz` (at most the control
+    /// rate; the nearest whole number of steps). `None` if `rate_hz` is not a positive
+    /// number.
+    pub fn every_ticks_for_rate(rate_hz: f64, control_dt_s: f64) -> Option<u64> {
+        (rate_hz.is_finite() && rate_hz > 0.0).then(|| ((1.0 / (rate_hz * control_dt_s)).round() as u64).max(1))
+    }
 }
 
 impl LogStats {
@@ -184,6 +190,7 @@ pub struct Logger {
     last_tick: u64,
     epoch_ns: u64,
     dt_ns: u64,
+    every_ticks: u64,
 }
 
 impl Logger {
@@ -287,7 +294,6 @@ impl Logger {
         let thread_path = path.clone();
         let pending = Arc::new(AtomicUsize::new(0));
         let backlog = Arc::clone(&pending);
-        let (level, level_behind) = (options.zstd_level, options.zstd_level_behind);
         let thread = std::thread::Builder::new()
             .name("mcap-writer".into())
             .spawn(move || {
@@ -297,17 +303,6 @@ impl Logger {
                 for job in rx {
                     match job {
                         Job::Step(frame) => {
-                            // Behind the simulation: compress faster, the more steps wait, so
-                            // that logging holds the stepping thread back as little as it can;
-                            // back at `level` as soon as the writer has caught up.
-                            let chosen = match backlog.load(Ordering::Relaxed) {
-                                0 | 1 => level,
-                                2 => (level + level_behind) / 2,
-                                _ => level_behind,
-                            };
-                            if let Some(out) = &mut state.out {
-                                out.set_zstd_level(chosen);
-                            }
                             let now = std::time::Instant::now();
                             // Without a file the stepping thread has sampled already.
                             let live_only = state.out.is_none();
@@ -361,7 +356,6 @@ impl Logger {
                 }
                 if let Some(out) = &mut state.out {
                     out.finish().map_err(werr)?;
-                    state.stats.fast_chunks = out.fast_chunks();
                 }
                 if let (Some(a), Some(b)) = (cpu0, thread_cpu_ns()) {
                     state.stats.writer_cpu_s = Some(b.saturating_sub(a) as f64 * 1e-9);
@@ -383,6 +377,7 @@ impl Logger {
             last_tick: 0,
             epoch_ns,
             dt_ns: (world.params.control_dt_s * 1e9).round() as u64,
+            every_ticks: options.every_ticks.max(1),
         })
     }
 
@@ -436,6 +431,10 @@ impl Logger {
         report: &StepReport,
     ) -> Result<(), LogError> {
         self.last_tick = state.tick;
+        if !state.tick.is_multiple_of(self.every_ticks) {
+            // Not a logged step; its events still go out.
+            return report.events.iter().try_for_each(|e| self.log_event(LogEvent::from_step(world, state.tick, e)));
+        }
         if !self.wanted() || (!self.has_file && !self.live_step_due()) {
             return Ok(());
         }
@@ -627,20 +626,15 @@ impl WriterState {
 /// A topic's channel in the live view: the log's encoding and schema; the static scene is
 /// latched (each new subscriber gets it).
 fn live_channel(topic: Topic) -> LiveChannel {
-    LiveChannel {
-        topic: topic.name().to_owned(),
-        encoding: "json".to_owned(),
-        schema_name: topic.schema().to_owned(),
-        schema_encoding: "jsonschema".to_owned(),
-        schema: schema_for(topic.schema()).map_or("{}", |s| s.json).to_owned(),
-        latched: topic == Topic::SceneArena,
-    }
+    let schema = schema_data(topic.schema()).unwrap_or_default();
+    let channel = LiveChannel::from_schema_bytes(topic.name(), "protobuf", topic.schema(), "protobuf", &schema);
+    LiveChannel { latched: topic == Topic::SceneArena, ..channel }
 }
 
 fn add_channel(out: &mut McapOut, topic: Topic) -> std::io::Result<u16> {
-    let schema = schema_for(topic.schema()).map(|s| s.json).unwrap_or("{}");
-    let schema_id = out.add_schema(topic.schema(), "jsonschema", schema.as_bytes())?;
-    out.add_channel(schema_id, topic.name(), "json", &BTreeMap::new())
+    let schema = schema_data(topic.schema()).unwrap_or_default();
+    let schema_id = out.add_schema(topic.schema(), "protobuf", &schema)?;
+    out.add_channel(schema_id, topic.name(), "protobuf", &BTreeMap::new())
 }
 
 fn metadata_record(world: &World, meta: &LogMeta, epoch_ns: u64, dt_ns: u64) -> Metadata {
