@@ -5,9 +5,19 @@
 //! compresses, and the step waits for it only when it falls behind (see the README's logging
 //! table, made with `swarm_rt --log-cost`).
 //!
-//! `cargo bench -p twinswarm --bench log`
+//! A second group, `mcap_writer`, writes the same protobuf messages (20 steps of 1,000
+//! hovering copters, as the logger encodes them) through the project's chunk writer
+//! (`bridge::log::McapWriter`) and through the `mcap` crate's `Writer`, at the same zstd level,
+//! chunk size and CRCs, into memory: the side-by-side figure behind keeping the former
+//! (docs/performance.md).
+//!
+//! `cargo bench -p twinswarm --bench log [-- mcap_writer]`
 
-use criterion::{BenchmarkId, Criterion, criterion_group, criterion_main};
+use std::collections::BTreeMap;
+
+use bridge::log::{ChunkOptions, Encoder, McapWriter, StepFrame, Topic, schema_data};
+use criterion::{BenchmarkId, Criterion, Throughput, criterion_group, criterion_main};
+use mcap::records::MessageHeader;
 use sim_core::{scene, step};
 
 fn bench_log(c: &mut Criterion) {
@@ -64,5 +74,81 @@ fn bench_log(c: &mut Criterion) {
     let _ = std::fs::remove_dir_all(&dir);
 }
 
-criterion_group!(benches, bench_log);
+/// 20 steps of N = 1,000 hovering copters, encoded as the logger does: (topic, log time, bytes).
+fn encoded_messages() -> Vec<(Topic, u64, Vec<u8>)> {
+    let world = match scene::compile(&scene::grid_swarm(1000, 2.0, 0.8, true)) {
+        Ok(w) => w,
+        Err(e) => panic!("{e}"),
+    };
+    let mut state = world.initial_state();
+    let inputs = world.initial_inputs();
+    let mut encoder = Encoder::new(&world, 1_700_000_000_000_000_000);
+    let mut frame = StepFrame::default();
+    let mut out = Vec::new();
+    for _ in 0..40 {
+        let report = step(&world, &mut state, &inputs);
+        if state.tick > 20 {
+            frame.capture(&world, &state, &inputs, &report);
+            let _ = encoder.encode_step(&frame, &mut |t, lt, d: &[u8]| -> Result<(), ()> {
+                out.push((t, lt, d.to_vec()));
+                Ok(())
+            });
+        }
+    }
+    out
+}
+
+const ZSTD_LEVEL: i32 = 3;
+const CHUNK_BYTES: usize = 1 << 20;
+
+fn bench_writers(c: &mut Criterion) {
+    let messages = encoded_messages();
+    let bytes: usize = messages.iter().map(|m| m.2.len()).sum();
+    let mut group = c.benchmark_group("mcap_writer");
+    group.sample_size(20);
+    group.throughput(Throughput::Bytes(bytes as u64));
+    let header = |channel_id, seq, lt| MessageHeader { channel_id, sequence: seq, log_time: lt, publish_time: lt };
+    group.bench_function("twinswarm_chunk_writer", |b| {
+        b.iter(|| {
+            let options = ChunkOptions { chunk_size: CHUNK_BYTES, zstd_level: ZSTD_LEVEL, library: "bench".into() };
+            let mut w = McapWriter::new(Vec::with_capacity(bytes), options).expect("in memory");
+            let mut ids = BTreeMap::new();
+            for t in Topic::ALL {
+                let s = w.add_schema(t.schema(), "protobuf", &schema_data(t.schema()).unwrap_or_default());
+                let s = s.expect("in memory");
+                ids.insert(t, w.add_channel(s, t.name(), "protobuf", &BTreeMap::new()).expect("in memory"));
+            }
+            for (i, (t, lt, d)) in messages.iter().enumerate() {
+                w.write_to_known_channel(&header(ids[t], i as u32, *lt), d).expect("in memory");
+            }
+            w.finish().expect("in memory");
+            w.into_inner().len()
+        })
+    });
+    group.bench_function("mcap_crate_writer", |b| {
+        b.iter(|| {
+            let mut w = mcap::WriteOptions::new()
+                .compression(Some(mcap::Compression::Zstd))
+                .compression_level(ZSTD_LEVEL as u32)
+                .compression_threads(0)
+                .chunk_size(Some(CHUNK_BYTES as u64))
+                .create(std::io::Cursor::new(Vec::with_capacity(bytes)))
+                .expect("in memory");
+            let mut ids = BTreeMap::new();
+            for t in Topic::ALL {
+                let s = w.add_schema(t.schema(), "protobuf", &schema_data(t.schema()).unwrap_or_default());
+                let s = s.expect("in memory");
+                ids.insert(t, w.add_channel(s, t.name(), "protobuf", &BTreeMap::new()).expect("in memory"));
+            }
+            for (i, (t, lt, d)) in messages.iter().enumerate() {
+                w.write_to_known_channel(&header(ids[t], i as u32, *lt), d).expect("in memory");
+            }
+            w.finish().expect("in memory");
+            w.into_inner().into_inner().len()
+        })
+    });
+    group.finish();
+}
+
+criterion_group!(benches, bench_log, bench_writers);
 criterion_main!(benches);

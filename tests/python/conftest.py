@@ -95,3 +95,56 @@ def pytest_terminal_summary(terminalreporter):
         terminalreporter.section("shared data absent", sep="=", yellow=True, bold=True)
         for test, path in _SHARED_DATA_SKIPS:
             terminalreporter.write_line(f"SKIPPED {test}: shared data not found at {path}", yellow=True)
+
+
+# ---- reading logs ----
+
+def proto_to_dict(m):
+    """A protobuf message as a dict with its field names and native values: lists for repeated
+    fields, None for an absent optional field or message, dicts for google.protobuf.Struct.
+    Logs of before protobuf were JSON with the same field names, so tests read both alike."""
+    from google.protobuf import json_format
+
+    out = {}
+    for f in m.DESCRIPTOR.fields:
+        v = getattr(m, f.name)
+        if f.message_type is not None and f.message_type.full_name == "google.protobuf.Struct":
+            out[f.name] = json_format.MessageToDict(v) if m.HasField(f.name) else None
+        elif f.is_repeated:
+            out[f.name] = [proto_to_dict(x) for x in v] if f.message_type is not None else list(v)
+        elif f.has_presence and not m.HasField(f.name):
+            out[f.name] = None
+        elif f.message_type is not None:
+            out[f.name] = proto_to_dict(v)
+        else:
+            out[f.name] = v
+    return out
+
+
+def log_messages(path, topics=None):
+    """(channel, message, body) for every message of a log in file order, CRCs validated,
+    `body` decoded with the file's own schemas (protobuf through PyPI mcap-protobuf-support;
+    JSON for logs written before) as a dict (see proto_to_dict)."""
+    from google.protobuf.unknown_fields import UnknownFieldSet
+    from mcap.reader import make_reader
+    from mcap_protobuf.decoder import DecoderFactory
+
+    factory = DecoderFactory()
+    decoders = {}
+    with open(path, "rb") as f:
+        reader = make_reader(f, validate_crcs=True)
+        for schema, channel, message in reader.iter_messages(topics=topics, log_time_order=False):
+            if channel.message_encoding == "json":
+                yield channel, message, json.loads(message.data)
+                continue
+            assert channel.message_encoding == "protobuf", channel
+            if schema.id not in decoders:
+                decoders[schema.id] = factory.decoder_for(channel.message_encoding, schema)
+            proto = decoders[schema.id](message.data)
+            assert len(UnknownFieldSet(proto)) == 0, f"{channel.topic}: fields its schema does not declare"
+            yield channel, message, proto_to_dict(proto)
+
+
+def log_bodies(path, topic):
+    """The decoded bodies of every message on `topic`."""
+    return [body for _c, _m, body in log_messages(path, [topic])]

@@ -7,9 +7,8 @@ import sys
 import time
 
 import zenoh
-from mcap.reader import make_reader
 
-from conftest import ROOT, zenoh_client_config
+from conftest import ROOT, log_bodies, zenoh_client_config
 
 
 def test_python_client_flies_a_copter_up(twinswarm_bin, free_port, tmp_path):
@@ -48,11 +47,7 @@ def test_python_client_flies_a_copter_up(twinswarm_bin, free_port, tmp_path):
     assert summary["bus"]["commands_rejected"] >= 1
 
     # The log holds the bus inputs with their keys, and the rejection as an event.
-    with open(log, "rb") as f:
-        reader = make_reader(f, validate_crcs=True)
-        bus, events = [], []
-        for _schema, channel, message in reader.iter_messages(topics=["/bus", "/events"]):
-            (bus if channel.topic == "/bus" else events).append(json.loads(message.data))
+    bus, events = log_bodies(log, "/bus"), log_bodies(log, "/events")
     keys = {m["key"] for m in bus}
     assert "twinswarm/lab/copters/finken1/cmd" in keys, keys
     assert "twinswarm/lab/copters/finken2/cmd" in keys, keys

@@ -8,6 +8,7 @@ simulator's state at that tick.
 """
 
 import asyncio
+import base64
 import json
 import struct
 import subprocess
@@ -15,6 +16,9 @@ import time
 
 import pytest
 import websockets
+from foxglove_schemas_protobuf.FrameTransform_pb2 import FrameTransform
+from foxglove_schemas_protobuf.SceneUpdate_pb2 import SceneUpdate
+from google.protobuf import descriptor_pb2, descriptor_pool, message_factory
 from mcap.reader import make_reader
 
 from conftest import free_tcp_port
@@ -53,6 +57,22 @@ async def hello(ws):
     return info, {c["topic"]: c for c in adv["channels"]}
 
 
+def message_class(channel):
+    """The protobuf class of an advertised channel, from its schema (base64 FileDescriptorSet)."""
+    fds = descriptor_pb2.FileDescriptorSet.FromString(base64.b64decode(channel["schema"]))
+    pool = descriptor_pool.DescriptorPool()
+    for f in fds.file:
+        pool.Add(f)
+    return message_factory.GetMessageClass(pool.FindMessageTypeByName(channel["schemaName"]))
+
+
+def epoch_ns(log):
+    """Tick 0's log time, from the log's `twinswarm` metadata."""
+    with open(log, "rb") as f:
+        meta = {m.name: dict(m.metadata) for m in make_reader(f).iter_metadata()}
+    return int(meta["twinswarm"]["epoch_unix_ns"])
+
+
 def finish(proc, timeout=60):
     out, err = proc.communicate(timeout=timeout)
     assert proc.returncode == 0, err
@@ -75,7 +95,7 @@ def test_live_client_sees_the_simulator_state(twinswarm_bin, tmp_path):
             assert channels["/scene/copters"]["schemaName"] == "foxglove.SceneUpdate"
             assert channels["/tf"]["schemaName"] == "foxglove.FrameTransform"
             for ch in channels.values():
-                assert ch["schemaEncoding"] == "jsonschema" and json.loads(ch["schema"]), ch["topic"]
+                assert ch["encoding"] == "protobuf" and ch["schemaEncoding"] == "protobuf", ch["topic"]
             subs = {k + 1: channels[t] for k, t in enumerate(topics)}
             await ws.send(json.dumps({"op": "subscribe", "subscriptions": [
                 {"id": sid, "channelId": ch["id"]} for sid, ch in subs.items()]}))
@@ -90,9 +110,9 @@ def test_live_client_sees_the_simulator_state(twinswarm_bin, tmp_path):
                 assert m[0] == 1, m[:1]
                 sid, ts = struct.unpack_from("<IQ", m, 1)
                 got.append((subs[sid]["topic"], ts, m[13:]))
-            return got, times
+            return got, times, channels
 
-    got, times = asyncio.run(client())
+    got, times, channels = asyncio.run(client())
     summary = finish(proc)
     live = summary["live"]
     assert live["clients"] == 1 and live["subscriptions"] == 4, live
@@ -103,8 +123,11 @@ def test_live_client_sees_the_simulator_state(twinswarm_bin, tmp_path):
     for topic, ts, data in got:
         by_topic.setdefault(topic, []).append((ts, data))
     assert len(by_topic["/scene/arena"]) == 1, "the static scene is latched: sent once on subscribe"
-    arena = json.loads(by_topic["/scene/arena"][0][1])
-    assert any(e["cubes"] for e in arena["entities"]), "walls and boxes"
+    # Foxglove's messages decode with PyPI foxglove-schemas-protobuf; ours with the schema the
+    # server advertised (a base64 FileDescriptorSet), as a Foxglove client does.
+    arena = SceneUpdate.FromString(by_topic["/scene/arena"][0][1])
+    assert any(e.cubes for e in arena.entities), "walls and boxes"
+    CopterState = message_class(channels["/copters/state"])
     assert len(by_topic["/copters/state"]) >= 20 * 4, "four copters for a second or more"
 
     # Every live message is in the log, same timestamp, same bytes.
@@ -118,19 +141,28 @@ def test_live_client_sees_the_simulator_state(twinswarm_bin, tmp_path):
 
     # The transforms are the states' positions at that tick.
     states = {}
+    epoch = epoch_ns(log)
     for ts, data in by_topic["/copters/state"]:
-        s = json.loads(data)
-        states[(ts, s["copter"])] = s
+        s = CopterState.FromString(data)
+        assert ts == epoch + s.tick * 50_000_000, "log time is the tick's"
+        states[(ts, s.copter)] = s
     checked = 0
     for ts, data in by_topic["/tf"]:
-        tf = json.loads(data)
-        s = states.get((ts, tf["child_frame_id"]))
+        tf = FrameTransform.FromString(data)
+        assert tf.timestamp.ToNanoseconds() == ts
+        s = states.get((ts, tf.child_frame_id))
         if s is None:
             continue
-        t = tf["translation"]
-        assert [t["x"], t["y"], t["z"]] == pytest.approx(s["pos_m"], abs=1e-6)
+        t = tf.translation
+        assert [t.x, t.y, t.z] == pytest.approx(list(s.pos_m), abs=1e-6)
+        assert [tf.rotation.x, tf.rotation.y, tf.rotation.z, tf.rotation.w] == pytest.approx(list(s.quat_xyzw), abs=1e-6)
         checked += 1
     assert checked >= 20 * 4
+    # The copters' scene: one entity per copter, in its frame, at the message's time.
+    for ts, data in by_topic["/scene/copters"]:
+        scene = SceneUpdate.FromString(data)
+        assert {e.frame_id for e in scene.entities} == {name for _ts, name in states}
+        assert all(e.timestamp.ToNanoseconds() == ts and len(e.cylinders) == 4 for e in scene.entities)
 
 
 def test_bad_clients_get_errors_and_are_counted(twinswarm_bin):

@@ -1,4 +1,5 @@
-"""Independent checks of `twinswarm run` MCAP logs with the PyPI `mcap` reader and `jsonschema`.
+"""Independent checks of `twinswarm run` MCAP logs with the PyPI `mcap` reader (CRCs validated),
+`mcap-protobuf-support`, `foxglove-schemas-protobuf` and `protobuf`.
 
 Run by scripts/test.sh with TWINSWARM_BIN pointing at the debug binary.
 """
@@ -7,22 +8,21 @@ import json
 import os
 import signal
 import subprocess
+import sys
 import time
 from collections import defaultdict
 from pathlib import Path
 
-import jsonschema
 import pytest
+from google.protobuf import descriptor_pb2
 from mcap.reader import make_reader
-from referencing import Registry, Resource
-from referencing.jsonschema import DRAFT202012
 
-from conftest import loopback_endpoint, shared_data_or_skip
+from conftest import log_bodies, log_messages, loopback_endpoint, shared_data_or_skip
 
 HERE = Path(__file__).resolve().parent
 REPO = HERE.parents[1]
 BIN = Path(os.environ.get("TWINSWARM_BIN", HERE / "../../target/debug/twinswarm")).resolve()
-SCHEMA_DIR = REPO / "crates" / "bridge" / "schemas"
+PROTO_DIR = REPO / "crates" / "bridge" / "proto"
 DT_S = 0.05  # the lab's control step
 
 
@@ -64,11 +64,9 @@ def read_all(path):
 def test_paparazzi_traffic_is_logged_as_text_and_decoded(run_log):
     """The default scene's virtual copters (ac_id 201, 202) publish telemetry: each message is
     on /pprz/<sender>/<NAME> as Ivy text and on .../decoded as fields, one for one."""
-    _summary, _metadata, _attachments, messages = read_all(run_log)
     texts, decoded = defaultdict(list), defaultdict(list)
-    for _schema, channel, msg in messages:
+    for channel, _msg, body in log_messages(run_log):
         if channel.topic.startswith("/pprz/"):
-            body = json.loads(msg.data)
             if channel.topic.endswith("/decoded"):
                 decoded[channel.topic[: -len("/decoded")]].append(body)
             else:
@@ -90,19 +88,13 @@ def test_paparazzi_traffic_is_logged_as_text_and_decoded(run_log):
     assert 0.7 / 0.0039063 < fp["up"] < 0.9 / 0.0039063, "the copter holds 0.8 m"
 
 
-def validator(schema_json, registry=None):
-    cls = jsonschema.validators.validator_for(schema_json, default=jsonschema.Draft202012Validator)
-    cls.check_schema(schema_json)
-    return cls(schema_json, registry=registry) if registry is not None else cls(schema_json)
-
-
 def test_channels_counts_times_and_records(run_log):
     summary, metadata, attachments, messages = read_all(run_log)
     assert summary is not None, "a finished log has a summary section"
     for channel in summary.channels.values():
         assert channel.schema_id != 0 and channel.schema_id in summary.schemas, f"{channel.topic} has no schema"
-        assert channel.message_encoding == "json"
-        assert summary.schemas[channel.schema_id].encoding == "jsonschema"
+        assert channel.message_encoding == "protobuf"
+        assert summary.schemas[channel.schema_id].encoding == "protobuf"
     topics = {c.topic for c in summary.channels.values()}
     assert {"/copters/state", "/copters/sensors", "/copters/command", "/copters/control", "/events", "/log", "/tf",
             "/scene/arena", "/scene/copters"} <= topics
@@ -137,59 +129,100 @@ def test_channels_counts_times_and_records(run_log):
     assert b'name = "lab"' in scene.data
 
 
-def test_payloads_validate_against_file_and_checked_in_schemas(run_log):
-    summary, _, _, messages = read_all(run_log)
-    checked_in = {p.stem: json.loads(p.read_text()) for p in SCHEMA_DIR.glob("*.json")}
-    in_file = {}
-    ours = {}
+def test_every_channel_decodes_with_the_files_own_schemas(run_log):
+    """mcap-protobuf-support decodes every message of every channel with the descriptor sets in
+    the file, and no message carries a field its schema does not declare (log_messages checks)."""
     seen = defaultdict(int)
-    for schema, channel, msg in messages:
-        if schema.id not in in_file:
-            data = json.loads(schema.data)
-            assert data.get("title") == schema.name, f"schema {schema.name}: title {data.get('title')}"
-            in_file[schema.id] = validator(data)
-            assert schema.name in checked_in, f"{schema.name} is not checked in under {SCHEMA_DIR}"
-            ours[schema.id] = validator(checked_in[schema.name])
-        payload = json.loads(msg.data)
-        in_file[schema.id].validate(payload)
-        ours[schema.id].validate(payload)
-        seen[schema.name] += 1
-    assert len(seen) >= 8, seen
+    for channel, _msg, body in log_messages(run_log):
+        seen[channel.topic] += 1
+        if channel.topic == "/copters/state":
+            assert len(body["pos_m"]) == 3 and len(body["quat_xyzw"]) == 4 and body["copter"].startswith("finken")
+        if channel.topic == "/copters/sensors":
+            assert len(body["sonar_m"]) == 4 and len(body["sonar_crosstalk"]) == 4 and 0 < body["battery_v"] < 20
+    for topic in ("/copters/state", "/copters/sensors", "/copters/command", "/copters/control", "/events", "/log",
+                  "/tf", "/scene/arena", "/scene/copters", "/bus"):
+        assert seen[topic] > 0, (topic, dict(seen))
+    assert any(t.startswith("/pprz/") and t.endswith("/decoded") for t in seen), sorted(seen)
 
 
-def foxglove_registry(foxglove_dir):
-    resources = []
-    for p in sorted(foxglove_dir.glob("*.json")):
-        contents = json.loads(p.read_text())
-        resource = Resource.from_contents(contents, default_specification=DRAFT202012)
-        resources += [(p.name, resource), (contents["title"], resource)]
-    return Registry().with_resources(resources)
+def test_the_checked_in_descriptor_set_is_made_from_the_checked_in_proto(tmp_path, run_log):
+    """twinswarm.fds (what every log embeds) is what scripts/gen-proto.sh makes from
+    twinswarm.proto today, and it is the schema of the project's channels in a log."""
+    out = tmp_path / "regenerated.fds"
+    r = subprocess.run([str(REPO / "scripts" / "gen-proto.sh"), str(out)], capture_output=True, text=True,
+                       env={**os.environ, "PYTHON": sys.executable})
+    assert r.returncode == 0, r.stderr
+    checked_in = (PROTO_DIR / "twinswarm.fds").read_bytes()
+    assert out.read_bytes() == checked_in, "run scripts/gen-proto.sh after editing twinswarm.proto"
+    with open(run_log, "rb") as f:
+        summary = make_reader(f).get_summary()
+    own = [s for s in summary.schemas.values() if s.name.startswith("twinswarm.")]
+    assert own and all(s.data == checked_in for s in own), [s.name for s in own]
 
 
-def test_foxglove_channels_validate_against_the_reference_schemas(run_log):
-    foxglove_dir = shared_data_or_skip("foxglove")
-    registry = foxglove_registry(foxglove_dir)
-    validators = {}
-    _, _, _, messages = read_all(run_log)
+def test_foxglove_channels_decode_with_foxglove_schemas_protobuf(run_log):
+    """The foxglove.* channels decode with PyPI foxglove-schemas-protobuf's own classes (not the
+    file's descriptors), with nothing left over; and their fields are the properties of
+    Foxglove's JSON schemas of the same messages (../shared/data/foxglove)."""
+    from foxglove_schemas_protobuf.FrameTransform_pb2 import FrameTransform
+    from foxglove_schemas_protobuf.Log_pb2 import Log
+    from foxglove_schemas_protobuf.SceneUpdate_pb2 import SceneUpdate
+    from google.protobuf.unknown_fields import UnknownFieldSet
+
+    classes = {"foxglove.SceneUpdate": SceneUpdate, "foxglove.FrameTransform": FrameTransform, "foxglove.Log": Log}
     checked = defaultdict(int)
-    for schema, channel, msg in messages:
-        if not schema.name.startswith("foxglove."):
-            continue
-        if schema.name not in validators:
-            ref = foxglove_dir / (schema.name.removeprefix("foxglove.") + ".json")
-            assert ref.exists(), f"no reference schema for {schema.name}"
-            validators[schema.name] = validator(json.loads(ref.read_text()), registry)
-        validators[schema.name].validate(json.loads(msg.data))
-        checked[schema.name] += 1
-    assert set(checked) == {"foxglove.FrameTransform", "foxglove.SceneUpdate", "foxglove.Log"}, checked
+    with open(run_log, "rb") as f:
+        for schema, _channel, msg in make_reader(f, validate_crcs=True).iter_messages():
+            if schema.name in classes:
+                m = classes[schema.name].FromString(msg.data)
+                assert len(UnknownFieldSet(m)) == 0, schema.name
+                assert m.SerializeToString() == msg.data, f"{schema.name}: re-encodes to the same bytes"
+                checked[schema.name] += 1
+                # The file's descriptor defines the same fields as the package's.
+                fds = descriptor_pb2.FileDescriptorSet.FromString(schema.data)
+                name = schema.name.removeprefix("foxglove.")
+                fields = {(fd.name, fd.number) for fi in fds.file for mt in fi.message_type if mt.name == name
+                          for fd in mt.field}
+                assert fields == {(fd.name, fd.number) for fd in classes[schema.name].DESCRIPTOR.fields}
+    assert set(checked) == set(classes), checked
+    foxglove_dir = shared_data_or_skip("foxglove")
+    for name, cls in classes.items():
+        ref = json.loads((foxglove_dir / (name.removeprefix("foxglove.") + ".json")).read_text())
+        assert set(ref["properties"]) == {fd.name for fd in cls.DESCRIPTOR.fields}, name
+
+
+def test_json_logs_of_before_still_read(tmp_path):
+    """A JSON log of the last JSON version (tests/fixtures): log info, plot and the readers."""
+    old = REPO / "tests" / "fixtures" / "log-json-v1.mcap"
+    r = twinswarm("log", "info", old)
+    assert r.returncode == 0, r.stderr
+    assert "json" in r.stdout and "/copters/state" in r.stdout
+    out = tmp_path / "heat.png"
+    r = twinswarm("plot", old, "--heatmap", out, "--attitude", tmp_path / "a.png", "--sonar", tmp_path / "s.png")
+    assert r.returncode == 0, r.stderr
+    assert out.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    assert len(log_bodies(old, "/copters/state")) == 80
+
+
+def test_log_rate_thins_the_steps_but_keeps_every_event(tmp_path):
+    full, thin = tmp_path / "full.mcap", tmp_path / "thin.mcap"
+    for path, extra in ((full, []), (thin, ["--log-rate", "5"])):
+        r = twinswarm(*run_args("--duration", "4", "--no-bus", "--log", path, *extra))
+        assert r.returncode == 0, r.stderr
+    full_ticks = sorted({b["tick"] for b in log_bodies(full, "/copters/state")})
+    thin_ticks = sorted({b["tick"] for b in log_bodies(thin, "/copters/state")})
+    assert full_ticks == list(range(1, 81))
+    assert thin_ticks == list(range(4, 81, 4)), "5 Hz of a 20 Hz control loop: every 4th step"
+    events = [(b["tick"], b["kind"]) for b in log_bodies(full, "/events")]
+    assert events and [(b["tick"], b["kind"]) for b in log_bodies(thin, "/events")] == events, "every event"
+    # Attachments, schemas and the copters' 5 Hz scene stay: the file shrinks by less than 4x.
+    assert thin.stat().st_size < 0.75 * full.stat().st_size
+    r = twinswarm(*run_args("--duration", "1", "--no-bus", "--no-log", "--log-rate", "0"))
+    assert r.returncode == 2 and "--log-rate" in r.stderr, r.stderr
 
 
 def state_ticks(path):
-    ticks = set()
-    with open(path, "rb") as f:
-        for _schema, _channel, msg in make_reader(f, validate_crcs=True).iter_messages(topics=["/copters/state"]):
-            ticks.add(json.loads(msg.data)["tick"])
-    return ticks
+    return {b["tick"] for b in log_bodies(path, "/copters/state")}
 
 
 def test_kill_9_loses_at_most_about_a_second(tmp_path):
@@ -231,7 +264,7 @@ def test_sigint_and_sigterm_finish_the_file_cleanly(tmp_path, sig):
     assert "interrupted" in out and str(path) in out, out
     summary, _, _, messages = read_all(path)
     assert summary is not None and summary.statistics.message_count == len(messages)
-    kinds = [json.loads(m.data)["kind"] for _s, c, m in messages if c.topic == "/events"]
+    kinds = [b["kind"] for b in log_bodies(path, "/events")]
     assert kinds[-1] == "interrupted", kinds
 
 

@@ -263,14 +263,11 @@ fn floods_of_commands_and_texts_are_all_counted_and_the_loop_keeps_time() {
     let on_bus = info.channels.iter().find(|c| c.topic == "/bus").map_or(0, |c| c.messages);
     assert!(on_bus + dropped >= incoming, "{on_bus} messages on /bus for {incoming} inputs, {dropped} dropped");
     let mut reported = None;
-    file.for_each_message(&["/events"], |_, _, payload| {
-        let e: serde_json::Value = serde_json::from_slice(payload).unwrap_or_default();
-        if e["kind"] == "bus_report" {
-            reported = Some(e["detail"].clone());
+    for (_, e) in file.messages::<bridge::log::proto::Event>("/events").expect("events") {
+        if e.kind == "bus_report" {
+            reported = e.detail.as_ref().map(bridge::log::proto::struct_to_json);
         }
-        Ok(())
-    })
-    .expect("events");
+    }
     let reported = reported.expect("a bus_report event in the log");
     assert_eq!(n(&reported["requests_dropped"]), n(&b["requests_dropped"]), "{reported}");
     // Deadlines: a loaded 2-core CI machine may miss a few; the script reports the exact count.

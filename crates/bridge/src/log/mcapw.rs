@@ -48,7 +48,7 @@ mod op {
 
 /// How chunks are cut and compressed.
 #[derive(Clone, Debug)]
-pub(crate) struct ChunkOptions {
+pub struct ChunkOptions {
     /// Finish a chunk once its uncompressed records pass this many bytes.
     pub chunk_size: usize,
     /// zstd level of every chunk.
@@ -197,7 +197,7 @@ impl Chunk {
 }
 
 /// Writes one MCAP file. See the module docs.
-pub(crate) struct McapWriter<W: Write> {
+pub struct McapWriter<W: Write> {
     out: Out<W>,
     options: ChunkOptions,
     zstd: zstd::bulk::Compressor<'static>,

@@ -299,12 +299,14 @@ pub fn json_to_struct(v: &serde_json::Value) -> Option<prost_types::Struct> {
     }
 }
 
-/// A protobuf `Value` as JSON (non-finite numbers become `null`).
+/// A protobuf `Value` as JSON (whole numbers as integers, non-finite ones as `null`).
 pub fn value_to_json(v: &prost_types::Value) -> serde_json::Value {
     use prost_types::value::Kind;
     match &v.kind {
         None | Some(Kind::NullValue(_)) => serde_json::Value::Null,
         Some(Kind::BoolValue(b)) => (*b).into(),
+        // A whole number (a count, an id) back as an integer, as it was before the `Struct`.
+        Some(Kind::NumberValue(n)) if n.fract() == 0.0 && n.abs() < 9.007_199_254_740_992e15 => (*n as i64).into(),
         Some(Kind::NumberValue(n)) => serde_json::Number::from_f64(*n).map_or(serde_json::Value::Null, Into::into),
         Some(Kind::StringValue(s)) => s.clone().into(),
         Some(Kind::ListValue(l)) => l.values.iter().map(value_to_json).collect(),
