@@ -5,17 +5,16 @@
 //! compresses, and the step waits for it only when it falls behind (see the README's logging
 //! table, made with `swarm_rt --log-cost`).
 //!
-//! A second group, `mcap_writer`, writes the same protobuf messages (20 steps of 1,000
-//! hovering copters, as the logger encodes them) through the project's chunk writer
-//! (`bridge::log::McapWriter`) and through the `mcap` crate's `Writer`, at the same zstd level,
-//! chunk size and CRCs, into memory: the side-by-side figure behind keeping the former
-//! (docs/performance.md).
+//! A second group, `mcap_writer`, writes protobuf messages (20 steps of 1,000 hovering
+//! copters, as the logger encodes them) through the `mcap` crate's `Writer` with the logger's
+//! settings (zstd level 3, 1 MiB chunks, every CRC), into memory: the writer thread's cost
+//! per byte (docs/performance.md, with the project's former chunk writer beside it).
 //!
 //! `cargo bench -p twinswarm --bench log [-- mcap_writer]`
 
 use std::collections::BTreeMap;
 
-use bridge::log::{ChunkOptions, Encoder, McapWriter, StepFrame, Topic, schema_data};
+use bridge::log::{Encoder, StepFrame, Topic, schema_data};
 use criterion::{BenchmarkId, Criterion, Throughput, criterion_group, criterion_main};
 use mcap::records::MessageHeader;
 use sim_core::{scene, step};
@@ -98,7 +97,7 @@ fn encoded_messages() -> Vec<(Topic, u64, Vec<u8>)> {
     out
 }
 
-const ZSTD_LEVEL: i32 = 3;
+const ZSTD_LEVEL: u32 = 3;
 const CHUNK_BYTES: usize = 1 << 20;
 
 fn bench_writers(c: &mut Criterion) {
@@ -108,28 +107,11 @@ fn bench_writers(c: &mut Criterion) {
     group.sample_size(20);
     group.throughput(Throughput::Bytes(bytes as u64));
     let header = |channel_id, seq, lt| MessageHeader { channel_id, sequence: seq, log_time: lt, publish_time: lt };
-    group.bench_function("twinswarm_chunk_writer", |b| {
-        b.iter(|| {
-            let options = ChunkOptions { chunk_size: CHUNK_BYTES, zstd_level: ZSTD_LEVEL, library: "bench".into() };
-            let mut w = McapWriter::new(Vec::with_capacity(bytes), options).expect("in memory");
-            let mut ids = BTreeMap::new();
-            for t in Topic::ALL {
-                let s = w.add_schema(t.schema(), "protobuf", &schema_data(t.schema()).unwrap_or_default());
-                let s = s.expect("in memory");
-                ids.insert(t, w.add_channel(s, t.name(), "protobuf", &BTreeMap::new()).expect("in memory"));
-            }
-            for (i, (t, lt, d)) in messages.iter().enumerate() {
-                w.write_to_known_channel(&header(ids[t], i as u32, *lt), d).expect("in memory");
-            }
-            w.finish().expect("in memory");
-            w.into_inner().len()
-        })
-    });
     group.bench_function("mcap_crate_writer", |b| {
         b.iter(|| {
             let mut w = mcap::WriteOptions::new()
                 .compression(Some(mcap::Compression::Zstd))
-                .compression_level(ZSTD_LEVEL as u32)
+                .compression_level(ZSTD_LEVEL)
                 .compression_threads(0)
                 .chunk_size(Some(CHUNK_BYTES as u64))
                 .create(std::io::Cursor::new(Vec::with_capacity(bytes)))

@@ -44,9 +44,9 @@ impl PprzChannels {
     /// Logs `text` if `key` is a Paparazzi key (`…/pprz/<sender>/<NAME>`); other keys are
     /// ignored.
     #[allow(clippy::too_many_arguments)]
-    pub(super) fn write<W: std::io::Write>(
+    pub(super) fn write(
         &mut self,
-        out: &mut super::mcapw::McapWriter<W>,
+        out: &mut super::writer::McapOut,
         tick: u64,
         log_time: u64,
         publish_time: u64,

@@ -15,7 +15,6 @@ use sim_core::{Inputs, State, StepReport, World};
 
 use super::capture::StepFrame;
 use super::encode::{Encoder, LogEvent, Topic, schema_data};
-use super::mcapw::{ChunkOptions, McapWriter};
 use super::pprz::PprzChannels;
 use super::time::{format_utc_iso, now_unix_ns, thread_cpu_ns};
 use crate::live::{LiveChannel, LiveServer};
@@ -65,7 +64,7 @@ pub struct LogOptions {
     pub flush_interval_s: f64,
     /// zstd level of every chunk (default 3, zstd's own default). Fixed: a writer that falls
     /// behind holds the stepping thread back rather than compress worse.
-    pub zstd_level: i32,
+    pub zstd_level: u32,
     /// Per-step messages (state, sensors, command, control, transforms, the copters' view) are
     /// written on every this many control steps (default 1: every step); events, log lines
     /// and bus traffic always. See [`LogOptions::every_ticks_for_rate`].
@@ -153,7 +152,67 @@ struct BusJob {
 /// message of a flood (the job queue holds a few steps), and miss real-time deadlines.
 const BUS_BATCH: usize = 1024;
 
-type McapOut = McapWriter<BufWriter<File>>;
+/// The file's MCAP writer: the `mcap` crate's, its errors as I/O errors.
+pub(super) struct McapOut(mcap::Writer<BufWriter<File>>);
+
+fn io_error(e: mcap::McapError) -> std::io::Error {
+    match e {
+        mcap::McapError::Io(e) => e,
+        other => std::io::Error::other(other),
+    }
+}
+
+impl McapOut {
+    /// zstd chunks at one `zstd_level`, finished at `chunk_size` bytes or at each flush; every
+    /// CRC; the compression on the writer thread itself (no zstd worker threads).
+    fn create(file: File, zstd_level: u32, chunk_size: usize) -> std::io::Result<Self> {
+        let w = mcap::WriteOptions::new()
+            .compression(Some(mcap::Compression::Zstd))
+            .compression_level(zstd_level)
+            .compression_threads(0)
+            .chunk_size(Some(chunk_size as u64))
+            .library(format!("twinswarm {}", env!("CARGO_PKG_VERSION")))
+            .create(BufWriter::with_capacity(1 << 16, file))
+            .map_err(io_error)?;
+        Ok(Self(w))
+    }
+
+    pub(super) fn add_schema(&mut self, name: &str, encoding: &str, data: &[u8]) -> std::io::Result<u16> {
+        self.0.add_schema(name, encoding, data).map_err(io_error)
+    }
+
+    pub(super) fn add_channel(
+        &mut self,
+        schema: u16,
+        topic: &str,
+        encoding: &str,
+        metadata: &BTreeMap<String, String>,
+    ) -> std::io::Result<u16> {
+        self.0.add_channel(schema, topic, encoding, metadata).map_err(io_error)
+    }
+
+    pub(super) fn write_to_known_channel(&mut self, header: &MessageHeader, data: &[u8]) -> std::io::Result<()> {
+        self.0.write_to_known_channel(header, data).map_err(io_error)
+    }
+
+    fn attach(&mut self, a: &Attachment<'_>) -> std::io::Result<()> {
+        self.0.attach(a).map_err(io_error)
+    }
+
+    fn write_metadata(&mut self, m: &Metadata) -> std::io::Result<()> {
+        self.0.write_metadata(m).map_err(io_error)
+    }
+
+    /// Finishes the open chunk and flushes the file: what was written is readable.
+    fn flush(&mut self) -> std::io::Result<()> {
+        self.0.flush().map_err(io_error)
+    }
+
+    /// The summary section and the footer.
+    fn finish(&mut self) -> std::io::Result<()> {
+        self.0.finish().map(drop).map_err(io_error)
+    }
+}
 
 /// The MCAP log of one run.
 ///
@@ -235,12 +294,7 @@ impl Logger {
             None => None,
             Some(p) => {
                 let file = File::create(p).map_err(|source| LogError::Create { path: path.clone(), source })?;
-                let chunking = ChunkOptions {
-                    chunk_size: options.chunk_size,
-                    zstd_level: options.zstd_level,
-                    library: format!("twinswarm {}", env!("CARGO_PKG_VERSION")),
-                };
-                let mut out = McapWriter::new(BufWriter::with_capacity(1 << 16, file), chunking).map_err(werr)?;
+                let mut out = McapOut::create(file, options.zstd_level, options.chunk_size).map_err(werr)?;
                 let now = now_unix_ns();
                 for (name, text) in
                     [("scene.toml", scene_text.to_owned()), ("scene.effective.toml", world.spec.to_toml())]
@@ -603,7 +657,7 @@ impl WriterState {
     }
 
     fn flush(&mut self) -> std::io::Result<()> {
-        self.out.as_mut().map_or(Ok(()), McapWriter::flush)
+        self.out.as_mut().map_or(Ok(()), McapOut::flush)
     }
 
     /// `/bus`, in the file and the live view, on first use.
