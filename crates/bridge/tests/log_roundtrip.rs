@@ -51,7 +51,8 @@ fn a_logged_run_reads_back_with_every_channel_count_and_record() {
     let stats = summary.stats.clone().expect("statistics");
     assert!(!summary.chunk_indexes.is_empty());
     assert!(summary.chunk_indexes.iter().all(|c| c.compression == "zstd"), "zstd chunks");
-    assert!(summary.chunk_indexes.iter().all(|c| !c.message_index_offsets.is_empty()), "message indexes");
+    // No message indexes (optional in MCAP): readers go by the chunk indexes.
+    assert!(summary.chunk_indexes.iter().all(|c| c.message_index_offsets.is_empty()), "no message indexes");
 
     let mut counts: BTreeMap<String, u64> = BTreeMap::new();
     let mut last_time: BTreeMap<String, u64> = BTreeMap::new();
@@ -249,7 +250,10 @@ fn bad_files_give_clear_errors_not_panics() {
         // A record longer than the file looks like the cut record of a killed run to recover.
         let why = report.stopped_by.as_deref().unwrap_or("");
         assert!(why.contains("damaged") || why.contains("cut off"), "{name}: {report:?}");
-        assert!(report.schemas > 0 && report.channels > 0, "{name}: what came before the chunk is kept: {report:?}");
+        // What came before the chunk is kept: the scene attachments and the metadata. (The mcap
+        // crate writes schemas and channels inside chunks: the first one, flushed at setup,
+        // holds them; a kill -9 never reaches it, only damage like this.)
+        assert!(report.attachments == 2 && report.metadata == 1, "{name}: what came before is kept: {report:?}");
         assert!(LogFile::open(&dir.join("rescued.mcap")).is_ok(), "{name}: the rescued file is complete");
     }
     let _ = std::fs::remove_dir_all(&dir);

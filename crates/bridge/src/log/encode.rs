@@ -407,11 +407,12 @@ impl Encoder {
         let t_s = self.t_s(tick);
         let m = &mut self.msg;
         let b = &mut self.buf;
+        // Topic by topic (all states, then all sensor readings, …): a chunk's messages of one
+        // topic sit together, which zstd compresses better than copter by copter.
         for (id, (info, c)) in self.copters.iter_mut().zip(&frame.copters).enumerate() {
             let p = &c.pose;
             let mode = c.command.mode.as_str();
             let id = id as u32;
-
             let st = &mut m.state;
             (st.tick, st.t_s, st.id, st.ac_id) = (tick, t_s, id, info.ac_id);
             set_str(&mut st.copter, &info.name);
@@ -436,7 +437,9 @@ impl Encoder {
             set(&mut st.rotor_thrust_n, &c.rotor_thrust_n);
             set(&mut st.rotor_speed_rad_s, &c.rotor_speed_rad_s);
             Self::emit(b, Topic::State, lt, st, sink)?;
-
+        }
+        for (id, (info, c)) in self.copters.iter().zip(&frame.copters).enumerate() {
+            let id = id as u32;
             let r = &c.sensors;
             let se = &mut m.sensors;
             (se.tick, se.t_s, se.id, se.sonar_tick) = (tick, t_s, id, r.sonar_tick);
@@ -454,7 +457,10 @@ impl Encoder {
             (se.height_est_m, se.battery_v, se.battery_charge, se.battery_a) =
                 (r.height_est_m, r.battery_v, r.battery_charge, r.battery_a);
             Self::emit(b, Topic::Sensors, lt, se, sink)?;
-
+        }
+        for (id, (info, c)) in self.copters.iter().zip(&frame.copters).enumerate() {
+            let mode = c.command.mode.as_str();
+            let id = id as u32;
             let cmd = &c.command;
             let co = &mut m.command;
             (co.tick, co.t_s, co.id) = (tick, t_s, id);
@@ -466,7 +472,9 @@ impl Encoder {
             set(&mut co.velocity_m_s, cmd.velocity_m_s.as_ref().map_or(&[][..], |v| &v[..]));
             set(&mut co.virtual_sonar_m, cmd.virtual_sonar_m.as_ref().map_or(&[][..], |v| &v[..]));
             Self::emit(b, Topic::Command, lt, co, sink)?;
-
+        }
+        for (id, (info, c)) in self.copters.iter().zip(&frame.copters).enumerate() {
+            let id = id as u32;
             let (sp, wa) = (&c.setpoint, &c.wall_avoid);
             let ct = &mut m.control;
             (ct.tick, ct.t_s, ct.id) = (tick, t_s, id);
@@ -480,7 +488,9 @@ impl Encoder {
             set(&mut w.last_m, &wa.last_m);
             set(&mut w.rate_m_s, &wa.rate_m_s);
             Self::emit(b, Topic::Control, lt, ct, sink)?;
-
+        }
+        for (info, c) in self.copters.iter().zip(&frame.copters) {
+            let p = &c.pose;
             let tf = &mut m.tf;
             tf.timestamp = Some(timestamp(lt));
             set_str(&mut tf.child_frame_id, &info.name);
