@@ -304,7 +304,7 @@ fn main() {
             "--threads" => list = Some(1),
             "--log" => (log, list) = (true, None),
             "--log-cost" => (log_cost_rounds, list) = (args.next().and_then(|v| v.parse::<usize>().ok()), None),
-            "--zstd-level" | "--zstd-level-behind" => (_, list) = (args.next(), None),
+            "--zstd-level" | "--log-rate" => (_, list) = (args.next(), None),
             "--sim-seconds" => (sim_s, list) = (args.next().and_then(|v| v.parse::<f64>().ok()), None),
             "--plot" => (plot_to, list) = (args.next().map(PathBuf::from), None),
             "--scene" => {
