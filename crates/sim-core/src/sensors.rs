@@ -535,18 +535,6 @@ impl SonarScene {
             }
         }
         let off = cones.iter().map(|c| (c.apex - origin).length()).fold(0.0, Real::max);
-        // Boxes: one sphere test from `origin` skips a box for all four cones when every
-        // apex is too far from it (`consider_box` would return at its first test; the margin
-        // covers rounding in the triangle inequality).
-        for b in &self.boxes {
-            let far = (b.center - origin).length() - b.bounding_radius() - off - 1e-4;
-            if far >= best.iter().copied().fold(0.0, Real::max) {
-                continue;
-            }
-            for k in 0..4 {
-                consider_box(&cones[k], b, &mut best[k], &mut hit[k]);
-            }
-        }
         let radius = |best: &[Real; 4]| best.iter().copied().fold(0.0, Real::max) + off;
         self.grid.visit_near(origin, radius(&best), |id| {
             if id == self_id {
@@ -570,6 +558,21 @@ impl SonarScene {
             }
             radius(&best)
         });
+        // Boxes after the copters: the nearest neighbour (1.5 m away in a dense grid) has
+        // lowered `best` by then, and most boxes fail the sphere tests before the exact one.
+        // The result is a minimum, the same in any order. One sphere test from `origin`
+        // skips a box for all four cones when every apex is too far from it (`consider_box`
+        // would return at its first test; the margin covers rounding in the triangle
+        // inequality).
+        for b in &self.boxes {
+            let far = (b.center - origin).length() - b.bounding_radius() - off - 1e-4;
+            if far >= best.iter().copied().fold(0.0, Real::max) {
+                continue;
+            }
+            for k in 0..4 {
+                consider_box(&cones[k], b, &mut best[k], &mut hit[k]);
+            }
+        }
         for k in 0..4 {
             if hit[k] {
                 out[k] = best[k];
