@@ -202,6 +202,13 @@ def test_json_logs_of_before_still_read(tmp_path):
     assert r.returncode == 0, r.stderr
     assert out.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     assert len(log_bodies(old, "/copters/state")) == 80
+    fixed = tmp_path / "recovered.mcap"
+    r = twinswarm("log", "recover", old, fixed)
+    assert r.returncode == 0, r.stderr
+    assert [b["pos_m"] for b in log_bodies(fixed, "/copters/state")] == \
+        [b["pos_m"] for b in log_bodies(old, "/copters/state")], "recover keeps the JSON messages"
+    r = twinswarm("replay", old, "--no-bus", "--foxglove", "127.0.0.1:0", "--speed", "50")
+    assert r.returncode == 0, r.stderr
 
 
 def test_log_rate_thins_the_steps_but_keeps_every_event(tmp_path):
