@@ -156,9 +156,17 @@ impl EventKind {
 /// crate ships them.
 pub fn schema_data(name: &str) -> Option<Cow<'static, [u8]>> {
     if let Some(own) = name.strip_prefix("twinswarm.") {
-        let known = ["CopterState", "CopterSensors", "CopterCommand", "CopterControl", "Event", "BusMessage"];
-        let pprz = ["PprzText", "PprzDecoded"];
-        return (known.contains(&own) || pprz.contains(&own)).then_some(Cow::Borrowed(proto::DESCRIPTOR_SET));
+        const OWN: [&str; 8] = [
+            "CopterState",
+            "CopterSensors",
+            "CopterCommand",
+            "CopterControl",
+            "Event",
+            "BusMessage",
+            "PprzText",
+            "PprzDecoded",
+        ];
+        return OWN.contains(&own).then_some(Cow::Borrowed(proto::DESCRIPTOR_SET));
     }
     let schema = match name {
         "foxglove.SceneUpdate" => fg::SceneUpdate::get_schema(),
@@ -223,12 +231,11 @@ struct CopterInfo {
     crash: Option<(CrashCause, String)>,
 }
 
-impl CopterInfo {
-    fn kind_str(&self) -> &'static str {
-        match self.kind {
-            CopterKind::Real => "real",
-            CopterKind::Virtual => "virtual",
-        }
+/// The kind as the log names it (serde's name in the JSON logs of before).
+fn kind_str(kind: CopterKind) -> &'static str {
+    match kind {
+        CopterKind::Real => "real",
+        CopterKind::Virtual => "virtual",
     }
 }
 
@@ -416,7 +423,7 @@ impl Encoder {
             let st = &mut m.state;
             (st.tick, st.t_s, st.id, st.ac_id) = (tick, t_s, id, info.ac_id);
             set_str(&mut st.copter, &info.name);
-            set_str(&mut st.kind, info.kind_str());
+            set_str(&mut st.kind, kind_str(info.kind));
             set_str(&mut st.mode, mode);
             st.crashed = c.crash.is_some();
             match c.crash {
@@ -646,7 +653,6 @@ impl Encoder {
                 head_diameter: 0.03,
                 color: rgba([0.9, 0.2, 0.1, 1.0]),
             };
-            let kind = serde_json::to_value(c.kind).ok().and_then(|v| v.as_str().map(str::to_owned));
             entities.push(fg::SceneEntity {
                 timestamp: ts,
                 frame_id: c.name.clone(),
@@ -654,7 +660,7 @@ impl Encoder {
                 lifetime: forever(),
                 frame_locked: true,
                 metadata: vec![
-                    fg::KeyValuePair { key: "kind".into(), value: kind.unwrap_or_default() },
+                    fg::KeyValuePair { key: "kind".into(), value: kind_str(c.kind).into() },
                     fg::KeyValuePair { key: "ac_id".into(), value: c.ac_id.map(|a| a.to_string()).unwrap_or_default() },
                 ],
                 arrows: vec![arrow],

@@ -486,21 +486,18 @@ impl LogFile {
         self.summary.channels.values().find(|c| c.topic == topic).map(|c| c.message_encoding.as_str())
     }
 
-    /// Decodes a message of `topic` as `T`, in the topic's encoding.
-    pub fn decode<T: LogRecord>(&self, topic: &str, log_time: u64, data: &[u8]) -> Result<T, LogReadError> {
-        T::decode_as(self.encoding(topic).unwrap_or(""), data).map_err(|what| LogReadError::Decode {
-            path: self.path.clone(),
-            topic: topic.to_owned(),
-            log_time,
-            what,
-        })
-    }
-
     /// Decodes every message on `topic` as `T` (either encoding).
     pub fn messages<T: LogRecord>(&self, topic: &str) -> Result<Vec<(u64, T)>, LogReadError> {
+        let encoding = self.encoding(topic).unwrap_or("");
         let mut out = Vec::new();
-        self.for_each_message(&[topic], |topic, t, data| {
-            out.push((t, self.decode(topic, t, data)?));
+        self.for_each_message(&[topic], |topic, log_time, data| {
+            let decoded = T::decode_as(encoding, data).map_err(|what| LogReadError::Decode {
+                path: self.path.clone(),
+                topic: topic.to_owned(),
+                log_time,
+                what,
+            })?;
+            out.push((log_time, decoded));
             Ok(())
         })?;
         Ok(out)
