@@ -34,6 +34,7 @@ pub mod mixed;
 pub mod rng;
 pub mod scene;
 pub mod sensors;
+pub mod shard;
 pub mod state;
 pub mod step;
 pub mod world;

@@ -389,6 +389,14 @@ impl CopterGrid {
         self.build_from(boxes.len(), |k| (k as u32, boxes[k].center), max_radius_m, cell_m);
     }
 
+    /// Indexes only the boxes whose ids are in `ids` (ascending): each cell lists them in the
+    /// order [`CopterGrid::build`] would, without the others.
+    pub fn build_some(&mut self, boxes: &[OrientedBox], ids: &[u32], cell_m: Real) {
+        let max_radius_m = ids.iter().map(|&i| boxes[i as usize].bounding_radius()).fold(0.0, Real::max);
+        self.build_from(ids.len(), |k| (ids[k], boxes[ids[k] as usize].center), max_radius_m, cell_m);
+        self.built_for = boxes.len();
+    }
+
     /// Indexes points `(id, position)` (bounding radius 0). With `points` in ascending id
     /// order, each cell lists its ids ascending, as [`CopterGrid::build`] does.
     pub fn build_points(&mut self, points: &[(u32, Vec3)], cell_m: Real) {
@@ -485,6 +493,12 @@ impl SonarScene {
     /// Indexes the copters for fast neighbour queries. Call after filling `copters`.
     pub fn index_copters(&mut self, cell_m: Real) {
         self.grid.build(&self.copters, cell_m);
+    }
+
+    /// [`SonarScene::index_copters`] for only the copters in `ids` (ascending): the others are
+    /// not seen (a shard's absent copters).
+    pub fn index_some_copters(&mut self, ids: &[u32], cell_m: Real) {
+        self.grid.build_some(&self.copters, ids, cell_m);
     }
 
     /// Distance from a sonar to the nearest object in its cone, ignoring copter `self_id`.

@@ -33,6 +33,9 @@ pub struct State {
     /// Work buffers, rebuilt as needed; not part of snapshots.
     #[serde(skip)]
     pub(crate) scratch: Scratch,
+    /// Its place in a sharded run ([`crate::shard`]); `None`: it steps every copter.
+    #[serde(skip)]
+    pub(crate) shard: Option<crate::shard::ShardView>,
 }
 
 impl std::fmt::Debug for State {
@@ -354,6 +357,9 @@ pub(crate) struct Scratch {
     pub(crate) wake_reach: Vec<OrientedBox>,
     /// A grid over `wake_reach`.
     pub(crate) wake_grid: CopterGrid,
+    /// Ids of the copters a shard reads (owned and ghosts), ascending; empty outside a
+    /// sharded run.
+    pub(crate) present: Vec<u32>,
     /// Worker threads (`World::params.threads` > 1), built on first use.
     pub(crate) pool: Option<rayon::ThreadPool>,
 }

@@ -29,6 +29,7 @@ use crate::math::{GRAVITY_M_S2, Quat, Real, Vec3, euler_from_quat, wrap_angle_ra
 use crate::sensors::{
     self, SensorParams, SonarScene, crosstalk_eligible, crosstalk_reading, sonar_cones, sonar_reading,
 };
+use crate::shard::{Role, ShardView};
 use crate::state::{CopterState, CrashCause, Lane, Motion, Pinger, State};
 use crate::world::{ColliderTag, CopterKind, World};
 use rapier3d::prelude::{RigidBody, RigidBodyActivation, RigidBodyType};
@@ -61,6 +62,28 @@ pub struct StepReport {
     /// Physics substeps in which Rapier stepped (some copter near something, or a wreck
     /// moving); the others were closed form only.
     pub rapier_substeps: u32,
+    /// In a shard ([`crate::shard`]): copters whose contact cluster reached beyond the pull
+    /// zone, or whose wake beyond the halo, this step. Not 0: this shard may no longer give
+    /// the one-process run's bits, and the caller should stop.
+    pub shard_violations: u32,
+}
+
+/// Which copters a step reads and which it moves: all of them, or a shard's.
+#[derive(Clone, Copy)]
+struct Roles<'a>(Option<&'a [Role]>);
+
+impl Roles<'_> {
+    /// Read by this step (owned or a ghost).
+    #[inline]
+    fn present(self, i: usize) -> bool {
+        self.0.is_none_or(|r| r[i] != Role::Absent)
+    }
+
+    /// Moved by this step.
+    #[inline]
+    fn owned(self, i: usize) -> bool {
+        self.0.is_none_or(|r| r[i] == Role::Owned)
+    }
 }
 
 /// Cell size of the copter grid used by sonars and cross-talk, m.
@@ -96,6 +119,7 @@ pub fn step_into(world: &World, state: &mut State, inputs: &Inputs, report: &mut
     // Room for a take-off or a crash of every copter at once, kept from step to step.
     report.events.reserve(2 * world.copters.len());
     report.rapier_substeps = 0;
+    report.shard_violations = 0;
     let threads = world.params.threads.max(1);
     if threads == 1 {
         return step_on(world, state, inputs, false, report);
@@ -136,8 +160,28 @@ where
 }
 
 fn step_on(world: &World, state: &mut State, inputs: &Inputs, parallel: bool, report: &mut StepReport) {
+    let mut view = state.shard.take();
+    step_shard(world, state, inputs, parallel, &mut view, report);
+    state.shard = view;
+}
+
+fn step_shard(
+    world: &World,
+    state: &mut State,
+    inputs: &Inputs,
+    parallel: bool,
+    view: &mut Option<ShardView>,
+    report: &mut StepReport,
+) {
     let n = world.copters.len();
     let command = |i: usize| -> &Command { inputs.commands.get(i).unwrap_or(&world.copters[i].initial_command) };
+    let present = &mut state.scratch.present;
+    present.clear();
+    if let Some(v) = view {
+        present.extend(v.roles.iter().enumerate().filter(|(_, r)| **r != Role::Absent).map(|(i, _)| i as u32));
+    }
+    // Before the ownership of this step is decided: what this shard owned at its start.
+    let roles = Roles(view.as_ref().map(|v| &v.roles[..]));
 
     // Every copter's motion at the start of the step.
     let lanes = &mut state.scratch.lanes;
@@ -149,20 +193,25 @@ fn step_on(world: &World, state: &mut State, inputs: &Inputs, parallel: bool, re
 
     let sonar_period = world.sensors.spec.sonar.period_steps.max(1) as u64;
     if world.sensors.spec.enabled {
-        sense(world, state, inputs, state.tick.is_multiple_of(sonar_period), parallel);
+        sense(world, state, inputs, state.tick.is_multiple_of(sonar_period), parallel, roles);
     }
 
     // Outer loop.
     let dt_control = world.params.control_dt_s as Real;
     let tick = state.tick;
     for_each_lane(parallel, &mut state.copters, &mut state.scratch.lanes, |i, c, lane| {
+        if !roles.present(i) {
+            return;
+        }
         let af = &world.airframes[world.copters[i].airframe];
         let yaw = euler_from_quat(lane.rot)[2];
         c.setpoint = outer_loop(world, i, af, c, command(i), lane.pos_m, lane.vel_m_s, yaw, dt_control, tick);
     });
 
-    airflow(world, state, parallel);
-    reserve_free_flight(world, state, parallel);
+    report.shard_violations += airflow(world, state, parallel, roles);
+    report.shard_violations += reserve_free_flight(world, state, parallel, view);
+    // From here on: what this shard owns for this step.
+    let roles = Roles(view.as_ref().map(|v| &v.roles[..]));
 
     // Physics substeps.
     let dt = world.physics_dt();
@@ -179,6 +228,9 @@ fn step_on(world: &World, state: &mut State, inputs: &Inputs, parallel: bool, re
         let scratch = &mut state.scratch;
         let alphas = &scratch.motor_alpha;
         for_each_lane(parallel, &mut state.copters, &mut scratch.lanes, |i, c, lane| {
+            if !roles.owned(i) {
+                return;
+            }
             let airframe = world.copters[i].airframe;
             let af = &world.airframes[airframe];
             let twin = world.copters[i].kind == CopterKind::Real;
@@ -209,7 +261,7 @@ fn step_on(world: &World, state: &mut State, inputs: &Inputs, parallel: bool, re
         for (i, c) in state.copters.iter().enumerate() {
             let lane = &scratch.lanes[i];
             scratch.vel_before[i] = lane.vel_m_s;
-            if lane.free {
+            if lane.free || !roles.owned(i) {
                 continue;
             }
             // A crashed copter at rest sleeps until something hits it. (Looked at first: a
@@ -235,8 +287,8 @@ fn step_on(world: &World, state: &mut State, inputs: &Inputs, parallel: bool, re
             let mut started = scratch.collisions.started.lock().unwrap_or_else(std::sync::PoisonError::into_inner);
             std::mem::swap(&mut *started, &mut scratch.started);
             drop(started);
-            for (lane, c) in scratch.lanes.iter_mut().zip(&state.copters) {
-                if !lane.free {
+            for (i, (lane, c)) in scratch.lanes.iter_mut().zip(&state.copters).enumerate() {
+                if !lane.free && roles.owned(i) {
                     let body = &state.physics.bodies[c.body];
                     lane.pos_m = body.translation();
                     lane.rot = *body.rotation();
@@ -246,11 +298,14 @@ fn step_on(world: &World, state: &mut State, inputs: &Inputs, parallel: bool, re
             }
             detect_collision_crashes(world, state, report);
         }
-        detect_tilt_and_takeoff(world, state, report);
+        detect_tilt_and_takeoff(world, state, report, roles);
     }
 
     // The step's motion is the copters' (free copters' Rapier bodies stay where they were).
-    for (lane, c) in state.scratch.lanes.iter().zip(&mut state.copters) {
+    for (i, (lane, c)) in state.scratch.lanes.iter().zip(&mut state.copters).enumerate() {
+        if !roles.owned(i) {
+            continue;
+        }
         c.motion = Motion { pos_m: lane.pos_m, rot: lane.rot, vel_m_s: lane.vel_m_s, angvel_rad_s: lane.angvel_rad_s };
     }
     state.tick += 1;
@@ -268,7 +323,8 @@ fn step_on(world: &World, state: &mut State, inputs: &Inputs, parallel: bool, re
 /// gyroscopic terms). A copter whose sphere meets only other copters' flies free on watch
 /// ([`watch_contacts`]). Wrecks stay with Rapier; one at rest that no flying copter can reach
 /// becomes a fixed body (no contact pairs) until one can.
-fn reserve_free_flight(world: &World, state: &mut State, parallel: bool) {
+fn reserve_free_flight(world: &World, state: &mut State, parallel: bool, view: &mut Option<ShardView>) -> u32 {
+    let roles = Roles(view.as_ref().map(|v| &v.roles[..]));
     let t = world.params.control_dt_s as Real;
     let dt = world.physics_dt();
     let scratch = &mut state.scratch;
@@ -296,7 +352,10 @@ fn reserve_free_flight(world: &World, state: &mut State, parallel: bool) {
         });
     }
     scratch.sphere_grid.set_cover(arena_rect(world));
-    scratch.sphere_grid.build(&scratch.spheres, GRID_CELL_M);
+    match roles.0 {
+        Some(_) => scratch.sphere_grid.build_some(&scratch.spheres, &scratch.present, GRID_CELL_M),
+        None => scratch.sphere_grid.build(&scratch.spheres, GRID_CELL_M),
+    }
     let spheres = &scratch.spheres;
     let grid = &scratch.sphere_grid;
     let arena = &world.arena;
@@ -322,6 +381,10 @@ fn reserve_free_flight(world: &World, state: &mut State, parallel: bool) {
         alone
     }));
     for_each_lane(parallel, &mut state.copters, &mut scratch.lanes, |i, c, lane| {
+        if !roles.present(i) {
+            (lane.free, lane.watch) = (false, false);
+            return;
+        }
         let (p, r) = (lane.pos_m, lane.reserved_m + FREE_GAP_M);
         // The floor needs no clearance: free flight meets it in closed form.
         let mut free = c.crash.is_none() && closed_form;
@@ -347,12 +410,16 @@ fn reserve_free_flight(world: &World, state: &mut State, parallel: bool) {
         // Rapier keeps a copter on the floor itself; back in free flight it lands anew.
         c.grounded &= free;
     });
-    // Everything a copter on watch may come close to this step (once per pair).
+    // A shard decides which copters it steps now: the reservations are known.
+    let violations = view.as_mut().map_or(0, |v| take_ownership(state, v));
+    let roles = Roles(view.as_ref().map(|v| &v.roles[..]));
+    // Everything a copter on watch may come close to this step (once per pair; in a shard,
+    // both are its own: they are in one contact cluster).
     let scratch = &mut state.scratch;
     scratch.watch_pairs.clear();
     // A few neighbours per copter, kept from step to step.
     scratch.watch_pairs.reserve(4 * scratch.lanes.len());
-    for (i, lane) in scratch.lanes.iter().enumerate().filter(|(_, l)| l.watch) {
+    for (i, lane) in scratch.lanes.iter().enumerate().filter(|&(i, l)| l.watch && roles.owned(i)) {
         let (p, r) = (lane.pos_m, lane.reserved_m + FREE_GAP_M);
         let (spheres, lanes, pairs) = (&scratch.spheres, &scratch.lanes, &mut scratch.watch_pairs);
         scratch.sphere_grid.visit_near(p, r, |j| {
@@ -362,10 +429,25 @@ fn reserve_free_flight(world: &World, state: &mut State, parallel: bool) {
             r
         });
     }
-    for ((lane, c), &still) in state.scratch.lanes.iter().zip(&state.copters).zip(&state.scratch.still) {
+    for (i, ((lane, c), &still)) in state.scratch.lanes.iter().zip(&state.copters).zip(&state.scratch.still).enumerate()
+    {
         // Borrowed mutably only when something changes: a mutable borrow marks a Rapier body
         // modified, and Rapier's next step revisits every modified body.
         let body = &state.physics.bodies[c.body];
+        if let Some(v) = view {
+            // Another shard's copter is not in this shard's Rapier world.
+            if v.roles[i] != Role::Owned {
+                if body.is_enabled() {
+                    state.physics.bodies[c.body].set_enabled(false);
+                }
+                continue;
+            }
+            // A wreck this shard has just taken over enters as its owner had it.
+            if c.crash.is_some() && !body.is_enabled() {
+                take_over_wreck(&mut state.physics.bodies[c.body], lane, still, v.asleep[i]);
+                continue;
+            }
+        }
         let change = if c.crash.is_some() {
             (still && body.is_dynamic()) || (!still && body.is_fixed())
         } else {
@@ -391,6 +473,74 @@ fn reserve_free_flight(world: &World, state: &mut State, parallel: bool) {
             body.set_enabled(false);
         } else if !lane.free && !body.is_enabled() {
             enter_rapier(body, lane);
+        }
+    }
+    violations
+}
+
+/// A shard's ownership for this step (see [`crate::shard`]): copters whose reservations
+/// meet form contact clusters, and a cluster belongs to the home region of its lowest id.
+/// Counts the violations: a cluster this shard had or takes a copter of, with a member
+/// beyond the pull zone (its view of that cluster may be incomplete).
+fn take_ownership(state: &mut State, view: &mut ShardView) -> u32 {
+    use crate::shard::{PULL_ZONE_M, root, union};
+    let scratch = &mut state.scratch;
+    let n = state.copters.len();
+    let parent = &mut view.parent;
+    parent.clear();
+    parent.extend(0..n as u32);
+    let (spheres, grid) = (&scratch.spheres, &scratch.sphere_grid);
+    for &i in &scratch.present {
+        let sphere = &spheres[i as usize];
+        let (p, r) = (sphere.center, sphere.half.x + FREE_GAP_M);
+        grid.visit_near(p, r, |j| {
+            if j > i as usize && (spheres[j].center - p).length() <= r + spheres[j].half.x {
+                union(parent, i, j as u32);
+            }
+            r
+        });
+    }
+    let (me, part) = (view.me, &view.partition);
+    let related = &mut view.related;
+    related.clear();
+    related.resize(n, false);
+    for &i in &scratch.present {
+        let home = root(parent, i);
+        let owner = part.region_of(scratch.lanes[home as usize].pos_m);
+        let was = view.roles[i as usize];
+        let now = if owner == me { Role::Owned } else { Role::Ghost };
+        if was == Role::Owned || now == Role::Owned {
+            related[home as usize] = true;
+        }
+        view.roles[i as usize] = now;
+    }
+    let mut violations = 0;
+    for &i in &scratch.present {
+        let home = root(parent, i);
+        if related[home as usize] && part.distance_to(scratch.lanes[i as usize].pos_m, me) > PULL_ZONE_M {
+            violations += 1;
+        }
+    }
+    violations
+}
+
+/// A wreck that has just become this shard's enters its Rapier world as its owner had it:
+/// fixed while no flying copter can reach it, else dynamic, asleep if it was.
+fn take_over_wreck(body: &mut RigidBody, lane: &Lane, still: bool, asleep: bool) {
+    body.set_enabled(true);
+    body.set_translation(lane.pos_m, false);
+    body.set_rotation(lane.rot, false);
+    body.set_linvel(lane.vel_m_s, false);
+    body.set_angvel(lane.angvel_rad_s, false);
+    let activation = body.activation_mut();
+    *activation = RigidBodyActivation::active();
+    activation.time_until_sleep = WRECK_TIME_UNTIL_SLEEP_S;
+    if still {
+        body.set_body_type(RigidBodyType::Fixed, false);
+    } else {
+        body.set_body_type(RigidBodyType::Dynamic, false);
+        if asleep {
+            body.sleep();
         }
     }
 }
@@ -442,18 +592,23 @@ fn watch_contacts(state: &mut State, dt: Real) {
 /// wakes that can touch it: the cost grows with the copters, not with their pairs. Twins make
 /// wakes (their real copters blow on the virtual ones) but feel none (their motion is their
 /// real copter's). Crashed copters neither make nor feel any.
-fn airflow(world: &World, state: &mut State, parallel: bool) {
+fn airflow(world: &World, state: &mut State, parallel: bool, roles: Roles<'_>) -> u32 {
     let spec = &world.airflow.spec;
     let scratch = &mut state.scratch;
     for (i, lane) in scratch.lanes.iter_mut().enumerate() {
+        if !roles.present(i) {
+            continue;
+        }
         let twin = world.copters[i].kind == CopterKind::Real;
         lane.ground_m = if spec.ground_effect { ground_below(world, lane.pos_m, twin) } else { 0.0 };
         lane.downwash_force_n = Vec3::ZERO;
         lane.downwash_torque_n_m = Vec3::ZERO;
     }
     if !spec.downwash || world.copters.len() < 2 {
-        return;
+        return 0;
     }
+    let mut violations = 0;
+    let wake_limit = crate::shard::sense_reach_m(world);
     let width_per_m = world.airflow.width_per_m;
     scratch.wakes.clear();
     scratch.wake_reach.clear();
@@ -463,7 +618,11 @@ fn airflow(world: &World, state: &mut State, parallel: bool) {
         let thrust: Real = c.rotor_thrust_n.iter().sum();
         let dir = lane.rot * Vec3::NEG_Z;
         let origin = lane.pos_m + lane.rot * Vec3::new(0.0, 0.0, af.rotor_pos_in_body_m[0].z);
-        let active = c.crash.is_none() && thrust > 0.1 * af.hover_thrust_per_rotor_n && dir.z < -0.2 && origin.z > 0.0;
+        let active = c.crash.is_none()
+            && thrust > 0.1 * af.hover_thrust_per_rotor_n
+            && dir.z < -0.2
+            && origin.z > 0.0
+            && roles.present(i);
         let wake = if active {
             let rho_a = af.spec.air_density_kg_m3 * af.disc_area_m2;
             Wake {
@@ -477,6 +636,10 @@ fn airflow(world: &World, state: &mut State, parallel: bool) {
             Wake::default()
         };
         let reach = if active { wake.reach_m(width_per_m) } else { 0.0 };
+        // A shard's neighbours see its copters only within the halo.
+        if roles.0.is_some() && roles.owned(i) && reach > wake_limit {
+            violations += 1;
+        }
         any |= active;
         scratch.wakes.push(wake);
         scratch.wake_reach.push(OrientedBox {
@@ -486,14 +649,17 @@ fn airflow(world: &World, state: &mut State, parallel: bool) {
         });
     }
     if !any {
-        return;
+        return violations;
     }
     scratch.wake_grid.set_cover(arena_rect(world));
-    scratch.wake_grid.build(&scratch.wake_reach, GRID_CELL_M);
+    match roles.0 {
+        Some(_) => scratch.wake_grid.build_some(&scratch.wake_reach, &scratch.present, GRID_CELL_M),
+        None => scratch.wake_grid.build(&scratch.wake_reach, GRID_CELL_M),
+    }
     let (wakes, grid) = (&scratch.wakes, &scratch.wake_grid);
     let turbulence = spec.wake_turbulence;
     for_each_lane(parallel, &mut state.copters, &mut scratch.lanes, |i, c, lane| {
-        if c.crash.is_some() || world.copters[i].kind == CopterKind::Real {
+        if c.crash.is_some() || world.copters[i].kind == CopterKind::Real || !roles.present(i) {
             return;
         }
         let af = &world.airframes[world.copters[i].airframe];
@@ -520,6 +686,7 @@ fn airflow(world: &World, state: &mut State, parallel: bool) {
         lane.downwash_force_n = force;
         lane.downwash_torque_n_m = torque;
     });
+    violations
 }
 
 /// Wake speeds below this are not applied, m/s (their force is under 4 mN per rotor).
@@ -859,6 +1026,11 @@ fn outer_loop(
 /// every copter's body (crashed ones too), indexed in the copter grid. `sense` uses it; so can
 /// tools that need the same geometry (e.g. extra virtual sonars).
 pub fn fill_sonar_scene(world: &World, copters: &[CopterState], scene: &mut SonarScene) {
+    fill_sonar_scene_of(world, copters, None, scene);
+}
+
+/// [`fill_sonar_scene`] seeing only the copters in `present` (ascending ids), if given.
+fn fill_sonar_scene_of(world: &World, copters: &[CopterState], present: Option<&[u32]>, scene: &mut SonarScene) {
     let (hx, hy) = (world.arena.size_m[0] / 2.0, world.arena.size_m[1] / 2.0);
     scene.walls.clear();
     if world.arena.walls {
@@ -879,7 +1051,10 @@ pub fn fill_sonar_scene(world: &World, copters: &[CopterState], scene: &mut Sona
     scene.copters.clear();
     scene.copters.extend((0..copters.len()).map(|i| copter_box(world, copters, i)));
     scene.grid.set_cover(arena_rect(world));
-    scene.index_copters(grid_cell_m(world, copters.len()));
+    match present {
+        Some(ids) => scene.index_some_copters(ids, grid_cell_m(world, copters.len())),
+        None => scene.index_copters(grid_cell_m(world, copters.len())),
+    }
 }
 
 /// A copter grid's cell size for `n` items: about one item per cell, so sparse swarms visit
@@ -909,7 +1084,7 @@ pub fn copter_box(world: &World, copters: &[CopterState], i: usize) -> OrientedB
 
 /// Samples every copter's sensors from the current state (the lanes hold each copter's
 /// motion at the start of the step).
-fn sense(world: &World, state: &mut State, inputs: &Inputs, sonar_due: bool, parallel: bool) {
+fn sense(world: &World, state: &mut State, inputs: &Inputs, sonar_due: bool, parallel: bool, roles: Roles<'_>) {
     let params: &SensorParams = &world.sensors;
     let spec = &params.spec;
     let n = world.copters.len();
@@ -918,7 +1093,8 @@ fn sense(world: &World, state: &mut State, inputs: &Inputs, sonar_due: bool, par
 
     // What the sonars can see, gathered once.
     let scratch = &mut state.scratch;
-    fill_sonar_scene(world, &state.copters, &mut scratch.sonar_scene);
+    let present = roles.0.map(|_| &scratch.present[..]);
+    fill_sonar_scene_of(world, &state.copters, present, &mut scratch.sonar_scene);
     let scene = &scratch.sonar_scene;
 
     let noise = spec.noise;
@@ -928,7 +1104,7 @@ fn sense(world: &World, state: &mut State, inputs: &Inputs, sonar_due: bool, par
     for_each_lane(parallel, &mut state.copters, &mut scratch.lanes, |i, c, lane| {
         // A wreck's sensors stop (and its sonars no longer ping): its readings keep their
         // last values.
-        if c.crash.is_some() {
+        if c.crash.is_some() || !roles.present(i) {
             return;
         }
         let (pos, rot, vel, angvel) = (lane.pos_m, lane.rot, lane.vel_m_s, lane.angvel_rad_s);
@@ -1018,12 +1194,12 @@ fn sense(world: &World, state: &mut State, inputs: &Inputs, sonar_due: bool, par
         let crate::state::Scratch { pingers, ping_points, ping_grid, lanes, .. } = &mut state.scratch;
         // Every copter's cones and ping timing, gathered once.
         pingers.clear();
-        pingers.extend(lanes.iter().zip(&state.copters).map(|(lane, c)| Pinger {
+        pingers.extend(lanes.iter().zip(&state.copters).enumerate().map(|(i, (lane, c))| Pinger {
             pos_m: lane.pos_m,
             cones: sonar_cones(params, lane.pos_m, lane.rot),
             phase_s: c.sonar_phase_s,
             cycle_s: c.sonar_cycle_s,
-            pings: c.crash.is_none(),
+            pings: c.crash.is_none() && roles.present(i),
         }));
         ping_points.clear();
         ping_points.extend(pingers.iter().enumerate().filter(|(_, p)| p.pings).map(|(i, p)| (i as u32, p.pos_m)));
@@ -1186,8 +1362,11 @@ fn detect_collision_crashes(world: &World, state: &mut State, report: &mut StepR
 
 /// Checks tilt crashes and take-offs, in id order, and hands a free copter that left its
 /// reservation back to Rapier.
-fn detect_tilt_and_takeoff(world: &World, state: &mut State, report: &mut StepReport) {
+fn detect_tilt_and_takeoff(world: &World, state: &mut State, report: &mut StepReport, roles: Roles<'_>) {
     for i in 0..world.copters.len() {
+        if !roles.owned(i) {
+            continue;
+        }
         let lane = state.scratch.lanes[i];
         let airframe = world.copters[i].airframe;
         if state.copters[i].crash.is_none() {
@@ -1209,7 +1388,7 @@ fn detect_tilt_and_takeoff(world: &World, state: &mut State, report: &mut StepRe
     }
     for i in 0..world.copters.len() {
         let c = &mut state.copters[i];
-        if c.took_off_tick.is_none() && c.crash.is_none() {
+        if c.took_off_tick.is_none() && c.crash.is_none() && roles.owned(i) {
             let z = state.scratch.lanes[i].pos_m.z;
             let rest = world.airframes[world.copters[i].airframe].rest_height_m;
             if z > rest + TAKEOFF_MARGIN_M {

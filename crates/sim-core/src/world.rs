@@ -205,7 +205,7 @@ impl World {
         // wreck's step.
         physics.integration_parameters.max_ccd_substeps = 0;
         self.insert_static_geometry(&mut physics);
-        let mut state = State { tick: 0, physics, copters: Vec::new(), scratch: Scratch::default() };
+        let mut state = State { tick: 0, physics, copters: Vec::new(), scratch: Scratch::default(), shard: None };
         for id in 0..self.copters.len() {
             let copter = self.make_copter(&mut state.physics, id);
             state.copters.push(copter);

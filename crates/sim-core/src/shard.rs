@@ -1,0 +1,326 @@
+//! Sharding: one swarm stepped by several [`State`]s, each owning the copters of its region
+//! of the arena and seeing its neighbours' copters near its borders as **ghosts**. Pure: the
+//! transport (Zenoh, in `bridge`) only carries [`Ghost`]s between shards, once per control
+//! step, and that exchange is the lockstep barrier.
+//!
+//! A shard's `State` holds every copter of the scene (ids are indices everywhere), each in one
+//! of three [`Role`]s:
+//! - **owned**: stepped here;
+//! - **ghost**: a neighbour's copter within [`Partition::halo_m`] of this region, its whole
+//!   state as its owner had it at the start of the step. Sonars, cross-talk, downwash and the
+//!   free-flight reservations read ghosts exactly as they read owned copters;
+//! - **absent**: far away; nothing here reads it, its Rapier body is disabled.
+//!
+//! **Ownership** is decided afresh at every step, by every shard from the same data, in
+//! [`crate::step`] once the reservations are known:
+//! 1. a copter's *home* is the region holding its centre at the start of the step;
+//! 2. copters whose reservation spheres meet (the only ones that can touch each other within
+//!    the step) form contact clusters; a cluster belongs to the home of its lowest id. So
+//!    two copters that may collide across a border are stepped by one shard, the lower id's,
+//!    and a copter migrates simply by being owned by another shard at the next step (its
+//!    whole state, random stream, controllers, estimator and battery included, is already
+//!    there as a ghost).
+//!
+//! That gives the same bits as one process as long as every shard sees every copter its own
+//! depend on. The halo is wide enough for sonars, cross-talk and wakes plus [`PULL_ZONE_M`];
+//! a contact cluster of a shard that reaches farther than the pull zone from its region, or
+//! a wake longer than the halo allows, is counted in [`crate::StepReport::shard_violations`]
+//! (the caller stops: the run would no longer be the one-process run).
+//!
+//! **Where the bits can differ:** Rapier keeps per-contact memory (warm-start impulses) and
+//! sleep timers inside its own sets, which do not travel. A copter that changes shard while
+//! it *touches* something in Rapier (a wreck lying across a border, a copter pressed against
+//! a box on a border) restarts that contact cold on its new shard. Flying copters, copters
+//! crossing borders, and crashes between flying copters across a border are bit-identical
+//! (`tests/shard.rs`).
+
+use serde::{Deserialize, Serialize};
+
+use crate::math::{Real, Vec3};
+use crate::state::{CopterState, State};
+use crate::world::World;
+
+/// A shard's number, `0..shards`.
+pub type ShardId = u16;
+
+/// How far from its region a copter may be owned by a shard (contact clusters pulled across
+/// a border), m. Larger clusters are violations.
+pub const PULL_ZONE_M: Real = 3.0;
+
+/// What a copter is to one shard.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub enum Role {
+    /// Stepped here.
+    Owned,
+    /// A neighbour's copter near this region, read but not stepped.
+    Ghost,
+    /// Far away: not read.
+    Absent,
+}
+
+/// The arena split into `nx × ny` regions of equal size, numbered row by row from
+/// `(x0, y0)`. The outer regions extend beyond the walls, so every point has a region.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Partition {
+    nx: u16,
+    ny: u16,
+    rect: [Real; 4],
+    halo_m: Real,
+}
+
+/// A sharding setup that cannot work.
+#[derive(Clone, Debug, PartialEq, thiserror::Error)]
+pub enum ShardError {
+    /// No shards, or more than regions can be made of.
+    #[error("cannot split the arena into {shards} shards (1..=1024)")]
+    Count {
+        /// The count asked for.
+        shards: usize,
+    },
+    /// A shard id outside `0..shards`.
+    #[error("shard {shard} does not exist: there are {shards} (0..{shards})")]
+    Id {
+        /// The id given.
+        shard: usize,
+        /// The count.
+        shards: usize,
+    },
+    /// A ghost for a copter this shard owns: two shards stepped the same copter.
+    #[error("copter {copter} arrived as a ghost at tick {tick}, but this shard owns it: two shards stepped it")]
+    Duplicate {
+        /// Copter id.
+        copter: usize,
+        /// The tick of the exchange.
+        tick: u64,
+    },
+    /// A ghost with an id the scene does not have.
+    #[error("a ghost names copter {copter}, but the scene has {copters} copters")]
+    Unknown {
+        /// The id given.
+        copter: usize,
+        /// Copters in the scene.
+        copters: usize,
+    },
+}
+
+impl Partition {
+    /// Splits `world`'s arena into `shards` regions, as square as the count allows (strips
+    /// for 2 or 3 in a square arena, a grid beyond). Same scene and count, same split.
+    pub fn new(world: &World, shards: usize) -> Result<Self, ShardError> {
+        if shards == 0 || shards > 1024 {
+            return Err(ShardError::Count { shards });
+        }
+        let [w, h] = world.arena.size_m;
+        let (mut best, mut best_cost) = ((shards, 1), Real::INFINITY);
+        for nx in 1..=shards {
+            if !shards.is_multiple_of(nx) {
+                continue;
+            }
+            let ny = shards / nx;
+            let aspect = (w / nx as Real) / (h / ny as Real);
+            let cost = aspect.ln().abs();
+            // Ties: more columns (strips across x).
+            if cost < best_cost - 1e-6 || ((cost - best_cost).abs() <= 1e-6 && nx > best.0) {
+                (best, best_cost) = ((nx, ny), cost);
+            }
+        }
+        Ok(Self {
+            nx: best.0 as u16,
+            ny: best.1 as u16,
+            rect: [-w / 2.0, -h / 2.0, w / 2.0, h / 2.0],
+            halo_m: halo_m(world),
+        })
+    }
+
+    /// How many shards.
+    pub fn shards(&self) -> usize {
+        usize::from(self.nx) * usize::from(self.ny)
+    }
+
+    /// Columns and rows of regions.
+    pub fn grid(&self) -> (u16, u16) {
+        (self.nx, self.ny)
+    }
+
+    /// How far beyond its region a shard sees other shards' copters, m: the sonar range (or the
+    /// longest wake allowed), plus the pull zone and a reservation's reach.
+    pub fn halo_m(&self) -> Real {
+        self.halo_m
+    }
+
+    /// The region holding `p` (points outside the arena: the nearest region).
+    pub fn region_of(&self, p: Vec3) -> ShardId {
+        let [x0, y0, x1, y1] = self.rect;
+        let ix = (((p.x - x0) / (x1 - x0) * Real::from(self.nx)).floor() as i64).clamp(0, i64::from(self.nx) - 1);
+        let iy = (((p.y - y0) / (y1 - y0) * Real::from(self.ny)).floor() as i64).clamp(0, i64::from(self.ny) - 1);
+        (iy * i64::from(self.nx) + ix) as ShardId
+    }
+
+    /// Region `k`'s bounds `[x0, y0, x1, y1]`; the outer ones are unbounded beyond the walls.
+    pub fn bounds(&self, k: ShardId) -> [Real; 4] {
+        let [x0, y0, x1, y1] = self.rect;
+        let (ix, iy) = (k % self.nx, k / self.nx);
+        let (w, h) = ((x1 - x0) / Real::from(self.nx), (y1 - y0) / Real::from(self.ny));
+        let lo = |i: u16, o: Real, s: Real| if i == 0 { Real::NEG_INFINITY } else { o + Real::from(i) * s };
+        let hi = |i: u16, n: u16, o: Real, s: Real| if i + 1 == n { Real::INFINITY } else { o + Real::from(i + 1) * s };
+        [lo(ix, x0, w), lo(iy, y0, h), hi(ix, self.nx, x0, w), hi(iy, self.ny, y0, h)]
+    }
+
+    /// Horizontal distance from `p` to region `k` (0 inside it), m.
+    pub fn distance_to(&self, p: Vec3, k: ShardId) -> Real {
+        let [x0, y0, x1, y1] = self.bounds(k);
+        let dx = (x0 - p.x).max(p.x - x1).max(0.0);
+        let dy = (y0 - p.y).max(p.y - y1).max(0.0);
+        dx.hypot(dy)
+    }
+
+    /// The shards that exchange ghosts with `k`: those whose regions lie within the halo plus
+    /// the pull zone of `k`'s, in id order.
+    pub fn neighbours(&self, k: ShardId) -> Vec<ShardId> {
+        let [ax0, ay0, ax1, ay1] = self.bounds(k);
+        (0..self.shards() as ShardId)
+            .filter(|&t| {
+                let [bx0, by0, bx1, by1] = self.bounds(t);
+                let dx = (bx0 - ax1).max(ax0 - bx1).max(0.0);
+                let dy = (by0 - ay1).max(ay0 - by1).max(0.0);
+                t != k && dx.hypot(dy) <= self.halo_m + PULL_ZONE_M
+            })
+            .collect()
+    }
+}
+
+/// The halo for `world`: what a copter's sonars (with cross-talk) can reach, plus the pull
+/// zone and a margin for reservation spheres, m. Wakes longer than the sonar reach are
+/// violations (see [`crate::step`]).
+pub fn halo_m(world: &World) -> Real {
+    PULL_ZONE_M + 1.0 + sense_reach_m(world)
+}
+
+/// The farthest another copter's centre can be and still matter to a copter's sonars,
+/// cross-talk or downwash within one step, m.
+pub(crate) fn sense_reach_m(world: &World) -> Real {
+    let sonar = &world.sensors.spec.sonar;
+    let body = world.airframes.iter().map(|af| af.radius_m.hypot(af.spec.body_size_m[2])).fold(0.0, Real::max);
+    sonar.max_range_m.max(sonar.cap_m) + 2.0 * sonar.mount_offset_m + body
+}
+
+/// One copter as its owner sends it to a neighbour: its whole state at the start of a step.
+#[derive(Clone, Debug, Serialize, Deserialize)]
+pub struct Ghost {
+    /// Copter id.
+    pub id: u32,
+    /// Whether Rapier had it asleep (a wreck at rest).
+    pub asleep: bool,
+    /// Everything else.
+    pub state: CopterState,
+}
+
+/// What a `State` knows about its place in a sharded run (`None` in `State::shard`: one
+/// process steps everything).
+#[derive(Clone, Debug)]
+pub struct ShardView {
+    /// This shard.
+    pub me: ShardId,
+    /// The split.
+    pub partition: Partition,
+    /// Every copter's role here.
+    pub roles: Vec<Role>,
+    /// Whether Rapier had each ghost asleep at its owner.
+    pub(crate) asleep: Vec<bool>,
+    /// Contact-cluster roots (union-find), reused.
+    pub(crate) parent: Vec<u32>,
+    /// Per cluster root: whether this shard had or takes one of its copters, reused.
+    pub(crate) related: Vec<bool>,
+}
+
+impl State {
+    /// Makes this state one shard of a sharded run: it owns the copters whose start lies in
+    /// its region; every other copter is a ghost for the first step (all shards know the
+    /// initial state), absent after it unless a neighbour sends it.
+    pub fn make_shard(&mut self, partition: Partition, me: usize) -> Result<(), ShardError> {
+        let shards = partition.shards();
+        if me >= shards {
+            return Err(ShardError::Id { shard: me, shards });
+        }
+        let me = me as ShardId;
+        let roles = self
+            .copters
+            .iter()
+            .map(|c| if partition.region_of(c.motion.pos_m) == me { Role::Owned } else { Role::Ghost })
+            .collect();
+        let n = self.copters.len();
+        self.shard = Some(ShardView { me, partition, roles, asleep: vec![false; n], parent: Vec::new(), related: Vec::new() });
+        Ok(())
+    }
+
+    /// Whether this state steps copter `id` (always, outside a sharded run).
+    pub fn owns(&self, id: usize) -> bool {
+        self.shard.as_ref().is_none_or(|s| s.roles.get(id) == Some(&Role::Owned))
+    }
+
+    /// Appends to `out` the ghosts this shard owes shard `to` for the next step: its owned
+    /// copters within the halo of `to`'s region.
+    pub fn ghosts_for(&self, to: ShardId, out: &mut Vec<Ghost>) {
+        let Some(view) = &self.shard else { return };
+        for (i, c) in self.copters.iter().enumerate() {
+            if view.roles[i] == Role::Owned && view.partition.distance_to(c.motion.pos_m, to) <= view.partition.halo_m {
+                // A fixed wreck (at rest, out of reach) is a sleeping one to its next owner.
+                let asleep = self.physics.bodies.get(c.body).is_some_and(|b| b.is_sleeping() || b.is_fixed());
+                out.push(Ghost { id: i as u32, asleep, state: c.clone() });
+            }
+        }
+    }
+
+    /// Takes in every neighbour's ghosts for the next step (all of them at once): they become
+    /// ghosts here, and every other copter this shard does not own becomes absent.
+    pub fn receive_ghosts(&mut self, ghosts: impl IntoIterator<Item = Ghost>) -> Result<(), ShardError> {
+        let tick = self.tick;
+        let n = self.copters.len();
+        let Some(view) = &mut self.shard else { return Ok(()) };
+        for role in &mut view.roles {
+            if *role == Role::Ghost {
+                *role = Role::Absent;
+            }
+        }
+        for g in ghosts {
+            let id = g.id as usize;
+            if id >= n {
+                return Err(ShardError::Unknown { copter: id, copters: n });
+            }
+            if view.roles[id] == Role::Owned {
+                return Err(ShardError::Duplicate { copter: id, tick });
+            }
+            view.roles[id] = Role::Ghost;
+            view.asleep[id] = g.asleep;
+            // The handles are the same in every shard (same scene, same build order).
+            let (body, collider) = (self.copters[id].body, self.copters[id].collider);
+            self.copters[id] = g.state;
+            (self.copters[id].body, self.copters[id].collider) = (body, collider);
+        }
+        Ok(())
+    }
+
+    /// This shard's id and split, if it is one.
+    pub fn shard(&self) -> Option<&ShardView> {
+        self.shard.as_ref()
+    }
+}
+
+/// Union-find root with path halving.
+pub(crate) fn root(parent: &mut [u32], mut i: u32) -> u32 {
+    while parent[i as usize] != i {
+        let p = parent[parent[i as usize] as usize];
+        parent[i as usize] = p;
+        i = p;
+    }
+    i
+}
+
+/// Joins the clusters of `a` and `b`; the root is the lower id.
+pub(crate) fn union(parent: &mut [u32], a: u32, b: u32) {
+    let (ra, rb) = (root(parent, a), root(parent, b));
+    if ra != rb {
+        let (lo, hi) = if ra < rb { (ra, rb) } else { (rb, ra) };
+        parent[hi as usize] = lo;
+    }
+}

@@ -1,0 +1,196 @@
+//! Sharding in one process: the same swarm stepped by 2, 3 and 4 shard `State`s that trade
+//! ghosts every step gives the same bits for every copter as one `State` (see
+//! `sim_core::shard`). The Zenoh transport between processes is tested in `cli/tests/shard.rs`.
+
+use sim_core::scene::{self, SceneSpec};
+use sim_core::shard::{Ghost, Partition, Role};
+use sim_core::{CopterState, State, World, step};
+
+/// What must be the same: motion, crash, readings and the random stream's next draw.
+fn bits(c: &CopterState) -> Vec<u32> {
+    let m = &c.motion;
+    let mut v: Vec<u32> = [m.pos_m, m.vel_m_s, m.angvel_rad_s].iter().flat_map(|v| v.to_array()).map(f32::to_bits).collect();
+    v.extend(m.rot.to_array().map(f32::to_bits));
+    v.extend(c.sensors.sonar_m.map(f32::to_bits));
+    v.extend(c.rotor_speed_rad_s.map(f32::to_bits));
+    v.push(c.battery.charge.to_bits());
+    v.push(u32::from(c.crash.is_some()));
+    let mut rng = c.rng.clone();
+    v.push(rng.uniform().to_bits());
+    v
+}
+
+/// A 20 × 20 dense take-off swarm: 1.5 m grid, pillars, crashes piling up.
+fn swarm() -> SceneSpec {
+    scene::dense_swarm(400, 1.5, true, 12, 3)
+}
+
+/// A flock: 12 × 12 copters 4 m apart, all heading +x at 0.3 m/s (Wall-Avoid at 1 m), in a
+/// 90 m × 70 m hall: over 60 s the whole flock drifts 18 m across the borders, with sonars, cross-talk and wakes
+/// between neighbours all the way, and nothing touches.
+fn flock() -> SceneSpec {
+    let mut spec = scene::dense_swarm(144, 4.0, false, 0, 3);
+    spec.arena.size_m = [90.0, 70.0];
+    for c in &mut spec.copters {
+        c.start.pos_m[0] -= 10.0;
+        c.start.yaw_deg = 0.0;
+        c.command.yaw_deg = Some(0.0);
+    }
+    spec
+}
+
+struct Sharded {
+    states: Vec<State>,
+    partition: Partition,
+    /// Ownership changes seen (a copter stepped by another shard than at the step before).
+    migrations: usize,
+    /// Most copters any shard had absent at once.
+    max_absent: usize,
+    /// The one-process run, stepped alongside.
+    one: State,
+    /// The first tick at which some copter's bits differed, and those copters.
+    first_divergence: Option<(u64, Vec<usize>)>,
+}
+
+impl Sharded {
+    fn owner(&self, i: usize) -> &State {
+        self.states.iter().find(|s| s.owns(i)).unwrap()
+    }
+
+    /// Copters whose bits differ from the one-process run now.
+    fn differing(&self) -> Vec<usize> {
+        (0..self.one.copters.len()).filter(|&i| bits(&self.owner(i).copters[i]) != bits(&self.one.copters[i])).collect()
+    }
+
+    /// Every crash, in id order, with its cause's exact bits.
+    fn crashes(states: &[&State], n: usize) -> Vec<(usize, String)> {
+        (0..n)
+            .filter_map(|i| {
+                let s = states.iter().find(|s| s.owns(i)).unwrap();
+                s.copters[i].crash.map(|c| (i, format!("{c:?}")))
+            })
+            .collect()
+    }
+}
+
+/// Steps `world` for `ticks` as one process and as `shards` shards trading ghosts, side by side.
+fn run_sharded(world: &World, shards: usize, ticks: u64) -> Sharded {
+    let partition = Partition::new(world, shards).unwrap();
+    let states: Vec<State> = (0..shards)
+        .map(|k| {
+            let mut s = world.initial_state();
+            s.make_shard(partition.clone(), k).unwrap();
+            s
+        })
+        .collect();
+    let inputs = world.initial_inputs();
+    let owners = |states: &[State]| -> Vec<usize> {
+        (0..world.copters.len())
+            .map(|i| {
+                let owners: Vec<usize> = (0..states.len()).filter(|&k| states[k].owns(i)).collect();
+                assert_eq!(owners.len(), 1, "copter {i} owned by {owners:?}");
+                owners[0]
+            })
+            .collect()
+    };
+    let mut run = Sharded {
+        states,
+        partition,
+        migrations: 0,
+        max_absent: 0,
+        one: world.initial_state(),
+        first_divergence: None,
+    };
+    let mut before = owners(&run.states);
+    for _ in 0..ticks {
+        // The exchange: every shard's ghosts for each neighbour, then each takes its own.
+        let mut inbox: Vec<Vec<Ghost>> = vec![Vec::new(); shards];
+        for (k, s) in run.states.iter().enumerate() {
+            for t in run.partition.neighbours(k as u16) {
+                s.ghosts_for(t, &mut inbox[t as usize]);
+            }
+        }
+        for (s, ghosts) in run.states.iter_mut().zip(inbox) {
+            s.receive_ghosts(ghosts).unwrap();
+            let absent = s.shard().unwrap().roles.iter().filter(|r| **r == Role::Absent).count();
+            run.max_absent = run.max_absent.max(absent);
+        }
+        for s in &mut run.states {
+            let report = step(world, s, &inputs);
+            assert_eq!(report.shard_violations, 0, "tick {}", report.tick);
+        }
+        step(world, &mut run.one, &inputs);
+        let now = owners(&run.states);
+        run.migrations += before.iter().zip(&now).filter(|(a, b)| a != b).count();
+        before = now;
+        if run.first_divergence.is_none() {
+            let differ = run.differing();
+            if !differ.is_empty() {
+                run.first_divergence = Some((run.one.tick, differ));
+            }
+        }
+    }
+    run
+}
+
+/// Where the bits part, they part at a wreck in Rapier (see `sim_core::shard`): the first
+/// copters to differ are all wrecks.
+fn assert_divergence_starts_at_a_wreck(run: &Sharded, shards: usize) {
+    if let Some((tick, ids)) = &run.first_divergence {
+        for &i in ids {
+            assert!(
+                run.one.copters[i].crash.is_some() && run.owner(i).copters[i].crash.is_some(),
+                "{shards} shards: copter {i} differs first at tick {tick} and is not a wreck"
+            );
+        }
+    }
+}
+
+#[test]
+fn copters_crossing_borders_keep_the_one_process_bits() {
+    let world = scene::compile(&flock()).unwrap();
+    for shards in [2, 3, 4] {
+        let run = run_sharded(&world, shards, 1200);
+        assert!(run.migrations > 20, "{shards} shards: copters crossed borders ({})", run.migrations);
+        assert!(run.max_absent > 0, "{shards} shards: some copters were out of every halo");
+        let n = world.copters.len();
+        let crashes = Sharded::crashes(&[&run.one], n);
+        assert!(!crashes.is_empty());
+        let refs: Vec<&State> = run.states.iter().collect();
+        assert_eq!(Sharded::crashes(&refs, n), crashes, "{shards} shards: the same crashes, to the bit");
+        assert_divergence_starts_at_a_wreck(&run, shards);
+        // Flying copters out of sight of a differing wreck keep every bit.
+        let differ = run.differing();
+        assert!(differ.len() * 10 < n, "{shards} shards: {differ:?} differ");
+        eprintln!("flock, {shards} shards: {} migrations; first divergence {:?}; {} of {n} differ at 60 s", run.migrations, run.first_divergence, differ.len());
+    }
+}
+
+#[test]
+fn a_crash_across_a_border_is_the_one_process_crash() {
+    // Two copters meet head-on over the border between two strips.
+    let mut spec = scene::dense_swarm(2, 3.0, false, 0, 1);
+    spec.arena.size_m = [12.0, 6.0];
+    for (c, x) in spec.copters.iter_mut().zip([-1.5, 1.5]) {
+        c.mode = sim_core::FlightMode::Target;
+        c.start.pos_m = [x, 0.0];
+        c.command.target_m = Some([-3.0 * x, 0.0, 1.0]);
+    }
+    let world = scene::compile(&spec).unwrap();
+    let run = run_sharded(&world, 2, 200);
+    let crashes: Vec<_> = run.one.copters.iter().map(|c| c.crash).collect();
+    assert!(crashes.iter().all(|c| matches!(c, Some(sim_core::CrashCause::Copter { .. }))), "{crashes:?}");
+    assert!(run.migrations > 0, "one of them was taken over by the other's shard");
+    assert_eq!(run.first_divergence, None);
+}
+
+#[test]
+fn a_crowded_take_off_parts_only_at_wrecks() {
+    let world = scene::compile(&swarm()).unwrap();
+    for shards in [2, 4] {
+        let run = run_sharded(&world, shards, 1200);
+        assert!(run.one.copters.iter().filter(|c| c.crash.is_some()).count() > 50);
+        assert_divergence_starts_at_a_wreck(&run, shards);
+        eprintln!("dense take-off, {shards} shards: {} migrations; first divergence {:?}; {} differ at 60 s", run.migrations, run.first_divergence, run.differing().len());
+    }
+}
