@@ -24,6 +24,7 @@ pub mod live;
 pub mod log;
 pub mod mixed;
 pub mod paparazzi;
+pub mod shard;
 pub mod sim;
 pub mod sync;
 pub mod wire;

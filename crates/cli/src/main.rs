@@ -10,6 +10,7 @@ mod localize;
 mod replay;
 mod report;
 mod runner;
+mod shardcmd;
 mod standin;
 mod synceval;
 
@@ -39,6 +40,9 @@ struct Cli {
 enum Command {
     /// Fly a scene (default: the embedded FINken lab) and print a summary.
     Run(RunArgs),
+    /// Start a Zenoh router and N local shard processes of one swarm (`run --shard K/N`),
+    /// wait for them and merge their summaries. A launcher, not a scheduler.
+    Cluster(ClusterArgs),
     /// Stand in for a real FINken: fly its own "reality", send telemetry, fuse virtual sonar.
     Copter(standin::CopterArgs),
     /// Ivy bus tools: probe (like ivyprobe), send, peers.
@@ -89,7 +93,8 @@ enum Command {
 struct SceneArgs {
     /// `dense`: a 1.5 m grid taking off from the floor among 10 pillars, Wall-Avoid at 1 m
     /// (the experiment of `swarm_rt --scene dense`); `cruise`: a 2 m grid in the air, each
-    /// copter heading its own way at 0.3 m/s; `hover`: a 2 m grid hovering at 0.8 m.
+    /// copter heading its own way at 0.3 m/s; `hover`: a 2 m grid hovering at 0.8 m; `flock`:
+    /// a 4 m grid in the air drifting 18 m along x in a minute (the sharding tests' scene).
     #[arg(value_enum)]
     kind: SceneKind,
     /// Number of copters.
@@ -114,6 +119,7 @@ enum SceneKind {
     Dense,
     Cruise,
     Hover,
+    Flock,
 }
 
 /// `twinswarm scene`: the generated scene as TOML, checked by compiling it back.
@@ -124,6 +130,7 @@ fn scene_cmd(a: &SceneArgs) -> anyhow::Result<()> {
         SceneKind::Dense => sim_core::scene::dense_swarm(a.n, a.spacing, !a.air, a.pillars, a.seed),
         SceneKind::Cruise => sim_core::scene::cruising_swarm(a.n, 1),
         SceneKind::Hover => sim_core::scene::grid_swarm(a.n, 2.0, 0.8, true),
+        SceneKind::Flock => sim_core::scene::flock_swarm(a.n, a.seed),
     };
     spec.sim.seed = a.seed;
     let text = toml::to_string(&spec)?;
@@ -149,7 +156,43 @@ enum LogCommand {
 }
 
 #[derive(Debug, clap::Args)]
+struct ClusterArgs {
+    /// The scene file (TOML); default: the embedded FINken lab.
+    scene: Option<PathBuf>,
+    /// How many shards (local processes).
+    #[arg(long, value_name = "N")]
+    shards: usize,
+    /// Simulated duration, s (default: the scene's `sim.duration_s`).
+    #[arg(long, value_name = "S")]
+    duration: Option<f64>,
+    /// Seed of all random draws (default: the scene's `sim.seed`).
+    #[arg(long, value_name = "N")]
+    seed: Option<u64>,
+    /// Worker threads of each shard's step.
+    #[arg(long, value_name = "N")]
+    threads: Option<usize>,
+    /// Pace the whole cluster against the wall clock (each shard paces, the barrier holds them
+    /// together).
+    #[arg(long)]
+    realtime: bool,
+    /// A shard that hears nothing from a neighbour this long stops with an error, s.
+    #[arg(long, value_name = "S", default_value_t = 30.0)]
+    barrier_timeout: f64,
+    /// Print the merged summary as JSON on stdout.
+    #[arg(long)]
+    json: bool,
+}
+
+#[derive(Debug, clap::Args)]
 struct RunArgs {
+    /// Step only shard K of N of the swarm (a region of the arena), trading ghosts with the
+    /// other shards over Zenoh (`--connect` to their router). Logging, the client bus and the
+    /// live view are not sharded yet: a shard runs without them.
+    #[arg(long, value_name = "K/N", value_parser = shardcmd::parse_shard)]
+    shard: Option<(usize, usize)>,
+    /// With `--shard`: stop with an error when a neighbouring shard stays silent this long, s.
+    #[arg(long, value_name = "S", default_value_t = 30.0)]
+    barrier_timeout: f64,
     /// The scene file (TOML); default: the embedded FINken lab.
     scene: Option<PathBuf>,
     /// Simulated duration, s (default: the scene's `sim.duration_s`).
@@ -362,6 +405,7 @@ fn main() -> ExitCode {
         Command::Ivy(args) => ivycmd::run(args),
         Command::Check { scene } => check(&scene),
         Command::Scene(args) => scene_cmd(&args),
+        Command::Cluster(args) => cluster_cmd(&args),
         Command::Inspect { scene, json } => inspect(scene.as_deref(), json),
         Command::Localize(args) => localize::run(args),
         Command::Log(LogCommand::Info { file }) => logcmd::info(&file),
@@ -425,6 +469,9 @@ fn run(args: RunArgs) -> anyhow::Result<()> {
             return Err(BadInput(anyhow::anyhow!("--duration must be a positive number of seconds, got {d}")).into());
         }
         spec.sim.duration_s = d;
+    }
+    if let Some((shard, shards)) = args.shard {
+        return run_shard_cmd(&args, &spec, shard, shards);
     }
     let mixed = load_mixed(
         args.pairing.as_deref(),
@@ -1007,5 +1054,83 @@ fn inspect(path: Option<&std::path::Path>, json: bool) -> anyhow::Result<()> {
             out!("{}", m.to_text());
         }
     }
+    Ok(())
+}
+
+/// `run --shard K/N`.
+fn run_shard_cmd(args: &RunArgs, spec: &SceneSpec, shard: usize, shards: usize) -> anyhow::Result<()> {
+    let unsharded = [
+        (args.log.is_some(), "--log"),
+        (args.foxglove.is_some(), "--foxglove"),
+        (args.ivy.is_some(), "--ivy"),
+        (args.pairing.is_some(), "--pairing"),
+        (args.zenoh_config.is_some(), "--zenoh-config"),
+    ];
+    if let Some((_, flag)) = unsharded.iter().find(|(on, _)| *on) {
+        return Err(BadInput(anyhow::anyhow!("--shard: {flag} is not available for a shard yet")).into());
+    }
+    if spec.copters.iter().any(|c| c.kind == sim_core::CopterKind::Real) {
+        return Err(
+            BadInput(anyhow::anyhow!("--shard: scenes with twins (kind = \"real\") need one process for now")).into()
+        );
+    }
+    if !(args.barrier_timeout.is_finite() && args.barrier_timeout > 0.0) {
+        return Err(BadInput(anyhow::anyhow!("--barrier-timeout must be a positive number of seconds")).into());
+    }
+    let world = scene::compile(spec).map_err(|e| BadInput(e.into()))?;
+    let opts = shardcmd::ShardRun {
+        shard,
+        shards,
+        ticks: world.default_ticks(),
+        realtime: args.realtime,
+        connect: args.connect.clone(),
+        listen: args.listen.clone(),
+        prefix: args.prefix.clone().unwrap_or_else(|| format!("twinswarm/{}", world.name)),
+        timeout: std::time::Duration::from_secs_f64(args.barrier_timeout),
+    };
+    let stop = logcmd::install_stop_flag()?;
+    let summary = shardcmd::run_shard(&world, &opts, &stop)?;
+    if args.json {
+        println!("{}", serde_json::to_string(&summary)?);
+    } else {
+        shardcmd::print_shard(&summary);
+        let mut copters = summary.copters.clone();
+        println!("  digest of its copters: {}", shardcmd::swarm_digest(&mut copters));
+    }
+    Ok(())
+}
+
+/// `cluster SCENE --shards N`.
+fn cluster_cmd(args: &ClusterArgs) -> anyhow::Result<()> {
+    if !(1..=64).contains(&args.shards) {
+        return Err(BadInput(anyhow::anyhow!("--shards must be 1 to 64 local processes, got {}", args.shards)).into());
+    }
+    // Check the scene here, so that a bad one is one clear error rather than N.
+    let (_, spec, _) = load_scene(args.scene.as_deref())?;
+    sim_core::shard::Partition::new(&scene::compile(&spec).map_err(|e| BadInput(e.into()))?, args.shards)
+        .map_err(|e| BadInput(e.into()))?;
+    let stop = logcmd::install_stop_flag()?;
+    let opts = shardcmd::ClusterRun {
+        scene: args.scene.clone(),
+        shards: args.shards,
+        duration: args.duration,
+        seed: args.seed,
+        threads: args.threads,
+        timeout_s: args.barrier_timeout,
+        realtime: args.realtime,
+    };
+    let s = shardcmd::run_cluster(&opts, &stop)?;
+    if args.json {
+        println!("{}", serde_json::to_string(&s)?);
+        return Ok(());
+    }
+    println!(
+        "cluster of {} shards (router {}): {} copters, {} crashed, {:.2} s wall, slowest shard {:.2}x real time",
+        s.shards, s.router, s.copters, s.crashed, s.wall_s, s.real_time_factor
+    );
+    for p in &s.per_shard {
+        shardcmd::print_shard(p);
+    }
+    println!("digest of the swarm: {}", s.digest);
     Ok(())
 }

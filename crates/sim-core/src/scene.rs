@@ -919,6 +919,22 @@ pub fn dense_swarm(n: usize, spacing_m: Real, takeoff: bool, n_boxes: usize, see
     spec
 }
 
+/// A flock crossing the hall: `n` copters on a 4 m grid in the air, all heading +x at
+/// 0.3 m/s (Wall-Avoid at 1 m), starting 10 m left of centre in a hall 42 m wider and 22 m
+/// deeper than the grid's [`dense_swarm`] arena. Over a minute the flock drifts about 18 m across
+/// any split of the arena: the scene of the sharding tests.
+pub fn flock_swarm(n: usize, seed: u64) -> SceneSpec {
+    let mut spec = dense_swarm(n, 4.0, false, 0, seed);
+    spec.name = "flock".into();
+    spec.arena.size_m = [spec.arena.size_m[0] + 42.0, spec.arena.size_m[1] + 22.0];
+    for c in &mut spec.copters {
+        c.start.pos_m[0] -= 10.0;
+        c.start.yaw_deg = 0.0;
+        c.command.yaw_deg = Some(0.0);
+    }
+    spec
+}
+
 /// [`grid_swarm`] with sensors, every copter flying Wall-Avoid at 0.3 m/s forward, headings
 /// spread by the golden angle, on `threads` threads: the swarm of the real-time benchmark and
 /// of the allocation and thread tests.

@@ -249,7 +249,8 @@ impl State {
             .map(|c| if partition.region_of(c.motion.pos_m) == me { Role::Owned } else { Role::Ghost })
             .collect();
         let n = self.copters.len();
-        self.shard = Some(ShardView { me, partition, roles, asleep: vec![false; n], parent: Vec::new(), related: Vec::new() });
+        self.shard =
+            Some(ShardView { me, partition, roles, asleep: vec![false; n], parent: Vec::new(), related: Vec::new() });
         Ok(())
     }
 

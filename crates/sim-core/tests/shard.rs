@@ -9,7 +9,8 @@ use sim_core::{CopterState, State, World, step};
 /// What must be the same: motion, crash, readings and the random stream's next draw.
 fn bits(c: &CopterState) -> Vec<u32> {
     let m = &c.motion;
-    let mut v: Vec<u32> = [m.pos_m, m.vel_m_s, m.angvel_rad_s].iter().flat_map(|v| v.to_array()).map(f32::to_bits).collect();
+    let mut v: Vec<u32> =
+        [m.pos_m, m.vel_m_s, m.angvel_rad_s].iter().flat_map(|v| v.to_array()).map(f32::to_bits).collect();
     v.extend(m.rot.to_array().map(f32::to_bits));
     v.extend(c.sensors.sonar_m.map(f32::to_bits));
     v.extend(c.rotor_speed_rad_s.map(f32::to_bits));
@@ -25,18 +26,9 @@ fn swarm() -> SceneSpec {
     scene::dense_swarm(400, 1.5, true, 12, 3)
 }
 
-/// A flock: 12 × 12 copters 4 m apart, all heading +x at 0.3 m/s (Wall-Avoid at 1 m), in a
-/// 90 m × 70 m hall: over 60 s the whole flock drifts 18 m across the borders, with sonars, cross-talk and wakes
-/// between neighbours all the way, and nothing touches.
+/// The flock of [`scene::flock_swarm`]: 12 × 12 copters 4 m apart drifting 18 m along x.
 fn flock() -> SceneSpec {
-    let mut spec = scene::dense_swarm(144, 4.0, false, 0, 3);
-    spec.arena.size_m = [90.0, 70.0];
-    for c in &mut spec.copters {
-        c.start.pos_m[0] -= 10.0;
-        c.start.yaw_deg = 0.0;
-        c.command.yaw_deg = Some(0.0);
-    }
-    spec
+    scene::flock_swarm(144, 3)
 }
 
 struct Sharded {
@@ -93,14 +85,8 @@ fn run_sharded(world: &World, shards: usize, ticks: u64) -> Sharded {
             })
             .collect()
     };
-    let mut run = Sharded {
-        states,
-        partition,
-        migrations: 0,
-        max_absent: 0,
-        one: world.initial_state(),
-        first_divergence: None,
-    };
+    let mut run =
+        Sharded { states, partition, migrations: 0, max_absent: 0, one: world.initial_state(), first_divergence: None };
     let mut before = owners(&run.states);
     for _ in 0..ticks {
         // The exchange: every shard's ghosts for each neighbour, then each takes its own.
@@ -162,7 +148,12 @@ fn copters_crossing_borders_keep_the_one_process_bits() {
         // Flying copters out of sight of a differing wreck keep every bit.
         let differ = run.differing();
         assert!(differ.len() * 10 < n, "{shards} shards: {differ:?} differ");
-        eprintln!("flock, {shards} shards: {} migrations; first divergence {:?}; {} of {n} differ at 60 s", run.migrations, run.first_divergence, differ.len());
+        eprintln!(
+            "flock, {shards} shards: {} migrations; first divergence {:?}; {} of {n} differ at 60 s",
+            run.migrations,
+            run.first_divergence,
+            differ.len()
+        );
     }
 }
 
@@ -191,6 +182,11 @@ fn a_crowded_take_off_parts_only_at_wrecks() {
         let run = run_sharded(&world, shards, 1200);
         assert!(run.one.copters.iter().filter(|c| c.crash.is_some()).count() > 50);
         assert_divergence_starts_at_a_wreck(&run, shards);
-        eprintln!("dense take-off, {shards} shards: {} migrations; first divergence {:?}; {} differ at 60 s", run.migrations, run.first_divergence, run.differing().len());
+        eprintln!(
+            "dense take-off, {shards} shards: {} migrations; first divergence {:?}; {} differ at 60 s",
+            run.migrations,
+            run.first_divergence,
+            run.differing().len()
+        );
     }
 }
