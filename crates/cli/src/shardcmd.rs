@@ -155,8 +155,10 @@ pub fn run_shard(world: &World, opts: &ShardRun, stop: &Arc<AtomicBool>) -> anyh
             .into());
         }
         let config = shard_config(&opts.listen, &opts.connect)?;
+        let count = neighbours.len();
         let mut link = ShardLink::open(config, &opts.prefix, me, neighbours, opts.timeout)?;
         link.wait_for_neighbours()?;
+        eprintln!("shard {}/{}: {count} neighbour(s) up, stepping", opts.shard, opts.shards);
         Some(link)
     };
     let inputs = world.initial_inputs();

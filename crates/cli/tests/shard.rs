@@ -1,0 +1,130 @@
+//! Sharding across processes, on loopback: `twinswarm cluster` (a Zenoh router and N shard
+//! processes) gives the one-process bits, and a shard that dies stops its neighbour with a
+//! clear error instead of a hang.
+
+use std::path::PathBuf;
+use std::process::{Command, Stdio};
+use std::time::{Duration, Instant};
+
+fn twinswarm(args: &[&str]) -> (bool, String, String) {
+    let out = Command::new(env!("CARGO_BIN_EXE_twinswarm")).args(args).output().expect("run twinswarm");
+    (out.status.success(), String::from_utf8_lossy(&out.stdout).into(), String::from_utf8_lossy(&out.stderr).into())
+}
+
+fn flock_scene(tag: &str) -> PathBuf {
+    let (ok, toml, err) = twinswarm(&["scene", "flock", "--n", "144", "--seed", "3"]);
+    assert!(ok, "{err}");
+    let path = std::env::temp_dir().join(format!("twinswarm-shard-{tag}-{}.toml", std::process::id()));
+    std::fs::write(&path, toml).unwrap();
+    path
+}
+
+fn json(text: &str) -> serde_json::Value {
+    serde_json::from_str(text.trim()).unwrap_or_else(|e| panic!("{e}: {text}"))
+}
+
+#[test]
+fn two_three_and_four_shard_processes_give_the_one_process_bits() {
+    let scene = flock_scene("bits");
+    let scene = scene.to_str().unwrap();
+    // 20 s of the flock: copters cross the borders, and crashes happen on the way.
+    let (ok, out, err) = twinswarm(&["run", scene, "--shard", "0/1", "--duration", "20", "--json"]);
+    assert!(ok, "{err}");
+    let one = json(&out);
+    let mut copters: Vec<(u64, String)> = one["copters"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|c| (c["id"].as_u64().unwrap(), c["digest"].as_str().unwrap().to_owned()))
+        .collect();
+    copters.sort();
+    assert_eq!(copters.len(), 144);
+    let crashed = one["copters"].as_array().unwrap().iter().filter(|c| c["crashed"] == true).count();
+    assert!(crashed > 0, "the flock has crashes to agree on");
+    for shards in ["2", "3", "4"] {
+        let (ok, out, err) = twinswarm(&["cluster", scene, "--shards", shards, "--duration", "20", "--json"]);
+        assert!(ok, "{shards} shards: {err}");
+        let c = json(&out);
+        let mut got: Vec<(u64, String)> = c["per_shard"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .flat_map(|s| s["copters"].as_array().unwrap().iter())
+            .map(|c| (c["id"].as_u64().unwrap(), c["digest"].as_str().unwrap().to_owned()))
+            .collect();
+        got.sort();
+        assert_eq!(got, copters, "{shards} shards: every copter, once, with the one-process bits");
+        let per_shard = c["per_shard"].as_array().unwrap();
+        let taken: u64 = per_shard.iter().map(|s| s["taken_over"].as_u64().unwrap()).sum();
+        assert!(taken > 0, "{shards} shards: copters migrated");
+        for s in per_shard {
+            let link = &s["link"];
+            assert_eq!(link["exchanges"].as_u64(), Some(400), "{shards} shards: one barrier per step: {s}");
+            assert!(link["bytes_sent"].as_u64().unwrap() > 0);
+        }
+    }
+    let _ = std::fs::remove_file(scene);
+}
+
+#[test]
+fn a_shard_that_dies_stops_its_neighbour_with_a_reason() {
+    let scene = flock_scene("die");
+    let port = std::net::TcpListener::bind("127.0.0.1:0").unwrap().local_addr().unwrap().port();
+    let endpoint = format!("tcp/127.0.0.1:{port}");
+    let prefix = format!("twinswarm/test-die-{port}");
+    let spawn = |k: &str, net: &[&str]| {
+        Command::new(env!("CARGO_BIN_EXE_twinswarm"))
+            .args([
+                "run",
+                scene.to_str().unwrap(),
+                "--shard",
+                k,
+                "--duration",
+                "600",
+                "--realtime",
+                "--prefix",
+                &prefix,
+            ])
+            .args(["--barrier-timeout", "60"])
+            .args(net)
+            .stdout(Stdio::piped())
+            .stderr(Stdio::piped())
+            .spawn()
+            .unwrap()
+    };
+    // Peer to peer, no router: shard 0 listens, shard 1 connects.
+    let survivor = spawn("0/2", &["--listen", &endpoint]);
+    std::thread::sleep(Duration::from_millis(500));
+    let mut victim = spawn("1/2", &["--connect", &endpoint]);
+    // Killed once it steps with its neighbour.
+    let mut lines = std::io::BufRead::lines(std::io::BufReader::new(victim.stderr.take().unwrap()));
+    let up = lines.find_map(|l| l.ok().filter(|l| l.contains("neighbour(s) up")));
+    assert!(up.is_some(), "the victim never started stepping");
+    std::thread::sleep(Duration::from_secs(1));
+    victim.kill().unwrap();
+    victim.wait().unwrap();
+    let killed_at = Instant::now();
+    let out = survivor.wait_with_output().unwrap();
+    let took = killed_at.elapsed();
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(!out.status.success());
+    assert!(err.contains("shard 1 left the cluster"), "{err}");
+    // Liveliness, not the 60 s barrier timeout.
+    assert!(took < Duration::from_secs(20), "noticed after {took:?}");
+    let _ = std::fs::remove_file(scene);
+}
+
+#[test]
+fn bad_shard_arguments_are_refused() {
+    for (args, what) in [
+        (vec!["run", "--shard", "2/2"], "K must be in 0..N"),
+        (vec!["run", "--shard", "x"], "is not K/N"),
+        (vec!["run", "--shard", "0/2", "--duration", "1"], "needs --connect"),
+        (vec!["run", "--shard", "0/2", "--log", "x.mcap"], "--log is not available for a shard"),
+        (vec!["cluster", "--shards", "0"], "--shards must be 1 to 64"),
+    ] {
+        let (ok, _, err) = twinswarm(&args);
+        assert!(!ok, "{args:?}");
+        assert!(err.contains(what), "{args:?}: {err}");
+    }
+}
