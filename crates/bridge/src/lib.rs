@@ -36,6 +36,11 @@ pub type AcId = u8;
 /// Locks `m`, also after a panic elsewhere poisoned it: what the lock guards (counters,
 /// bindings, the world) stays usable, and an input path never drops what arrives because an
 /// earlier handler panicked (the panic itself was reported by the panic hook).
+/// [`lock`] for callers outside the crate (a poisoned lock still holds good data here).
+pub fn lock_shared<T>(m: &std::sync::Mutex<T>) -> std::sync::MutexGuard<'_, T> {
+    lock(m)
+}
+
 pub(crate) fn lock<T>(m: &std::sync::Mutex<T>) -> std::sync::MutexGuard<'_, T> {
     m.lock().unwrap_or_else(std::sync::PoisonError::into_inner)
 }

@@ -143,6 +143,17 @@ impl ShardLink {
         timeout: Duration,
     ) -> Result<Self, LinkError> {
         let session = zenoh::open(config).wait().map_err(zerr)?;
+        Self::on(session, prefix, me, neighbours, timeout)
+    }
+
+    /// [`ShardLink::open`] on a session already open (the run's node's).
+    pub fn on(
+        session: zenoh::Session,
+        prefix: &str,
+        me: ShardId,
+        neighbours: Vec<ShardId>,
+        timeout: Duration,
+    ) -> Result<Self, LinkError> {
         let (tx, inbox) = mpsc::channel();
         let sub_tx = tx.clone();
         let subscriber = session
@@ -309,5 +320,12 @@ impl ShardLink {
     /// Closes the session (its token goes: neighbours learn this shard is gone).
     pub fn close(self) -> Result<(), LinkError> {
         self.session.close().wait().map_err(zerr)
+    }
+
+    /// Withdraws this shard's token and subscribers, leaving the session open (the node's).
+    pub fn leave(self) {
+        let Self { _alive, _subscriber, _watch, publishers, .. } = self;
+        let _ = _alive.undeclare().wait();
+        drop((_subscriber, _watch, publishers));
     }
 }

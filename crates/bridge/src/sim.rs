@@ -116,10 +116,12 @@ pub struct Frame {
     pub tick: u64,
     /// Simulated time, s.
     pub time_s: f64,
-    /// Per-copter state.
+    /// Per-copter state (a shard: of its own copters only).
     pub states: Vec<StateMsg>,
     /// Per-copter sensors, when the sonars updated this step.
     pub sensors: Vec<SensorsMsg>,
+    /// The copter id of each entry of `states` (and of `sensors`, when it has any).
+    pub ids: Vec<u32>,
     /// Events of the step.
     pub report: StepReport,
     /// Paparazzi texts to publish (virtual sonar, virtual copters' telemetry).
@@ -141,6 +143,9 @@ pub struct LoopOptions {
     pub sync: Option<SyncOptions>,
     /// Lost links: twins' telemetry, virtual copters' controllers (see [`crate::failsafe`]).
     pub failsafe: FailsafeOptions,
+    /// A shard's link to its neighbours (see [`crate::shard`]): the state must be a shard's;
+    /// every step first trades ghosts through it.
+    pub shard: Option<Arc<std::sync::Mutex<crate::shard::ShardLink>>>,
 }
 
 /// How well a twin follows its real copter.
@@ -204,6 +209,11 @@ pub struct LoopStats {
     /// Failsafe transitions by kind (`hold`, `land`, `landed`, `resumed`, `client_lost`,
     /// `controller`).
     pub failsafe: BTreeMap<&'static str, u64>,
+    /// A shard: why it stopped before the end (a neighbour gone or silent, a broken
+    /// invariant), if it did.
+    pub shard_error: Option<String>,
+    /// A shard: copters it took over from another shard during the run.
+    pub shard_taken_over: u64,
 }
 
 /// Observes every step from inside the loop (e.g. a logger). Runs on the loop's thread: keep
@@ -265,6 +275,8 @@ pub fn run_loop(
             None
         }
     });
+    // A shard: which copters it owned after the last step.
+    let mut owned: Vec<bool> = Vec::new();
     for k in 0..opts.ticks {
         // Requests, applied before this step.
         loop {
@@ -288,6 +300,13 @@ pub fn run_loop(
                 Ok(Request::Ignored { origin, reason: _ }) => {
                     stats.inputs_ignored += 1;
                     observer.bus_input(&origin);
+                }
+                Ok(Request::Spawn { spec, reply }) if state.shard().is_some() => {
+                    stats.spawns_failed += 1;
+                    let _ = reply.send(Err(format!(
+                        "cannot spawn {:?}: a sharded run's copters are fixed by its scene",
+                        spec.name
+                    )));
                 }
                 Ok(Request::Spawn { spec, reply }) => {
                     let answer = spawn(&mut world, &mut state, &mut inputs, &spec, observer, &mut stats);
@@ -378,8 +397,35 @@ pub fn run_loop(
         if let Some(sync) = &sync {
             sync.adjust_commands(&mut inputs);
         }
+        if let Some(link) = &opts.shard {
+            let exchanged = crate::lock(link).exchange(&mut state);
+            if let Err(e) = exchanged {
+                stats.shard_error = Some(e.to_string());
+                stats.stopped_early = true;
+                break;
+            }
+        }
         step_into(&world, &mut state, &inputs, &mut report);
         observer.after_step(&world, &state, &inputs, &report);
+        if let Some(view) = state.shard() {
+            if report.shard_violations > 0 {
+                stats.shard_error = Some(format!(
+                    "at tick {} {} copter(s) were in a contact cluster or a wake wider than the halo ({:.1} m) \
+                     allows: the run would no longer be the one-process run",
+                    report.tick,
+                    report.shard_violations,
+                    view.partition.halo_m()
+                ));
+                stats.stopped_early = true;
+                break;
+            }
+            owned.resize(world.copters.len(), false);
+            for (i, o) in owned.iter_mut().enumerate() {
+                let now = state.owns(i);
+                stats.shard_taken_over += u64::from(now && !*o && k > 0);
+                *o = now;
+            }
+        }
         stats.steps += 1;
         track_twins(&world, &state, &mut stats.twins);
         if let Some(sync) = sync.as_mut() {
@@ -408,12 +454,18 @@ pub fn run_loop(
         }
         if let Some(tx) = &frames {
             let n = world.copters.len();
+            let ids: Vec<u32> = (0..n).filter(|&i| state.owns(i)).map(|i| i as u32).collect();
             let frame = Frame {
                 world: world.clone(),
                 tick: state.tick,
                 time_s: state.time_s(&world),
-                states: (0..n).map(|i| state_msg(&world, &state, &inputs, i)).collect(),
-                sensors: if sensed { (0..n).map(|i| sensors_msg(&world, &state, i)).collect() } else { Vec::new() },
+                states: ids.iter().map(|&i| state_msg(&world, &state, &inputs, i as usize)).collect(),
+                sensors: if sensed {
+                    ids.iter().map(|&i| sensors_msg(&world, &state, i as usize)).collect()
+                } else {
+                    Vec::new()
+                },
+                ids,
                 report: report.clone(),
                 pprz_out,
                 stepped_at: Instant::now(),

@@ -38,6 +38,10 @@ pub fn default_log_path(world: &World, epoch_ns: u64) -> PathBuf {
     path
 }
 
+/// The environment variable that sets a run log's epoch (Unix ns), as `cluster` does for its
+/// shards.
+pub const LOG_EPOCH_ENV: &str = "TWINSWARM_LOG_EPOCH_NS";
+
 /// Starts the log of a run, unless `no_log`. `scene_path`: the scene file (`None`: the
 /// embedded lab). `every_ticks`: [`LogOptions::every_ticks`].
 pub fn start_run_log(
@@ -57,7 +61,12 @@ pub fn start_run_log(
             None => Ok(None),
         };
     }
-    let epoch_ns = now_unix_ns();
+    // The shards of a cluster share one epoch (the launcher sets it), so that their logs share
+    // one time base and merge without shifting.
+    let epoch_ns = match std::env::var(LOG_EPOCH_ENV) {
+        Ok(v) => v.parse().map_err(|e| BadInput(anyhow::anyhow!("{LOG_EPOCH_ENV}={v:?}: not a time in ns: {e}")))?,
+        Err(_) => now_unix_ns(),
+    };
     let path = match log {
         Some(p) => p.to_owned(),
         None => default_log_path(world, epoch_ns),
@@ -205,6 +214,27 @@ pub fn info(path: &Path) -> anyhow::Result<()> {
 }
 
 /// `twinswarm log recover BROKEN FIXED`.
+/// `twinswarm log merge -o OUT IN…`.
+pub fn merge(inputs: &[std::path::PathBuf], out: &Path) -> anyhow::Result<()> {
+    if inputs.iter().any(|i| i == out) {
+        return Err(BadInput(anyhow::anyhow!("log merge: the output must differ from every input")).into());
+    }
+    let r = bridge::log::merge(inputs, out).map_err(read_error)?;
+    let total: u64 = r.messages.values().sum();
+    outln!(
+        "{} logs -> {}: {} messages on {} topics, {} duplicates written once",
+        inputs.len(),
+        out.display(),
+        total,
+        r.messages.len(),
+        r.duplicates
+    );
+    if r.shifts_ns.iter().any(|&s| s != 0) {
+        outln!("  log times shifted onto the first log's epoch by {:?} ns", r.shifts_ns);
+    }
+    Ok(())
+}
+
 pub fn recover(broken: &Path, fixed: &Path) -> anyhow::Result<()> {
     if broken == fixed {
         return Err(BadInput(anyhow::anyhow!("log recover: the output must differ from the input")).into());

@@ -153,6 +153,15 @@ enum LogCommand {
         /// The complete file to write.
         fixed: PathBuf,
     },
+    /// Merge the logs of a sharded run (one per shard) into one log of the whole swarm.
+    Merge {
+        /// The merged log to write.
+        #[arg(long, short, value_name = "OUT.mcap")]
+        out: PathBuf,
+        /// The shards' logs.
+        #[arg(required = true, num_args = 1..)]
+        inputs: Vec<PathBuf>,
+    },
 }
 
 #[derive(Debug, clap::Args)]
@@ -178,6 +187,14 @@ struct ClusterArgs {
     /// A shard that hears nothing from a neighbour this long stops with an error, s.
     #[arg(long, value_name = "S", default_value_t = 30.0)]
     barrier_timeout: f64,
+    /// Shards without the client bus (no state, sensors or commands on Zenoh; ghosts still
+    /// go over it).
+    #[arg(long)]
+    no_bus: bool,
+    /// Each shard logs to DIR/shard-K-of-N.mcap (`twinswarm log merge` joins them); default:
+    /// no logs.
+    #[arg(long, value_name = "DIR")]
+    log_dir: Option<PathBuf>,
     /// Print the merged summary as JSON on stdout.
     #[arg(long)]
     json: bool,
@@ -410,6 +427,7 @@ fn main() -> ExitCode {
         Command::Localize(args) => localize::run(args),
         Command::Log(LogCommand::Info { file }) => logcmd::info(&file),
         Command::Log(LogCommand::Recover { broken, fixed }) => logcmd::recover(&broken, &fixed),
+        Command::Log(LogCommand::Merge { out, inputs }) => logcmd::merge(&inputs, &out),
         Command::Replay(args) => replay::run(args),
         Command::Plot { file, heatmap, attitude, sonar, copter } => plot::plot(
             &file,
@@ -470,8 +488,8 @@ fn run(args: RunArgs) -> anyhow::Result<()> {
         }
         spec.sim.duration_s = d;
     }
-    if let Some((shard, shards)) = args.shard {
-        return run_shard_cmd(&args, &spec, shard, shards);
+    if args.shard.is_some() {
+        check_shardable(&args, &spec)?;
     }
     let mixed = load_mixed(
         args.pairing.as_deref(),
@@ -558,6 +576,11 @@ fn run(args: RunArgs) -> anyhow::Result<()> {
         prefix: args.prefix.clone(),
         mixed,
         failsafe,
+        shard: args.shard.map(|(shard, shards)| runner::ShardOptions {
+            shard,
+            shards,
+            timeout: std::time::Duration::from_secs_f64(args.barrier_timeout),
+        }),
     };
     let stop_on_log_error = (args.on_log_error == OnLogError::Stop).then(|| stop.clone());
     let log_path = log.as_ref().filter(|l| l.has_file()).map(|l| l.path().to_owned());
@@ -629,9 +652,13 @@ fn run(args: RunArgs) -> anyhow::Result<()> {
         json["failsafe"] = serde_json::to_value(&outcome.stats.failsafe)?;
         json["inputs"] = inputs_json(&outcome.stats);
         json["log_error"] = log_error.as_ref().map_or(serde_json::Value::Null, |e| format!("{e:#}").into());
+        json["shard"] = serde_json::to_value(shardcmd::section(&outcome.state, &outcome.stats, outcome.link.as_ref()))?;
         outln!("{}", serde_json::to_string_pretty(&json)?);
     } else {
         out!("{}", summary.to_text());
+        if let Some(s) = shardcmd::section(&outcome.state, &outcome.stats, outcome.link.as_ref()) {
+            shardcmd::print_section(&s);
+        }
         outln!("  log: {}", log_stats.as_ref().map_or("off (--no-log)".into(), logcmd::describe));
         if let Some(l) = &live_stats {
             outln!(
@@ -794,6 +821,10 @@ fn run(args: RunArgs) -> anyhow::Result<()> {
                 outcome.state.time_s(&outcome.world)
             );
         }
+    }
+    if let Some(e) = &outcome.stats.shard_error {
+        // The log and the summary hold everything up to here.
+        anyhow::bail!("shard stopped at control step {}: {e}", outcome.state.tick);
     }
     match log_error {
         Some(e) => Err(e),
@@ -1057,15 +1088,9 @@ fn inspect(path: Option<&std::path::Path>, json: bool) -> anyhow::Result<()> {
     Ok(())
 }
 
-/// `run --shard K/N`.
-fn run_shard_cmd(args: &RunArgs, spec: &SceneSpec, shard: usize, shards: usize) -> anyhow::Result<()> {
-    let unsharded = [
-        (args.log.is_some(), "--log"),
-        (args.foxglove.is_some(), "--foxglove"),
-        (args.ivy.is_some(), "--ivy"),
-        (args.pairing.is_some(), "--pairing"),
-        (args.zenoh_config.is_some(), "--zenoh-config"),
-    ];
+/// What a shard cannot do yet.
+fn check_shardable(args: &RunArgs, spec: &SceneSpec) -> anyhow::Result<()> {
+    let unsharded = [(args.ivy.is_some(), "--ivy"), (args.pairing.is_some(), "--pairing")];
     if let Some((_, flag)) = unsharded.iter().find(|(on, _)| *on) {
         return Err(BadInput(anyhow::anyhow!("--shard: {flag} is not available for a shard yet")).into());
     }
@@ -1076,26 +1101,6 @@ fn run_shard_cmd(args: &RunArgs, spec: &SceneSpec, shard: usize, shards: usize) 
     }
     if !(args.barrier_timeout.is_finite() && args.barrier_timeout > 0.0) {
         return Err(BadInput(anyhow::anyhow!("--barrier-timeout must be a positive number of seconds")).into());
-    }
-    let world = scene::compile(spec).map_err(|e| BadInput(e.into()))?;
-    let opts = shardcmd::ShardRun {
-        shard,
-        shards,
-        ticks: world.default_ticks(),
-        realtime: args.realtime,
-        connect: args.connect.clone(),
-        listen: args.listen.clone(),
-        prefix: args.prefix.clone().unwrap_or_else(|| format!("twinswarm/{}", world.name)),
-        timeout: std::time::Duration::from_secs_f64(args.barrier_timeout),
-    };
-    let stop = logcmd::install_stop_flag()?;
-    let summary = shardcmd::run_shard(&world, &opts, &stop)?;
-    if args.json {
-        println!("{}", serde_json::to_string(&summary)?);
-    } else {
-        shardcmd::print_shard(&summary);
-        let mut copters = summary.copters.clone();
-        println!("  digest of its copters: {}", shardcmd::swarm_digest(&mut copters));
     }
     Ok(())
 }
@@ -1118,6 +1123,8 @@ fn cluster_cmd(args: &ClusterArgs) -> anyhow::Result<()> {
         threads: args.threads,
         timeout_s: args.barrier_timeout,
         realtime: args.realtime,
+        log_dir: args.log_dir.clone(),
+        no_bus: args.no_bus,
     };
     let s = shardcmd::run_cluster(&opts, &stop)?;
     if args.json {
@@ -1126,10 +1133,11 @@ fn cluster_cmd(args: &ClusterArgs) -> anyhow::Result<()> {
     }
     println!(
         "cluster of {} shards (router {}): {} copters, {} crashed, {:.2} s wall, slowest shard {:.2}x real time",
-        s.shards, s.router, s.copters, s.crashed, s.wall_s, s.real_time_factor
+        s.shards, s.router, s.copters_count, s.crashed, s.wall_s, s.real_time_factor
     );
     for p in &s.per_shard {
-        shardcmd::print_shard(p);
+        println!("shard {}: {:.2}x real time, {:.2} s wall", p.shard.shard, p.real_time_factor, p.wall_time_s);
+        shardcmd::print_section(&p.shard);
     }
     println!("digest of the swarm: {}", s.digest);
     Ok(())

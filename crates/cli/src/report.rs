@@ -53,13 +53,17 @@ impl Tracker {
 
     pub fn summary(&self, world: &World, state: &State, scene: &str, wall_s: f64, overruns: u64) -> Summary {
         let sim_s = state.time_s(world);
-        let copters = world
+        // A shard reports its own copters only.
+        let copters: Vec<CopterLine> = world
             .copters
             .iter()
             .enumerate()
+            .filter(|&(i, _)| state.owns(i))
             .map(|(i, c)| {
                 let p = state.pose(i);
                 CopterLine {
+                    id: i,
+                    digest: crate::shardcmd::copter_digest(&state.copters[i]),
                     name: c.name.clone(),
                     kind: c.kind,
                     final_pos_m: [p.pos_m.x, p.pos_m.y, p.pos_m.z],
@@ -74,7 +78,7 @@ impl Tracker {
             scene: scene.to_owned(),
             world: world.name.clone(),
             seed: world.params.seed,
-            copters_count: world.copters.len(),
+            copters_count: copters.len(),
             sim_time_s: sim_s,
             wall_time_s: wall_s,
             real_time_factor: if wall_s > 0.0 { sim_s / wall_s } else { f64::INFINITY },
@@ -88,7 +92,10 @@ impl Tracker {
 
 #[derive(Debug, Serialize)]
 pub struct CopterLine {
+    id: usize,
     name: String,
+    /// Its bits at the end (see `shardcmd::copter_digest`): equal runs, equal digests.
+    digest: String,
     kind: sim_core::CopterKind,
     final_pos_m: [f32; 3],
     final_yaw_deg: f32,

@@ -12,10 +12,15 @@ use bridge::failsafe::FailsafeOptions;
 use bridge::mixed::{Gateway, GatewayReport, OutboxOptions, PprzLinks, TelemetryPlan, TwinAttitude};
 use bridge::paparazzi::ivy::{IvyAgent, IvyOptions};
 use bridge::paparazzi::pairing::ResolvedPairing;
+use bridge::shard::ShardLink;
 use bridge::sim::{self, LoopOptions, LoopStats, Request, StepObserver};
 use bridge::sync::SyncOptions;
 use bridge::zenoh_net::node::{self, Node};
+use sim_core::shard::Partition;
 use sim_core::{State, World};
+use std::sync::Mutex;
+use twinswarm::BadInput;
+use zenoh::Wait;
 
 /// Bus options from the command line.
 #[derive(Debug, Clone, Default)]
@@ -37,6 +42,16 @@ pub struct BusOptions {
     pub ivy: Option<bridge::paparazzi::ivy::BusAddr>,
     /// Lost links and lost controllers.
     pub failsafe: FailsafeOptions,
+    /// Step only one shard of the swarm (see `sim_core::shard`).
+    pub shard: Option<ShardOptions>,
+}
+
+/// `--shard K/N` and its barrier timeout.
+#[derive(Debug, Clone)]
+pub struct ShardOptions {
+    pub shard: usize,
+    pub shards: usize,
+    pub timeout: std::time::Duration,
 }
 
 /// Mixed-reality options (see `bridge::mixed`).
@@ -73,6 +88,8 @@ pub struct RunOutcome {
     pub state: State,
     pub stats: LoopStats,
     pub bus: Option<BusReport>,
+    /// A shard: what its barrier cost.
+    pub link: Option<bridge::shard::LinkStats>,
 }
 
 /// Counters of the bus side.
@@ -166,6 +183,18 @@ pub const IVY_APP_NAME: &str = "Twinswarm";
 /// top), else the embedded default (peer, `tcp/127.0.0.1:7447`, multicast scouting off).
 pub fn zenoh_config(opts: &BusOptions) -> anyhow::Result<zenoh::Config> {
     match &opts.zenoh_config {
+        // Shards on one machine must not all listen on the default port: without `--listen`,
+        // a shard is a client of the router it connects to.
+        None if opts.shard.is_some() && opts.listen.is_empty() => {
+            let mut c = zenoh::Config::default();
+            let set = |c: &mut zenoh::Config, k: &str, v: String| {
+                c.insert_json5(k, &v).map_err(|e| anyhow::anyhow!("{k}: {e}"))
+            };
+            set(&mut c, "mode", "\"client\"".into())?;
+            set(&mut c, "scouting/multicast/enabled", "false".into())?;
+            set(&mut c, "connect/endpoints", serde_json::to_string(&opts.connect)?)?;
+            Ok(c)
+        }
         None => Ok(node::default_config(&opts.listen, &opts.connect)?),
         Some(path) => {
             let mut c = zenoh::Config::from_file(path)
@@ -194,20 +223,56 @@ pub fn run(
     observer: &mut (dyn StepObserver + Send),
     stop: Arc<AtomicBool>,
 ) -> anyhow::Result<RunOutcome> {
-    let state = world.initial_state();
+    let mut state = world.initial_state();
     let inputs = world.initial_inputs();
     let mut opts = LoopOptions { realtime, ticks, failsafe: bus.failsafe.clone(), ..Default::default() };
     // Room for 8,192 inputs between two steps: 160,000 per second at 50 ms, five times the
     // flood test's 30,000 (scripts/flood.sh); beyond, inputs are dropped and counted.
     let (req_tx, req_rx) = std::sync::mpsc::sync_channel::<Request>(REQUEST_QUEUE);
+    let prefix = bus.prefix.clone().unwrap_or_else(|| node::default_prefix(&world));
+    let neighbours = match &bus.shard {
+        None => Vec::new(),
+        Some(o) => {
+            let partition = Partition::new(&world, o.shards).map_err(|e| BadInput(e.into()))?;
+            let neighbours = partition.neighbours(o.shard as u16);
+            state.make_shard(partition, o.shard).map_err(|e| BadInput(e.into()))?;
+            if !neighbours.is_empty() && bus.connect.is_empty() && bus.listen.is_empty() && bus.zenoh_config.is_none() {
+                return Err(BadInput(anyhow::anyhow!(
+                    "--shard {}/{}: a shard with neighbours needs --connect (a Zenoh router) or --listen",
+                    o.shard,
+                    o.shards
+                ))
+                .into());
+            }
+            neighbours
+        }
+    };
+    // The shard's link to its neighbours, on `session`; it waits until they are all up.
+    let open_link = |session: zenoh::Session| -> anyhow::Result<Arc<Mutex<ShardLink>>> {
+        let o = bus.shard.as_ref().expect("only for shards");
+        let mut link = ShardLink::on(session, &prefix, o.shard as u16, neighbours.clone(), o.timeout)?;
+        link.wait_for_neighbours()?;
+        tracing::info!("shard {}/{}: {} neighbour(s) up, stepping", o.shard, o.shards, neighbours.len());
+        eprintln!("shard {}/{}: {} neighbour(s) up, stepping", o.shard, o.shards, neighbours.len());
+        Ok(Arc::new(Mutex::new(link)))
+    };
 
     if bus.no_bus && bus.ivy.is_none() {
+        let session = match neighbours.is_empty() {
+            true => None,
+            false => Some(zenoh::open(zenoh_config(bus)?).wait().map_err(|e| anyhow::anyhow!("zenoh: {e}"))?),
+        };
+        opts.shard = session.clone().map(&open_link).transpose()?;
         let (world, state, stats) = sim::run_loop(world, state, inputs, req_rx, None, observer, &stop, &opts);
         drop(req_tx);
-        return Ok(RunOutcome { world, state, stats, bus: None });
+        let link_stats = opts.shard.take().map(|l| bridge::lock_shared(&l).stats().clone());
+        if let Some(s) = session {
+            // Closing withdraws the shard's token: neighbours still waiting learn it is gone.
+            s.close().wait().map_err(|e| anyhow::anyhow!("zenoh: {e}"))?;
+        }
+        return Ok(RunOutcome { world, state, stats, bus: None, link: link_stats });
     }
 
-    let prefix = bus.prefix.clone().unwrap_or_else(|| node::default_prefix(&world));
     let world_arc = Arc::new(world.clone());
     let mut node = match bus.no_bus {
         true => None,
@@ -219,6 +284,13 @@ pub fn run(
             )
         }
     };
+    if !neighbours.is_empty() {
+        let session = match &node {
+            Some(n) => n.session().clone(),
+            None => zenoh::open(zenoh_config(bus)?).wait().map_err(|e| anyhow::anyhow!("zenoh: {e}"))?,
+        };
+        opts.shard = Some(open_link(session)?);
+    }
     let ivy = match &bus.ivy {
         None => None,
         Some(addr) => {
@@ -247,6 +319,7 @@ pub fn run(
         virtual_sonar_period_s: bus.mixed.virtual_sonar_period_s,
     });
     let (frame_tx, mut frame_rx) = tokio::sync::mpsc::channel(256);
+    let opts_link = opts.shard.clone();
 
     let outcome = std::thread::scope(|s| -> anyhow::Result<(Arc<World>, State, LoopStats)> {
         let stop_loop = stop.clone();
@@ -302,6 +375,7 @@ pub fn run(
     if let Some(node) = node {
         rt.block_on(node.close()).context("closing the Zenoh session")?;
     }
+    let link = opts_link.map(|l| bridge::lock_shared(&l).stats().clone());
     let (world, state, stats) = outcome;
-    Ok(RunOutcome { world, state, stats, bus: Some(report) })
+    Ok(RunOutcome { world, state, stats, bus: Some(report), link })
 }

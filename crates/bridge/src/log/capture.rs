@@ -25,6 +25,9 @@ pub struct CopterSample {
     pub took_off_tick: Option<u64>,
     /// The command applied during the step.
     pub command: Command,
+    /// Stepped by this process (always, unless it is one shard of a sharded run: then only
+    /// its own copters are logged).
+    pub owned: bool,
 }
 
 /// Everything logged about one control step. Reused from step to step (its vectors keep
@@ -56,6 +59,7 @@ impl StepFrame {
                 crash: c.crash,
                 took_off_tick: c.took_off_tick,
                 command: command.clone(),
+                owned: state.owns(i),
             });
         }
         self.events.clear();

@@ -417,6 +417,9 @@ impl Encoder {
         // Topic by topic (all states, then all sensor readings, …): a chunk's messages of one
         // topic sit together, which zstd compresses better than copter by copter.
         for (id, (info, c)) in self.copters.iter_mut().zip(&frame.copters).enumerate() {
+            if !c.owned {
+                continue;
+            }
             let p = &c.pose;
             let mode = c.command.mode.as_str();
             let id = id as u32;
@@ -446,6 +449,9 @@ impl Encoder {
             Self::emit(b, Topic::State, lt, st, sink)?;
         }
         for (id, (info, c)) in self.copters.iter().zip(&frame.copters).enumerate() {
+            if !c.owned {
+                continue;
+            }
             let id = id as u32;
             let r = &c.sensors;
             let se = &mut m.sensors;
@@ -466,6 +472,9 @@ impl Encoder {
             Self::emit(b, Topic::Sensors, lt, se, sink)?;
         }
         for (id, (info, c)) in self.copters.iter().zip(&frame.copters).enumerate() {
+            if !c.owned {
+                continue;
+            }
             let mode = c.command.mode.as_str();
             let id = id as u32;
             let cmd = &c.command;
@@ -481,6 +490,9 @@ impl Encoder {
             Self::emit(b, Topic::Command, lt, co, sink)?;
         }
         for (id, (info, c)) in self.copters.iter().zip(&frame.copters).enumerate() {
+            if !c.owned {
+                continue;
+            }
             let id = id as u32;
             let (sp, wa) = (&c.setpoint, &c.wall_avoid);
             let ct = &mut m.control;
@@ -497,6 +509,9 @@ impl Encoder {
             Self::emit(b, Topic::Control, lt, ct, sink)?;
         }
         for (info, c) in self.copters.iter().zip(&frame.copters) {
+            if !c.owned {
+                continue;
+            }
             let p = &c.pose;
             let tf = &mut m.tf;
             tf.timestamp = Some(timestamp(lt));
@@ -508,7 +523,16 @@ impl Encoder {
         }
         if tick.is_multiple_of(self.scene_every) {
             update_copter_entities(&mut m.scene, &self.copters, frame, self.sonar, lt);
-            Self::emit(b, Topic::SceneCopters, lt, &m.scene, sink)?;
+            if frame.copters.iter().all(|c| c.owned) {
+                Self::emit(b, Topic::SceneCopters, lt, &m.scene, sink)?;
+            } else {
+                // A shard updates only its own copters' entities (the others keep theirs).
+                let mut own = fg::SceneUpdate::default();
+                own.entities.extend(
+                    m.scene.entities.iter().zip(&frame.copters).filter(|(_, c)| c.owned).map(|(e, _)| e.clone()),
+                );
+                Self::emit(b, Topic::SceneCopters, lt, &own, sink)?;
+            }
         }
         for e in &frame.events {
             let copter = match e {

@@ -60,6 +60,6 @@ mod writer;
 
 pub use capture::{CopterSample, StepFrame};
 pub use encode::{Encoder, EventKind, LogEvent, SCENE_COPTERS_PERIOD_S, Sink, Topic, schema_data};
-pub use read::{ChannelDef, ChannelInfo, LogFile, LogInfo, LogReadError, RecoverReport, recover};
+pub use read::{ChannelDef, ChannelInfo, LogFile, LogInfo, LogReadError, MergeReport, RecoverReport, merge, recover};
 pub use time::{format_utc_basic, format_utc_iso, now_unix_ns, thread_cpu_ns};
 pub use writer::{LogError, LogMeta, LogOptions, LogStats, Logger};

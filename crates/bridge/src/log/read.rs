@@ -615,3 +615,172 @@ pub fn recover(broken: &Path, fixed: &Path) -> Result<RecoverReport, LogReadErro
     out.finish().map_err(werr)?;
     Ok(report)
 }
+
+/// What [`merge`] did.
+#[derive(Debug, Default, Clone, serde::Serialize)]
+pub struct MergeReport {
+    /// Messages written, per topic.
+    pub messages: BTreeMap<String, u64>,
+    /// Messages dropped as exact duplicates of another input's (same topic, log time and
+    /// bytes: the static scene, events every shard saw).
+    pub duplicates: u64,
+    /// Log time shift applied to each input to put it on the first one's epoch, ns.
+    pub shifts_ns: Vec<i64>,
+}
+
+/// A schema as [`merge`] matches them: name, encoding, data.
+type SchemaKey = (String, String, Vec<u8>);
+
+/// One input of a merge: its bytes and where its epoch is.
+struct MergeInput {
+    path: PathBuf,
+    data: Vec<u8>,
+    shift_ns: i64,
+}
+
+/// The `epoch_unix_ns` of a twinswarm log's `twinswarm` metadata, if it has one.
+fn epoch_of(data: &[u8]) -> Option<i64> {
+    for record in bounded_records(data, false) {
+        match record {
+            Ok(Record::Metadata(m)) => {
+                if let Some(e) = m.metadata.get("epoch_unix_ns").and_then(|v| v.parse().ok()) {
+                    return Some(e);
+                }
+            }
+            Ok(Record::DataEnd(_)) | Err(_) => return None,
+            _ => {}
+        }
+    }
+    None
+}
+
+/// Merges the logs of a sharded run (one per shard) into one: every message of every input,
+/// in log-time order, on one set of channels (inputs' channels with the same topic, encoding
+/// and schema become one), each input's log times shifted onto the first input's epoch.
+/// Messages that are exact duplicates across inputs at one log time (the static scene, the
+/// same event seen by two shards) are written once. Metadata and attachments come from the
+/// first input, plus a `merge` metadata record naming the sources. Every input is read whole
+/// and CRC-checked; a damaged one is an error naming it (`log recover` it first).
+pub fn merge(inputs: &[PathBuf], out: &Path) -> Result<MergeReport, LogReadError> {
+    use std::collections::HashMap;
+    let mut loaded = Vec::new();
+    for path in inputs {
+        let data = read_checked(path)?;
+        // Whole and finished: `LogFile::open` checks the footer and summary.
+        LogFile::open(path)?;
+        loaded.push(MergeInput { path: path.clone(), shift_ns: 0, data });
+    }
+    let base = loaded.first().and_then(|i| epoch_of(&i.data));
+    for input in &mut loaded {
+        input.shift_ns = match (base, epoch_of(&input.data)) {
+            (Some(b), Some(e)) => b - e,
+            _ => 0,
+        };
+    }
+    let file = std::fs::File::create(out).map_err(|source| LogReadError::Io { path: out.to_owned(), source })?;
+    let werr = |source| LogReadError::Write { path: out.to_owned(), source };
+    let mut w = WriteOptions::new()
+        .compression(Some(Compression::Zstd))
+        .compression_level(3)
+        .compression_threads(0)
+        .library(format!("twinswarm {} (log merge)", env!("CARGO_PKG_VERSION")))
+        .create(BufWriter::new(file))
+        .map_err(werr)?;
+    let mut report = MergeReport { shifts_ns: loaded.iter().map(|i| i.shift_ns).collect(), ..MergeReport::default() };
+    // Per input: its records, the head message, its schemas and channels mapped to the output's.
+    let mut streams: Vec<_> = loaded.iter().map(|i| bounded_records(&i.data, false).peekable()).collect();
+    let mut schemas: Vec<HashMap<u16, SchemaKey>> = vec![HashMap::new(); loaded.len()];
+    let mut channels: Vec<HashMap<u16, u16>> = vec![HashMap::new(); loaded.len()];
+    let mut out_schemas: HashMap<SchemaKey, u16> = HashMap::new();
+    let mut out_channels: HashMap<(String, String, u16), u16> = HashMap::new();
+    let mut topics: HashMap<u16, String> = HashMap::new();
+    let mut heads: Vec<Option<(mcap::records::MessageHeader, Vec<u8>)>> = vec![None; loaded.len()];
+    let mut attachments: std::collections::HashSet<String> = std::collections::HashSet::new();
+    // What went out at the current log time: (channel, crc and length) → from which input.
+    let mut seen_at: (u64, HashMap<(u16, u64), usize>) = (0, HashMap::new());
+    let corrupt = |k: usize, e: McapError| LogReadError::Corrupt { path: loaded[k].path.clone(), source: e };
+    loop {
+        // Refill each input's head: the next message, taking in its definitions on the way.
+        for k in 0..loaded.len() {
+            while heads[k].is_none() {
+                let Some(record) = streams[k].next() else { break };
+                match record.map_err(|e| corrupt(k, e))? {
+                    Record::Schema { header, data } => {
+                        schemas[k].insert(header.id, (header.name, header.encoding, data.into_owned()));
+                    }
+                    Record::Channel(c) => {
+                        let Some(schema) = schemas[k].get(&c.schema_id).cloned() else {
+                            return Err(LogReadError::Corrupt {
+                                path: loaded[k].path.clone(),
+                                source: McapError::UnknownSchema(c.topic.clone(), c.schema_id),
+                            });
+                        };
+                        let sid = match out_schemas.get(&schema) {
+                            Some(&id) => id,
+                            None => {
+                                let id = w.add_schema(&schema.0, &schema.1, &schema.2).map_err(werr)?;
+                                out_schemas.insert(schema, id);
+                                id
+                            }
+                        };
+                        let key = (c.topic.clone(), c.message_encoding.clone(), sid);
+                        let cid = match out_channels.get(&key) {
+                            Some(&id) => id,
+                            None => {
+                                let id =
+                                    w.add_channel(sid, &c.topic, &c.message_encoding, &c.metadata).map_err(werr)?;
+                                out_channels.insert(key, id);
+                                topics.insert(id, c.topic.clone());
+                                id
+                            }
+                        };
+                        channels[k].insert(c.id, cid);
+                    }
+                    Record::Message { header, data } => {
+                        let Some(&cid) = channels[k].get(&header.channel_id) else { continue };
+                        let log_time = header.log_time.saturating_add_signed(loaded[k].shift_ns);
+                        let publish_time = header.publish_time.saturating_add_signed(loaded[k].shift_ns);
+                        let h = mcap::records::MessageHeader { channel_id: cid, log_time, publish_time, ..header };
+                        heads[k] = Some((h, data.into_owned()));
+                    }
+                    Record::Attachment { header, data, .. } if k == 0 && attachments.insert(header.name.clone()) => {
+                        w.attach(&Attachment {
+                            log_time: header.log_time,
+                            create_time: header.create_time,
+                            name: header.name,
+                            media_type: header.media_type,
+                            data,
+                        })
+                        .map_err(werr)?;
+                    }
+                    Record::Metadata(m) if k == 0 => w.write_metadata(&m).map_err(werr)?,
+                    Record::DataEnd(_) => break,
+                    _ => {}
+                }
+            }
+        }
+        // The earliest head (ties: the lower input) goes out.
+        let Some(k) =
+            (0..loaded.len()).filter(|&k| heads[k].is_some()).min_by_key(|&k| heads[k].as_ref().map(|h| h.0.log_time))
+        else {
+            break;
+        };
+        let Some((header, data)) = heads[k].take() else { break };
+        if seen_at.0 != header.log_time {
+            seen_at = (header.log_time, Default::default());
+        }
+        let digest = u64::from(crc32fast::hash(&data)) << 32 | data.len() as u64;
+        if *seen_at.1.entry((header.channel_id, digest)).or_insert(k) != k {
+            report.duplicates += 1;
+            continue;
+        }
+        w.write_to_known_channel(&header, &data).map_err(werr)?;
+        *report.messages.entry(topics.get(&header.channel_id).cloned().unwrap_or_default()).or_insert(0) += 1;
+    }
+    let mut meta = BTreeMap::new();
+    meta.insert("sources".to_owned(), inputs.iter().map(|p| p.display().to_string()).collect::<Vec<_>>().join("\n"));
+    meta.insert("duplicates_dropped".to_owned(), report.duplicates.to_string());
+    w.write_metadata(&mcap::records::Metadata { name: "merge".into(), metadata: meta }).map_err(werr)?;
+    w.finish().map_err(werr)?;
+    Ok(report)
+}

@@ -488,13 +488,14 @@ impl Node {
         }
         let clock = ClockMsg { tick: frame.tick, time_s: frame.time_s };
         self.clock_pub.put(serde_json::to_vec(&clock).unwrap_or_default()).await.map_err(zerr)?;
-        for (i, s) in frame.states.iter().enumerate() {
+        // A shard's frame holds its own copters only: each goes out on its copter's keys.
+        for (&i, s) in frame.ids.iter().zip(&frame.states) {
             let payload = serde_json::to_vec(s).unwrap_or_default();
-            self.publishers[i].0.put(payload).await.map_err(zerr)?;
+            self.publishers[i as usize].0.put(payload).await.map_err(zerr)?;
         }
-        for (i, s) in frame.sensors.iter().enumerate() {
+        for (&i, s) in frame.ids.iter().zip(&frame.sensors) {
             let payload = serde_json::to_vec(s).unwrap_or_default();
-            self.publishers[i].1.put(payload).await.map_err(zerr)?;
+            self.publishers[i as usize].1.put(payload).await.map_err(zerr)?;
         }
         for out in &frame.pprz_out {
             self.session.put(out.key.as_str(), out.text.as_str()).await.map_err(zerr)?;
