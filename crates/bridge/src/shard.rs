@@ -76,6 +76,12 @@ pub enum LinkError {
     Shard(#[from] ShardError),
 }
 
+/// How long a neighbour that left may still deliver its last batch.
+const LEFT_GRACE: Duration = Duration::from_secs(2);
+
+/// How often a waiting shard looks at neighbours that left.
+const POLL: Duration = Duration::from_millis(50);
+
 fn zerr(e: impl std::fmt::Display) -> LinkError {
     LinkError::Zenoh(e.to_string())
 }
@@ -127,6 +133,8 @@ pub struct ShardLink {
     /// Batches that came early (a neighbour one step ahead), by (tick, from).
     early: BTreeMap<(u64, ShardId), GhostBatch>,
     joined: Vec<ShardId>,
+    /// Neighbours whose token went away, and when this shard learnt it.
+    left: Vec<(ShardId, Instant)>,
     timeout: Duration,
     ghosts: Vec<Ghost>,
     stats: LinkStats,
@@ -206,6 +214,7 @@ impl ShardLink {
             _watch: watch,
             early: BTreeMap::new(),
             joined: Vec::new(),
+            left: Vec::new(),
             timeout,
             ghosts: Vec::new(),
             stats: LinkStats::default(),
@@ -221,6 +230,7 @@ impl ShardLink {
                 self.take(msg, 0)?;
             }
             let missing: Vec<ShardId> = self.neighbours.iter().copied().filter(|k| !self.joined.contains(k)).collect();
+            self.gone(&missing, 0)?;
             let unmatched = self.publishers.iter().any(|p| !p.matching_status().wait().is_ok_and(|m| m.matching()));
             if missing.is_empty() && !unmatched {
                 return Ok(());
@@ -252,12 +262,23 @@ impl ShardLink {
                 }
             }
             Incoming::Left(k) => {
-                if self.neighbours.contains(&k) {
-                    return Err(LinkError::Left { shard: k, tick });
+                // Not an error yet: a neighbour that finished its last step leaves right after
+                // sending its last batch, which may still be on its way (see `exchange`).
+                if self.neighbours.contains(&k) && !self.left.iter().any(|(l, _)| *l == k) {
+                    self.left.push((k, Instant::now()));
                 }
+                let _ = tick;
             }
         }
         Ok(())
+    }
+
+    /// A missing neighbour that left more than [`LEFT_GRACE`] ago: it is not coming back.
+    fn gone(&self, missing: &[ShardId], tick: u64) -> Result<(), LinkError> {
+        match self.left.iter().find(|(k, at)| missing.contains(k) && at.elapsed() > LEFT_GRACE) {
+            Some(&(shard, _)) => Err(LinkError::Left { shard, tick }),
+            None => Ok(()),
+        }
     }
 
     /// The barrier: sends each neighbour its ghosts for `state.tick`, waits for all of theirs,
@@ -283,17 +304,14 @@ impl ShardLink {
             if missing.is_empty() {
                 break;
             }
-            let left = self.timeout.saturating_sub(t1.elapsed());
-            match self.inbox.recv_timeout(left) {
-                Ok(msg) => self.take(msg, tick)?,
-                Err(_) => {
-                    return Err(LinkError::Timeout {
-                        me: self.me,
-                        missing,
-                        tick,
-                        waited_s: t1.elapsed().as_secs_f64(),
-                    });
-                }
+            self.gone(&missing, tick)?;
+            let remaining = self.timeout.saturating_sub(t1.elapsed());
+            if remaining.is_zero() {
+                return Err(LinkError::Timeout { me: self.me, missing, tick, waited_s: t1.elapsed().as_secs_f64() });
+            }
+            // Wake at least every POLL to look at neighbours that left.
+            if let Ok(msg) = self.inbox.recv_timeout(remaining.min(POLL)) {
+                self.take(msg, tick)?;
             }
         }
         let wait = t1.elapsed().as_secs_f64();
