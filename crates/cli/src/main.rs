@@ -43,6 +43,16 @@ enum Command {
     /// Start a Zenoh router and N local shard processes of one swarm (`run --shard K/N`),
     /// wait for them and merge their summaries. A launcher, not a scheduler.
     Cluster(ClusterArgs),
+    /// Run a Zenoh router (multicast scouting off) for shards and clients on several machines:
+    /// one per machine, connected to each other; `zenohd` does the same.
+    Router {
+        /// Endpoints to listen on.
+        #[arg(long, value_name = "ENDPOINT", default_value = "tcp/127.0.0.1:7447")]
+        listen: Vec<String>,
+        /// Other machines' routers to connect to.
+        #[arg(long, value_name = "ENDPOINT")]
+        connect: Vec<String>,
+    },
     /// Stand in for a real FINken: fly its own "reality", send telemetry, fuse virtual sonar.
     Copter(standin::CopterArgs),
     /// Ivy bus tools: probe (like ivyprobe), send, peers.
@@ -423,6 +433,7 @@ fn main() -> ExitCode {
         Command::Check { scene } => check(&scene),
         Command::Scene(args) => scene_cmd(&args),
         Command::Cluster(args) => cluster_cmd(&args),
+        Command::Router { listen, connect } => router_cmd(&listen, &connect),
         Command::Inspect { scene, json } => inspect(scene.as_deref(), json),
         Command::Localize(args) => localize::run(args),
         Command::Log(LogCommand::Info { file }) => logcmd::info(&file),
@@ -1140,5 +1151,20 @@ fn cluster_cmd(args: &ClusterArgs) -> anyhow::Result<()> {
         shardcmd::print_section(&p.shard);
     }
     println!("digest of the swarm: {}", s.digest);
+    Ok(())
+}
+
+/// `router`: a Zenoh router until SIGINT or SIGTERM.
+fn router_cmd(listen: &[String], connect: &[String]) -> anyhow::Result<()> {
+    use zenoh::Wait;
+    let stop = logcmd::install_stop_flag()?;
+    let session = zenoh::open(shardcmd::router_config(listen, connect)?)
+        .wait()
+        .map_err(|e| anyhow::anyhow!("cannot start the Zenoh router on {listen:?}: {e}"))?;
+    eprintln!("zenoh router listening on {listen:?}, connected to {connect:?}; Ctrl-C stops it");
+    while !stop.load(std::sync::atomic::Ordering::Relaxed) {
+        std::thread::sleep(std::time::Duration::from_millis(100));
+    }
+    session.close().wait().map_err(|e| anyhow::anyhow!("zenoh: {e}"))?;
     Ok(())
 }

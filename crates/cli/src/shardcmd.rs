@@ -194,6 +194,19 @@ pub struct ClusterSummary {
     pub per_shard: Vec<ShardRun>,
 }
 
+/// A Zenoh router's configuration: listening and connecting where told, multicast scouting
+/// off.
+pub fn router_config(listen: &[String], connect: &[String]) -> anyhow::Result<zenoh::Config> {
+    let mut c = zenoh::Config::default();
+    let set =
+        |c: &mut zenoh::Config, k: &str, v: String| c.insert_json5(k, &v).map_err(|e| anyhow::anyhow!("{k}: {e}"));
+    set(&mut c, "mode", "\"router\"".into())?;
+    set(&mut c, "scouting/multicast/enabled", "false".into())?;
+    set(&mut c, "listen/endpoints", serde_json::to_string(listen)?)?;
+    set(&mut c, "connect/endpoints", serde_json::to_string(connect)?)?;
+    Ok(c)
+}
+
 /// A free TCP port on 127.0.0.1.
 fn free_port() -> anyhow::Result<u16> {
     Ok(std::net::TcpListener::bind("127.0.0.1:0")?.local_addr()?.port())
@@ -205,15 +218,9 @@ fn free_port() -> anyhow::Result<u16> {
 pub fn run_cluster(opts: &ClusterRun, stop: &Arc<AtomicBool>) -> anyhow::Result<ClusterSummary> {
     let port = free_port()?;
     let endpoint = format!("tcp/127.0.0.1:{port}");
-    let mut c = zenoh::Config::default();
-    let set =
-        |c: &mut zenoh::Config, k: &str, v: String| c.insert_json5(k, &v).map_err(|e| anyhow::anyhow!("{k}: {e}"));
-    set(&mut c, "mode", "\"router\"".into())?;
-    set(&mut c, "scouting/multicast/enabled", "false".into())?;
-    set(&mut c, "listen/endpoints", serde_json::to_string(&[&endpoint])?)?;
-    set(&mut c, "connect/endpoints", "[]".into())?;
-    let router =
-        zenoh::open(c).wait().map_err(|e| anyhow::anyhow!("cannot start the Zenoh router on {endpoint}: {e}"))?;
+    let router = zenoh::open(router_config(std::slice::from_ref(&endpoint), &[])?)
+        .wait()
+        .map_err(|e| anyhow::anyhow!("cannot start the Zenoh router on {endpoint}: {e}"))?;
     let exe = std::env::current_exe().context("cannot find this binary to start the shards")?;
     let start = Instant::now();
     let prefix = format!("twinswarm/cluster-{port}");
