@@ -161,11 +161,11 @@ where
 
 fn step_on(world: &World, state: &mut State, inputs: &Inputs, parallel: bool, report: &mut StepReport) {
     let mut view = state.shard.take();
-    step_shard(world, state, inputs, parallel, &mut view, report);
+    step_copters(world, state, inputs, parallel, &mut view, report);
     state.shard = view;
 }
 
-fn step_shard(
+fn step_copters(
     world: &World,
     state: &mut State,
     inputs: &Inputs,
