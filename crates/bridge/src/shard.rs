@@ -94,7 +94,7 @@ enum Incoming {
 }
 
 /// What the barrier cost, for the run's summary.
-#[derive(Clone, Debug, Default, Serialize)]
+#[derive(Clone, Debug, Default, Serialize, Deserialize)]
 pub struct LinkStats {
     /// Exchanges done (one per step).
     pub exchanges: u64,

@@ -71,10 +71,10 @@ pub fn print_section(s: &ShardSection) {
         println!(
             "    barrier: {:.3} ms per step (worst wait {:.1} ms); ghosts: {:.0} B sent per step, {} sent, {} received",
             l.barrier_ms_per_step,
-            l.wait_max_s * 1e3,
+            l.totals.wait_max_s * 1e3,
             l.bytes_sent_per_step,
-            l.ghosts_sent,
-            l.ghosts_received
+            l.totals.ghosts_sent,
+            l.totals.ghosts_received
         );
     }
 }
@@ -82,14 +82,8 @@ pub fn print_section(s: &ShardSection) {
 /// [`LinkStats`] with per-step figures.
 #[derive(Debug, Clone, Serialize, Deserialize)]
 pub struct LinkStatsOut {
-    pub exchanges: u64,
-    pub wait_s: f64,
-    pub wait_max_s: f64,
-    pub send_s: f64,
-    pub ghosts_sent: u64,
-    pub ghosts_received: u64,
-    pub bytes_sent: u64,
-    pub bytes_received: u64,
+    #[serde(flatten)]
+    pub totals: LinkStats,
     pub bytes_sent_per_step: f64,
     pub barrier_ms_per_step: f64,
 }
@@ -98,14 +92,7 @@ impl From<&LinkStats> for LinkStatsOut {
     fn from(s: &LinkStats) -> Self {
         let per = |v: f64| if s.exchanges == 0 { 0.0 } else { v / s.exchanges as f64 };
         Self {
-            exchanges: s.exchanges,
-            wait_s: s.wait_s,
-            wait_max_s: s.wait_max_s,
-            send_s: s.send_s,
-            ghosts_sent: s.ghosts_sent,
-            ghosts_received: s.ghosts_received,
-            bytes_sent: s.bytes_sent,
-            bytes_received: s.bytes_received,
+            totals: s.clone(),
             bytes_sent_per_step: per(s.bytes_sent as f64),
             barrier_ms_per_step: per((s.wait_s + s.send_s) * 1e3),
         }

@@ -534,6 +534,19 @@ impl RecoverReport {
     }
 }
 
+/// A new MCAP file at `path` for a tool's output: zstd chunks at `level`, indexes and summary,
+/// the tool named in the header.
+fn create_mcap(path: &Path, level: u32, tool: &str) -> Result<mcap::Writer<BufWriter<std::fs::File>>, LogReadError> {
+    let file = std::fs::File::create(path).map_err(|source| LogReadError::Io { path: path.to_owned(), source })?;
+    WriteOptions::new()
+        .compression(Some(Compression::Zstd))
+        .compression_level(level)
+        .compression_threads(0)
+        .library(format!("twinswarm {} ({tool})", env!("CARGO_PKG_VERSION")))
+        .create(BufWriter::new(file))
+        .map_err(|source| LogReadError::Write { path: path.to_owned(), source })
+}
+
 /// Reads every complete record of a possibly truncated MCAP file (schemas, channels,
 /// attachments, metadata, and the messages of every chunk whose CRC checks) and writes them
 /// to a new, complete file (zstd chunks, indexes, summary).
@@ -551,15 +564,8 @@ pub fn recover(broken: &Path, fixed: &Path) -> Result<RecoverReport, LogReadErro
             Some(format!("damaged at byte {offset}: {what}"))
         }
     };
-    let file = std::fs::File::create(fixed).map_err(|source| LogReadError::Io { path: fixed.to_owned(), source })?;
     let werr = |source| LogReadError::Write { path: fixed.to_owned(), source };
-    let mut out = WriteOptions::new()
-        .compression(Some(Compression::Zstd))
-        .compression_level(1)
-        .compression_threads(0)
-        .library(format!("twinswarm {} (log recover)", env!("CARGO_PKG_VERSION")))
-        .create(BufWriter::new(file))
-        .map_err(werr)?;
+    let mut out = create_mcap(fixed, 1, "log recover")?;
     let input_bytes = std::fs::metadata(broken).map_or(data.len() as u64, |m| m.len());
     let mut report = RecoverReport { input_bytes, stopped_by: damage, ..RecoverReport::default() };
     let mut topics: BTreeMap<u16, String> = BTreeMap::new();
@@ -677,15 +683,8 @@ pub fn merge(inputs: &[PathBuf], out: &Path) -> Result<MergeReport, LogReadError
             _ => 0,
         };
     }
-    let file = std::fs::File::create(out).map_err(|source| LogReadError::Io { path: out.to_owned(), source })?;
     let werr = |source| LogReadError::Write { path: out.to_owned(), source };
-    let mut w = WriteOptions::new()
-        .compression(Some(Compression::Zstd))
-        .compression_level(3)
-        .compression_threads(0)
-        .library(format!("twinswarm {} (log merge)", env!("CARGO_PKG_VERSION")))
-        .create(BufWriter::new(file))
-        .map_err(werr)?;
+    let mut w = create_mcap(out, 3, "log merge")?;
     let mut report = MergeReport { shifts_ns: loaded.iter().map(|i| i.shift_ns).collect(), ..MergeReport::default() };
     // Per input: its records, the head message, its schemas and channels mapped to the output's.
     let mut streams: Vec<_> = loaded.iter().map(|i| bounded_records(&i.data, false).peekable()).collect();
