@@ -99,18 +99,9 @@ impl From<&LinkStats> for LinkStatsOut {
     }
 }
 
-/// A copter's digest: FNV-1a over the bits of its motion, rotor speeds, battery charge, crash
-/// and the next draw of its random stream. Equal digests, equal copters.
+/// A copter's digest ([`CopterState::digest`]) as the summaries print it.
 pub fn copter_digest(c: &CopterState) -> String {
-    let m = &c.motion;
-    let mut bits: Vec<u32> =
-        [m.pos_m, m.vel_m_s, m.angvel_rad_s].iter().flat_map(|v| v.to_array()).map(f32::to_bits).collect();
-    bits.extend(m.rot.to_array().map(f32::to_bits));
-    bits.extend(c.rotor_speed_rad_s.map(f32::to_bits));
-    bits.push(c.battery.charge.to_bits());
-    bits.push(u32::from(c.crash.is_some()));
-    bits.push(c.rng.clone().uniform().to_bits());
-    format!("{:016x}", fnv(bits.iter().flat_map(|b| b.to_le_bytes())))
+    format!("{:016x}", c.digest())
 }
 
 fn fnv(bytes: impl IntoIterator<Item = u8>) -> u64 {

@@ -19,6 +19,94 @@ fn flock_scene(tag: &str) -> PathBuf {
     path
 }
 
+/// A scene file made from a generated scene.
+fn scene_file(tag: &str, spec: &sim_core::SceneSpec) -> PathBuf {
+    let path = std::env::temp_dir().join(format!("twinswarm-shard-{tag}-{}.toml", std::process::id()));
+    std::fs::write(&path, toml::to_string(spec).unwrap()).unwrap();
+    path
+}
+
+/// Every copter's `(id, digest)` in a run's or a cluster's JSON summary, in id order.
+fn digests(summary: &serde_json::Value) -> Vec<(u64, String)> {
+    let mut v: Vec<(u64, String)> = summary["copters"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|c| (c["id"].as_u64().unwrap(), c["digest"].as_str().unwrap().to_owned()))
+        .collect();
+    v.sort();
+    v
+}
+
+/// Every copter's `(id, digest)` after `ticks` steps of `world` as `shards` shards in this
+/// process (ghosts traded in memory).
+fn in_process(world: &sim_core::World, shards: usize, ticks: u64) -> Vec<(u64, String)> {
+    let partition = sim_core::shard::Partition::new(world, shards).unwrap();
+    let mut states: Vec<sim_core::State> = (0..shards)
+        .map(|k| {
+            let mut s = world.initial_state();
+            s.make_shard(partition.clone(), k).unwrap();
+            s
+        })
+        .collect();
+    let inputs = world.initial_inputs();
+    let mut reports = Vec::new();
+    for _ in 0..ticks {
+        sim_core::shard::step_in_process(world, &mut states, &inputs, &mut reports).unwrap();
+    }
+    (0..world.copters.len())
+        .map(|i| {
+            let s = states.iter().find(|s| s.owns(i)).unwrap();
+            (i as u64, format!("{:016x}", s.copters[i].digest()))
+        })
+        .collect()
+}
+
+#[test]
+fn a_minute_over_processes_is_the_same_minute_in_one_process() {
+    // 60 s of the flock: copters cross the borders, some crash. Over Zenoh, every shard count
+    // gives exactly the bits of the same shards in one process (which differ from one
+    // unsharded process only where Rapier solves wrecks' contacts: sim-core/tests/shard.rs).
+    let spec = sim_core::scene::flock_swarm(144, 3);
+    let world = sim_core::scene::compile(&spec).unwrap();
+    let path = scene_file("flock60", &spec);
+    let scene = path.to_str().unwrap();
+    for shards in [2, 3, 4] {
+        let (ok, out, err) =
+            twinswarm(&["cluster", scene, "--shards", &shards.to_string(), "--no-bus", "--duration", "60", "--json"]);
+        assert!(ok, "{shards} shards: {err}");
+        let c = json(&out);
+        assert!(c["crashed"].as_u64().unwrap() > 0, "crashes on the way");
+        assert_eq!(digests(&c), in_process(&world, shards, 1200), "{shards} shards over Zenoh = in one process");
+    }
+    let _ = std::fs::remove_file(path);
+}
+
+#[test]
+fn a_crash_across_a_border_over_processes_is_the_one_process_crash() {
+    // Two copters meeting head-on over the border between two strips: the lower id's shard
+    // takes the other over and steps the pair.
+    let mut spec = sim_core::scene::dense_swarm(2, 3.0, false, 0, 1);
+    spec.arena.size_m = [12.0, 6.0];
+    for (c, x) in spec.copters.iter_mut().zip([-1.5_f32, 1.5]) {
+        c.mode = sim_core::FlightMode::Target;
+        c.start.pos_m = [x, 0.0];
+        c.command.target_m = Some([-3.0 * x, 0.0, 1.0]);
+    }
+    let path = scene_file("headon", &spec);
+    let scene = path.to_str().unwrap();
+    let (ok, out, err) = twinswarm(&["run", scene, "--no-bus", "--no-log", "--duration", "10", "--json"]);
+    assert!(ok, "{err}");
+    let one = json(&out);
+    assert!(one["copters"].as_array().unwrap().iter().all(|c| c["crashed"] == true), "both crash: {one}");
+    let (ok, out, err) = twinswarm(&["cluster", scene, "--shards", "2", "--no-bus", "--duration", "10", "--json"]);
+    assert!(ok, "{err}");
+    let c = json(&out);
+    assert_eq!(digests(&c), digests(&one));
+    assert_eq!(c["per_shard"][0]["shard"]["taken_over"].as_u64(), Some(1), "shard 0 took copter 1 over: {c}");
+    let _ = std::fs::remove_file(path);
+}
+
 fn json(text: &str) -> serde_json::Value {
     serde_json::from_str(text.trim()).unwrap_or_else(|e| panic!("{e}: {text}"))
 }

@@ -307,6 +307,34 @@ impl State {
     }
 }
 
+/// Steps every shard of a sharded run by one control step in this process, trading ghosts in
+/// memory: what the shards' processes do over Zenoh (tests and benches compare the two). Each
+/// state must be shard `k` of the same partition, at the same tick.
+pub fn step_in_process(
+    world: &World,
+    shards: &mut [State],
+    inputs: &crate::Inputs,
+    reports: &mut Vec<crate::StepReport>,
+) -> Result<(), ShardError> {
+    let mut inbox: Vec<Vec<Ghost>> = vec![Vec::new(); shards.len()];
+    for s in shards.iter() {
+        let Some(view) = &s.shard else { continue };
+        for t in view.partition.neighbours(view.me) {
+            if let Some(out) = inbox.get_mut(usize::from(t)) {
+                s.ghosts_for(t, out);
+            }
+        }
+    }
+    for (s, ghosts) in shards.iter_mut().zip(inbox) {
+        s.receive_ghosts(ghosts)?;
+    }
+    reports.resize_with(shards.len(), Default::default);
+    for (s, report) in shards.iter_mut().zip(reports.iter_mut()) {
+        crate::step_into(world, s, inputs, report);
+    }
+    Ok(())
+}
+
 /// Union-find root with path halving.
 pub(crate) fn root(parent: &mut [u32], mut i: u32) -> u32 {
     while parent[i as usize] != i {

@@ -166,6 +166,29 @@ mod crash_snapshot {
     }
 }
 
+impl CopterState {
+    /// FNV-1a over the bits of its motion, rotor speeds, battery charge, crash and the next
+    /// draw of its random stream: two runs whose copters have equal digests flew the same bits.
+    pub fn digest(&self) -> u64 {
+        let m = &self.motion;
+        let mut h: u64 = 0xcbf2_9ce4_8422_2325;
+        let mut put = |bits: u32| {
+            for b in bits.to_le_bytes() {
+                h = (h ^ u64::from(b)).wrapping_mul(0x0000_0100_0000_01b3);
+            }
+        };
+        for v in [m.pos_m, m.vel_m_s, m.angvel_rad_s] {
+            v.to_array().into_iter().for_each(|x| put(x.to_bits()));
+        }
+        m.rot.to_array().into_iter().for_each(|x| put(x.to_bits()));
+        self.rotor_speed_rad_s.into_iter().for_each(|x| put(x.to_bits()));
+        put(self.battery.charge.to_bits());
+        put(u32::from(self.crash.is_some()));
+        put(self.rng.clone().uniform().to_bits());
+        h
+    }
+}
+
 /// A copter's pose and velocities, world frame.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Serialize, Deserialize)]
 pub struct Motion {

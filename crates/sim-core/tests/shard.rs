@@ -3,7 +3,7 @@
 //! `sim_core::shard`). The Zenoh transport between processes is tested in `cli/tests/shard.rs`.
 
 use sim_core::scene::{self, SceneSpec};
-use sim_core::shard::{Ghost, Partition, Role};
+use sim_core::shard::{Partition, Role};
 use sim_core::{CopterState, State, World, step};
 
 /// What must be the same: motion, crash, readings and the random stream's next draw.
@@ -33,7 +33,6 @@ fn flock() -> SceneSpec {
 
 struct Sharded {
     states: Vec<State>,
-    partition: Partition,
     /// Ownership changes seen (a copter stepped by another shard than at the step before).
     migrations: usize,
     /// Most copters any shard had absent at once.
@@ -85,24 +84,14 @@ fn run_sharded(world: &World, shards: usize, ticks: u64) -> Sharded {
             })
             .collect()
     };
-    let mut run =
-        Sharded { states, partition, migrations: 0, max_absent: 0, one: world.initial_state(), first_divergence: None };
+    let mut run = Sharded { states, migrations: 0, max_absent: 0, one: world.initial_state(), first_divergence: None };
     let mut before = owners(&run.states);
+    let mut reports = Vec::new();
     for _ in 0..ticks {
-        // The exchange: every shard's ghosts for each neighbour, then each takes its own.
-        let mut inbox: Vec<Vec<Ghost>> = vec![Vec::new(); shards];
-        for (k, s) in run.states.iter().enumerate() {
-            for t in run.partition.neighbours(k as u16) {
-                s.ghosts_for(t, &mut inbox[t as usize]);
-            }
-        }
-        for (s, ghosts) in run.states.iter_mut().zip(inbox) {
-            s.receive_ghosts(ghosts).unwrap();
+        sim_core::shard::step_in_process(world, &mut run.states, &inputs, &mut reports).unwrap();
+        for (s, report) in run.states.iter().zip(&reports) {
             let absent = s.shard().unwrap().roles.iter().filter(|r| **r == Role::Absent).count();
             run.max_absent = run.max_absent.max(absent);
-        }
-        for s in &mut run.states {
-            let report = step(world, s, &inputs);
             assert_eq!(report.shard_violations, 0, "tick {}", report.tick);
         }
         step(world, &mut run.one, &inputs);
