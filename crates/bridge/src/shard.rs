@@ -227,7 +227,7 @@ impl ShardLink {
         let start = Instant::now();
         loop {
             while let Ok(msg) = self.inbox.try_recv() {
-                self.take(msg, 0)?;
+                self.take(msg)?;
             }
             let missing: Vec<ShardId> = self.neighbours.iter().copied().filter(|k| !self.joined.contains(k)).collect();
             self.gone(&missing, 0)?;
@@ -248,7 +248,7 @@ impl ShardLink {
         }
     }
 
-    fn take(&mut self, msg: Incoming, tick: u64) -> Result<(), LinkError> {
+    fn take(&mut self, msg: Incoming) -> Result<(), LinkError> {
         match msg {
             Incoming::Batch(b, bytes) => {
                 self.stats.bytes_received += bytes as u64;
@@ -267,7 +267,6 @@ impl ShardLink {
                 if self.neighbours.contains(&k) && !self.left.iter().any(|(l, _)| *l == k) {
                     self.left.push((k, Instant::now()));
                 }
-                let _ = tick;
             }
         }
         Ok(())
@@ -311,7 +310,7 @@ impl ShardLink {
             }
             // Wake at least every POLL to look at neighbours that left.
             if let Ok(msg) = self.inbox.recv_timeout(remaining.min(POLL)) {
-                self.take(msg, tick)?;
+                self.take(msg)?;
             }
         }
         let wait = t1.elapsed().as_secs_f64();
