@@ -129,8 +129,10 @@ fn two_three_and_four_shard_processes_give_the_one_process_bits() {
     assert_eq!(copters.len(), 144);
     let crashed = one["copters"].as_array().unwrap().iter().filter(|c| c["crashed"] == true).count();
     assert!(crashed > 0, "the flock has crashes to agree on");
-    for shards in ["2", "3", "4"] {
-        let (ok, out, err) = twinswarm(&["cluster", scene, "--shards", shards, "--duration", "20", "--json"]);
+    // Shards on two threads each too: a shard's step merges its threads' work in id order.
+    for (shards, threads) in [("2", "1"), ("3", "1"), ("4", "1"), ("2", "2")] {
+        let (ok, out, err) =
+            twinswarm(&["cluster", scene, "--shards", shards, "--threads", threads, "--duration", "20", "--json"]);
         assert!(ok, "{shards} shards: {err}");
         let c = json(&out);
         let mut got: Vec<(u64, String)> = c["copters"]
