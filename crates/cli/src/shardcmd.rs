@@ -54,7 +54,7 @@ pub fn section(state: &State, stats: &LoopStats, link: Option<&LinkStats>) -> Op
         grid: [nx, ny],
         halo_m: view.partition.halo_m(),
         owned_at_end: view.roles.iter().filter(|r| **r == Role::Owned).count(),
-        ghosts_at_end: view.roles.iter().filter(|r| **r == Role::Ghost).count(),
+        ghosts_at_end: view.roles.iter().filter(|r| matches!(r, Role::Ghost | Role::Far)).count(),
         taken_over: stats.shard_taken_over,
         error: stats.shard_error.clone(),
         link: link.map(LinkStatsOut::from),

@@ -37,7 +37,7 @@
 use serde::{Deserialize, Serialize};
 
 use crate::math::{Real, Vec3};
-use crate::state::{CopterState, State};
+use crate::state::{CopterState, CrashCause, Motion, State};
 use crate::world::World;
 
 /// A shard's number, `0..shards`.
@@ -47,13 +47,22 @@ pub type ShardId = u16;
 /// a border), m. Larger clusters are violations.
 pub const PULL_ZONE_M: Real = 3.0;
 
+/// Beyond this distance from a region, a neighbour's copter is sent and held as [`Role::Far`]:
+/// the pull zone plus two reservation spheres (no copter this shard may own can meet it).
+pub const FAR_BEYOND_M: Real = PULL_ZONE_M + 2.0;
+
 /// What a copter is to one shard.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
 pub enum Role {
     /// Stepped here.
     Owned,
-    /// A neighbour's copter near this region, read but not stepped.
+    /// A neighbour's copter within the pull zone (and a margin) of this region, with its
+    /// whole state: read, and sensed and controlled here as its owner would, since this shard
+    /// may take it over within the step.
     Ghost,
+    /// A neighbour's copter farther out in the halo: only what others read of it (its motion,
+    /// rotor thrusts, crash, sonar timing), neither sensed nor controlled here.
+    Far,
     /// Far away: not read.
     Absent,
 }
@@ -204,15 +213,40 @@ pub(crate) fn sense_reach_m(world: &World) -> Real {
     sonar.max_range_m.max(sonar.cap_m) + 2.0 * sonar.mount_offset_m + body
 }
 
-/// One copter as its owner sends it to a neighbour: its whole state at the start of a step.
+/// One copter as its owner sends it to a neighbour, at the start of a step.
 #[derive(Clone, Debug, Serialize, Deserialize)]
 pub struct Ghost {
     /// Copter id.
     pub id: u32,
     /// Whether Rapier had it asleep (a wreck at rest).
     pub asleep: bool,
-    /// Everything else.
-    pub state: CopterState,
+    /// Its whole state (near the receiver's region) or what others read of it (farther).
+    pub state: GhostState,
+}
+
+/// What a [`Ghost`] carries.
+#[derive(Clone, Debug, Serialize, Deserialize)]
+pub enum GhostState {
+    /// Everything: the receiver may take it over ([`Role::Ghost`]).
+    Full(Box<CopterState>),
+    /// What other copters' sensing, wakes and reservations read ([`Role::Far`]).
+    Seen(Seen),
+}
+
+/// What other copters read of a far ghost.
+#[derive(Clone, Debug, Serialize, Deserialize)]
+pub struct Seen {
+    /// Pose and velocities.
+    pub motion: Motion,
+    /// Rotor thrusts of its last physics step, N (its wake).
+    pub rotor_thrust_n: [Real; 4],
+    /// Whether it is a wreck (no wake, no pings), and why.
+    #[serde(with = "crate::state::crash_snapshot")]
+    pub crash: Option<CrashCause>,
+    /// Its sonars' ping timing (cross-talk), s.
+    pub sonar_phase_s: f64,
+    /// Its sonars' cycle, s.
+    pub sonar_cycle_s: f64,
 }
 
 /// What a `State` knows about its place in a sharded run (`None` in `State::shard`: one
@@ -260,15 +294,32 @@ impl State {
     }
 
     /// Appends to `out` the ghosts this shard owes shard `to` for the next step: its owned
-    /// copters within the halo of `to`'s region.
+    /// copters within the halo of `to`'s region, whole within [`FAR_BEYOND_M`] of it, what
+    /// others read of them beyond.
     pub fn ghosts_for(&self, to: ShardId, out: &mut Vec<Ghost>) {
         let Some(view) = &self.shard else { return };
         for (i, c) in self.copters.iter().enumerate() {
-            if view.roles[i] == Role::Owned && view.partition.distance_to(c.motion.pos_m, to) <= view.partition.halo_m {
-                // A fixed wreck (at rest, out of reach) is a sleeping one to its next owner.
-                let asleep = self.physics.bodies.get(c.body).is_some_and(|b| b.is_sleeping() || b.is_fixed());
-                out.push(Ghost { id: i as u32, asleep, state: c.clone() });
+            if view.roles[i] != Role::Owned {
+                continue;
             }
+            let d = view.partition.distance_to(c.motion.pos_m, to);
+            if d > view.partition.halo_m {
+                continue;
+            }
+            // A fixed wreck (at rest, out of reach) is a sleeping one to its next owner.
+            let asleep = self.physics.bodies.get(c.body).is_some_and(|b| b.is_sleeping() || b.is_fixed());
+            let state = if d <= FAR_BEYOND_M {
+                GhostState::Full(Box::new(c.clone()))
+            } else {
+                GhostState::Seen(Seen {
+                    motion: c.motion,
+                    rotor_thrust_n: c.rotor_thrust_n,
+                    crash: c.crash,
+                    sonar_phase_s: c.sonar_phase_s,
+                    sonar_cycle_s: c.sonar_cycle_s,
+                })
+            };
+            out.push(Ghost { id: i as u32, asleep, state });
         }
     }
 
@@ -279,7 +330,7 @@ impl State {
         let n = self.copters.len();
         let Some(view) = &mut self.shard else { return Ok(()) };
         for role in &mut view.roles {
-            if *role == Role::Ghost {
+            if matches!(*role, Role::Ghost | Role::Far) {
                 *role = Role::Absent;
             }
         }
@@ -291,12 +342,23 @@ impl State {
             if view.roles[id] == Role::Owned {
                 return Err(ShardError::Duplicate { copter: id, tick });
             }
-            view.roles[id] = Role::Ghost;
             view.asleep[id] = g.asleep;
-            // The handles are the same in every shard (same scene, same build order).
-            let (body, collider) = (self.copters[id].body, self.copters[id].collider);
-            self.copters[id] = g.state;
-            (self.copters[id].body, self.copters[id].collider) = (body, collider);
+            let c = &mut self.copters[id];
+            match g.state {
+                GhostState::Full(state) => {
+                    view.roles[id] = Role::Ghost;
+                    // The handles are the same in every shard (same scene, same build order).
+                    let (body, collider) = (c.body, c.collider);
+                    *c = *state;
+                    (c.body, c.collider) = (body, collider);
+                }
+                GhostState::Seen(seen) => {
+                    // The rest of its slot is stale and nothing reads it (see `Role::Far`).
+                    view.roles[id] = Role::Far;
+                    (c.motion, c.rotor_thrust_n, c.crash) = (seen.motion, seen.rotor_thrust_n, seen.crash);
+                    (c.sonar_phase_s, c.sonar_cycle_s) = (seen.sonar_phase_s, seen.sonar_cycle_s);
+                }
+            }
         }
         Ok(())
     }

@@ -133,7 +133,7 @@ pub struct CopterState {
 /// A crash cause in a snapshot: `(kind, speed or tilt, index)` rather than [`CrashCause`]'s
 /// tagged form (logs and JSON keep that one), which positional formats such as postcard cannot
 /// read back.
-mod crash_snapshot {
+pub(crate) mod crash_snapshot {
     use super::{CrashCause, Real};
     use serde::{Deserialize, Deserializer, Serialize, Serializer};
 

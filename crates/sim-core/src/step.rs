@@ -84,6 +84,12 @@ impl Roles<'_> {
     fn owned(self, i: usize) -> bool {
         self.0.is_none_or(|r| r[i] == Role::Owned)
     }
+
+    /// Sensed and controlled by this step: owned, or a ghost it may take over (not a far one).
+    #[inline]
+    fn near(self, i: usize) -> bool {
+        self.0.is_none_or(|r| matches!(r[i], Role::Owned | Role::Ghost))
+    }
 }
 
 /// Cell size of the copter grid used by sonars and cross-talk, m.
@@ -200,7 +206,7 @@ fn step_copters(
     let dt_control = world.params.control_dt_s as Real;
     let tick = state.tick;
     for_each_lane(parallel, &mut state.copters, &mut state.scratch.lanes, |i, c, lane| {
-        if !roles.present(i) {
+        if !roles.near(i) {
             return;
         }
         let af = &world.airframes[world.copters[i].airframe];
@@ -508,7 +514,11 @@ fn take_ownership(state: &mut State, view: &mut ShardView) -> u32 {
         let home = root(parent, i);
         let owner = part.region_of(scratch.lanes[home as usize].pos_m);
         let was = view.roles[i as usize];
-        let now = if owner == me { Role::Owned } else { Role::Ghost };
+        let now = match (owner == me, was) {
+            (true, _) => Role::Owned,
+            (false, Role::Far) => Role::Far,
+            (false, _) => Role::Ghost,
+        };
         if was == Role::Owned || now == Role::Owned {
             related[home as usize] = true;
         }
@@ -659,7 +669,7 @@ fn airflow(world: &World, state: &mut State, parallel: bool, roles: Roles<'_>) -
     let (wakes, grid) = (&scratch.wakes, &scratch.wake_grid);
     let turbulence = spec.wake_turbulence;
     for_each_lane(parallel, &mut state.copters, &mut scratch.lanes, |i, c, lane| {
-        if c.crash.is_some() || world.copters[i].kind == CopterKind::Real || !roles.present(i) {
+        if c.crash.is_some() || world.copters[i].kind == CopterKind::Real || !roles.near(i) {
             return;
         }
         let af = &world.airframes[world.copters[i].airframe];
@@ -1104,7 +1114,7 @@ fn sense(world: &World, state: &mut State, inputs: &Inputs, sonar_due: bool, par
     for_each_lane(parallel, &mut state.copters, &mut scratch.lanes, |i, c, lane| {
         // A wreck's sensors stop (and its sonars no longer ping): its readings keep their
         // last values.
-        if c.crash.is_some() || !roles.present(i) {
+        if c.crash.is_some() || !roles.near(i) {
             return;
         }
         let (pos, rot, vel, angvel) = (lane.pos_m, lane.rot, lane.vel_m_s, lane.angvel_rad_s);
@@ -1244,7 +1254,7 @@ fn sense(world: &World, state: &mut State, inputs: &Inputs, sonar_due: bool, par
         if parallel {
             // Each listener on its own: it writes only its own readings.
             for_each_lane(true, &mut state.copters, lanes, |b, c, _| {
-                if !pingers[b].pings {
+                if !pingers[b].pings || !roles.near(b) {
                     return;
                 }
                 grid.visit_near(pingers[b].pos_m, reach, |a| {
