@@ -119,13 +119,7 @@ fn two_three_and_four_shard_processes_give_the_one_process_bits() {
     let (ok, out, err) = twinswarm(&["run", scene, "--no-bus", "--no-log", "--duration", "20", "--json"]);
     assert!(ok, "{err}");
     let one = json(&out);
-    let mut copters: Vec<(u64, String)> = one["copters"]
-        .as_array()
-        .unwrap()
-        .iter()
-        .map(|c| (c["id"].as_u64().unwrap(), c["digest"].as_str().unwrap().to_owned()))
-        .collect();
-    copters.sort();
+    let copters = digests(&one);
     assert_eq!(copters.len(), 144);
     let crashed = one["copters"].as_array().unwrap().iter().filter(|c| c["crashed"] == true).count();
     assert!(crashed > 0, "the flock has crashes to agree on");
@@ -135,14 +129,7 @@ fn two_three_and_four_shard_processes_give_the_one_process_bits() {
             twinswarm(&["cluster", scene, "--shards", shards, "--threads", threads, "--duration", "20", "--json"]);
         assert!(ok, "{shards} shards: {err}");
         let c = json(&out);
-        let mut got: Vec<(u64, String)> = c["copters"]
-            .as_array()
-            .unwrap()
-            .iter()
-            .map(|c| (c["id"].as_u64().unwrap(), c["digest"].as_str().unwrap().to_owned()))
-            .collect();
-        got.sort();
-        assert_eq!(got, copters, "{shards} shards: every copter, once, with the one-process bits");
+        assert_eq!(digests(&c), copters, "{shards} shards: every copter, once, with the one-process bits");
         let per_shard = c["per_shard"].as_array().unwrap();
         let taken: u64 = per_shard.iter().map(|s| s["shard"]["taken_over"].as_u64().unwrap()).sum();
         assert!(taken > 0, "{shards} shards: copters migrated");
