@@ -185,16 +185,7 @@ pub fn zenoh_config(opts: &BusOptions) -> anyhow::Result<zenoh::Config> {
     match &opts.zenoh_config {
         // Shards on one machine must not all listen on the default port: without `--listen`,
         // a shard is a client of the router it connects to.
-        None if opts.shard.is_some() && opts.listen.is_empty() => {
-            let mut c = zenoh::Config::default();
-            let set = |c: &mut zenoh::Config, k: &str, v: String| {
-                c.insert_json5(k, &v).map_err(|e| anyhow::anyhow!("{k}: {e}"))
-            };
-            set(&mut c, "mode", "\"client\"".into())?;
-            set(&mut c, "scouting/multicast/enabled", "false".into())?;
-            set(&mut c, "connect/endpoints", serde_json::to_string(&opts.connect)?)?;
-            Ok(c)
-        }
+        None if opts.shard.is_some() && opts.listen.is_empty() => Ok(node::config("client", &[], &opts.connect)?),
         None => Ok(node::default_config(&opts.listen, &opts.connect)?),
         Some(path) => {
             let mut c = zenoh::Config::from_file(path)

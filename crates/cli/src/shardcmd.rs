@@ -175,14 +175,7 @@ pub struct ClusterSummary {
 /// A Zenoh router's configuration: listening and connecting where told, multicast scouting
 /// off.
 pub fn router_config(listen: &[String], connect: &[String]) -> anyhow::Result<zenoh::Config> {
-    let mut c = zenoh::Config::default();
-    let set =
-        |c: &mut zenoh::Config, k: &str, v: String| c.insert_json5(k, &v).map_err(|e| anyhow::anyhow!("{k}: {e}"));
-    set(&mut c, "mode", "\"router\"".into())?;
-    set(&mut c, "scouting/multicast/enabled", "false".into())?;
-    set(&mut c, "listen/endpoints", serde_json::to_string(listen)?)?;
-    set(&mut c, "connect/endpoints", serde_json::to_string(connect)?)?;
-    Ok(c)
+    Ok(bridge::zenoh_net::node::config("router", listen, connect)?)
 }
 
 /// A free TCP port on 127.0.0.1.

@@ -534,6 +534,21 @@ impl RecoverReport {
     }
 }
 
+/// Writes an attachment record read from another file.
+fn copy_attachment<W: std::io::Write + std::io::Seek>(
+    w: &mut mcap::Writer<W>,
+    header: mcap::records::AttachmentHeader,
+    data: std::borrow::Cow<'_, [u8]>,
+) -> Result<(), McapError> {
+    w.attach(&Attachment {
+        log_time: header.log_time,
+        create_time: header.create_time,
+        name: header.name,
+        media_type: header.media_type,
+        data,
+    })
+}
+
 /// A new MCAP file at `path` for a tool's output: zstd chunks at `level`, indexes and summary,
 /// the tool named in the header.
 fn create_mcap(path: &Path, level: u32, tool: &str) -> Result<mcap::Writer<BufWriter<std::fs::File>>, LogReadError> {
@@ -597,14 +612,7 @@ pub fn recover(broken: &Path, fixed: &Path) -> Result<RecoverReport, LogReadErro
                 });
             }
             Record::Attachment { header, data, .. } => {
-                out.attach(&Attachment {
-                    log_time: header.log_time,
-                    create_time: header.create_time,
-                    name: header.name,
-                    media_type: header.media_type,
-                    data,
-                })
-                .map_err(werr)?;
+                copy_attachment(&mut out, header, data).map_err(werr)?;
                 report.attachments += 1;
             }
             Record::Metadata(m) => {
@@ -743,14 +751,7 @@ pub fn merge(inputs: &[PathBuf], out: &Path) -> Result<MergeReport, LogReadError
                         heads[k] = Some((h, data.into_owned()));
                     }
                     Record::Attachment { header, data, .. } if k == 0 && attachments.insert(header.name.clone()) => {
-                        w.attach(&Attachment {
-                            log_time: header.log_time,
-                            create_time: header.create_time,
-                            name: header.name,
-                            media_type: header.media_type,
-                            data,
-                        })
-                        .map_err(werr)?;
+                        copy_attachment(&mut w, header, data).map_err(werr)?;
                     }
                     Record::Metadata(m) if k == 0 => w.write_metadata(&m).map_err(werr)?,
                     Record::DataEnd(_) => break,

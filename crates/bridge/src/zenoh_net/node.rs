@@ -60,33 +60,33 @@ fn zerr(e: impl std::fmt::Display) -> NodeError {
     NodeError::Zenoh(e.to_string())
 }
 
+/// A Zenoh configuration in `mode` (`peer`, `client` or `router`), listening on `listen` and
+/// connecting to `connect`, multicast scouting off: every configuration the project makes.
+pub fn config(mode: &str, listen: &[String], connect: &[String]) -> Result<zenoh::Config, NodeError> {
+    let mut c = zenoh::Config::default();
+    let json = |r: serde_json::Result<String>| r.map_err(|e| NodeError::Config(e.to_string()));
+    for (k, v) in [
+        ("mode", json(serde_json::to_string(mode))?),
+        ("scouting/multicast/enabled", "false".to_owned()),
+        ("listen/endpoints", json(serde_json::to_string(listen))?),
+        ("connect/endpoints", json(serde_json::to_string(connect))?),
+    ] {
+        c.insert_json5(k, &v).map_err(|e| NodeError::Config(format!("{k}: {e}")))?;
+    }
+    Ok(c)
+}
+
 /// The embedded default configuration: peer mode, listening on `listen` (default
 /// [`DEFAULT_LISTEN`]), connecting to `connect`, multicast scouting off.
 pub fn default_config(listen: &[String], connect: &[String]) -> Result<zenoh::Config, NodeError> {
     let listen: Vec<String> = if listen.is_empty() { vec![DEFAULT_LISTEN.to_owned()] } else { listen.to_vec() };
-    let mut c = zenoh::Config::default();
-    let set = |c: &mut zenoh::Config, k: &str, v: String| {
-        c.insert_json5(k, &v).map_err(|e| NodeError::Config(format!("{k}: {e}")))
-    };
-    set(&mut c, "mode", "\"peer\"".into())?;
-    set(&mut c, "scouting/multicast/enabled", "false".into())?;
-    set(&mut c, "listen/endpoints", serde_json::to_string(&listen).map_err(|e| NodeError::Config(e.to_string()))?)?;
-    set(&mut c, "connect/endpoints", serde_json::to_string(connect).map_err(|e| NodeError::Config(e.to_string()))?)?;
-    Ok(c)
+    config("peer", &listen, connect)
 }
 
 /// A client configuration for tests and tools: client-less peer that only connects to
 /// `connect`, listens nowhere, multicast scouting off.
 pub fn client_config(connect: &[String]) -> Result<zenoh::Config, NodeError> {
-    let mut c = zenoh::Config::default();
-    let set = |c: &mut zenoh::Config, k: &str, v: String| {
-        c.insert_json5(k, &v).map_err(|e| NodeError::Config(format!("{k}: {e}")))
-    };
-    set(&mut c, "mode", "\"peer\"".into())?;
-    set(&mut c, "scouting/multicast/enabled", "false".into())?;
-    set(&mut c, "listen/endpoints", "[]".into())?;
-    set(&mut c, "connect/endpoints", serde_json::to_string(connect).map_err(|e| NodeError::Config(e.to_string()))?)?;
-    Ok(c)
+    config("peer", &[], connect)
 }
 
 /// Counters shared between Zenoh callbacks and the reporter.
