@@ -347,7 +347,7 @@ impl State {
             match g.state {
                 GhostState::Full(state) => {
                     view.roles[id] = Role::Ghost;
-                    // The handles are the same in every shard (same scene, same build order).
+                    // Rapier handles are this shard's own (a wreck may have a new body here).
                     let (body, collider) = (c.body, c.collider);
                     *c = *state;
                     (c.body, c.collider) = (body, collider);

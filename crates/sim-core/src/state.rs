@@ -120,7 +120,8 @@ pub struct CopterState {
     /// Tick it first left the floor.
     pub took_off_tick: Option<u64>,
     /// Resting level on the floor, held there in closed form (see `step`): before take-off,
-    /// after a landing. Only meaningful while it flies free of Rapier.
+    /// after a landing. Only meaningful while it flies free of Rapier. For a wreck in closed
+    /// form: it has come to rest (on the floor, a box or another wreck) for good.
     #[serde(default)]
     pub grounded: bool,
     /// Its random stream.
@@ -366,8 +367,8 @@ pub(crate) struct Scratch {
     pub(crate) spheres: Vec<OrientedBox>,
     /// A grid over `spheres`.
     pub(crate) sphere_grid: CopterGrid,
-    /// Which copters are wrecks at rest that no flying copter can reach this control step.
-    pub(crate) still: Vec<bool>,
+    /// This shard's wrecks falling in closed form, by id (see `step::fall_wreck`).
+    pub(crate) falling: Vec<u32>,
     /// Copters on watch and what they may meet this step, (on watch, other) once per pair.
     pub(crate) watch_pairs: Vec<(u32, u32)>,
     /// cos of each airframe's crash tilt.

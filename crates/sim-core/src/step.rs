@@ -32,7 +32,7 @@ use crate::sensors::{
 use crate::shard::{Role, ShardView};
 use crate::state::{CopterState, CrashCause, Lane, Motion, Pinger, State};
 use crate::world::{ColliderTag, CopterKind, World};
-use rapier3d::prelude::{RigidBody, RigidBodyActivation, RigidBodyType};
+use rapier3d::prelude::{PhysicsWorld, RigidBody, RigidBodyActivation, RigidBodyBuilder, RigidBodyType};
 
 /// Something that happened during a step.
 #[derive(Clone, Debug, PartialEq, Serialize)]
@@ -234,7 +234,8 @@ fn step_copters(
         let scratch = &mut state.scratch;
         let alphas = &scratch.motor_alpha;
         for_each_lane(parallel, &mut state.copters, &mut scratch.lanes, |i, c, lane| {
-            if !roles.owned(i) {
+            // A wreck in closed form moves in the serial pass below.
+            if !roles.owned(i) || (c.crash.is_some() && lane.free) {
                 return;
             }
             let airframe = world.copters[i].airframe;
@@ -261,6 +262,11 @@ fn step_copters(
                 lane.torque_n_m = lane.rot * torque_body_n_m + lane.downwash_torque_n_m;
             }
         });
+        for k in 0..state.scratch.falling.len() {
+            fall_wreck(world, state, state.scratch.falling[k] as usize, dt);
+        }
+        let (copters, falling) = (&state.copters, &mut state.scratch.falling);
+        falling.retain(|&i| !copters[i as usize].grounded);
         // The others go through Rapier.
         let scratch = &mut state.scratch;
         let mut any_near = false;
@@ -327,8 +333,8 @@ fn step_copters(
 /// floor is met in closed form ([`touch_floor`]), so Rapier has nothing to do for it: its body
 /// is disabled and it is integrated in closed form (semi-implicit Euler, Rapier's damping and
 /// gyroscopic terms). A copter whose sphere meets only other copters' flies free on watch
-/// ([`watch_contacts`]). Wrecks stay with Rapier; one at rest that no flying copter can reach
-/// becomes a fixed body (no contact pairs) until one can.
+/// ([`watch_contacts`]). Wrecks fall and rest in closed form too ([`fall_wreck`]), their
+/// bodies fixed in Rapier where flying copters can hit them.
 fn reserve_free_flight(world: &World, state: &mut State, parallel: bool, view: &mut Option<ShardView>) -> u32 {
     let roles = Roles(view.as_ref().map(|v| &v.roles[..]));
     let t = world.params.control_dt_s as Real;
@@ -367,28 +373,15 @@ fn reserve_free_flight(world: &World, state: &mut State, parallel: bool, view: &
     let arena = &world.arena;
     let (hx, hy) = (arena.size_m[0] / 2.0, arena.size_m[1] / 2.0);
     let closed_form = world.params.closed_form;
-    let crashed = |j: usize| state.copters[j].crash.is_some();
-    let bodies = &state.physics.bodies;
-    // Wrecks at rest that no flying copter can reach this step.
-    scratch.still.clear();
-    scratch.still.extend(state.copters.iter().zip(&scratch.spheres).enumerate().map(|(i, (c, sphere))| {
-        let body = &bodies[c.body];
-        let resting = c.crash.is_some() && (body.is_fixed() || body.is_sleeping());
-        let (p, r) = (sphere.center, sphere.half.x + FREE_GAP_M);
-        let mut alone = resting && closed_form;
-        if alone {
-            grid.visit_near(p, r, |j| {
-                if j != i && !crashed(j) && (spheres[j].center - p).length() <= r + spheres[j].half.x {
-                    alone = false;
-                }
-                if alone { r } else { -1.0 }
-            });
-        }
-        alone
-    }));
     for_each_lane(parallel, &mut state.copters, &mut scratch.lanes, |i, c, lane| {
         if !roles.present(i) {
             (lane.free, lane.watch) = (false, false);
+            return;
+        }
+        lane.floor_impact_m_s = 0.0;
+        // A wreck in closed form falls and lies outside Rapier's dynamics (`fall_wreck`).
+        if c.crash.is_some() && closed_form {
+            (lane.free, lane.watch) = (true, false);
             return;
         }
         let (p, r) = (lane.pos_m, lane.reserved_m + FREE_GAP_M);
@@ -412,7 +405,6 @@ fn reserve_free_flight(world: &World, state: &mut State, parallel: bool, view: &
         }
         lane.free = free;
         lane.watch = watch;
-        lane.floor_impact_m_s = 0.0;
         // Rapier keeps a copter on the floor itself; back in free flight it lands anew.
         c.grounded &= free;
     });
@@ -435,8 +427,16 @@ fn reserve_free_flight(world: &World, state: &mut State, parallel: bool, view: &
             r
         });
     }
-    for (i, ((lane, c), &still)) in state.scratch.lanes.iter().zip(&state.copters).zip(&state.scratch.still).enumerate()
-    {
+    // The wrecks this shard moves in closed form, in id order.
+    let scratch = &mut state.scratch;
+    scratch.falling.clear();
+    // Room for every copter, so that a crash never grows it.
+    scratch.falling.reserve(scratch.lanes.len());
+    if closed_form {
+        let owned_falling = |(i, c): (usize, &CopterState)| c.crash.is_some() && !c.grounded && roles.owned(i);
+        scratch.falling.extend(state.copters.iter().enumerate().filter(|&ic| owned_falling(ic)).map(|(i, _)| i as u32));
+    }
+    for (i, (lane, c)) in state.scratch.lanes.iter().zip(&state.copters).enumerate() {
         // Borrowed mutably only when something changes: a mutable borrow marks a Rapier body
         // modified, and Rapier's next step revisits every modified body.
         let body = &state.physics.bodies[c.body];
@@ -450,34 +450,18 @@ fn reserve_free_flight(world: &World, state: &mut State, parallel: bool, view: &
             }
             // A wreck this shard has just taken over enters as its owner had it.
             if c.crash.is_some() && !body.is_enabled() {
-                take_over_wreck(&mut state.physics.bodies[c.body], lane, still, v.asleep[i]);
+                take_over_wreck(&mut state.physics.bodies[c.body], lane, closed_form, v.asleep[i]);
                 continue;
             }
         }
-        let change = if c.crash.is_some() {
-            (still && body.is_dynamic()) || (!still && body.is_fixed())
-        } else {
-            lane.free == body.is_enabled()
-        };
-        if !change {
+        // A wreck's body is fixed (closed form) or Rapier's from its crash on.
+        if c.crash.is_some() || lane.free != body.is_enabled() {
             continue;
         }
         let body = &mut state.physics.bodies[c.body];
-        if c.crash.is_some() {
-            // A wreck at rest that no flying copter can reach is fixed (Rapier makes no contacts
-            // between fixed bodies, so it costs nothing); when one comes near, it is a sleeping
-            // dynamic body again, which a hit wakes.
-            if still && body.is_dynamic() {
-                body.set_body_type(RigidBodyType::Fixed, false);
-            } else if !still && body.is_fixed() {
-                body.set_body_type(RigidBodyType::Dynamic, false);
-                body.sleep();
-            }
-            continue;
-        }
-        if lane.free && body.is_enabled() {
+        if lane.free {
             body.set_enabled(false);
-        } else if !lane.free && !body.is_enabled() {
+        } else {
             enter_rapier(body, lane);
         }
     }
@@ -534,24 +518,24 @@ fn take_ownership(state: &mut State, view: &mut ShardView) -> u32 {
     violations
 }
 
-/// A wreck that has just become this shard's enters its Rapier world as its owner had it:
-/// fixed while no flying copter can reach it, else dynamic, asleep if it was.
-fn take_over_wreck(body: &mut RigidBody, lane: &Lane, still: bool, asleep: bool) {
+/// A wreck that has just become this shard's enters its Rapier world as its owner had it: a
+/// fixed body in closed form, else a dynamic one, asleep if it was.
+fn take_over_wreck(body: &mut RigidBody, lane: &Lane, closed_form: bool, asleep: bool) {
     body.set_enabled(true);
     body.set_translation(lane.pos_m, false);
     body.set_rotation(lane.rot, false);
+    if closed_form {
+        body.set_body_type(RigidBodyType::Fixed, false);
+        return;
+    }
     body.set_linvel(lane.vel_m_s, false);
     body.set_angvel(lane.angvel_rad_s, false);
     let activation = body.activation_mut();
     *activation = RigidBodyActivation::active();
     activation.time_until_sleep = WRECK_TIME_UNTIL_SLEEP_S;
-    if still {
-        body.set_body_type(RigidBodyType::Fixed, false);
-    } else {
-        body.set_body_type(RigidBodyType::Dynamic, false);
-        if asleep {
-            body.sleep();
-        }
+    body.set_body_type(RigidBodyType::Dynamic, false);
+    if asleep {
+        body.sleep();
     }
 }
 
@@ -863,15 +847,22 @@ fn lifts_off(af: &Airframe, lane: &Lane, thrust_n: Real) -> bool {
 /// centre of mass at attitude `rot`, m.
 #[inline]
 fn lowest_point_below_centre(af: &Airframe, rot: Quat) -> Real {
+    reach_along(af, rot, -Vec3::Z)
+}
+
+/// How far a copter's colliders (body box, rotor discs) reach from its centre of mass along
+/// the unit direction `d`, at attitude `rot`, m: their support function.
+#[inline]
+fn reach_along(af: &Airframe, rot: Quat, d: Vec3) -> Real {
     let [bx, by, bz] = af.spec.body_size_m;
-    // Row z of the rotation matrix: the world z of each body axis.
-    let (ex, ey, ez) = ((rot * Vec3::X).z, (rot * Vec3::Y).z, (rot * Vec3::Z).z);
+    // How far each body axis points along d.
+    let (ex, ey, ez) = ((rot * Vec3::X).dot(d), (rot * Vec3::Y).dot(d), (rot * Vec3::Z).dot(d));
     let body = 0.5 * (bx * ex.abs() + by * ey.abs() + bz * ez.abs());
-    // A disc of radius r with axis body z reaches r·sin(tilt) below its centre (plus its half
+    // A disc of radius r with axis body z reaches r·sin(angle to d) along d (plus its half
     // thickness along the axis).
     let reach =
         0.5 * af.spec.rotor_diameter_m * (1.0 - ez * ez).max(0.0).sqrt() + ROTOR_DISC_HALF_THICKNESS_M * ez.abs();
-    af.rotor_pos_in_body_m.iter().fold(body, |low, arm| low.max(reach - (rot * *arm).z))
+    af.rotor_pos_in_body_m.iter().fold(body, |far, arm| far.max(reach + (rot * *arm).dot(d)))
 }
 
 /// Half the thickness of a rotor disc collider, m.
@@ -1362,7 +1353,7 @@ fn detect_collision_crashes(world: &World, state: &mut State, report: &mut StepR
                 ColliderTag::Copter(_) => None,
             };
             if let Some(cause) = cause {
-                crash(state, i, cause, report);
+                crash(world, state, i, cause, report);
             }
         }
     }
@@ -1383,14 +1374,14 @@ fn detect_tilt_and_takeoff(world: &World, state: &mut State, report: &mut StepRe
             let cos_tilt = (lane.rot * Vec3::Z).z.clamp(-1.0, 1.0);
             if cos_tilt < state.scratch.crash_cos_tilt[airframe] {
                 let tilt_deg = cos_tilt.acos().to_degrees();
-                crash(state, i, CrashCause::Tilt { tilt_deg }, report);
+                crash(world, state, i, CrashCause::Tilt { tilt_deg }, report);
             }
         }
         if lane.free && lane.floor_impact_m_s > 0.0 && state.copters[i].crash.is_none() {
-            crash(state, i, CrashCause::Floor { speed_m_s: lane.floor_impact_m_s }, report);
+            crash(world, state, i, CrashCause::Floor { speed_m_s: lane.floor_impact_m_s }, report);
             continue;
         }
-        if lane.free && (lane.pos_m - lane.anchor_m).length() > lane.reach_m {
+        if lane.free && state.copters[i].crash.is_none() && (lane.pos_m - lane.anchor_m).length() > lane.reach_m {
             enter_rapier(&mut state.physics.bodies[state.copters[i].body], &lane);
             (state.scratch.lanes[i].free, state.scratch.lanes[i].watch) = (false, false);
             state.copters[i].grounded = false;
@@ -1412,21 +1403,161 @@ fn detect_tilt_and_takeoff(world: &World, state: &mut State, report: &mut StepRe
 /// How long a wreck lies still (Rapier's thresholds: 0.05 m/s, 0.5 rad/s) before it sleeps, s.
 const WRECK_TIME_UNTIL_SLEEP_S: Real = 0.2;
 
-fn crash(state: &mut State, i: usize, cause: CrashCause, report: &mut StepReport) {
+fn crash(world: &World, state: &mut State, i: usize, cause: CrashCause, report: &mut StepReport) {
     let c = &mut state.copters[i];
-    // From now on Rapier may put it to sleep once it lies still; a sleeping wreck costs nothing until something hits it.
-    if let Some(body) = state.physics.bodies.get_mut(c.body) {
-        let activation = body.activation_mut();
-        *activation = RigidBodyActivation::active();
-        activation.time_until_sleep = WRECK_TIME_UNTIL_SLEEP_S;
-        // A copter that crashed in free flight (tilt) falls in Rapier from here.
-        if let Some(lane) = state.scratch.lanes.get_mut(i).filter(|l| l.free) {
-            enter_rapier(body, lane);
-            (lane.free, lane.watch) = (false, false);
+    if let (Some(body), Some(lane)) = (state.physics.bodies.get_mut(c.body), state.scratch.lanes.get_mut(i)) {
+        if world.params.closed_form {
+            // It falls in closed form from the next substep on; its body, fixed, follows it.
+            if body.is_enabled() {
+                fix_in_rapier(&mut state.physics, c, lane, i);
+            } else {
+                body.set_body_type(RigidBodyType::Fixed, false);
+                body.set_enabled(true);
+                body.set_translation(lane.pos_m, false);
+                body.set_rotation(lane.rot, false);
+            }
+            (lane.free, lane.watch, c.grounded) = (true, false, false);
+            let falling = &mut state.scratch.falling;
+            if let Err(at) = falling.binary_search(&(i as u32)) {
+                falling.insert(at, i as u32);
+            }
+        } else {
+            // Rapier may put it to sleep once it lies still; a sleeping wreck costs nothing
+            // until something hits it.
+            let activation = body.activation_mut();
+            *activation = RigidBodyActivation::active();
+            activation.time_until_sleep = WRECK_TIME_UNTIL_SLEEP_S;
         }
     }
     c.crash = Some(cause);
     c.rotor_speed_rad_s = [0.0; 4];
     c.rotor_thrust_n = [0.0; 4];
     report.events.push(Event::Crashed { copter: i, cause });
+}
+
+/// A wreck Rapier has in hand becomes a fixed body at its lane's pose. Rapier 0.36 keeps a body
+/// that turns fixed in its awake island, and recomputes its colliders' AABBs at every step for
+/// the rest of the run; so the colliders move to a new fixed body and the old body goes. (Body
+/// handles therefore differ between shards; each keeps its own.)
+fn fix_in_rapier(physics: &mut PhysicsWorld, c: &mut CopterState, lane: &Lane, id: usize) {
+    let old = c.body;
+    let new = physics.insert_body(RigidBodyBuilder::fixed().user_data(id as u128));
+    let body = &mut physics.bodies[new];
+    body.set_translation(lane.pos_m, false);
+    body.set_rotation(lane.rot, false);
+    while let Some(&collider) = physics.bodies[old].colliders().first() {
+        physics.colliders.set_parent(collider, Some(new), &mut physics.bodies);
+    }
+    physics.remove_body_with_colliders(old, false);
+    c.body = new;
+}
+
+/// One physics step of a wreck in closed form (`[sim] closed_form`, the default). It falls
+/// with its momentum under gravity, damping and the downwash on it; walls, the ceiling and the
+/// sides of boxes push it back and take its speed into them; where it first meets the floor,
+/// a box top or a wreck at rest below it, it comes to rest for good: level or upside down as it
+/// came, heading kept, its lowest point on that surface. Two falling wrecks pass through each
+/// other. A wreck at rest is tested as its bounding disc (radius `Airframe::radius_m`) and
+/// its top. Its Rapier body is fixed and follows it, so a flying copter that hits it crashes
+/// as before. Wreck against wreck looks only at wrecks whose reservations meet its own: in a
+/// shard they are in its contact cluster, so every shard decides the same.
+fn fall_wreck(world: &World, state: &mut State, i: usize, dt: Real) {
+    let af = &world.airframes[world.copters[i].airframe];
+    let scratch = &mut state.scratch;
+    let mut lane = scratch.lanes[i];
+    integrate_free(af, &mut lane, 0.0, Vec3::ZERO, dt);
+    // Planes `x · n = -h` with inward normal `n`: the walls and the ceiling.
+    let arena = &world.arena;
+    let (hx, hy, hz) = (arena.size_m[0] / 2.0, arena.size_m[1] / 2.0, arena.height_m);
+    if arena.walls {
+        for (n, h) in [(Vec3::X, hx), (-Vec3::X, hx), (Vec3::Y, hy), (-Vec3::Y, hy), (-Vec3::Z, hz)] {
+            let depth = reach_along(af, lane.rot, -n) - (lane.pos_m.dot(n) + h);
+            slide_off(&mut lane, n, depth);
+        }
+    }
+    let mut ground: Option<Real> = None;
+    let mut land_on = |top: Real| ground = Some(ground.map_or(top, |g: Real| g.max(top)));
+    for b in &world.boxes {
+        let yaw = Quat::from_rotation_z(b.yaw_rad);
+        let local = yaw.inverse() * (lane.pos_m - b.center_m);
+        let h = b.half_extents_m;
+        let outside = local - local.clamp(-h, h);
+        let (n, dist) = if outside == Vec3::ZERO {
+            // Its centre inside the box: out through the nearest face.
+            let gap = h - local.abs();
+            let axis = if gap.x <= gap.y && gap.x <= gap.z {
+                Vec3::X
+            } else if gap.y <= gap.z {
+                Vec3::Y
+            } else {
+                Vec3::Z
+            };
+            (yaw * (axis * local.signum()), -gap.min_element())
+        } else {
+            let dist = outside.length();
+            (yaw * (outside / dist), dist)
+        };
+        let depth = reach_along(af, lane.rot, -n) - dist;
+        if depth > 0.0 {
+            if n.z > WRECK_LANDS_COS {
+                land_on(b.center_m.z + h.z);
+            } else {
+                slide_off(&mut lane, n, depth);
+            }
+        }
+    }
+    let lowest = lane.pos_m.z - lowest_point_below_centre(af, lane.rot);
+    if lowest <= 0.0 {
+        land_on(0.0);
+    }
+    let sphere = scratch.spheres[i];
+    let r = sphere.half.x + FREE_GAP_M;
+    let (spheres, lanes, copters) = (&scratch.spheres, &scratch.lanes, &state.copters);
+    scratch.sphere_grid.visit_near(sphere.center, r, |j| {
+        let other = &copters[j];
+        if j == i || other.crash.is_none() || !other.grounded {
+            return r;
+        }
+        if (spheres[j].center - sphere.center).length() > r + spheres[j].half.x {
+            return r;
+        }
+        let (lj, afj) = (&lanes[j], &world.airframes[world.copters[j].airframe]);
+        let top = lj.pos_m.z + reach_along(afj, lj.rot, Vec3::Z);
+        let apart = (lane.pos_m - lj.pos_m).truncate().length();
+        if lane.pos_m.z > lj.pos_m.z && apart < af.radius_m + afj.radius_m && lowest < top {
+            land_on(top);
+        }
+        r
+    });
+    if let Some(ground) = ground {
+        let fwd = lane.rot * Vec3::X;
+        let level = Quat::from_rotation_z(fwd.y.atan2(fwd.x));
+        lane.rot =
+            if (lane.rot * Vec3::Z).z < 0.0 { level * Quat::from_rotation_x(std::f32::consts::PI) } else { level };
+        lane.pos_m.z = ground + lowest_point_below_centre(af, lane.rot);
+        lane.vel_m_s = Vec3::ZERO;
+        lane.angvel_rad_s = Vec3::ZERO;
+        state.copters[i].grounded = true;
+    }
+    scratch.lanes[i] = lane;
+    let body = &mut state.physics.bodies[state.copters[i].body];
+    body.set_translation(lane.pos_m, false);
+    body.set_rotation(lane.rot, false);
+}
+
+/// A falling wreck meets a surface steeper than this (cosine of the normal's angle to the
+/// vertical) as a side it slides along; flatter, it lands on it.
+const WRECK_LANDS_COS: Real = std::f32::consts::FRAC_1_SQRT_2;
+
+/// Pushes a wreck `depth` along `n` out of a surface it penetrates, and takes away its speed
+/// into it (no bounce).
+fn slide_off(lane: &mut Lane, n: Vec3, depth: Real) {
+    if depth <= 0.0 {
+        return;
+    }
+    lane.pos_m += n * depth;
+    let into = lane.vel_m_s.dot(n);
+    if into < 0.0 {
+        lane.vel_m_s -= n * into;
+    }
 }
