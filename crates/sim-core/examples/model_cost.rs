@@ -3,11 +3,12 @@
 //! thread. Only sim-core, so that it also builds at older commits (copy this file there).
 //!
 //! ```text
-//! cargo run --release -p sim-core --example model_cost -- N SIM_SECONDS [dense] [takeoff] [spacing=S] [ideal] [no-airflow] [no-battery] [no-crosstalk] [no-floor-echo]
+//! cargo run --release -p sim-core --example model_cost -- N SIM_SECONDS [dense] [takeoff] [spacing=S] [threads=T] [ideal] [no-airflow] [no-battery] [no-crosstalk] [no-floor-echo]
 //! ```
 //!
 //! `takeoff`: the copters start on the floor (1.5 m grid) instead of in the air (2 m grid).
 //! `spacing=S`: an S m grid instead.
+//! `threads=T`: step on T threads (then `rtf_wall`, the wall clock's, is the figure to read).
 //! `dense`: `scene::dense_swarm` (1.5 m grid, 10 pillars, Wall-Avoid at 1 m; with `takeoff`
 //! from the floor).
 
@@ -61,15 +62,16 @@ fn main() {
         }
     }
     // FLAGS END
+    spec.sim.threads = args.iter().find_map(|a| a.strip_prefix("threads=")?.parse().ok()).unwrap_or(1);
     let world = scene::compile(&spec).expect("scene compiles");
     let mut state = world.initial_state();
     let inputs = world.initial_inputs();
     let ticks = (seconds / world.params.control_dt_s).round() as u64;
-    let t0 = cpu_s();
+    let (t0, wall) = (cpu_s(), std::time::Instant::now());
     for _ in 0..ticks {
         step(&world, &mut state, &inputs);
     }
-    let cpu = cpu_s() - t0;
+    let (cpu, wall) = (cpu_s() - t0, wall.elapsed().as_secs_f64());
     let crashed = state.copters.iter().filter(|c| c.crash.is_some()).count();
     let mut causes = std::collections::BTreeMap::<&str, usize>::new();
     for c in state.copters.iter().filter_map(|c| c.crash) {
@@ -94,8 +96,9 @@ fn main() {
         }
     }
     println!(
-        "{{\"N\": {n}, \"sim_s\": {seconds}, \"cpu_s\": {cpu:.3}, \"rtf_cpu\": {:.2}, \"crashed\": {crashed}, \"digest\": \"{digest:016x}\", \"flags\": {:?}}}",
+        "{{\"N\": {n}, \"sim_s\": {seconds}, \"cpu_s\": {cpu:.3}, \"rtf_cpu\": {:.2}, \"rtf_wall\": {:.2}, \"crashed\": {crashed}, \"digest\": \"{digest:016x}\", \"flags\": {:?}}}",
         seconds / cpu,
+        seconds / wall,
         args.iter().skip(2).collect::<Vec<_>>()
     );
 }

@@ -369,6 +369,9 @@ pub(crate) struct Scratch {
     pub(crate) sphere_grid: CopterGrid,
     /// This shard's wrecks falling in closed form, by id (see `step::fall_wreck`).
     pub(crate) falling: Vec<u32>,
+    /// Cross-talk on threads: what each chunk of emitters' pairs make listeners hear,
+    /// `(listener, sonar, reading)`, applied after the parallel pass.
+    pub(crate) heard: Vec<Vec<(u32, u8, Real)>>,
     /// Copters on watch and what they may meet this step, (on watch, other) once per pair.
     pub(crate) watch_pairs: Vec<(u32, u32)>,
     /// cos of each airframe's crash tilt.
@@ -435,4 +438,10 @@ pub(crate) struct Lane {
     pub(crate) downwash_force_n: Vec3,
     /// Its torque about the centre of mass, world frame, N·m.
     pub(crate) downwash_torque_n_m: Vec3,
+    /// Its airframe's index (a copy of `CopterDef::airframe`, for the serial passes).
+    pub(crate) airframe: u32,
+    /// Not crashed (cleared at its crash within the step).
+    pub(crate) flying: bool,
+    /// Not crashed and not yet taken off.
+    pub(crate) awaiting_takeoff: bool,
 }

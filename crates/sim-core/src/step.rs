@@ -192,9 +192,12 @@ fn step_copters(
     // Every copter's motion at the start of the step.
     let lanes = &mut state.scratch.lanes;
     lanes.resize(n, Lane::default());
-    for (lane, c) in lanes.iter_mut().zip(&state.copters) {
+    for ((lane, c), def) in lanes.iter_mut().zip(&state.copters).zip(&world.copters) {
         let m = &c.motion;
         (lane.pos_m, lane.rot, lane.vel_m_s, lane.angvel_rad_s) = (m.pos_m, m.rot, m.vel_m_s, m.angvel_rad_s);
+        lane.airframe = def.airframe as u32;
+        lane.flying = c.crash.is_none();
+        lane.awaiting_takeoff = lane.flying && c.took_off_tick.is_none();
     }
 
     let sonar_period = world.sensors.spec.sonar.period_steps.max(1) as u64;
@@ -811,7 +814,7 @@ const GROUND_EFFECT_RADII: Real = 12.0;
 /// One physics step of a free-flying copter in closed form: gravity, thrust, torque, Rapier's
 /// linear and angular damping (`v / (1 + c dt)`) and its explicit, momentum-preserving
 /// gyroscopic term; semi-implicit Euler (velocities first, then pose with the new ones).
-#[inline]
+#[inline(always)]
 fn integrate_free(af: &Airframe, lane: &mut Lane, thrust_n: Real, torque_body_n_m: Vec3, dt: Real) {
     let rot = lane.rot;
     let acc = rot * Vec3::new(0.0, 0.0, thrust_n / af.mass_kg) + lane.downwash_force_n / af.mass_kg
@@ -1192,7 +1195,8 @@ fn sense(world: &World, state: &mut State, inputs: &Inputs, sonar_due: bool, par
         let now_s = world.time_at(tick);
         let stagger = if ct.round_robin { 0.25 } else { 0.0 };
         let sonar = &spec.sonar;
-        let crate::state::Scratch { pingers, ping_points, ping_grid, lanes, .. } = &mut state.scratch;
+        let crate::state::Scratch { pingers, ping_points, ping_grid, lanes, heard: heard_lists, .. } =
+            &mut state.scratch;
         // Every copter's cones and ping timing, gathered once.
         pingers.clear();
         pingers.extend(lanes.iter().zip(&state.copters).enumerate().map(|(i, (lane, c))| Pinger {
@@ -1242,44 +1246,52 @@ fn sense(world: &World, state: &mut State, inputs: &Inputs, sonar_due: bool, par
                 }
             }
         };
-        if parallel {
-            // Each listener on its own: it writes only its own readings.
-            for_each_lane(true, &mut state.copters, lanes, |b, c, _| {
-                if !pingers[b].pings || !roles.near(b) {
-                    return;
+        // Every eligible pair (a > b) of emitter `b`'s neighbourhood once, both directions:
+        // what each listener's sonar would read.
+        let pairs_of = |b: usize, hear: &mut dyn FnMut(usize, usize, Real)| {
+            if !pingers[b].pings {
+                return;
+            }
+            grid.visit_near(pingers[b].pos_m, reach, |a| {
+                if a > b {
+                    eligible(b, a, &mut |j, k, d| {
+                        if let Some(q) = heard(&pingers[b], k, &pingers[a], j, d) {
+                            hear(b, k, q);
+                        }
+                        if let Some(q) = heard(&pingers[a], j, &pingers[b], k, d) {
+                            hear(a, j, q);
+                        }
+                    });
                 }
-                grid.visit_near(pingers[b].pos_m, reach, |a| {
-                    if a != b {
-                        eligible(b, a, &mut |j, k, d| {
-                            if let Some(q) = heard(&pingers[b], k, &pingers[a], j, d) {
-                                lower_reading(&mut c.sensors, k, q);
-                            }
-                        });
-                    }
-                    reach
-                });
+                reach
             });
+        };
+        // A reading is a minimum, and a minimum does not depend on the order: the same bits
+        // either way.
+        if parallel && n > 64 {
+            // Chunks of emitters in parallel, each listing what its pairs' listeners hear.
+            use rayon::prelude::*;
+            let chunk = (n / 32).max(32);
+            heard_lists.resize_with(n.div_ceil(chunk), Vec::new);
+            let copters = &state.copters;
+            heard_lists.par_iter_mut().enumerate().for_each(|(ci, out)| {
+                out.clear();
+                for b in ci * chunk..((ci + 1) * chunk).min(n) {
+                    pairs_of(b, &mut |i, k, q| {
+                        // Only what may lower a reading (the readings change only below).
+                        if q < copters[i].sensors.sonar_m[k] {
+                            out.push((i as u32, k as u8, q));
+                        }
+                    });
+                }
+            });
+            for &(i, k, q) in heard_lists.iter().flatten() {
+                lower_reading(&mut state.copters[i as usize].sensors, k as usize, q);
+            }
         } else {
-            // Each pair once (a > b), both directions: half the visits, the same bits (a
-            // reading is a minimum, and a minimum does not depend on the order).
             let copters = &mut state.copters;
             for b in 0..n {
-                if !pingers[b].pings {
-                    continue;
-                }
-                grid.visit_near(pingers[b].pos_m, reach, |a| {
-                    if a > b {
-                        eligible(b, a, &mut |j, k, d| {
-                            if let Some(q) = heard(&pingers[b], k, &pingers[a], j, d) {
-                                lower_reading(&mut copters[b].sensors, k, q);
-                            }
-                            if let Some(q) = heard(&pingers[a], j, &pingers[b], k, d) {
-                                lower_reading(&mut copters[a].sensors, j, q);
-                            }
-                        });
-                    }
-                    reach
-                });
+                pairs_of(b, &mut |i, k, q| lower_reading(&mut copters[i].sensors, k, q));
             }
         }
     }
@@ -1364,38 +1376,40 @@ fn detect_collision_crashes(world: &World, state: &mut State, report: &mut StepR
 /// Checks tilt crashes and take-offs, in id order, and hands a free copter that left its
 /// reservation back to Rapier.
 fn detect_tilt_and_takeoff(world: &World, state: &mut State, report: &mut StepReport, roles: Roles<'_>) {
+    // Only the lanes are read until something happens: they are compact, the copters are not.
     for i in 0..world.copters.len() {
-        if !roles.owned(i) {
+        let lane = &state.scratch.lanes[i];
+        if !lane.flying || !roles.owned(i) {
             continue;
         }
-        let lane = state.scratch.lanes[i];
-        let airframe = world.copters[i].airframe;
-        if state.copters[i].crash.is_none() {
-            let cos_tilt = (lane.rot * Vec3::Z).z.clamp(-1.0, 1.0);
-            if cos_tilt < state.scratch.crash_cos_tilt[airframe] {
-                let tilt_deg = cos_tilt.acos().to_degrees();
-                crash(world, state, i, CrashCause::Tilt { tilt_deg }, report);
-            }
-        }
-        if lane.free && lane.floor_impact_m_s > 0.0 && state.copters[i].crash.is_none() {
-            crash(world, state, i, CrashCause::Floor { speed_m_s: lane.floor_impact_m_s }, report);
+        let cos_tilt = (lane.rot * Vec3::Z).z.clamp(-1.0, 1.0);
+        if cos_tilt < state.scratch.crash_cos_tilt[lane.airframe as usize] {
+            let tilt_deg = cos_tilt.acos().to_degrees();
+            crash(world, state, i, CrashCause::Tilt { tilt_deg }, report);
             continue;
         }
-        if lane.free && state.copters[i].crash.is_none() && (lane.pos_m - lane.anchor_m).length() > lane.reach_m {
-            enter_rapier(&mut state.physics.bodies[state.copters[i].body], &lane);
-            (state.scratch.lanes[i].free, state.scratch.lanes[i].watch) = (false, false);
+        if lane.free && lane.floor_impact_m_s > 0.0 {
+            let speed_m_s = lane.floor_impact_m_s;
+            crash(world, state, i, CrashCause::Floor { speed_m_s }, report);
+            continue;
+        }
+        if lane.free && (lane.pos_m - lane.anchor_m).length() > lane.reach_m {
+            let lane = &mut state.scratch.lanes[i];
+            enter_rapier(&mut state.physics.bodies[state.copters[i].body], lane);
+            (lane.free, lane.watch) = (false, false);
             state.copters[i].grounded = false;
         }
     }
     for i in 0..world.copters.len() {
-        let c = &mut state.copters[i];
-        if c.took_off_tick.is_none() && c.crash.is_none() && roles.owned(i) {
-            let z = state.scratch.lanes[i].pos_m.z;
-            let rest = world.airframes[world.copters[i].airframe].rest_height_m;
-            if z > rest + TAKEOFF_MARGIN_M {
-                c.took_off_tick = Some(state.tick);
-                report.events.push(crate::step::Event::TookOff { copter: i });
-            }
+        let lane = &mut state.scratch.lanes[i];
+        if !lane.awaiting_takeoff || !roles.owned(i) {
+            continue;
+        }
+        let rest = world.airframes[lane.airframe as usize].rest_height_m;
+        if lane.pos_m.z > rest + TAKEOFF_MARGIN_M {
+            lane.awaiting_takeoff = false;
+            state.copters[i].took_off_tick = Some(state.tick);
+            report.events.push(crate::step::Event::TookOff { copter: i });
         }
     }
 }
@@ -1428,6 +1442,9 @@ fn crash(world: &World, state: &mut State, i: usize, cause: CrashCause, report: 
             *activation = RigidBodyActivation::active();
             activation.time_until_sleep = WRECK_TIME_UNTIL_SLEEP_S;
         }
+    }
+    if let Some(lane) = state.scratch.lanes.get_mut(i) {
+        (lane.flying, lane.awaiting_takeoff) = (false, false);
     }
     c.crash = Some(cause);
     c.rotor_speed_rad_s = [0.0; 4];
