@@ -228,6 +228,20 @@ def test_log_rate_thins_the_steps_but_keeps_every_event(tmp_path):
     assert r.returncode == 2 and "--log-rate" in r.stderr, r.stderr
 
 
+def test_a_lighter_zstd_level_writes_the_same_messages(tmp_path):
+    light, default = tmp_path / "light.mcap", tmp_path / "default.mcap"
+    for path, extra in ((default, []), (light, ["--log-zstd-level", "2"])):
+        r = twinswarm(*run_args("--duration", "4", "--no-bus", "--log", path, *extra))
+        assert r.returncode == 0, r.stderr
+    states = log_bodies(default, "/copters/state")
+    assert len(states) == 80 * len({b["copter"] for b in states}), "every step of every copter"
+    assert log_bodies(light, "/copters/state") == states
+    assert log_bodies(light, "/events") == log_bodies(default, "/events")
+    for bad in ("0", "20", "x"):
+        r = twinswarm(*run_args("--duration", "1", "--no-bus", "--log-zstd-level", bad))
+        assert r.returncode == 2 and "--log-zstd-level" in r.stderr, r.stderr
+
+
 def state_ticks(path):
     return {b["tick"] for b in log_bodies(path, "/copters/state")}
 

@@ -43,11 +43,11 @@ pub fn default_log_path(world: &World, epoch_ns: u64) -> PathBuf {
 pub const LOG_EPOCH_ENV: &str = "TWINSWARM_LOG_EPOCH_NS";
 
 /// Starts the log of a run, unless `no_log`. `scene_path`: the scene file (`None`: the
-/// embedded lab). `every_ticks`: [`LogOptions::every_ticks`].
+/// embedded lab). `options`: rate and zstd level; `live` joins them.
 pub fn start_run_log(
     log: Option<&Path>,
     no_log: bool,
-    every_ticks: u64,
+    options: LogOptions,
     world: &World,
     scene_path: Option<&Path>,
     scene_origin: &str,
@@ -55,9 +55,7 @@ pub fn start_run_log(
 ) -> anyhow::Result<Option<Logger>> {
     if no_log {
         return match live {
-            Some(live) => {
-                Ok(Some(Logger::live_only(world, live, LogOptions { every_ticks, ..LogOptions::default() })?))
-            }
+            Some(live) => Ok(Some(Logger::live_only(world, live, LogOptions { live: None, ..options })?)),
             None => Ok(None),
         };
     }
@@ -83,8 +81,7 @@ pub fn start_run_log(
         scene_origin: scene_origin.to_owned(),
         epoch_ns: Some(epoch_ns),
     };
-    let options = LogOptions { live, every_ticks, ..LogOptions::default() };
-    Ok(Some(Logger::with_options(&path, world, &scene_text, meta, options)?))
+    Ok(Some(Logger::with_options(&path, world, &scene_text, meta, LogOptions { live, ..options })?))
 }
 
 /// SIGINT and SIGTERM set the returned flag (the run loop stops and finishes the log); a
