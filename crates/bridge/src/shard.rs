@@ -1,8 +1,12 @@
 //! Sharding over Zenoh ([`sim_core::shard`] does the stepping): each shard sends each
 //! neighbour its ghosts once per control step, and waits for every neighbour's before it steps
 //! on. That exchange *is* the lockstep barrier: a shard at tick T has had every neighbour's
-//! state at T. Liveliness tokens tell a shard that a neighbour is gone, so it stops with an
-//! error instead of waiting for ever.
+//! state at T. Liveliness tokens tell a shard that a neighbour is gone: it stops with an
+//! error instead of waiting for ever ([`OnLost::Stop`]), or holds at the barrier until the
+//! neighbour is back ([`OnLost::Hold`], bounded by the barrier timeout). A shard waiting longer
+//! than [`RESEND`] sends its batch again, so that a batch lost while the link was down (a
+//! router restarting, a network partition) does not hold the cluster for ever; batches are
+//! idempotent, keyed by (tick, sender).
 //!
 //! Keys, under the run's prefix:
 //! - `<prefix>/shard/<from>/to/<to>`: a [`GhostBatch`] (postcard), reliable, express, blocking
@@ -79,6 +83,21 @@ pub enum LinkError {
 /// How long a neighbour that left may still deliver its last batch.
 const LEFT_GRACE: Duration = Duration::from_secs(2);
 
+/// A shard still waiting for a neighbour after this long sends its batch again.
+pub const RESEND: Duration = Duration::from_secs(1);
+
+/// What a shard does when a neighbour's liveliness token goes away.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+pub enum OnLost {
+    /// Stop with [`LinkError::Left`] (after a grace for its last batch).
+    #[default]
+    Stop,
+    /// Hold at the barrier until it is back (its token and its batch), up to the barrier
+    /// timeout: for a link that drops and returns. A shard process that died cannot return:
+    /// its state is gone (there are no checkpoints), and the hold ends at the timeout.
+    Hold,
+}
+
 /// How often a waiting shard looks at neighbours that left.
 const POLL: Duration = Duration::from_millis(50);
 
@@ -112,6 +131,15 @@ pub struct LinkStats {
     pub bytes_sent: u64,
     /// Payload bytes received.
     pub bytes_received: u64,
+    /// Batches sent again while waiting (see [`RESEND`]).
+    #[serde(default)]
+    pub resent: u64,
+    /// Times a neighbour left and this shard held for it ([`OnLost::Hold`]).
+    #[serde(default)]
+    pub holds: u64,
+    /// Time spent holding for neighbours that had left, s.
+    #[serde(default)]
+    pub held_s: f64,
 }
 
 impl std::fmt::Debug for ShardLink {
@@ -136,7 +164,10 @@ pub struct ShardLink {
     /// Neighbours whose token went away, and when this shard learnt it.
     left: Vec<(ShardId, Instant)>,
     timeout: Duration,
+    on_lost: OnLost,
     ghosts: Vec<Ghost>,
+    /// This step's batch for each neighbour, kept to send again.
+    sent: Vec<Vec<u8>>,
     stats: LinkStats,
 }
 
@@ -216,9 +247,17 @@ impl ShardLink {
             joined: Vec::new(),
             left: Vec::new(),
             timeout,
+            on_lost: OnLost::Stop,
             ghosts: Vec::new(),
+            sent: Vec::new(),
             stats: LinkStats::default(),
         })
+    }
+
+    /// What this shard does when a neighbour leaves (default [`OnLost::Stop`]).
+    pub fn on_lost(mut self, on_lost: OnLost) -> Self {
+        self.on_lost = on_lost;
+        self
     }
 
     /// Waits until every neighbour is up (its liveliness token seen) and every publisher has
@@ -260,6 +299,8 @@ impl ShardLink {
                 if !self.joined.contains(&k) {
                     self.joined.push(k);
                 }
+                // Back (a link that dropped and returned).
+                self.left.retain(|(l, _)| *l != k);
             }
             Incoming::Left(k) => {
                 // Not an error yet: a neighbour that finished its last step leaves right after
@@ -272,11 +313,13 @@ impl ShardLink {
         Ok(())
     }
 
-    /// A missing neighbour that left more than [`LEFT_GRACE`] ago: it is not coming back.
-    fn gone(&self, missing: &[ShardId], tick: u64) -> Result<(), LinkError> {
+    /// A missing neighbour that left more than [`LEFT_GRACE`] ago: it is not coming back, or,
+    /// when holding, not yet. Returns whether this shard is holding for one.
+    fn gone(&self, missing: &[ShardId], tick: u64) -> Result<bool, LinkError> {
         match self.left.iter().find(|(k, at)| missing.contains(k) && at.elapsed() > LEFT_GRACE) {
-            Some(&(shard, _)) => Err(LinkError::Left { shard, tick }),
-            None => Ok(()),
+            Some(&(shard, _)) if self.on_lost == OnLost::Stop => Err(LinkError::Left { shard, tick }),
+            Some(_) => Ok(true),
+            None => Ok(false),
         }
     }
 
@@ -285,7 +328,8 @@ impl ShardLink {
     pub fn exchange(&mut self, state: &mut State) -> Result<(), LinkError> {
         let tick = state.tick;
         let t0 = Instant::now();
-        for (&t, publisher) in self.neighbours.iter().zip(&self.publishers) {
+        self.sent.resize_with(self.neighbours.len(), Vec::new);
+        for (k, (&t, publisher)) in self.neighbours.iter().zip(&self.publishers).enumerate() {
             self.ghosts.clear();
             state.ghosts_for(t, &mut self.ghosts);
             let batch = GhostBatch { tick, from: self.me, ghosts: std::mem::take(&mut self.ghosts) };
@@ -293,25 +337,57 @@ impl ShardLink {
             self.stats.ghosts_sent += batch.ghosts.len() as u64;
             self.stats.bytes_sent += bytes.len() as u64;
             self.ghosts = batch.ghosts;
-            publisher.put(bytes).wait().map_err(zerr)?;
+            publisher.put(bytes.as_slice()).wait().map_err(zerr)?;
+            self.sent[k] = bytes;
         }
         let t1 = Instant::now();
         self.stats.send_s += (t1 - t0).as_secs_f64();
+        let (mut last_send, mut holding_since) = (t1, None::<Instant>);
         loop {
             let missing: Vec<ShardId> =
                 self.neighbours.iter().copied().filter(|&k| !self.early.contains_key(&(tick, k))).collect();
             if missing.is_empty() {
                 break;
             }
-            self.gone(&missing, tick)?;
+            match (self.gone(&missing, tick)?, holding_since) {
+                (true, None) => {
+                    holding_since = Some(Instant::now());
+                    self.stats.holds += 1;
+                    tracing::warn!("shard {}: shard(s) {missing:?} left at tick {tick}; holding", self.me);
+                    eprintln!(
+                        "shard {}: shard(s) {missing:?} left at tick {tick}; holding until back (at most {:.0} s)",
+                        self.me,
+                        self.timeout.as_secs_f64()
+                    );
+                }
+                (false, Some(since)) => {
+                    self.stats.held_s += since.elapsed().as_secs_f64();
+                    holding_since = None;
+                    eprintln!("shard {}: neighbours back at tick {tick}", self.me);
+                }
+                _ => {}
+            }
             let remaining = self.timeout.saturating_sub(t1.elapsed());
             if remaining.is_zero() {
                 return Err(LinkError::Timeout { me: self.me, missing, tick, waited_s: t1.elapsed().as_secs_f64() });
+            }
+            // A batch lost while a link was down is sent again; the receiver keeps one per
+            // (tick, sender).
+            if last_send.elapsed() >= RESEND {
+                for (k, publisher) in self.publishers.iter().enumerate() {
+                    publisher.put(self.sent[k].as_slice()).wait().map_err(zerr)?;
+                    self.stats.resent += 1;
+                }
+                last_send = Instant::now();
             }
             // Wake at least every POLL to look at neighbours that left.
             if let Ok(msg) = self.inbox.recv_timeout(remaining.min(POLL)) {
                 self.take(msg)?;
             }
+        }
+        if let Some(since) = holding_since {
+            self.stats.held_s += since.elapsed().as_secs_f64();
+            eprintln!("shard {}: neighbours back at tick {tick}", self.me);
         }
         let wait = t1.elapsed().as_secs_f64();
         self.stats.wait_s += wait;

@@ -220,6 +220,11 @@ struct RunArgs {
     /// With `--shard`: stop with an error when a neighbouring shard stays silent this long, s.
     #[arg(long, value_name = "S", default_value_t = 30.0)]
     barrier_timeout: f64,
+    /// With `--shard`: when a neighbouring shard's liveliness token goes away, `stop` with an
+    /// error (every log finished), or `hold` at the barrier until it is back (a router
+    /// restarting, a network partition), for at most `--barrier-timeout`.
+    #[arg(long, value_name = "WHAT", default_value = "stop")]
+    on_shard_lost: OnShardLost,
     /// The scene file (TOML); default: the embedded FINken lab.
     scene: Option<PathBuf>,
     /// Simulated duration, s (default: the scene's `sim.duration_s`).
@@ -332,6 +337,15 @@ struct RunArgs {
 }
 
 /// `--on-log-error`.
+/// `--on-shard-lost`.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
+enum OnShardLost {
+    /// Stop with an error.
+    Stop,
+    /// Hold at the barrier until the neighbour is back.
+    Hold,
+}
+
 #[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
 enum OnLogError {
     Stop,
@@ -598,6 +612,10 @@ fn run(args: RunArgs) -> anyhow::Result<()> {
             shard,
             shards,
             timeout: std::time::Duration::from_secs_f64(args.barrier_timeout),
+            on_lost: match args.on_shard_lost {
+                OnShardLost::Stop => bridge::shard::OnLost::Stop,
+                OnShardLost::Hold => bridge::shard::OnLost::Hold,
+            },
         }),
     };
     let stop_on_log_error = (args.on_log_error == OnLogError::Stop).then(|| stop.clone());

@@ -52,6 +52,8 @@ pub struct ShardOptions {
     pub shard: usize,
     pub shards: usize,
     pub timeout: std::time::Duration,
+    /// When a neighbour's liveliness token goes away: stop, or hold until it is back.
+    pub on_lost: bridge::shard::OnLost,
 }
 
 /// Mixed-reality options (see `bridge::mixed`).
@@ -241,7 +243,8 @@ pub fn run(
     // The shard's link to its neighbours, on `session`; it waits until they are all up.
     let open_link = |session: zenoh::Session| -> anyhow::Result<Arc<Mutex<ShardLink>>> {
         let o = bus.shard.as_ref().expect("only for shards");
-        let mut link = ShardLink::on(session, &prefix, o.shard as u16, neighbours.clone(), o.timeout)?;
+        let mut link =
+            ShardLink::on(session, &prefix, o.shard as u16, neighbours.clone(), o.timeout)?.on_lost(o.on_lost);
         link.wait_for_neighbours()?;
         tracing::info!("shard {}/{}: {} neighbour(s) up, stepping", o.shard, o.shards, neighbours.len());
         eprintln!("shard {}/{}: {} neighbour(s) up, stepping", o.shard, o.shards, neighbours.len());

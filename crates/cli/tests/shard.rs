@@ -168,6 +168,67 @@ fn a_shard_that_dies_stops_its_neighbour_with_a_reason() {
 }
 
 #[test]
+fn shards_told_to_hold_wait_out_a_router_restart_and_keep_the_bits() {
+    // Two shards, clients of a router that is killed while they step and started again on the
+    // same port 3 s later: with `--on-shard-lost hold` they hold at the barrier, Zenoh
+    // reconnects them, lost batches are sent again, and the minute ends with every copter's
+    // one-process bits.
+    let scene = flock_scene("hold");
+    let scene = scene.to_str().unwrap();
+    let port = std::net::TcpListener::bind("127.0.0.1:0").unwrap().local_addr().unwrap().port();
+    let endpoint = format!("tcp/127.0.0.1:{port}");
+    let router = || {
+        Command::new(env!("CARGO_BIN_EXE_twinswarm"))
+            .args(["router", "--listen", &endpoint])
+            .stdout(Stdio::null())
+            .stderr(Stdio::null())
+            .spawn()
+            .unwrap()
+    };
+    let mut first = router();
+    std::thread::sleep(Duration::from_millis(500));
+    let prefix = format!("twinswarm/test-hold-{port}");
+    let shards: Vec<_> = ["0/2", "1/2"]
+        .iter()
+        .map(|k| {
+            Command::new(env!("CARGO_BIN_EXE_twinswarm"))
+                .args(["run", scene, "--shard", k, "--connect", &endpoint, "--prefix", &prefix])
+                .args(["--no-bus", "--no-log", "--realtime", "--duration", "15", "--json"])
+                .args(["--on-shard-lost", "hold", "--barrier-timeout", "60"])
+                .stdout(Stdio::piped())
+                .stderr(Stdio::piped())
+                .spawn()
+                .unwrap()
+        })
+        .collect();
+    std::thread::sleep(Duration::from_secs(5));
+    first.kill().unwrap();
+    first.wait().unwrap();
+    std::thread::sleep(Duration::from_secs(3));
+    let mut second = router();
+    let started = Instant::now();
+    let mut copters = Vec::new();
+    for shard in shards {
+        let out = shard.wait_with_output().unwrap();
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert!(out.status.success(), "{err}");
+        assert!(err.contains("holding until back"), "{err}");
+        let s = json(&String::from_utf8_lossy(&out.stdout));
+        assert!(s["shard"]["link"]["holds"].as_u64() >= Some(1), "{s}");
+        assert_eq!(s["shard"]["link"]["exchanges"].as_u64(), Some(300), "every step's barrier, once");
+        copters.extend(digests(&s));
+    }
+    assert!(started.elapsed() < Duration::from_secs(60), "the run went on after the restart");
+    second.kill().unwrap();
+    second.wait().unwrap();
+    copters.sort();
+    let (ok, out, err) = twinswarm(&["run", scene, "--no-bus", "--no-log", "--duration", "15", "--json"]);
+    assert!(ok, "{err}");
+    assert_eq!(copters, digests(&json(&out)), "the one-process bits");
+    let _ = std::fs::remove_file(scene);
+}
+
+#[test]
 fn bad_shard_arguments_are_refused() {
     for (args, what) in [
         (vec!["run", "--shard", "2/2"], "K must be in 0..N"),
@@ -176,6 +237,7 @@ fn bad_shard_arguments_are_refused() {
         (vec!["run", "--shard", "0/2", "--ivy"], "--ivy is not available for a shard"),
         (vec!["run", "--shard", "0/2", "--no-bus", "--barrier-timeout", "0"], "--barrier-timeout must be"),
         (vec!["cluster", "--shards", "0"], "--shards must be 1 to 64"),
+        (vec!["run", "--shard", "0/2", "--on-shard-lost", "wait"], "--on-shard-lost"),
     ] {
         let (ok, _, err) = twinswarm(&args);
         assert!(!ok, "{args:?}");
