@@ -142,6 +142,48 @@ pub struct LinkStats {
     pub held_s: f64,
 }
 
+/// The subscriber to the batches sent to shard `me`.
+fn declare_batches(
+    session: &zenoh::Session,
+    prefix: &str,
+    me: ShardId,
+    tx: mpsc::Sender<Incoming>,
+) -> Result<zenoh::pubsub::Subscriber<()>, LinkError> {
+    session
+        .declare_subscriber(format!("{prefix}/shard/*/to/{me}"))
+        .callback(move |sample| {
+            let key = sample.key_expr().to_string();
+            let bytes = sample.payload().to_bytes();
+            let msg = match postcard::from_bytes::<GhostBatch>(&bytes) {
+                Ok(b) => Incoming::Batch(b, bytes.len()),
+                Err(e) => Incoming::Bad(key, e.to_string()),
+            };
+            let _ = tx.send(msg);
+        })
+        .wait()
+        .map_err(zerr)
+}
+
+/// One publisher per neighbour, in `neighbours` order.
+fn declare_publishers(
+    session: &zenoh::Session,
+    prefix: &str,
+    me: ShardId,
+    neighbours: &[ShardId],
+) -> Result<Vec<zenoh::pubsub::Publisher<'static>>, LinkError> {
+    neighbours
+        .iter()
+        .map(|t| {
+            session
+                .declare_publisher(format!("{prefix}/shard/{me}/to/{t}"))
+                .congestion_control(CongestionControl::Block)
+                .express(true)
+                .wait()
+                .map_err(zerr)
+        })
+        .collect()
+}
+
 impl std::fmt::Debug for ShardLink {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
         f.debug_struct("ShardLink").field("me", &self.me).field("neighbours", &self.neighbours).finish_non_exhaustive()
@@ -151,11 +193,13 @@ impl std::fmt::Debug for ShardLink {
 /// A shard's link to its neighbours.
 pub struct ShardLink {
     session: zenoh::Session,
+    prefix: String,
     me: ShardId,
     neighbours: Vec<ShardId>,
     publishers: Vec<zenoh::pubsub::Publisher<'static>>,
+    tx: mpsc::Sender<Incoming>,
     inbox: mpsc::Receiver<Incoming>,
-    _subscriber: zenoh::pubsub::Subscriber<()>,
+    subscriber: zenoh::pubsub::Subscriber<()>,
     _alive: zenoh::liveliness::LivelinessToken,
     _watch: zenoh::pubsub::Subscriber<()>,
     /// Batches that came early (a neighbour one step ahead), by (tick, from).
@@ -163,6 +207,8 @@ pub struct ShardLink {
     joined: Vec<ShardId>,
     /// Neighbours whose token went away, and when this shard learnt it.
     left: Vec<(ShardId, Instant)>,
+    /// A neighbour that had left is back: declare the routes anew and send again.
+    rejoined: bool,
     timeout: Duration,
     on_lost: OnLost,
     ghosts: Vec<Ghost>,
@@ -194,21 +240,9 @@ impl ShardLink {
         timeout: Duration,
     ) -> Result<Self, LinkError> {
         let (tx, inbox) = mpsc::channel();
-        let sub_tx = tx.clone();
-        let subscriber = session
-            .declare_subscriber(format!("{prefix}/shard/*/to/{me}"))
-            .callback(move |sample| {
-                let key = sample.key_expr().to_string();
-                let bytes = sample.payload().to_bytes();
-                let msg = match postcard::from_bytes::<GhostBatch>(&bytes) {
-                    Ok(b) => Incoming::Batch(b, bytes.len()),
-                    Err(e) => Incoming::Bad(key, e.to_string()),
-                };
-                let _ = sub_tx.send(msg);
-            })
-            .wait()
-            .map_err(zerr)?;
+        let subscriber = declare_batches(&session, prefix, me, tx.clone())?;
         let alive = session.liveliness().declare_token(format!("{prefix}/shard/alive/{me}")).wait().map_err(zerr)?;
+        let watch_tx = tx.clone();
         let watch = session
             .liveliness()
             .declare_subscriber(format!("{prefix}/shard/alive/*"))
@@ -217,41 +251,44 @@ impl ShardLink {
                 let Some(k) = sample.key_expr().as_str().rsplit('/').next().and_then(|k| k.parse().ok()) else {
                     return;
                 };
-                let _ = tx.send(match sample.kind() {
+                let _ = watch_tx.send(match sample.kind() {
                     SampleKind::Put => Incoming::Joined(k),
                     SampleKind::Delete => Incoming::Left(k),
                 });
             })
             .wait()
             .map_err(zerr)?;
-        let mut publishers = Vec::new();
-        for &t in &neighbours {
-            let p = session
-                .declare_publisher(format!("{prefix}/shard/{me}/to/{t}"))
-                .congestion_control(CongestionControl::Block)
-                .express(true)
-                .wait()
-                .map_err(zerr)?;
-            publishers.push(p);
-        }
+        let publishers = declare_publishers(&session, prefix, me, &neighbours)?;
         Ok(Self {
             session,
+            prefix: prefix.to_owned(),
             me,
             neighbours,
             publishers,
+            tx,
             inbox,
-            _subscriber: subscriber,
+            subscriber,
             _alive: alive,
             _watch: watch,
             early: BTreeMap::new(),
             joined: Vec::new(),
             left: Vec::new(),
+            rejoined: false,
             timeout,
             on_lost: OnLost::Stop,
             ghosts: Vec::new(),
             sent: Vec::new(),
             stats: LinkStats::default(),
         })
+    }
+
+    /// Declares this shard's batch subscriber and publishers afresh, so that their routes are
+    /// declared anew to a router that restarted (a client's publisher may otherwise keep
+    /// believing nobody listens).
+    fn redeclare(&mut self) -> Result<(), LinkError> {
+        self.subscriber = declare_batches(&self.session, &self.prefix, self.me, self.tx.clone())?;
+        self.publishers = declare_publishers(&self.session, &self.prefix, self.me, &self.neighbours)?;
+        Ok(())
     }
 
     /// What this shard does when a neighbour leaves (default [`OnLost::Stop`]).
@@ -300,7 +337,10 @@ impl ShardLink {
                     self.joined.push(k);
                 }
                 // Back (a link that dropped and returned).
-                self.left.retain(|(l, _)| *l != k);
+                if self.left.iter().any(|(l, _)| *l == k) {
+                    self.left.retain(|(l, _)| *l != k);
+                    self.rejoined = true;
+                }
             }
             Incoming::Left(k) => {
                 // Not an error yet: a neighbour that finished its last step leaves right after
@@ -372,7 +412,11 @@ impl ShardLink {
                 return Err(LinkError::Timeout { me: self.me, missing, tick, waited_s: t1.elapsed().as_secs_f64() });
             }
             // A batch lost while a link was down is sent again; the receiver keeps one per
-            // (tick, sender).
+            // (tick, sender). After a neighbour came back, on routes declared anew.
+            if std::mem::take(&mut self.rejoined) {
+                self.redeclare()?;
+                last_send = t1 - RESEND;
+            }
             if last_send.elapsed() >= RESEND {
                 for (k, publisher) in self.publishers.iter().enumerate() {
                     publisher.put(self.sent[k].as_slice()).wait().map_err(zerr)?;
@@ -417,8 +461,8 @@ impl ShardLink {
 
     /// Withdraws this shard's token and subscribers, leaving the session open (the node's).
     pub fn leave(self) {
-        let Self { _alive, _subscriber, _watch, publishers, .. } = self;
+        let Self { _alive, subscriber, _watch, publishers, .. } = self;
         let _ = _alive.undeclare().wait();
-        drop((_subscriber, _watch, publishers));
+        drop((subscriber, _watch, publishers));
     }
 }

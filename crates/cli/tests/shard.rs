@@ -208,10 +208,10 @@ fn shards_told_to_hold_wait_out_a_router_restart_and_keep_the_bits() {
     let mut second = router();
     let started = Instant::now();
     let mut copters = Vec::new();
-    for shard in shards {
-        let out = shard.wait_with_output().unwrap();
-        let err = String::from_utf8_lossy(&out.stderr);
-        assert!(out.status.success(), "{err}");
+    let outs: Vec<_> = shards.into_iter().map(|s| s.wait_with_output().unwrap()).collect();
+    let errs: Vec<String> = outs.iter().map(|o| String::from_utf8_lossy(&o.stderr).into_owned()).collect();
+    for (out, err) in outs.iter().zip(&errs) {
+        assert!(out.status.success(), "{errs:#?}");
         assert!(err.contains("holding until back"), "{err}");
         let s = json(&String::from_utf8_lossy(&out.stdout));
         assert!(s["shard"]["link"]["holds"].as_u64() >= Some(1), "{s}");

@@ -27,12 +27,14 @@
 //! a wake longer than the halo allows, is counted in [`crate::StepReport::shard_violations`]
 //! (the caller stops: the run would no longer be the one-process run).
 //!
-//! **Where the bits can differ:** Rapier keeps per-contact memory (warm-start impulses) and
-//! sleep timers inside its own sets, which do not travel. A copter that changes shard while
-//! it *touches* something in Rapier (a wreck lying across a border, a copter pressed against
-//! a box on a border) restarts that contact cold on its new shard. Flying copters, copters
-//! crossing borders, and crashes between flying copters across a border are bit-identical
-//! (`tests/shard.rs`).
+//! **Where the bits could differ:** Rapier keeps per-contact memory (warm-start impulses) and
+//! an island order set by its whole world's history, which do not travel. With
+//! `[sim] closed_form` (the default) only flying copters near something are in Rapier's hands,
+//! and a touch is mostly a crash, after which the wreck is closed form (`step::fall_wreck`);
+//! so every copter keeps the one-process bits in `tests/shard.rs` (60 s, 2–4 shards, a crowded
+//! take-off where most copters crash). Several flying copters in one Rapier contact island without a
+//! crash (soft touches below the crash speed) is the case left where they could part; with
+//! `closed_form = false` wrecks settle in Rapier and can part too (docs/sharding.md).
 
 use serde::{Deserialize, Serialize};
 
@@ -306,7 +308,7 @@ impl State {
             if d > view.partition.halo_m {
                 continue;
             }
-            // A fixed wreck (at rest, out of reach) is a sleeping one to its next owner.
+            // With `closed_form = false`: a sleeping wreck is a sleeping one to its next owner.
             let asleep = self.physics.bodies.get(c.body).is_some_and(|b| b.is_sleeping() || b.is_fixed());
             let state = if d <= FAR_BEYOND_M {
                 GhostState::Full(Box::new(c.clone()))

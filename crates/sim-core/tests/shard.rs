@@ -155,8 +155,13 @@ fn a_crowded_take_off_with_crashes_keeps_the_one_process_bits() {
         let run = run_sharded(&world, shards, 1200);
         let crashed = run.one.copters.iter().filter(|c| c.crash.is_some()).count();
         assert!(crashed > 50);
+        // Wrecks lying on wrecks (one wreck's height above the floor; the pillars are 0.5 m
+        // and taller).
+        let piled = run.one.copters.iter().filter(|c| c.crash.is_some() && (0.04..0.3).contains(&c.motion.pos_m.z));
+        let piled = piled.count();
+        assert!(piled > 0, "some wrecks came to rest on others");
         eprintln!(
-            "dense take-off, {shards} shards: {} migrations, {crashed} crashes; first divergence {:?}",
+            "dense take-off, {shards} shards: {} migrations, {crashed} crashes, {piled} on other wrecks; first divergence {:?}",
             run.migrations, run.first_divergence
         );
         assert_eq!(run.first_divergence, None, "{shards} shards: every copter keeps every bit for 60 s");
