@@ -14,7 +14,7 @@ import time
 import pytest
 import zenoh
 
-from conftest import free_tcp_port, zenoh_client_config
+from conftest import ROOT, free_tcp_port, zenoh_client_config
 
 
 def start_run(twinswarm_bin, *args):
@@ -55,11 +55,24 @@ class States:
         raise AssertionError(f"timed out: {what}; latest {json.dumps(self.latest)[:400]}")
 
 
-def test_a_claimed_copter_takes_commands_from_its_controller_only(twinswarm_bin):
+def lab_without_boxes(tmp_path):
+    """The embedded lab without its boxes. The lost-client landing below has no position
+    control: in the lab finken1 comes down some 15 cm from the crate, close enough that a run
+    paced a little differently (a loaded CI machine) lands on the crate's side. What the test
+    is about does not depend on boxes."""
+    text = (ROOT / "assets" / "scenes" / "finken_lab.toml").read_text()
+    kept = [b for b in text.split("\n\n") if not b.lstrip().startswith("[[box]]")]
+    assert len(kept) < len(text.split("\n\n")), "the lab has boxes to drop"
+    path = tmp_path / "lab-without-boxes.toml"
+    path.write_text("\n\n".join(kept))
+    return path
+
+
+def test_a_claimed_copter_takes_commands_from_its_controller_only(twinswarm_bin, tmp_path):
     endpoint = f"tcp/127.0.0.1:{free_tcp_port()}"
     prefix = f"control-{endpoint.rsplit(':', 1)[1]}/lab"
-    proc = start_run(twinswarm_bin, "--duration", "14", "--listen", endpoint, "--prefix", prefix,
-                     "--on-client-lost", "land")
+    proc = start_run(twinswarm_bin, lab_without_boxes(tmp_path), "--duration", "14", "--listen", endpoint,
+                     "--prefix", prefix, "--on-client-lost", "land")
     try:
         time.sleep(1.0)
         pilot = zenoh.open(zenoh_client_config(endpoint))
