@@ -291,6 +291,12 @@ impl ShardLink {
         Ok(())
     }
 
+    /// A hold for neighbours that had left, begun at `since`, is over.
+    fn end_hold(&mut self, since: Instant, tick: u64) {
+        self.stats.held_s += since.elapsed().as_secs_f64();
+        eprintln!("shard {}: neighbours back at tick {tick}", self.me);
+    }
+
     /// What this shard does when a neighbour leaves (default [`OnLost::Stop`]).
     pub fn on_lost(mut self, on_lost: OnLost) -> Self {
         self.on_lost = on_lost;
@@ -393,7 +399,6 @@ impl ShardLink {
                 (true, None) => {
                     holding_since = Some(Instant::now());
                     self.stats.holds += 1;
-                    tracing::warn!("shard {}: shard(s) {missing:?} left at tick {tick}; holding", self.me);
                     eprintln!(
                         "shard {}: shard(s) {missing:?} left at tick {tick}; holding until back (at most {:.0} s)",
                         self.me,
@@ -401,9 +406,8 @@ impl ShardLink {
                     );
                 }
                 (false, Some(since)) => {
-                    self.stats.held_s += since.elapsed().as_secs_f64();
+                    self.end_hold(since, tick);
                     holding_since = None;
-                    eprintln!("shard {}: neighbours back at tick {tick}", self.me);
                 }
                 _ => {}
             }
@@ -430,8 +434,7 @@ impl ShardLink {
             }
         }
         if let Some(since) = holding_since {
-            self.stats.held_s += since.elapsed().as_secs_f64();
-            eprintln!("shard {}: neighbours back at tick {tick}", self.me);
+            self.end_hold(since, tick);
         }
         let wait = t1.elapsed().as_secs_f64();
         self.stats.wait_s += wait;

@@ -32,7 +32,9 @@ use crate::sensors::{
 use crate::shard::{Role, ShardView};
 use crate::state::{CopterState, CrashCause, Lane, Motion, Pinger, State};
 use crate::world::{ColliderTag, CopterKind, World};
-use rapier3d::prelude::{PhysicsWorld, RigidBody, RigidBodyActivation, RigidBodyBuilder, RigidBodyType};
+use rapier3d::prelude::{
+    PhysicsWorld, RigidBody, RigidBodyActivation, RigidBodyBuilder, RigidBodyHandle, RigidBodyType,
+};
 
 /// Something that happened during a step.
 #[derive(Clone, Debug, PartialEq, Serialize)]
@@ -453,7 +455,12 @@ fn reserve_free_flight(world: &World, state: &mut State, parallel: bool, view: &
             }
             // A wreck this shard has just taken over enters as its owner had it.
             if c.crash.is_some() && !body.is_enabled() {
-                take_over_wreck(&mut state.physics.bodies[c.body], lane, closed_form, v.asleep[i]);
+                if closed_form {
+                    // Disabled here, so the same body (the handle does not change).
+                    fix_wreck(&mut state.physics, c.body, lane, i);
+                } else {
+                    take_over_wreck(&mut state.physics.bodies[c.body], lane, v.asleep[i]);
+                }
                 continue;
             }
         }
@@ -521,16 +528,13 @@ fn take_ownership(state: &mut State, view: &mut ShardView) -> u32 {
     violations
 }
 
-/// A wreck that has just become this shard's enters its Rapier world as its owner had it: a
-/// fixed body in closed form, else a dynamic one, asleep if it was.
-fn take_over_wreck(body: &mut RigidBody, lane: &Lane, closed_form: bool, asleep: bool) {
+/// A wreck that has just become this shard's enters its Rapier world as its owner had it
+/// (`closed_form = false`; in closed form it is fixed, [`fix_wreck`]): a dynamic body, asleep
+/// if it was.
+fn take_over_wreck(body: &mut RigidBody, lane: &Lane, asleep: bool) {
     body.set_enabled(true);
     body.set_translation(lane.pos_m, false);
     body.set_rotation(lane.rot, false);
-    if closed_form {
-        body.set_body_type(RigidBodyType::Fixed, false);
-        return;
-    }
     body.set_linvel(lane.vel_m_s, false);
     body.set_angvel(lane.angvel_rad_s, false);
     let activation = body.activation_mut();
@@ -1419,17 +1423,10 @@ const WRECK_TIME_UNTIL_SLEEP_S: Real = 0.2;
 
 fn crash(world: &World, state: &mut State, i: usize, cause: CrashCause, report: &mut StepReport) {
     let c = &mut state.copters[i];
-    if let (Some(body), Some(lane)) = (state.physics.bodies.get_mut(c.body), state.scratch.lanes.get_mut(i)) {
+    if let (true, Some(lane)) = (state.physics.bodies.contains(c.body), state.scratch.lanes.get_mut(i)) {
         if world.params.closed_form {
             // It falls in closed form from the next substep on; its body, fixed, follows it.
-            if body.is_enabled() {
-                fix_in_rapier(&mut state.physics, c, lane, i);
-            } else {
-                body.set_body_type(RigidBodyType::Fixed, false);
-                body.set_enabled(true);
-                body.set_translation(lane.pos_m, false);
-                body.set_rotation(lane.rot, false);
-            }
+            c.body = fix_wreck(&mut state.physics, c.body, lane, i);
             (lane.free, lane.watch, c.grounded) = (true, false, false);
             let falling = &mut state.scratch.falling;
             if let Err(at) = falling.binary_search(&(i as u32)) {
@@ -1438,7 +1435,7 @@ fn crash(world: &World, state: &mut State, i: usize, cause: CrashCause, report: 
         } else {
             // Rapier may put it to sleep once it lies still; a sleeping wreck costs nothing
             // until something hits it.
-            let activation = body.activation_mut();
+            let activation = state.physics.bodies[c.body].activation_mut();
             *activation = RigidBodyActivation::active();
             activation.time_until_sleep = WRECK_TIME_UNTIL_SLEEP_S;
         }
@@ -1452,21 +1449,30 @@ fn crash(world: &World, state: &mut State, i: usize, cause: CrashCause, report: 
     report.events.push(Event::Crashed { copter: i, cause });
 }
 
-/// A wreck Rapier has in hand becomes a fixed body at its lane's pose. Rapier 0.36 keeps a body
-/// that turns fixed in its awake island, and recomputes its colliders' AABBs at every step for
-/// the rest of the run; so the colliders move to a new fixed body and the old body goes. (Body
-/// handles therefore differ between shards; each keeps its own.)
-fn fix_in_rapier(physics: &mut PhysicsWorld, c: &mut CopterState, lane: &Lane, id: usize) {
-    let old = c.body;
-    let new = physics.insert_body(RigidBodyBuilder::fixed().user_data(id as u128));
-    let body = &mut physics.bodies[new];
+/// Copter `id`'s body becomes a fixed body at its lane's pose, enabled (a wreck in closed
+/// form); returns its handle. Rapier 0.36 keeps a body that turns fixed in its awake island,
+/// and recomputes its colliders' AABBs at every step for the rest of the run; so a body
+/// Rapier has in hand (enabled) hands its colliders to a new fixed body and goes. (Body
+/// handles therefore differ between shards; each keeps its own.) A disabled body is in no
+/// island and simply turns fixed.
+fn fix_wreck(physics: &mut PhysicsWorld, old: RigidBodyHandle, lane: &Lane, id: usize) -> RigidBodyHandle {
+    let handle = if physics.bodies[old].is_enabled() {
+        physics.insert_body(RigidBodyBuilder::fixed().user_data(id as u128))
+    } else {
+        old
+    };
+    let body = &mut physics.bodies[handle];
+    body.set_body_type(RigidBodyType::Fixed, false);
+    body.set_enabled(true);
     body.set_translation(lane.pos_m, false);
     body.set_rotation(lane.rot, false);
-    while let Some(&collider) = physics.bodies[old].colliders().first() {
-        physics.colliders.set_parent(collider, Some(new), &mut physics.bodies);
+    if handle != old {
+        while let Some(&collider) = physics.bodies[old].colliders().first() {
+            physics.colliders.set_parent(collider, Some(handle), &mut physics.bodies);
+        }
+        physics.remove_body_with_colliders(old, false);
     }
-    physics.remove_body_with_colliders(old, false);
-    c.body = new;
+    handle
 }
 
 /// One physics step of a wreck in closed form (`[sim] closed_form`, the default). It falls
