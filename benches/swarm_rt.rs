@@ -17,7 +17,7 @@
 //!
 //! ```text
 //! cargo bench -p twinswarm --bench swarm_rt -- --n 100 1000 --threads 1 2 [--scene dense] [--log] [--sim-seconds S]
-//! cargo bench -p twinswarm --bench swarm_rt -- --n 100 1000 --log-cost ROUNDS [--zstd-level L] [--log-rate HZ]
+//! cargo bench -p twinswarm --bench swarm_rt -- --n 100 1000 --log-cost ROUNDS [--zstd-level L] [--chunk-kib K] [--log-rate HZ]
 //! cargo bench -p twinswarm --bench swarm_rt -- --plot docs/img/scaling.png
 //! ```
 //!
@@ -128,13 +128,16 @@ fn world(scene: Scene, n: usize, threads: usize) -> World {
     }
 }
 
-/// The logger's options: the defaults, or `--zstd-level L` and `--log-rate HZ`.
+/// The logger's options: the defaults, or `--zstd-level L`, `--chunk-kib K` and `--log-rate HZ`.
 fn log_options() -> bridge::log::LogOptions {
     let mut o = bridge::log::LogOptions::default();
     let args: Vec<String> = std::env::args().collect();
     let value = |flag: &str| args.iter().position(|a| a == flag).and_then(|i| args.get(i + 1)?.parse().ok());
     if let Some(l) = value("--zstd-level") {
         o.zstd_level = l;
+    }
+    if let Some(kib) = value("--chunk-kib") {
+        o.chunk_size = kib as usize * 1024;
     }
     let rate = args.iter().position(|a| a == "--log-rate").and_then(|i| args.get(i + 1)?.parse::<f64>().ok());
     if let Some(hz) = rate {
@@ -304,7 +307,7 @@ fn main() {
             "--threads" => list = Some(1),
             "--log" => (log, list) = (true, None),
             "--log-cost" => (log_cost_rounds, list) = (args.next().and_then(|v| v.parse::<usize>().ok()), None),
-            "--zstd-level" | "--log-rate" => (_, list) = (args.next(), None),
+            "--zstd-level" | "--log-rate" | "--chunk-kib" => (_, list) = (args.next(), None),
             "--sim-seconds" => (sim_s, list) = (args.next().and_then(|v| v.parse::<f64>().ok()), None),
             "--plot" => (plot_to, list) = (args.next().map(PathBuf::from), None),
             "--scene" => {
