@@ -19,7 +19,7 @@
 use crate::math::{Quat, Real, Vec3};
 
 /// A cone: apex, unit axis, and half-angle (given by its cosine and sine).
-#[derive(Clone, Copy, Debug)]
+#[derive(Clone, Copy, Debug, Default)]
 pub struct Cone {
     /// Apex, world frame, m.
     pub apex: Vec3,
@@ -75,7 +75,7 @@ impl Cone {
 }
 
 /// An oriented box.
-#[derive(Clone, Copy, Debug)]
+#[derive(Clone, Copy, Debug, Default)]
 pub struct OrientedBox {
     /// Centre, world frame, m.
     pub center: Vec3,

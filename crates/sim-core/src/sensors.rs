@@ -454,6 +454,71 @@ impl CopterGrid {
         (ix.clamp(-1, self.nx as isize), iy.clamp(-1, self.ny as isize))
     }
 
+    /// Number of cells (for [`CopterGrid::visit_pairs`]'s ranges).
+    pub fn cell_count(&self) -> usize {
+        self.nx * self.ny
+    }
+
+    /// The cell offsets `(dx, dy)` after a cell (`dy > 0`, or `dy = 0` and `dx > 0`) whose items
+    /// may lie within `radius_m` of an item of it: with them, [`CopterGrid::visit_pairs`] visits
+    /// every pair of items within `radius_m` of each other.
+    pub fn forward_offsets(&self, radius_m: Real, out: &mut Vec<(i32, i32)>) {
+        out.clear();
+        // In cells, with room for the rounding of `cell_of` at cell borders.
+        let r = (radius_m + 2.0 * self.max_radius_m) / self.cell_m + 0.01;
+        let m = r.ceil() as i32 + 1;
+        for dy in 0..=m {
+            for dx in -m..=m {
+                if dy == 0 && dx <= 0 {
+                    continue;
+                }
+                // The gap between the two cells, in cells.
+                let (gx, gy) = ((dx.abs() - 1).max(0) as Real, (dy - 1).max(0) as Real);
+                if gx * gx + gy * gy <= r * r {
+                    out.push((dx, dy));
+                }
+            }
+        }
+    }
+
+    /// Visits the pairs of items of the cells `cells` (indices): each item with the items after
+    /// it in its cell, and with the items of the cells at `offsets` (see
+    /// [`CopterGrid::forward_offsets`]). Over all cells, each pair comes once, in no particular
+    /// order of its two ids.
+    pub fn visit_pairs(
+        &self,
+        cells: std::ops::Range<usize>,
+        offsets: &[(i32, i32)],
+        mut visit: impl FnMut(usize, usize),
+    ) {
+        let (nx, ny) = (self.nx as i32, self.ny as i32);
+        for c in cells {
+            let items = &self.items[self.starts[c] as usize..self.starts[c + 1] as usize];
+            if items.is_empty() {
+                continue;
+            }
+            for (k, &x) in items.iter().enumerate() {
+                for &y in &items[k + 1..] {
+                    visit(x as usize, y as usize);
+                }
+            }
+            let (cx, cy) = ((c % self.nx) as i32, (c / self.nx) as i32);
+            for &(dx, dy) in offsets {
+                let (ox, oy) = (cx + dx, cy + dy);
+                if ox < 0 || ox >= nx || oy >= ny {
+                    continue;
+                }
+                let o = oy as usize * self.nx + ox as usize;
+                let others = &self.items[self.starts[o] as usize..self.starts[o + 1] as usize];
+                for &x in items {
+                    for &y in others {
+                        visit(x as usize, y as usize);
+                    }
+                }
+            }
+        }
+    }
+
     /// Visits copter ids in rings of cells around `p`, nearest rings first. `visit` gets each
     /// id and returns the current search radius (m): rings that cannot hold anything closer
     /// are not visited.

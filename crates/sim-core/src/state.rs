@@ -353,7 +353,9 @@ impl EventHandler for CollisionCollector {
 pub(crate) struct Scratch {
     pub(crate) collisions: CollisionCollector,
     pub(crate) started: Vec<(ColliderHandle, ColliderHandle)>,
-    pub(crate) vel_before: Vec<Vec3>,
+    /// The owned copters in Rapier (not flying free), in id order: the ones whose forces go
+    /// into Rapier's step and whose motion comes out of it. Room for every copter.
+    pub(crate) in_rapier: Vec<u32>,
     pub(crate) sonar_scene: SonarScene,
     /// Every copter's sonar cones and ping timing, for cross-talk.
     pub(crate) pingers: Vec<Pinger>,
@@ -361,6 +363,9 @@ pub(crate) struct Scratch {
     /// the cross-talk pass need not visit them.
     pub(crate) ping_points: Vec<(u32, Vec3)>,
     pub(crate) ping_grid: CopterGrid,
+    /// The cell offsets of `ping_grid` within cross-talk's reach (see
+    /// [`CopterGrid::forward_offsets`]).
+    pub(crate) ping_offsets: Vec<(i32, i32)>,
     /// One lane per copter: its motion during the step and its free-flight reservation.
     pub(crate) lanes: Vec<Lane>,
     /// Reserved spheres of all copters (radius in `half.x`), for the free-flight test.
@@ -369,9 +374,12 @@ pub(crate) struct Scratch {
     pub(crate) sphere_grid: CopterGrid,
     /// This shard's wrecks falling in closed form, by id (see `step::fall_wreck`).
     pub(crate) falling: Vec<u32>,
-    /// Cross-talk on threads: what each chunk of emitters' pairs make listeners hear,
-    /// `(listener, sonar, reading)`, applied after the parallel pass.
-    pub(crate) heard: Vec<Vec<(u32, u8, Real)>>,
+    /// Per chunk of [`step::ALERT_CHUNK`] lanes: whether one of them may have crashed, taken
+    /// off or left its reservation in the last substep (see `step::detect_tilt_and_takeoff`).
+    pub(crate) alerts: Vec<bool>,
+    /// Cross-talk on threads: per copter and sonar, the bits of the lowest reading heard
+    /// (readings are positive: their bits order as they do).
+    pub(crate) heard_min: Vec<std::sync::atomic::AtomicU32>,
     /// Copters on watch and what they may meet this step, (on watch, other) once per pair.
     pub(crate) watch_pairs: Vec<(u32, u32)>,
     /// cos of each airframe's crash tilt.
@@ -392,7 +400,7 @@ pub(crate) struct Scratch {
 }
 
 /// A copter's sonars as an emitter of pings: its centre, cones and ping timing.
-#[derive(Clone, Copy, Debug)]
+#[derive(Clone, Copy, Debug, Default)]
 pub(crate) struct Pinger {
     pub(crate) pos_m: Vec3,
     pub(crate) cones: [crate::geometry::Cone; 4],
@@ -444,4 +452,7 @@ pub(crate) struct Lane {
     pub(crate) flying: bool,
     /// Not crashed and not yet taken off.
     pub(crate) awaiting_takeoff: bool,
+    /// Velocity before this substep's contacts (after its free flight or fall), m/s: the
+    /// impact speed of a crash.
+    pub(crate) vel_before_m_s: Vec3,
 }

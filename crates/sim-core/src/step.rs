@@ -167,6 +167,29 @@ where
     }
 }
 
+/// Fills `out` with `f(i)` for every `i` in `0..n`, in parallel chunks or in order (the same
+/// values either way); `fill` only stands in until then.
+fn fill_each<T>(parallel: bool, out: &mut Vec<T>, n: usize, fill: T, f: impl Fn(usize) -> T + Sync + Send)
+where
+    T: Copy + Send + Sync,
+{
+    out.clear();
+    out.resize(n, fill);
+    if parallel && n > 64 {
+        use rayon::prelude::*;
+        let chunk = (n / 32).max(32);
+        out.par_chunks_mut(chunk).enumerate().for_each(|(k, out)| {
+            for (j, x) in out.iter_mut().enumerate() {
+                *x = f(k * chunk + j);
+            }
+        });
+    } else {
+        for (i, x) in out.iter_mut().enumerate() {
+            *x = f(i);
+        }
+    }
+}
+
 fn step_on(world: &World, state: &mut State, inputs: &Inputs, parallel: bool, report: &mut StepReport) {
     let mut view = state.shard.take();
     step_copters(world, state, inputs, parallel, &mut view, report);
@@ -194,13 +217,13 @@ fn step_copters(
     // Every copter's motion at the start of the step.
     let lanes = &mut state.scratch.lanes;
     lanes.resize(n, Lane::default());
-    for ((lane, c), def) in lanes.iter_mut().zip(&state.copters).zip(&world.copters) {
+    for_each_lane(parallel, &mut state.copters, lanes, |i, c, lane| {
         let m = &c.motion;
         (lane.pos_m, lane.rot, lane.vel_m_s, lane.angvel_rad_s) = (m.pos_m, m.rot, m.vel_m_s, m.angvel_rad_s);
-        lane.airframe = def.airframe as u32;
+        lane.airframe = world.copters[i].airframe as u32;
         lane.flying = c.crash.is_none();
         lane.awaiting_takeoff = lane.flying && c.took_off_tick.is_none();
-    }
+    });
 
     let sonar_period = world.sensors.spec.sonar.period_steps.max(1) as u64;
     if world.sensors.spec.enabled {
@@ -227,7 +250,6 @@ fn step_copters(
     // Physics substeps.
     let dt = world.physics_dt();
     let scratch = &mut state.scratch;
-    scratch.vel_before.resize(n, Vec3::ZERO);
     scratch.crash_cos_tilt.clear();
     scratch.crash_cos_tilt.extend(world.airframes.iter().map(|af| af.spec.crash_tilt_deg.to_radians().cos()));
     scratch.motor_alpha.clear();
@@ -235,50 +257,29 @@ fn step_copters(
     let inner = InnerParams::new(world, dt);
     for _ in 0..world.params.substeps {
         watch_contacts(state, dt);
-        // Inner loops and rotors of every copter; free copters also move.
+        // Inner loops and rotors of every copter; free copters also move. With threads, the
+        // copters in Rapier go first (their forces go into Rapier's step), and Rapier then
+        // steps on one thread while the free copters' inner loops run on the others: a free
+        // copter's substep touches nothing of Rapier's, and nothing of it is read before
+        // Rapier's step is done. On one thread, one pass in id order: the same bits.
         let scratch = &mut state.scratch;
-        let alphas = &scratch.motor_alpha;
-        for_each_lane(parallel, &mut state.copters, &mut scratch.lanes, |i, c, lane| {
-            // A wreck in closed form moves in the serial pass below.
-            if !roles.owned(i) || (c.crash.is_some() && lane.free) {
-                return;
-            }
-            let airframe = world.copters[i].airframe;
-            let af = &world.airframes[airframe];
-            let twin = world.copters[i].kind == CopterKind::Real;
-            let (thrust_n, torque_body_n_m) = if c.crash.is_some() {
-                (0.0, Vec3::ZERO)
-            } else {
-                inner_loop(af, &inner, twin, c, lane, dt, alphas[airframe])
-            };
-            if lane.free {
-                let vel_before = lane.vel_m_s;
-                if c.grounded && !lifts_off(af, lane, thrust_n) {
-                    return;
-                }
-                c.grounded = false;
-                integrate_free(af, lane, thrust_n, torque_body_n_m, dt);
-                let below = lowest_point_below_centre(af, lane.rot);
-                if lane.pos_m.z - below < 0.0 {
-                    touch_floor(af, c, lane, vel_before, below);
-                }
-            } else {
-                lane.force_n = lane.rot * Vec3::new(0.0, 0.0, thrust_n) + lane.downwash_force_n;
-                lane.torque_n_m = lane.rot * torque_body_n_m + lane.downwash_torque_n_m;
-            }
-        });
+        let parallel_rapier = parallel && !scratch.in_rapier.is_empty();
+        let first = substep_pass(world, inner, &scratch.motor_alpha, roles, dt, parallel_rapier.then_some(true));
+        for_each_lane(parallel, &mut state.copters, &mut scratch.lanes, first);
         for k in 0..state.scratch.falling.len() {
-            fall_wreck(world, state, state.scratch.falling[k] as usize, dt);
+            let i = state.scratch.falling[k] as usize;
+            fall_wreck(world, state, i, dt);
+            let lane = &mut state.scratch.lanes[i];
+            lane.vel_before_m_s = lane.vel_m_s;
         }
         let (copters, falling) = (&state.copters, &mut state.scratch.falling);
         falling.retain(|&i| !copters[i as usize].grounded);
-        // The others go through Rapier.
+        // The others go through Rapier, in id order.
         let scratch = &mut state.scratch;
         let mut any_near = false;
-        for (i, c) in state.copters.iter().enumerate() {
-            let lane = &scratch.lanes[i];
-            scratch.vel_before[i] = lane.vel_m_s;
-            if lane.free || !roles.owned(i) {
+        for &i in &scratch.in_rapier {
+            let (lane, c) = (&scratch.lanes[i as usize], &state.copters[i as usize]);
+            if lane.free {
                 continue;
             }
             // A crashed copter at rest sleeps until something hits it. (Looked at first: a
@@ -296,16 +297,29 @@ fn step_copters(
                 body.add_torque(lane.torque_n_m, false);
             }
         }
+        let scratch = &mut state.scratch;
+        let rapier = |physics: &mut PhysicsWorld| {
+            if any_near {
+                physics.step_with_events(&(), &scratch.collisions);
+            }
+        };
+        if parallel_rapier {
+            let free_lanes = substep_pass(world, inner, &scratch.motor_alpha, roles, dt, Some(false));
+            let (physics, copters, lanes) = (&mut state.physics, &mut state.copters, &mut scratch.lanes);
+            rayon::join(|| rapier(physics), || for_each_lane(true, copters, lanes, free_lanes));
+        } else {
+            rapier(&mut state.physics);
+        }
         if any_near {
             report.rapier_substeps += 1;
-            state.physics.step_with_events(&(), &scratch.collisions);
             // Poisoned only if Rapier's event collector panicked; its events are still good,
             // and losing them would lose crash detection.
             let mut started = scratch.collisions.started.lock().unwrap_or_else(std::sync::PoisonError::into_inner);
             std::mem::swap(&mut *started, &mut scratch.started);
             drop(started);
-            for (i, (lane, c)) in scratch.lanes.iter_mut().zip(&state.copters).enumerate() {
-                if !lane.free && roles.owned(i) {
+            for &i in &scratch.in_rapier {
+                let (lane, c) = (&mut scratch.lanes[i as usize], &state.copters[i as usize]);
+                if !lane.free {
                     let body = &state.physics.bodies[c.body];
                     lane.pos_m = body.translation();
                     lane.rot = *body.rotation();
@@ -315,7 +329,7 @@ fn step_copters(
             }
             detect_collision_crashes(world, state, report);
         }
-        detect_tilt_and_takeoff(world, state, report, roles);
+        detect_tilt_and_takeoff(world, state, report, roles, parallel);
     }
 
     // The step's motion is the copters' (free copters' Rapier bodies stay where they were).
@@ -327,6 +341,79 @@ fn step_copters(
     }
     state.tick += 1;
     report.tick = state.tick;
+}
+
+/// The substep of every copter (`in_rapier: None`), of those in Rapier (`Some(true)`) or of
+/// those flying free (`Some(false)`), as a closure for [`for_each_lane`].
+fn substep_pass<'a>(
+    world: &'a World,
+    inner: InnerParams,
+    alphas: &'a [Real],
+    roles: Roles<'a>,
+    dt: Real,
+    in_rapier: Option<bool>,
+) -> impl Fn(usize, &mut CopterState, &mut Lane) + Sync + Send + 'a {
+    move |i, c, lane| {
+        if in_rapier.is_none_or(|r| r != lane.free) {
+            substep_lane(world, &inner, alphas[world.copters[i].airframe], roles, i, c, lane, dt);
+        }
+    }
+}
+
+/// One copter's physics substep: its inner loop and rotors (a wreck's motors are off), and,
+/// flying free, its motion in closed form; in Rapier, the force and torque for Rapier's step.
+/// Records its velocity before any contact of the substep (`vel_before_m_s`).
+#[allow(clippy::too_many_arguments)]
+#[inline]
+fn substep_lane(
+    world: &World,
+    inner: &InnerParams,
+    alpha: Real,
+    roles: Roles<'_>,
+    i: usize,
+    c: &mut CopterState,
+    lane: &mut Lane,
+    dt: Real,
+) {
+    substep_motion(world, inner, alpha, roles, i, c, lane, dt);
+    lane.vel_before_m_s = lane.vel_m_s;
+}
+
+#[allow(clippy::too_many_arguments)]
+#[inline(always)]
+fn substep_motion(
+    world: &World,
+    inner: &InnerParams,
+    alpha: Real,
+    roles: Roles<'_>,
+    i: usize,
+    c: &mut CopterState,
+    lane: &mut Lane,
+    dt: Real,
+) {
+    // A wreck in closed form moves in the serial pass (`fall_wreck`).
+    if !roles.owned(i) || (c.crash.is_some() && lane.free) {
+        return;
+    }
+    let af = &world.airframes[world.copters[i].airframe];
+    let twin = world.copters[i].kind == CopterKind::Real;
+    let (thrust_n, torque_body_n_m) =
+        if c.crash.is_some() { (0.0, Vec3::ZERO) } else { inner_loop(af, inner, twin, c, lane, dt, alpha) };
+    if lane.free {
+        let vel_before = lane.vel_m_s;
+        if c.grounded && !lifts_off(af, lane, thrust_n) {
+            return;
+        }
+        c.grounded = false;
+        integrate_free(af, lane, thrust_n, torque_body_n_m, dt);
+        let below = lowest_point_below_centre(af, lane.rot);
+        if lane.pos_m.z - below < 0.0 {
+            touch_floor(af, c, lane, vel_before, below);
+        }
+    } else {
+        lane.force_n = lane.rot * Vec3::new(0.0, 0.0, thrust_n) + lane.downwash_force_n;
+        lane.torque_n_m = lane.rot * torque_body_n_m + lane.downwash_torque_n_m;
+    }
 }
 
 /// Decides which copters fly free of Rapier for this control step.
@@ -345,8 +432,7 @@ fn reserve_free_flight(world: &World, state: &mut State, parallel: bool, view: &
     let t = world.params.control_dt_s as Real;
     let dt = world.physics_dt();
     let scratch = &mut state.scratch;
-    scratch.spheres.clear();
-    for (i, (lane, c)) in scratch.lanes.iter_mut().zip(&state.copters).enumerate() {
+    for_each_lane(parallel, &mut state.copters, &mut scratch.lanes, |i, c, lane| {
         let af = &world.airframes[world.copters[i].airframe];
         let tol = c.rotor_tolerance.iter().copied().fold(1.0, Real::max);
         // A wreck's motors are off: only gravity and contacts move it.
@@ -362,12 +448,13 @@ fn reserve_free_flight(world: &World, state: &mut State, parallel: bool, view: &
         let radius = af.radius_m.hypot(af.spec.body_size_m[2] / 2.0) + 0.01;
         lane.reserved_m = radius + lane.reach_m;
         lane.substep_reserved_m = radius + 0.5 * a_max * dt * dt;
-        scratch.spheres.push(OrientedBox {
-            center: lane.pos_m,
-            rotation: crate::math::Quat::IDENTITY,
-            half: Vec3::new(lane.reserved_m, 0.0, 0.0),
-        });
-    }
+    });
+    let lanes = &scratch.lanes;
+    fill_each(parallel, &mut scratch.spheres, lanes.len(), OrientedBox::default(), |i| OrientedBox {
+        center: lanes[i].pos_m,
+        rotation: crate::math::Quat::IDENTITY,
+        half: Vec3::new(lanes[i].reserved_m, 0.0, 0.0),
+    });
     scratch.sphere_grid.set_cover(arena_rect(world));
     match roles.0 {
         Some(_) => scratch.sphere_grid.build_some(&scratch.spheres, &scratch.present, GRID_CELL_M),
@@ -475,6 +562,13 @@ fn reserve_free_flight(world: &World, state: &mut State, parallel: bool, view: &
             enter_rapier(body, lane);
         }
     }
+    let roles = Roles(view.as_ref().map(|v| &v.roles[..]));
+    let scratch = &mut state.scratch;
+    scratch.in_rapier.clear();
+    // Room for every copter, so that entering Rapier during the step never grows it.
+    scratch.in_rapier.reserve(scratch.lanes.len());
+    let lanes = scratch.lanes.iter().enumerate();
+    scratch.in_rapier.extend(lanes.filter(|(i, l)| !l.free && roles.owned(*i)).map(|(i, _)| i as u32));
     violations
 }
 
@@ -581,6 +675,7 @@ fn watch_contacts(state: &mut State, dt: Real) {
             let c = &mut state.copters[k];
             enter_rapier(&mut state.physics.bodies[c.body], lane);
             (lane.free, lane.watch, c.grounded) = (false, false, false);
+            insert_sorted(&mut scratch.in_rapier, k as u32);
         }
     }
 }
@@ -596,25 +691,24 @@ fn watch_contacts(state: &mut State, dt: Real) {
 fn airflow(world: &World, state: &mut State, parallel: bool, roles: Roles<'_>) -> u32 {
     let spec = &world.airflow.spec;
     let scratch = &mut state.scratch;
-    for (i, lane) in scratch.lanes.iter_mut().enumerate() {
+    for_each_lane(parallel, &mut state.copters, &mut scratch.lanes, |i, _, lane| {
         if !roles.present(i) {
-            continue;
+            return;
         }
         let twin = world.copters[i].kind == CopterKind::Real;
         lane.ground_m = if spec.ground_effect { ground_below(world, lane.pos_m, twin) } else { 0.0 };
         lane.downwash_force_n = Vec3::ZERO;
         lane.downwash_torque_n_m = Vec3::ZERO;
-    }
+    });
     if !spec.downwash || world.copters.len() < 2 {
         return 0;
     }
     let mut violations = 0;
     let wake_limit = crate::shard::sense_reach_m(world);
     let width_per_m = world.airflow.width_per_m;
-    scratch.wakes.clear();
-    scratch.wake_reach.clear();
-    let mut any = false;
-    for (i, (lane, c)) in scratch.lanes.iter().zip(&state.copters).enumerate() {
+    let (lanes, copters) = (&scratch.lanes, &state.copters);
+    fill_each(parallel, &mut scratch.wakes, lanes.len(), Wake::default(), |i| {
+        let (lane, c) = (&lanes[i], &copters[i]);
         let af = &world.airframes[world.copters[i].airframe];
         let thrust: Real = c.rotor_thrust_n.iter().sum();
         let dir = lane.rot * Vec3::NEG_Z;
@@ -624,30 +718,34 @@ fn airflow(world: &World, state: &mut State, parallel: bool, roles: Roles<'_>) -
             && dir.z < -0.2
             && origin.z > 0.0
             && roles.present(i);
-        let wake = if active {
-            let rho_a = af.spec.air_density_kg_m3 * af.disc_area_m2;
-            Wake {
-                origin,
-                dir,
-                v0_m_s: (0.5 * thrust / rho_a).sqrt(),
-                b0_m: af.spec.rotor_diameter_m,
-                length_m: origin.z / -dir.z,
-            }
-        } else {
-            Wake::default()
-        };
-        let reach = if active { wake.reach_m(width_per_m) } else { 0.0 };
+        if !active {
+            // Reaches nothing, from where it would start (`wake_reach` is centred there).
+            return Wake { origin, ..Wake::default() };
+        }
+        let rho_a = af.spec.air_density_kg_m3 * af.disc_area_m2;
+        Wake {
+            origin,
+            dir,
+            v0_m_s: (0.5 * thrust / rho_a).sqrt(),
+            b0_m: af.spec.rotor_diameter_m,
+            length_m: origin.z / -dir.z,
+        }
+    });
+    let wakes = &scratch.wakes;
+    // An active wake is one with a length (its origin above the floor, pointing down).
+    let reach = |w: &Wake| if w.length_m > 0.0 { w.reach_m(width_per_m) } else { 0.0 };
+    fill_each(parallel, &mut scratch.wake_reach, wakes.len(), OrientedBox::default(), |i| OrientedBox {
+        center: wakes[i].origin,
+        rotation: Quat::IDENTITY,
+        half: Vec3::new(reach(&wakes[i]), 0.0, 0.0),
+    });
+    let mut any = false;
+    for (i, w) in scratch.wakes.iter().enumerate() {
+        any |= w.length_m > 0.0;
         // A shard's neighbours see its copters only within the halo.
-        if roles.0.is_some() && roles.owned(i) && reach > wake_limit {
+        if roles.0.is_some() && roles.owned(i) && scratch.wake_reach[i].half.x > wake_limit {
             violations += 1;
         }
-        any |= active;
-        scratch.wakes.push(wake);
-        scratch.wake_reach.push(OrientedBox {
-            center: origin,
-            rotation: Quat::IDENTITY,
-            half: Vec3::new(reach, 0.0, 0.0),
-        });
     }
     if !any {
         return violations;
@@ -1034,11 +1132,17 @@ fn outer_loop(
 /// every copter's body (crashed ones too), indexed in the copter grid. `sense` uses it; so can
 /// tools that need the same geometry (e.g. extra virtual sonars).
 pub fn fill_sonar_scene(world: &World, copters: &[CopterState], scene: &mut SonarScene) {
-    fill_sonar_scene_of(world, copters, None, scene);
+    fill_sonar_scene_of(world, copters, None, false, scene);
 }
 
 /// [`fill_sonar_scene`] seeing only the copters in `present` (ascending ids), if given.
-fn fill_sonar_scene_of(world: &World, copters: &[CopterState], present: Option<&[u32]>, scene: &mut SonarScene) {
+fn fill_sonar_scene_of(
+    world: &World,
+    copters: &[CopterState],
+    present: Option<&[u32]>,
+    parallel: bool,
+    scene: &mut SonarScene,
+) {
     let (hx, hy) = (world.arena.size_m[0] / 2.0, world.arena.size_m[1] / 2.0);
     scene.walls.clear();
     if world.arena.walls {
@@ -1056,8 +1160,7 @@ fn fill_sonar_scene_of(world: &World, copters: &[CopterState], present: Option<&
         rotation: crate::math::Quat::from_rotation_z(b.yaw_rad),
         half: b.half_extents_m,
     }));
-    scene.copters.clear();
-    scene.copters.extend((0..copters.len()).map(|i| copter_box(world, copters, i)));
+    fill_each(parallel, &mut scene.copters, copters.len(), OrientedBox::default(), |i| copter_box(world, copters, i));
     scene.grid.set_cover(arena_rect(world));
     match present {
         Some(ids) => scene.index_some_copters(ids, grid_cell_m(world, copters.len())),
@@ -1102,7 +1205,7 @@ fn sense(world: &World, state: &mut State, inputs: &Inputs, sonar_due: bool, par
     // What the sonars can see, gathered once.
     let scratch = &mut state.scratch;
     let present = roles.0.map(|_| &scratch.present[..]);
-    fill_sonar_scene_of(world, &state.copters, present, &mut scratch.sonar_scene);
+    fill_sonar_scene_of(world, &state.copters, present, parallel, &mut scratch.sonar_scene);
     let scene = &scratch.sonar_scene;
 
     let noise = spec.noise;
@@ -1199,17 +1302,20 @@ fn sense(world: &World, state: &mut State, inputs: &Inputs, sonar_due: bool, par
         let now_s = world.time_at(tick);
         let stagger = if ct.round_robin { 0.25 } else { 0.0 };
         let sonar = &spec.sonar;
-        let crate::state::Scratch { pingers, ping_points, ping_grid, lanes, heard: heard_lists, .. } =
+        let crate::state::Scratch { pingers, ping_points, ping_grid, ping_offsets, lanes, heard_min, .. } =
             &mut state.scratch;
         // Every copter's cones and ping timing, gathered once.
-        pingers.clear();
-        pingers.extend(lanes.iter().zip(&state.copters).enumerate().map(|(i, (lane, c))| Pinger {
-            pos_m: lane.pos_m,
-            cones: sonar_cones(params, lane.pos_m, lane.rot),
-            phase_s: c.sonar_phase_s,
-            cycle_s: c.sonar_cycle_s,
-            pings: c.crash.is_none() && roles.present(i),
-        }));
+        let copters = &state.copters;
+        fill_each(parallel, pingers, n, Pinger::default(), |i| {
+            let (lane, c) = (&lanes[i], &copters[i]);
+            Pinger {
+                pos_m: lane.pos_m,
+                cones: sonar_cones(params, lane.pos_m, lane.rot),
+                phase_s: c.sonar_phase_s,
+                cycle_s: c.sonar_cycle_s,
+                pings: c.crash.is_none() && roles.present(i),
+            }
+        });
         ping_points.clear();
         ping_points.extend(pingers.iter().enumerate().filter(|(_, p)| p.pings).map(|(i, p)| (i as u32, p.pos_m)));
         ping_grid.set_cover(arena_rect(world));
@@ -1250,53 +1356,57 @@ fn sense(world: &World, state: &mut State, inputs: &Inputs, sonar_due: bool, par
                 }
             }
         };
-        // Every eligible pair (a > b) of emitter `b`'s neighbourhood once, both directions:
-        // what each listener's sonar would read.
-        let pairs_of = |b: usize, hear: &mut dyn FnMut(usize, usize, Real)| {
-            if !pingers[b].pings {
-                return;
-            }
-            grid.visit_near(pingers[b].pos_m, reach, |a| {
-                if a > b {
-                    eligible(b, a, &mut |j, k, d| {
-                        if let Some(q) = heard(&pingers[b], k, &pingers[a], j, d) {
-                            hear(b, k, q);
-                        }
-                        if let Some(q) = heard(&pingers[a], j, &pingers[b], k, d) {
-                            hear(a, j, q);
-                        }
-                    });
+        // Every pair of pinging copters within reach once (by grid cells), both directions:
+        // what each listener's sonar would read. The pair's lower id is `b` (the same bits
+        // whichever cell finds it).
+        let pair = |x: usize, y: usize, hear: &mut dyn FnMut(usize, usize, Real)| {
+            let (b, a) = if x < y { (x, y) } else { (y, x) };
+            eligible(b, a, &mut |j, k, d| {
+                if let Some(q) = heard(&pingers[b], k, &pingers[a], j, d) {
+                    hear(b, k, q);
                 }
-                reach
+                if let Some(q) = heard(&pingers[a], j, &pingers[b], k, d) {
+                    hear(a, j, q);
+                }
             });
         };
+        grid.forward_offsets(reach, ping_offsets);
+        let offsets = &ping_offsets[..];
+        let cells = grid.cell_count();
         // A reading is a minimum, and a minimum does not depend on the order: the same bits
         // either way.
         if parallel && n > 64 {
-            // Chunks of emitters in parallel, each listing what its pairs' listeners hear.
+            // Chunks of cells in parallel; each lowers the readings it hears as an atomic
+            // minimum of their bits (readings are positive, and positive floats order as their
+            // bits do), applied after.
             use rayon::prelude::*;
-            let chunk = (n / 32).max(32);
-            heard_lists.resize_with(n.div_ceil(chunk), Vec::new);
+            use std::sync::atomic::{AtomicU32, Ordering::Relaxed};
+            heard_min.resize_with(4 * n, || AtomicU32::new(0));
             let copters = &state.copters;
-            heard_lists.par_iter_mut().enumerate().for_each(|(ci, out)| {
-                out.clear();
-                for b in ci * chunk..((ci + 1) * chunk).min(n) {
-                    pairs_of(b, &mut |i, k, q| {
-                        // Only what may lower a reading (the readings change only below).
-                        if q < copters[i].sensors.sonar_m[k] {
-                            out.push((i as u32, k as u8, q));
-                        }
-                    });
+            heard_min.par_chunks_mut(4).zip(copters.par_iter()).for_each(|(min, c)| {
+                for (m, r) in min.iter_mut().zip(c.sensors.sonar_m) {
+                    *m.get_mut() = r.to_bits();
                 }
             });
-            for &(i, k, q) in heard_lists.iter().flatten() {
-                lower_reading(&mut state.copters[i as usize].sensors, k as usize, q);
-            }
+            let chunk = (cells / 64).max(16);
+            let heard_min = &heard_min[..];
+            (0..cells.div_ceil(chunk)).into_par_iter().for_each(|ci| {
+                grid.visit_pairs(ci * chunk..((ci + 1) * chunk).min(cells), offsets, |x, y| {
+                    pair(x, y, &mut |i, k, q| {
+                        heard_min[4 * i + k].fetch_min(q.to_bits(), Relaxed);
+                    });
+                });
+            });
+            for_each_lane(true, &mut state.copters, lanes, |i, c, _| {
+                for k in 0..4 {
+                    lower_reading(&mut c.sensors, k, Real::from_bits(heard_min[4 * i + k].load(Relaxed)));
+                }
+            });
         } else {
             let copters = &mut state.copters;
-            for b in 0..n {
-                pairs_of(b, &mut |i, k, q| lower_reading(&mut copters[i].sensors, k, q));
-            }
+            grid.visit_pairs(0..cells, offsets, |x, y| {
+                pair(x, y, &mut |i, k, q| lower_reading(&mut copters[i].sensors, k, q));
+            });
         }
     }
 
@@ -1352,7 +1462,7 @@ fn detect_collision_crashes(world: &World, state: &mut State, report: &mut StepR
                 continue;
             }
             let af = &world.airframes[world.copters[i].airframe];
-            let v = state.scratch.vel_before.get(i).copied().unwrap_or(Vec3::ZERO);
+            let v = state.scratch.lanes.get(i).map_or(Vec3::ZERO, |l| l.vel_before_m_s);
             let limit = af.spec.crash_impact_speed_m_s;
             let cause = match other {
                 ColliderTag::Wall => Some(CrashCause::Wall),
@@ -1362,7 +1472,7 @@ fn detect_collision_crashes(world: &World, state: &mut State, report: &mut StepR
                 // impact).
                 ColliderTag::Floor => (-v.z > limit).then_some(CrashCause::Floor { speed_m_s: -v.z }),
                 ColliderTag::Copter(j) if j != i => {
-                    let vj = state.scratch.vel_before.get(j).copied().unwrap_or(Vec3::ZERO);
+                    let vj = state.scratch.lanes.get(j).map_or(Vec3::ZERO, |l| l.vel_before_m_s);
                     let rel = (v - vj).length();
                     (rel > limit).then_some(CrashCause::Copter { other: j, speed_m_s: rel })
                 }
@@ -1377,49 +1487,99 @@ fn detect_collision_crashes(world: &World, state: &mut State, report: &mut StepR
     state.scratch.started.clear();
 }
 
+/// Lanes per chunk of the substep's alert scan.
+pub(crate) const ALERT_CHUNK: usize = 256;
+
 /// Checks tilt crashes and take-offs, in id order, and hands a free copter that left its
-/// reservation back to Rapier.
-fn detect_tilt_and_takeoff(world: &World, state: &mut State, report: &mut StepReport, roles: Roles<'_>) {
-    // Only the lanes are read until something happens: they are compact, the copters are not.
-    for i in 0..world.copters.len() {
-        let lane = &state.scratch.lanes[i];
-        if !lane.flying || !roles.owned(i) {
-            continue;
-        }
-        let cos_tilt = (lane.rot * Vec3::Z).z.clamp(-1.0, 1.0);
-        if cos_tilt < state.scratch.crash_cos_tilt[lane.airframe as usize] {
-            let tilt_deg = cos_tilt.acos().to_degrees();
-            crash(world, state, i, CrashCause::Tilt { tilt_deg }, report);
-            continue;
-        }
-        if lane.free && lane.floor_impact_m_s > 0.0 {
-            let speed_m_s = lane.floor_impact_m_s;
-            crash(world, state, i, CrashCause::Floor { speed_m_s }, report);
-            continue;
-        }
-        if lane.free && (lane.pos_m - lane.anchor_m).length() > lane.reach_m {
-            let lane = &mut state.scratch.lanes[i];
-            enter_rapier(&mut state.physics.bodies[state.copters[i].body], lane);
-            (lane.free, lane.watch) = (false, false);
-            state.copters[i].grounded = false;
+/// reservation back to Rapier. A scan (in parallel chunks, with threads) first finds the
+/// chunks where something may have happened: in most substeps, none.
+fn detect_tilt_and_takeoff(
+    world: &World,
+    state: &mut State,
+    report: &mut StepReport,
+    roles: Roles<'_>,
+    parallel: bool,
+) {
+    let scratch = &mut state.scratch;
+    let crash_cos_tilt = &scratch.crash_cos_tilt;
+    let may_act = |lane: &Lane| {
+        lane.flying
+            && ((lane.rot * Vec3::Z).z.clamp(-1.0, 1.0) < crash_cos_tilt[lane.airframe as usize]
+                || (lane.free && (lane.floor_impact_m_s > 0.0 || (lane.pos_m - lane.anchor_m).length() > lane.reach_m))
+                || (lane.awaiting_takeoff
+                    && lane.pos_m.z > world.airframes[lane.airframe as usize].rest_height_m + TAKEOFF_MARGIN_M))
+    };
+    scratch.alerts.resize(scratch.lanes.len().div_ceil(ALERT_CHUNK), false);
+    if parallel && scratch.lanes.len() > 4 * ALERT_CHUNK {
+        use rayon::prelude::*;
+        let chunks = scratch.lanes.par_chunks(ALERT_CHUNK).zip(scratch.alerts.par_iter_mut());
+        chunks.for_each(|(lanes, alert)| *alert = lanes.iter().any(may_act));
+    } else {
+        for (lanes, alert) in scratch.lanes.chunks(ALERT_CHUNK).zip(&mut scratch.alerts) {
+            *alert = lanes.iter().any(may_act);
         }
     }
-    for i in 0..world.copters.len() {
-        let lane = &mut state.scratch.lanes[i];
-        if !lane.awaiting_takeoff || !roles.owned(i) {
+    let n = world.copters.len();
+    let chunk = |k: usize| k * ALERT_CHUNK..((k + 1) * ALERT_CHUNK).min(n);
+    // Only the lanes are read until something happens: they are compact, the copters are not.
+    for k in 0..state.scratch.alerts.len() {
+        if !state.scratch.alerts[k] {
             continue;
         }
-        let rest = world.airframes[lane.airframe as usize].rest_height_m;
-        if lane.pos_m.z > rest + TAKEOFF_MARGIN_M {
-            lane.awaiting_takeoff = false;
-            state.copters[i].took_off_tick = Some(state.tick);
-            report.events.push(crate::step::Event::TookOff { copter: i });
+        for i in chunk(k) {
+            let lane = &state.scratch.lanes[i];
+            if !lane.flying || !roles.owned(i) {
+                continue;
+            }
+            let cos_tilt = (lane.rot * Vec3::Z).z.clamp(-1.0, 1.0);
+            if cos_tilt < state.scratch.crash_cos_tilt[lane.airframe as usize] {
+                let tilt_deg = cos_tilt.acos().to_degrees();
+                crash(world, state, i, CrashCause::Tilt { tilt_deg }, report);
+                continue;
+            }
+            if lane.free && lane.floor_impact_m_s > 0.0 {
+                let speed_m_s = lane.floor_impact_m_s;
+                crash(world, state, i, CrashCause::Floor { speed_m_s }, report);
+                continue;
+            }
+            if lane.free && (lane.pos_m - lane.anchor_m).length() > lane.reach_m {
+                let lane = &mut state.scratch.lanes[i];
+                enter_rapier(&mut state.physics.bodies[state.copters[i].body], lane);
+                (lane.free, lane.watch) = (false, false);
+                state.copters[i].grounded = false;
+                insert_sorted(&mut state.scratch.in_rapier, i as u32);
+            }
+        }
+    }
+    for k in 0..state.scratch.alerts.len() {
+        if !state.scratch.alerts[k] {
+            continue;
+        }
+        for i in chunk(k) {
+            let lane = &mut state.scratch.lanes[i];
+            if !lane.awaiting_takeoff || !roles.owned(i) {
+                continue;
+            }
+            let rest = world.airframes[lane.airframe as usize].rest_height_m;
+            if lane.pos_m.z > rest + TAKEOFF_MARGIN_M {
+                lane.awaiting_takeoff = false;
+                state.copters[i].took_off_tick = Some(state.tick);
+                report.events.push(crate::step::Event::TookOff { copter: i });
+            }
         }
     }
 }
 
 /// How long a wreck lies still (Rapier's thresholds: 0.05 m/s, 0.5 rad/s) before it sleeps, s.
 const WRECK_TIME_UNTIL_SLEEP_S: Real = 0.2;
+
+/// Inserts `i` into the sorted `ids` unless it is there. (The callers reserve room for every
+/// copter: no allocation.)
+fn insert_sorted(ids: &mut Vec<u32>, i: u32) {
+    if let Err(at) = ids.binary_search(&i) {
+        ids.insert(at, i);
+    }
+}
 
 fn crash(world: &World, state: &mut State, i: usize, cause: CrashCause, report: &mut StepReport) {
     let c = &mut state.copters[i];
@@ -1428,10 +1588,7 @@ fn crash(world: &World, state: &mut State, i: usize, cause: CrashCause, report: 
             // It falls in closed form from the next substep on; its body, fixed, follows it.
             c.body = fix_wreck(&mut state.physics, c.body, lane, i);
             (lane.free, lane.watch, c.grounded) = (true, false, false);
-            let falling = &mut state.scratch.falling;
-            if let Err(at) = falling.binary_search(&(i as u32)) {
-                falling.insert(at, i as u32);
-            }
+            insert_sorted(&mut state.scratch.falling, i as u32);
         } else {
             // Rapier may put it to sleep once it lies still; a sleeping wreck costs nothing
             // until something hits it.
