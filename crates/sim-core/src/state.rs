@@ -455,4 +455,7 @@ pub(crate) struct Lane {
     /// Velocity before this substep's contacts (after its free flight or fall), m/s: the
     /// impact speed of a crash.
     pub(crate) vel_before_m_s: Vec3,
+    /// Substeps of this control step it has run ahead of the others (flying free off watch:
+    /// see `step::step_copters`).
+    pub(crate) batched: u32,
 }

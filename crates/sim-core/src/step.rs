@@ -223,6 +223,7 @@ fn step_copters(
         lane.airframe = world.copters[i].airframe as u32;
         lane.flying = c.crash.is_none();
         lane.awaiting_takeoff = lane.flying && c.took_off_tick.is_none();
+        lane.batched = 0;
     });
 
     let sonar_period = world.sensors.spec.sonar.period_steps.max(1) as u64;
@@ -255,7 +256,8 @@ fn step_copters(
     scratch.motor_alpha.clear();
     scratch.motor_alpha.extend(world.airframes.iter().map(|af| motor_alpha(af, dt)));
     let inner = InnerParams::new(world, dt);
-    for _ in 0..world.params.substeps {
+    let substeps = world.params.substeps;
+    for s in 0..substeps {
         watch_contacts(state, dt);
         // Inner loops and rotors of every copter; free copters also move. With threads, the
         // copters in Rapier go first (their forces go into Rapier's step), and Rapier then
@@ -264,7 +266,9 @@ fn step_copters(
         // Rapier's step is done. On one thread, one pass in id order: the same bits.
         let scratch = &mut state.scratch;
         let parallel_rapier = parallel && !scratch.in_rapier.is_empty();
-        let first = substep_pass(world, inner, &scratch.motor_alpha, roles, dt, parallel_rapier.then_some(true));
+        let pass =
+            SubstepPass { world, inner, alphas: &scratch.motor_alpha, cos_tilt: &scratch.crash_cos_tilt, roles, dt };
+        let first = pass.closure(s, parallel_rapier.then_some(true));
         for_each_lane(parallel, &mut state.copters, &mut scratch.lanes, first);
         for k in 0..state.scratch.falling.len() {
             let i = state.scratch.falling[k] as usize;
@@ -304,7 +308,15 @@ fn step_copters(
             }
         };
         if parallel_rapier {
-            let free_lanes = substep_pass(world, inner, &scratch.motor_alpha, roles, dt, Some(false));
+            let pass = SubstepPass {
+                world,
+                inner,
+                alphas: &scratch.motor_alpha,
+                cos_tilt: &scratch.crash_cos_tilt,
+                roles,
+                dt,
+            };
+            let free_lanes = pass.closure(s, Some(false));
             let (physics, copters, lanes) = (&mut state.physics, &mut state.copters, &mut scratch.lanes);
             rayon::join(|| rapier(physics), || for_each_lane(true, copters, lanes, free_lanes));
         } else {
@@ -329,7 +341,7 @@ fn step_copters(
             }
             detect_collision_crashes(world, state, report);
         }
-        detect_tilt_and_takeoff(world, state, report, roles, parallel);
+        detect_tilt_and_takeoff(world, state, report, roles, parallel, s);
     }
 
     // The step's motion is the copters' (free copters' Rapier bodies stay where they were).
@@ -343,19 +355,51 @@ fn step_copters(
     report.tick = state.tick;
 }
 
-/// The substep of every copter (`in_rapier: None`), of those in Rapier (`Some(true)`) or of
-/// those flying free (`Some(false)`), as a closure for [`for_each_lane`].
-fn substep_pass<'a>(
+/// What a physics substep of the copters needs.
+#[derive(Clone, Copy)]
+struct SubstepPass<'a> {
     world: &'a World,
     inner: InnerParams,
+    /// Motor lag per airframe.
     alphas: &'a [Real],
+    /// Cosine of the crash tilt per airframe.
+    cos_tilt: &'a [Real],
     roles: Roles<'a>,
     dt: Real,
-    in_rapier: Option<bool>,
-) -> impl Fn(usize, &mut CopterState, &mut Lane) + Sync + Send + 'a {
-    move |i, c, lane| {
-        if in_rapier.is_none_or(|r| r != lane.free) {
-            substep_lane(world, &inner, alphas[world.copters[i].airframe], roles, i, c, lane, dt);
+}
+
+impl<'a> SubstepPass<'a> {
+    /// Substep `s` of every copter (`in_rapier: None`), of those in Rapier (`Some(true)`) or
+    /// of those flying free (`Some(false)`), as a closure for [`for_each_lane`].
+    ///
+    /// A free copter off watch meets nothing but the floor in this control step: at substep
+    /// 0 it runs its substeps one after the other while its state is in cache, up to the
+    /// first after which something may happen to it ([`may_act`]: a crash, a take-off,
+    /// leaving its reservation), and the later substeps take it on from there
+    /// (`Lane::batched`). The same arithmetic, in another order: the same bits.
+    fn closure(
+        self,
+        s: u32,
+        in_rapier: Option<bool>,
+    ) -> impl Fn(usize, &mut CopterState, &mut Lane) + Sync + Send + 'a {
+        let Self { world, inner, alphas, cos_tilt, roles, dt } = self;
+        move |i, c, lane| {
+            if s < lane.batched || in_rapier.is_some_and(|r| r == lane.free) {
+                return;
+            }
+            let alpha = alphas[world.copters[i].airframe];
+            let ahead = s == 0 && lane.free && !lane.watch && c.crash.is_none() && roles.owned(i);
+            if !ahead {
+                substep_lane(world, &inner, alpha, roles, i, c, lane, dt);
+                return;
+            }
+            while lane.batched < world.params.substeps {
+                substep_lane(world, &inner, alpha, roles, i, c, lane, dt);
+                lane.batched += 1;
+                if may_act(world, cos_tilt, lane) {
+                    break;
+                }
+            }
         }
     }
 }
@@ -1487,6 +1531,18 @@ fn detect_collision_crashes(world: &World, state: &mut State, report: &mut StepR
     state.scratch.started.clear();
 }
 
+/// Whether something may happen to a copter after the substep it has just run: a tilt or floor
+/// crash, a take-off, or (flying free) leaving its reservation. The serial checks of
+/// [`detect_tilt_and_takeoff`] decide.
+#[inline]
+fn may_act(world: &World, crash_cos_tilt: &[Real], lane: &Lane) -> bool {
+    lane.flying
+        && ((lane.rot * Vec3::Z).z.clamp(-1.0, 1.0) < crash_cos_tilt[lane.airframe as usize]
+            || (lane.free && (lane.floor_impact_m_s > 0.0 || (lane.pos_m - lane.anchor_m).length() > lane.reach_m))
+            || (lane.awaiting_takeoff
+                && lane.pos_m.z > world.airframes[lane.airframe as usize].rest_height_m + TAKEOFF_MARGIN_M))
+}
+
 /// Lanes per chunk of the substep's alert scan.
 pub(crate) const ALERT_CHUNK: usize = 256;
 
@@ -1499,16 +1555,13 @@ fn detect_tilt_and_takeoff(
     report: &mut StepReport,
     roles: Roles<'_>,
     parallel: bool,
+    s: u32,
 ) {
     let scratch = &mut state.scratch;
     let crash_cos_tilt = &scratch.crash_cos_tilt;
-    let may_act = |lane: &Lane| {
-        lane.flying
-            && ((lane.rot * Vec3::Z).z.clamp(-1.0, 1.0) < crash_cos_tilt[lane.airframe as usize]
-                || (lane.free && (lane.floor_impact_m_s > 0.0 || (lane.pos_m - lane.anchor_m).length() > lane.reach_m))
-                || (lane.awaiting_takeoff
-                    && lane.pos_m.z > world.airframes[lane.airframe as usize].rest_height_m + TAKEOFF_MARGIN_M))
-    };
+    // A copter that ran ahead is checked at the substep it stopped after.
+    let at = |lane: &Lane| lane.batched <= s + 1;
+    let may_act = |lane: &Lane| at(lane) && may_act(world, crash_cos_tilt, lane);
     scratch.alerts.resize(scratch.lanes.len().div_ceil(ALERT_CHUNK), false);
     if parallel && scratch.lanes.len() > 4 * ALERT_CHUNK {
         use rayon::prelude::*;
@@ -1528,7 +1581,7 @@ fn detect_tilt_and_takeoff(
         }
         for i in chunk(k) {
             let lane = &state.scratch.lanes[i];
-            if !lane.flying || !roles.owned(i) {
+            if !lane.flying || !roles.owned(i) || lane.batched > s + 1 {
                 continue;
             }
             let cos_tilt = (lane.rot * Vec3::Z).z.clamp(-1.0, 1.0);
@@ -1557,7 +1610,7 @@ fn detect_tilt_and_takeoff(
         }
         for i in chunk(k) {
             let lane = &mut state.scratch.lanes[i];
-            if !lane.awaiting_takeoff || !roles.owned(i) {
+            if !lane.awaiting_takeoff || !roles.owned(i) || lane.batched > s + 1 {
                 continue;
             }
             let rest = world.airframes[lane.airframe as usize].rest_height_m;
