@@ -19,7 +19,9 @@
 //!
 //! <https://github.com/foxglove/ws-protocol/blob/main/docs/spec.md>. The server sends
 //! `serverInfo` (capability `time`), `advertise` for every channel (and for channels added
-//! later), binary message data (op 1: subscription id, timestamp, payload) and time (op 2).
+//! later), binary message data (op 1: subscription id, timestamp, payload) and time (op 2:
+//! each logged step's, before its messages; a client that connects or subscribes later gets the
+//! last one first).
 //! It accepts `subscribe` and `unsubscribe`. Anything else (an unknown op, malformed JSON, a
 //! subscription to a channel that does not exist or with an id in use, an unsubscription of an
 //! unknown id, a binary frame, the other ops of the protocol, which this server does not
@@ -181,6 +183,8 @@ struct Shared {
     clients: Mutex<Vec<ClientEntry>>,
     /// Subscriptions over all clients and channels.
     active: AtomicU32,
+    /// The last time told to the clients (op 2), ns; 0 before the first.
+    clock_ns: AtomicU64,
     next_client: AtomicU64,
     counters: Counters,
 }
@@ -209,6 +213,7 @@ impl LiveServer {
             channels: Mutex::new(Vec::new()),
             clients: Mutex::new(Vec::new()),
             active: AtomicU32::new(0),
+            clock_ns: AtomicU64::new(0),
             next_client: AtomicU64::new(1),
             counters: Counters::default(),
         });
@@ -264,15 +269,16 @@ impl LiveServer {
     }
 
     /// Tells the clients the current time (op 2), e.g. each control step's log time.
+    /// A client that connects or subscribes later is told the last one before anything else:
+    /// a client of the `time` capability stamps what it receives with the server's time
+    /// (Foxglove Studio would otherwise take 0 for the messages before the first).
     pub fn broadcast_time(&self, time_ns: u64) {
+        self.shared.clock_ns.store(time_ns, Ordering::Relaxed);
         let clients = lock(&self.shared.clients);
         if clients.is_empty() {
             return;
         }
-        let mut frame = Vec::with_capacity(9);
-        frame.push(2u8);
-        frame.extend_from_slice(&time_ns.to_le_bytes());
-        let frame = Bytes::from(frame);
+        let frame = time_frame(time_ns);
         for c in clients.iter() {
             queue(&self.shared, c, Message::Binary(frame.clone()));
         }
@@ -316,6 +322,14 @@ fn queue(shared: &Shared, c: &ClientEntry, m: Message) {
         // The client is going away; its task removes it.
         Err(mpsc::error::TrySendError::Closed(_)) => 0,
     };
+}
+
+/// Binary time: op 2, timestamp (u64 LE).
+fn time_frame(time_ns: u64) -> Bytes {
+    let mut frame = Vec::with_capacity(9);
+    frame.push(2u8);
+    frame.extend_from_slice(&time_ns.to_le_bytes());
+    Bytes::from(frame)
 }
 
 /// Binary message data: op 1, subscription id (u32 LE), timestamp (u64 LE), payload.
@@ -419,6 +433,11 @@ async fn serve_client(stream: TcpStream, peer: SocketAddr, shared: Arc<Shared>) 
         let channels = lock(&shared.channels);
         let defs: Vec<(u32, &LiveChannel)> = channels.iter().enumerate().map(|(k, c)| (k as u32 + 1, &c.def)).collect();
         let _ = tx.try_send(Message::Text(advertise_json(&defs).into()));
+        // The time now, if there is one yet (the queue has room for a third).
+        let clock = shared.clock_ns.load(Ordering::Relaxed);
+        if clock > 0 {
+            let _ = tx.try_send(Message::Binary(time_frame(clock)));
+        }
         lock(&shared.clients).push(ClientEntry { id, tx: tx.clone(), subs: Vec::new() });
     }
     drop(tx);
@@ -549,10 +568,16 @@ fn handle_text(shared: &Shared, id: u64, text: &str) -> Result<(), String> {
                     shared.active.fetch_add(1, Ordering::Relaxed);
                     shared.counters.subscriptions.fetch_add(1, Ordering::Relaxed);
                     if let Some((t, data)) = lock(&entry.last).as_ref() {
-                        latched.push(message_data(sub, *t, data));
+                        latched.push((*t, message_data(sub, *t, data)));
                     }
                 }
-                for m in latched {
+                // A latched message goes out at once, after the time (the run's clock, or before
+                // its first step the message's own).
+                if let Some(t) = latched.iter().map(|(t, _)| *t).max() {
+                    let clock = shared.clock_ns.load(Ordering::Relaxed);
+                    queue(shared, client, Message::Binary(time_frame(if clock > 0 { clock } else { t })));
+                }
+                for (_, m) in latched {
                     queue(shared, client, Message::Binary(m));
                 }
             }

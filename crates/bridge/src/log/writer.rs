@@ -368,13 +368,14 @@ impl Logger {
                                 l.server.active()
                                     && (live_only || l.last.is_none_or(|t| now.duration_since(t) >= live_every))
                             });
-                            encoder.encode_step(&frame, &mut |t, lt, d: &[u8]| state.write(t, lt, d)).map_err(werr)?;
+                            // The step's time first: a client stamps the step's messages with it.
                             if let Some(live) = &mut state.live
                                 && state.live_due
                             {
                                 live.last = Some(now);
                                 live.server.broadcast_time(encoder.log_time(frame.tick));
                             }
+                            encoder.encode_step(&frame, &mut |t, lt, d: &[u8]| state.write(t, lt, d)).map_err(werr)?;
                             state.live_due = true;
                             backlog.fetch_sub(1, Ordering::Relaxed);
                             state.stats.last_tick = frame.tick;
