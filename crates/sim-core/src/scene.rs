@@ -532,6 +532,7 @@ pub fn compile(spec: &SceneSpec) -> Result<World, SceneError> {
         params,
         arena,
         boxes,
+        wreck_shapes: crate::world::wreck_shapes(&airframes),
         airframes,
         copters,
         sensors,
@@ -706,6 +707,7 @@ impl World {
         let def = cc.compile(id, spec, &occupied)?;
         let mut world = self.clone();
         world.airframes = cc.airframes;
+        world.wreck_shapes = crate::world::wreck_shapes(&world.airframes);
         world.copters.push(def);
         world.spec.copters.push(spec.clone());
         Ok(world)

@@ -588,7 +588,7 @@ fn reserve_free_flight(world: &World, state: &mut State, parallel: bool, view: &
             if c.crash.is_some() && !body.is_enabled() {
                 if closed_form {
                     // Disabled here, so the same body (the handle does not change).
-                    fix_wreck(&mut state.physics, c.body, lane, i);
+                    fix_wreck(world, &mut state.physics, c.body, lane, i);
                 } else {
                     take_over_wreck(&mut state.physics.bodies[c.body], lane, v.asleep[i]);
                 }
@@ -1639,7 +1639,7 @@ fn crash(world: &World, state: &mut State, i: usize, cause: CrashCause, report: 
     if let (true, Some(lane)) = (state.physics.bodies.contains(c.body), state.scratch.lanes.get_mut(i)) {
         if world.params.closed_form {
             // It falls in closed form from the next substep on; its body, fixed, follows it.
-            c.body = fix_wreck(&mut state.physics, c.body, lane, i);
+            c.body = fix_wreck(world, &mut state.physics, c.body, lane, i);
             (lane.free, lane.watch, c.grounded) = (true, false, false);
             insert_sorted(&mut state.scratch.falling, i as u32);
         } else {
@@ -1662,10 +1662,16 @@ fn crash(world: &World, state: &mut State, i: usize, cause: CrashCause, report: 
 /// Copter `id`'s body becomes a fixed body at its lane's pose, enabled (a wreck in closed
 /// form); returns its handle. Rapier 0.36 keeps a body that turns fixed in its awake island,
 /// and recomputes its colliders' AABBs at every step for the rest of the run; so a body
-/// Rapier has in hand (enabled) hands its colliders to a new fixed body and goes. (Body
-/// handles therefore differ between shards; each keeps its own.) A disabled body is in no
-/// island and simply turns fixed.
-fn fix_wreck(physics: &mut PhysicsWorld, old: RigidBodyHandle, lane: &Lane, id: usize) -> RigidBodyHandle {
+/// Rapier has in hand (enabled) makes way for a new fixed body. (Body handles therefore
+/// differ between shards; each keeps its own.) A disabled body is in no island and simply
+/// turns fixed. Either way the wreck has one collider, its parts as one compound.
+fn fix_wreck(
+    world: &World,
+    physics: &mut PhysicsWorld,
+    old: RigidBodyHandle,
+    lane: &Lane,
+    id: usize,
+) -> RigidBodyHandle {
     let handle = if physics.bodies[old].is_enabled() {
         physics.insert_body(RigidBodyBuilder::fixed().user_data(id as u128))
     } else {
@@ -1676,12 +1682,15 @@ fn fix_wreck(physics: &mut PhysicsWorld, old: RigidBodyHandle, lane: &Lane, id: 
     body.set_enabled(true);
     body.set_translation(lane.pos_m, false);
     body.set_rotation(lane.rot, false);
-    if handle != old {
-        while let Some(&collider) = physics.bodies[old].colliders().first() {
-            physics.colliders.set_parent(collider, Some(handle), &mut physics.bodies);
-        }
-        physics.remove_body_with_colliders(old, false);
+    // Its five colliders become one (a compound of the same shapes): thousands of wrecks
+    // would otherwise be most of the leaves Rapier's broad phase refits at every step.
+    while let Some(&collider) = physics.bodies[old].colliders().first() {
+        physics.remove_collider(collider);
     }
+    if handle != old {
+        physics.remove_body(old);
+    }
+    physics.insert_collider(world.wreck_collider(id), Some(handle));
     handle
 }
 

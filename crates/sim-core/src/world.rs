@@ -1,6 +1,6 @@
 //! The immutable compiled model ([`World`]) and the construction of a fresh [`State`] from it.
 
-use rapier3d::prelude::{ActiveEvents, ColliderBuilder, MassProperties, PhysicsWorld, RigidBodyBuilder};
+use rapier3d::prelude::{ActiveEvents, ColliderBuilder, MassProperties, PhysicsWorld, RigidBodyBuilder, SharedShape};
 use serde::{Deserialize, Serialize};
 
 use crate::airflow::AirflowParams;
@@ -116,6 +116,9 @@ pub struct World {
     pub boxes: Vec<StaticBox>,
     /// Derived airframe models.
     pub airframes: Vec<Airframe>,
+    /// Per airframe, a wreck's collision shape (see [`World::wreck_collider`]).
+    #[serde(skip)]
+    pub(crate) wreck_shapes: Vec<SharedShape>,
     /// Copters, in id order.
     pub copters: Vec<CopterDef>,
     /// Sensor models.
@@ -290,27 +293,42 @@ impl World {
             .can_sleep(false)
             .user_data(id as u128);
         let handle = physics.insert_body(body);
-        let [bx, by, bz] = af.spec.body_size_m;
         let tag = ColliderTag::Copter(id).encode();
-        // A few primitives: the body box and the four rotor discs. Mass comes from the
-        // airframe (set above), not from the shapes.
-        let main = ColliderBuilder::cuboid(bx / 2.0, by / 2.0, bz / 2.0)
-            .density(0.0)
-            .friction(0.6)
-            .active_events(ActiveEvents::COLLISION_EVENTS)
-            .user_data(tag);
-        let collider = physics.insert_collider(main, Some(handle));
-        let rotor_radius = af.spec.rotor_diameter_m / 2.0;
-        for p in af.rotor_pos_in_body_m {
-            let disc = ColliderBuilder::cylinder(crate::step::ROTOR_DISC_HALF_THICKNESS_M, rotor_radius)
-                .rotation(Vec3::new(std::f32::consts::FRAC_PI_2, 0.0, 0.0))
-                .translation(p)
-                .density(0.0)
-                .friction(0.6)
-                .active_events(ActiveEvents::COLLISION_EVENTS)
-                .user_data(tag);
-            physics.insert_collider(disc, Some(handle));
+        let [main, discs @ ..] = copter_parts(af);
+        let collider = physics.insert_collider(copter_collider(main.shape, tag).position(main.position), Some(handle));
+        for disc in discs {
+            physics.insert_collider(copter_collider(disc.shape, tag).position(disc.position), Some(handle));
         }
         CopterState::new(self, id, handle, collider)
     }
+
+    /// Copter `id`'s wreck as one collider (its parts as one compound shape, built with the
+    /// world): a fifth of the leaves in Rapier's broad phase.
+    pub(crate) fn wreck_collider(&self, id: usize) -> ColliderBuilder {
+        copter_collider(self.wreck_shapes[self.copters[id].airframe].clone(), ColliderTag::Copter(id).encode())
+    }
+}
+
+/// A copter's collision shapes in its body frame: the body box and the four rotor discs.
+fn copter_parts(af: &Airframe) -> [ColliderBuilder; 5] {
+    let [bx, by, bz] = af.spec.body_size_m;
+    let rotor_radius = af.spec.rotor_diameter_m / 2.0;
+    let disc = |p: Vec3| {
+        ColliderBuilder::cylinder(crate::step::ROTOR_DISC_HALF_THICKNESS_M, rotor_radius)
+            .rotation(Vec3::new(std::f32::consts::FRAC_PI_2, 0.0, 0.0))
+            .translation(p)
+    };
+    let [a, b, c, d] = af.rotor_pos_in_body_m;
+    [ColliderBuilder::cuboid(bx / 2.0, by / 2.0, bz / 2.0), disc(a), disc(b), disc(c), disc(d)]
+}
+
+/// A copter's collider of `shape`: mass comes from the airframe (set on the body), not from
+/// the shapes; collision events on.
+fn copter_collider(shape: SharedShape, tag: u128) -> ColliderBuilder {
+    ColliderBuilder::new(shape).density(0.0).friction(0.6).active_events(ActiveEvents::COLLISION_EVENTS).user_data(tag)
+}
+
+/// Per airframe, a wreck's shape: the copter's parts as one compound.
+pub(crate) fn wreck_shapes(airframes: &[Airframe]) -> Vec<SharedShape> {
+    airframes.iter().map(|af| SharedShape::compound(copter_parts(af).map(|p| (p.position, p.shape)).to_vec())).collect()
 }
