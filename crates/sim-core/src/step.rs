@@ -408,7 +408,7 @@ impl<'a> SubstepPass<'a> {
 /// flying free, its motion in closed form; in Rapier, the force and torque for Rapier's step.
 /// Records its velocity before any contact of the substep (`vel_before_m_s`).
 #[allow(clippy::too_many_arguments)]
-#[inline]
+#[inline(always)]
 fn substep_lane(
     world: &World,
     inner: &InnerParams,
@@ -419,45 +419,32 @@ fn substep_lane(
     lane: &mut Lane,
     dt: Real,
 ) {
-    substep_motion(world, inner, alpha, roles, i, c, lane, dt);
+    'motion: {
+        // A wreck in closed form moves in the serial pass (`fall_wreck`).
+        if !roles.owned(i) || (c.crash.is_some() && lane.free) {
+            break 'motion;
+        }
+        let af = &world.airframes[world.copters[i].airframe];
+        let twin = world.copters[i].kind == CopterKind::Real;
+        let (thrust_n, torque_body_n_m) =
+            if c.crash.is_some() { (0.0, Vec3::ZERO) } else { inner_loop(af, inner, twin, c, lane, dt, alpha) };
+        if lane.free {
+            let vel_before = lane.vel_m_s;
+            if c.grounded && !lifts_off(af, lane, thrust_n) {
+                break 'motion;
+            }
+            c.grounded = false;
+            integrate_free(af, lane, thrust_n, torque_body_n_m, dt);
+            let below = lowest_point_below_centre(af, lane.rot);
+            if lane.pos_m.z - below < 0.0 {
+                touch_floor(af, c, lane, vel_before, below);
+            }
+        } else {
+            lane.force_n = lane.rot * Vec3::new(0.0, 0.0, thrust_n) + lane.downwash_force_n;
+            lane.torque_n_m = lane.rot * torque_body_n_m + lane.downwash_torque_n_m;
+        }
+    }
     lane.vel_before_m_s = lane.vel_m_s;
-}
-
-#[allow(clippy::too_many_arguments)]
-#[inline(always)]
-fn substep_motion(
-    world: &World,
-    inner: &InnerParams,
-    alpha: Real,
-    roles: Roles<'_>,
-    i: usize,
-    c: &mut CopterState,
-    lane: &mut Lane,
-    dt: Real,
-) {
-    // A wreck in closed form moves in the serial pass (`fall_wreck`).
-    if !roles.owned(i) || (c.crash.is_some() && lane.free) {
-        return;
-    }
-    let af = &world.airframes[world.copters[i].airframe];
-    let twin = world.copters[i].kind == CopterKind::Real;
-    let (thrust_n, torque_body_n_m) =
-        if c.crash.is_some() { (0.0, Vec3::ZERO) } else { inner_loop(af, inner, twin, c, lane, dt, alpha) };
-    if lane.free {
-        let vel_before = lane.vel_m_s;
-        if c.grounded && !lifts_off(af, lane, thrust_n) {
-            return;
-        }
-        c.grounded = false;
-        integrate_free(af, lane, thrust_n, torque_body_n_m, dt);
-        let below = lowest_point_below_centre(af, lane.rot);
-        if lane.pos_m.z - below < 0.0 {
-            touch_floor(af, c, lane, vel_before, below);
-        }
-    } else {
-        lane.force_n = lane.rot * Vec3::new(0.0, 0.0, thrust_n) + lane.downwash_force_n;
-        lane.torque_n_m = lane.rot * torque_body_n_m + lane.downwash_torque_n_m;
-    }
 }
 
 /// Decides which copters fly free of Rapier for this control step.
