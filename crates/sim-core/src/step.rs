@@ -154,7 +154,7 @@ where
 {
     if parallel && copters.len() > 64 {
         use rayon::prelude::*;
-        let chunk = (copters.len() / 32).max(32);
+        let chunk = lane_chunk(copters.len());
         copters.par_chunks_mut(chunk).zip(lanes.par_chunks_mut(chunk)).enumerate().for_each(|(k, (cs, ls))| {
             for (j, (c, l)) in cs.iter_mut().zip(ls.iter_mut()).enumerate() {
                 f(k * chunk + j, c, l);
@@ -167,6 +167,11 @@ where
     }
 }
 
+/// Copters per parallel chunk of `n`: about 32 chunks, at least 32 copters each.
+fn lane_chunk(n: usize) -> usize {
+    (n / 32).max(32)
+}
+
 /// Fills `out` with `f(i)` for every `i` in `0..n`, in parallel chunks or in order (the same
 /// values either way); `fill` only stands in until then.
 fn fill_each<T>(parallel: bool, out: &mut Vec<T>, n: usize, fill: T, f: impl Fn(usize) -> T + Sync + Send)
@@ -177,7 +182,7 @@ where
     out.resize(n, fill);
     if parallel && n > 64 {
         use rayon::prelude::*;
-        let chunk = (n / 32).max(32);
+        let chunk = lane_chunk(n);
         out.par_chunks_mut(chunk).enumerate().for_each(|(k, out)| {
             for (j, x) in out.iter_mut().enumerate() {
                 *x = f(k * chunk + j);
