@@ -88,7 +88,7 @@ fn encoded_messages() -> Vec<(Topic, u64, Vec<u8>)> {
         let report = step(&world, &mut state, &inputs);
         if state.tick > 20 {
             frame.capture(&world, &state, &inputs, &report);
-            let _ = encoder.encode_step(&frame, &mut |t, lt, d: &[u8]| -> Result<(), ()> {
+            let _ = encoder.encode_step(&frame, false, &mut |t, lt, d: &[u8]| -> Result<(), ()> {
                 out.push((t, lt, d.to_vec()));
                 Ok(())
             });

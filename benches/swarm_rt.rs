@@ -17,7 +17,7 @@
 //!
 //! ```text
 //! cargo bench -p twinswarm --bench swarm_rt -- --n 100 1000 --threads 1 2 [--scene dense] [--log] [--sim-seconds S]
-//! cargo bench -p twinswarm --bench swarm_rt -- --n 100 1000 --log-cost ROUNDS [--zstd-level L] [--chunk-kib K] [--log-rate HZ]
+//! cargo bench -p twinswarm --bench swarm_rt -- --n 100 1000 --log-cost ROUNDS [--zstd-level L] [--chunk-kib K] [--log-rate HZ] [--log-unchanged S]
 //! cargo bench -p twinswarm --bench swarm_rt -- --plot docs/img/scaling.png
 //! ```
 //!
@@ -46,6 +46,8 @@ struct Run {
     writer_cpu_s: Option<f64>,
     /// Size of the log file, bytes (logging runs).
     log_bytes: u64,
+    /// Copter samples the log left out as unchanged.
+    held: u64,
     /// Resident memory before the world was built, after, and at the end, bytes.
     rss: [u64; 3],
 }
@@ -128,7 +130,8 @@ fn world(scene: Scene, n: usize, threads: usize) -> World {
     }
 }
 
-/// The logger's options: the defaults, or `--zstd-level L`, `--chunk-kib K` and `--log-rate HZ`.
+/// The logger's options: the defaults, or `--zstd-level L`, `--chunk-kib K`, `--log-rate HZ`
+/// and `--log-unchanged S`.
 fn log_options() -> bridge::log::LogOptions {
     let mut o = bridge::log::LogOptions::default();
     let args: Vec<String> = std::env::args().collect();
@@ -138,6 +141,10 @@ fn log_options() -> bridge::log::LogOptions {
     }
     if let Some(kib) = value("--chunk-kib") {
         o.chunk_size = kib as usize * 1024;
+    }
+    let unchanged = args.iter().position(|a| a == "--log-unchanged").and_then(|i| args.get(i + 1)?.parse::<f64>().ok());
+    if let Some(s) = unchanged {
+        o.unchanged_every_s = s;
     }
     let rate = args.iter().position(|a| a == "--log-rate").and_then(|i| args.get(i + 1)?.parse::<f64>().ok());
     if let Some(hz) = rate {
@@ -183,12 +190,13 @@ fn run(scene: Scene, n: usize, threads: usize, log: bool, sim_s: f64, dir: &Path
     };
     // The run ends when everything is on disk: draining the writer's queue and the summary
     // section count against logging.
-    let (mut writer_cpu_s, mut log_bytes) = (None, 0);
+    let (mut writer_cpu_s, mut log_bytes, mut held) = (None, 0, 0);
     if let Some(l) = logger {
         match l.finish() {
             Ok(stats) => {
                 writer_cpu_s = stats.writer_cpu_s;
                 log_bytes = std::fs::metadata(&stats.path).map_or(0, |m| m.len());
+                held = stats.held_samples;
                 let _ = std::fs::remove_file(&stats.path);
             }
             Err(e) => panic!("{e}"),
@@ -198,7 +206,7 @@ fn run(scene: Scene, n: usize, threads: usize, log: bool, sim_s: f64, dir: &Path
     let crashed = state.copters.iter().filter(|c| c.crash.is_some()).count();
     let sim_s = steps as f64 * world.params.control_dt_s;
     let rss = [rss0, rss1, rss_bytes()];
-    Run { scene, n, threads, log, sim_s, wall_s, cpu_s, crashed, writer_cpu_s, log_bytes, rss }
+    Run { scene, n, threads, log, sim_s, wall_s, cpu_s, crashed, writer_cpu_s, log_bytes, held, rss }
 }
 
 /// The cost of logging at `n` copters: `rounds` pairs of runs, logging off then on; the
@@ -221,6 +229,7 @@ fn log_cost(scene: Scene, n: usize, threads: usize, rounds: usize, sim_s: f64, d
     let cpu_on = median(&on, &|r| r.cpu_s.map(|c| 1e3 * c / steps(r)));
     let writer = median(&on, &|r| r.writer_cpu_s.map(|c| 1e3 * c / steps(r)));
     let bytes = median(&on, &|r| Some(r.log_bytes as f64 / steps(r)));
+    let held = median(&on, &|r| Some(100.0 * r.held as f64 / (steps(r) * n as f64)));
     // The overhead of each pair (on / off of the same round), then their median: a pair runs
     // back to back, so a noisy stretch of the machine shifts both of its runs.
     let mut ratios: Vec<f64> = off.iter().zip(&on).map(|(a, b)| b.wall_s / a.wall_s).collect();
@@ -230,7 +239,7 @@ fn log_cost(scene: Scene, n: usize, threads: usize, rounds: usize, sim_s: f64, d
         "{{\"sim\": \"twinswarm\", \"scenario\": \"log_cost_{}\", \"N\": {n}, \"threads\": {threads}, \"rounds\": {rounds}, \
          \"sim_s\": {sim_s:.1}, \"ms_per_step_off\": {wall_off:.4}, \"ms_per_step_on\": {wall_on:.4}, \
          \"overhead_pct\": {:.1}, \"overhead_pct_min_max\": [{:.1}, {:.1}], \"step_thread_cpu_ms_off\": {cpu_off:.4}, \
-         \"step_thread_cpu_ms_on\": {cpu_on:.4}, \"writer_cpu_ms_per_step\": {writer:.4}, \"log_kib_per_step\": {:.1}}}",
+         \"step_thread_cpu_ms_on\": {cpu_on:.4}, \"writer_cpu_ms_per_step\": {writer:.4}, \"log_kib_per_step\": {:.1}, \"held_pct\": {held:.1}}}",
         scene.name(),
         100.0 * (ratio - 1.0),
         100.0 * (ratios[0] - 1.0),
@@ -307,7 +316,7 @@ fn main() {
             "--threads" => list = Some(1),
             "--log" => (log, list) = (true, None),
             "--log-cost" => (log_cost_rounds, list) = (args.next().and_then(|v| v.parse::<usize>().ok()), None),
-            "--zstd-level" | "--log-rate" | "--chunk-kib" => (_, list) = (args.next(), None),
+            "--zstd-level" | "--log-rate" | "--chunk-kib" | "--log-unchanged" => (_, list) = (args.next(), None),
             "--sim-seconds" => (sim_s, list) = (args.next().and_then(|v| v.parse::<f64>().ok()), None),
             "--plot" => (plot_to, list) = (args.next().map(PathBuf::from), None),
             "--scene" => {

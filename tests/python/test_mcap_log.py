@@ -242,6 +242,71 @@ def test_a_lighter_zstd_level_writes_the_same_messages(tmp_path):
         assert r.returncode == 2 and "--log-zstd-level" in r.stderr, r.stderr
 
 
+PER_COPTER = ("/copters/state", "/copters/sensors", "/copters/command", "/copters/control", "/tf")
+
+
+def per_copter_samples(path):
+    """{(tick, copter name): {topic: body without its time fields}} of a log's per-copter channels."""
+    samples = defaultdict(dict)
+    epoch = int(metadata_of(path)["epoch_unix_ns"])
+    for channel, message, body in log_messages(path, list(PER_COPTER)):
+        if channel.topic == "/tf":
+            name, tick = body["child_frame_id"], None
+            body = {k: v for k, v in body.items() if k != "timestamp"}
+        else:
+            name, tick = body["copter"], body["tick"]
+            body = {k: v for k, v in body.items() if k not in ("tick", "t_s")}
+        key = ((message.log_time - epoch) // 50_000_000, name)
+        samples[key][channel.topic] = body
+        if tick is not None:
+            samples[key]["tick"] = tick
+    return samples
+
+
+def test_unchanged_copters_are_held_and_nothing_is_lost(twinswarm_bin, tmp_path):
+    """A wreck at rest is written once a second, not every step; holding each copter's last
+    message until its next gives back the log that writes every copter every step."""
+    scene = tmp_path / "dense.toml"
+    scene.write_text(twinswarm("scene", "dense", "--n", "64", "--spacing", "1.0").stdout)
+    full, held = tmp_path / "full.mcap", tmp_path / "held.mcap"
+    for path, extra in ((full, ["--log-unchanged", "0"]), (held, [])):
+        r = twinswarm(*run_args(scene, "--duration", "8", "--no-bus", "--json", "--log", path, *extra))
+        assert r.returncode == 0, r.stderr
+    crashed = [c for c in json.loads(r.stdout)["copters"] if c["crashed"]]
+    assert crashed, "wrecks to hold"
+    a, b = per_copter_samples(full), per_copter_samples(held)
+    assert all(len(v) == len(PER_COPTER) + 1 for v in a.values()), "five messages per copter and step"
+    assert all(len(v) == len(PER_COPTER) + 1 for v in b.values()), "a copter is written whole or not at all"
+    assert set(b) < set(a), "the held log writes fewer samples, none the full one lacks"
+    assert all(b[k] == a[k] for k in b), "what is written is what the full log has"
+    meta = metadata_of(held)
+    every = int(meta["unchanged_every_ticks"])
+    assert every == 20 and int(metadata_of(full)["unchanged_every_ticks"]) == 1
+    names = {name for _t, name in a}
+    times = sorted({t for t, _name in a})
+    assert len(times) == 160
+    last = {}
+    for t in times:
+        for name in names:
+            if (t, name) in b:
+                last[name] = b[(t, name)]
+            else:
+                assert a[(t, name)]["tick"] % every != 0, f"{name}: every copter on whole seconds"
+                assert name in last, f"{name}: held before it was written"
+            got = dict(last[name], tick=a[(t, name)]["tick"])
+            assert got == a[(t, name)], f"{name} at {t}: the held message is not the full log's"
+    held_out = len(a) - len(b)
+    assert held_out > 0
+    for bad in ("--log-unchanged=-1", "--log-unchanged=inf", "--log-unchanged=x"):
+        r = twinswarm(*run_args(scene, "--duration", "1", "--no-bus", "--no-log", bad))
+        assert r.returncode == 2 and "--log-unchanged" in r.stderr, r.stderr
+
+
+def metadata_of(path):
+    with open(path, "rb") as f:
+        return {m.name: dict(m.metadata) for m in make_reader(f, validate_crcs=True).iter_metadata()}["twinswarm"]
+
+
 def state_ticks(path):
     return {b["tick"] for b in log_bodies(path, "/copters/state")}
 

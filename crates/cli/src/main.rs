@@ -328,6 +328,11 @@ struct RunArgs {
     /// that must not wait for their log (see the README's logging figures).
     #[arg(long, value_name = "L", default_value_t = 3, value_parser = clap::value_parser!(u32).range(1..=19))]
     log_zstd_level: u32,
+    /// A copter whose logged values have not changed since its last message (a wreck at rest:
+    /// its sensors stop) is written again only every this many seconds, and a reader holds its
+    /// last message until then; 0 writes every copter at every logged step.
+    #[arg(long, value_name = "SECONDS", default_value_t = 1.0)]
+    log_unchanged: f64,
     /// Serve a live view on the Foxglove WebSocket protocol at ADDR (default
     /// 127.0.0.1:8765): in Foxglove, "Open connection", "Foxglove WebSocket",
     /// ws://ADDR. The same channels as the log; a slow client loses messages (counted), the
@@ -571,8 +576,19 @@ fn run(args: RunArgs) -> anyhow::Result<()> {
             Some(std::sync::Arc::new(server))
         }
     };
-    let log_options =
-        bridge::log::LogOptions { every_ticks: log_every, zstd_level: args.log_zstd_level, ..Default::default() };
+    if !(args.log_unchanged.is_finite() && args.log_unchanged >= 0.0) {
+        return Err(BadInput(anyhow::anyhow!(
+            "--log-unchanged: {} is not a number of seconds (0 or more)",
+            args.log_unchanged
+        ))
+        .into());
+    }
+    let log_options = bridge::log::LogOptions {
+        every_ticks: log_every,
+        zstd_level: args.log_zstd_level,
+        unchanged_every_s: args.log_unchanged,
+        ..Default::default()
+    };
     let log = logcmd::start_run_log(
         args.log.as_deref(),
         args.no_log,

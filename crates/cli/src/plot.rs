@@ -44,6 +44,9 @@ const MAX_LINES: usize = 8;
 #[derive(Debug)]
 struct StateRow {
     t_s: f64,
+    /// How long this state stands for, s: until the copter's next state (a log holds a
+    /// copter's last message until its next, see [`hold_times`]).
+    hold_s: f64,
     id: usize,
     pos_m: [f32; 3],
     rpy_rad: [f32; 3],
@@ -148,6 +151,7 @@ impl PlotData {
                     let row = || {
                         Ok(StateRow {
                             t_s: m.t_s,
+                            hold_s: 0.0,
                             id: m.id as usize,
                             pos_m: proto::fixed("pos_m", &m.pos_m)?,
                             rpy_rad: proto::fixed("rpy_rad", &m.rpy_rad)?,
@@ -157,6 +161,15 @@ impl PlotData {
                 })
                 .collect(),
         )?;
+        // Logs from before the sampling was recorded logged every step.
+        let every: u64 = match meta.get("log_every_ticks") {
+            None => 1,
+            Some(text) => text.parse().ok().filter(|n| *n > 0).ok_or_else(|| {
+                bad(anyhow::anyhow!("metadata \"log_every_ticks\" = {text:?} is not a positive whole number"))
+            })?,
+        };
+        let mut states = states;
+        hold_times(&mut states, every as f64 * dt_s);
         let commands = if need_commands {
             let msgs = file.messages::<proto::CopterCommand>("/copters/command").map_err(read_error)?;
             let rows_of = msgs.into_iter().map(|(t, m)| {
@@ -185,6 +198,19 @@ impl PlotData {
 
     fn copter_id(&self, name: &str) -> Option<usize> {
         self.copters.iter().position(|c| c.name == name)
+    }
+}
+
+/// Sets each state's [`StateRow::hold_s`]: the time to the same copter's next state, and for
+/// its last one the time to the log's last state plus one logging period `period_s`. With
+/// every copter on every step that is one step each; with `--log-rate` it is the rate's
+/// period; a wreck at rest, written once a second, stands for the whole second.
+fn hold_times(states: &mut [StateRow], period_s: f64) {
+    let end_s = states.iter().map(|s| s.t_s).fold(f64::NEG_INFINITY, f64::max) + period_s;
+    let mut next_t: std::collections::HashMap<usize, f64> = std::collections::HashMap::new();
+    for s in states.iter_mut().rev() {
+        let next = next_t.insert(s.id, s.t_s).unwrap_or(end_s);
+        s.hold_s = (next - s.t_s).max(0.0);
     }
 }
 
@@ -332,20 +358,20 @@ fn draw_heatmap(data: &PlotData, root: &Area<'_>) -> DrawResult {
     let nx = (sx / cell_m).ceil() as usize;
     let ny = (sy / cell_m).ceil() as usize;
     for (panel, area) in panels.iter().zip(&areas) {
-        let mut counts = vec![0u32; nx * ny];
+        let mut counts = vec![0f64; nx * ny];
         for s in data.states.iter().filter(|s| panel.is_none_or(|id| s.id == id)) {
             let (x, y) = (s.pos_m[0] as f64, s.pos_m[1] as f64);
             let (i, j) = (((x + hx) / cell_m).floor(), ((y + hy) / cell_m).floor());
             if i >= 0.0 && j >= 0.0 && (i as usize) < nx && (j as usize) < ny {
-                counts[j as usize * nx + i as usize] += 1;
+                counts[j as usize * nx + i as usize] += s.hold_s;
             }
         }
-        let max = counts.iter().copied().max().unwrap_or(0).max(1);
+        let max = counts.iter().copied().fold(0.0, f64::max);
         let title = match panel {
             Some(id) => format!("{} ({})", data.copters[*id].name, data.copters[*id].kind),
             None => format!("all {} copters", data.copters.len()),
         };
-        let caption = format!("{title}: time per {:.0} cm cell, max {:.1} s", cell_m * 100.0, max as f64 * data.dt_s);
+        let caption = format!("{title}: time per {:.0} cm cell, max {:.1} s", cell_m * 100.0, max);
         let m = 0.15;
         let mut chart = ChartBuilder::on(area)
             .caption(caption, (FONT, 17))
@@ -361,10 +387,11 @@ fn draw_heatmap(data: &PlotData, root: &Area<'_>) -> DrawResult {
             .label_style((FONT, 14))
             .axis_desc_style((FONT, 15))
             .draw()?;
-        let ln_max = (1.0 + max as f64).ln();
-        chart.draw_series(counts.iter().enumerate().filter(|(_, c)| **c > 0).map(|(k, c)| {
+        // Log colour scale, in control steps.
+        let ln_max = (1.0 + max / data.dt_s).ln();
+        chart.draw_series(counts.iter().enumerate().filter(|(_, c)| **c > 0.0).map(|(k, c)| {
             let (i, j) = ((k % nx) as f64, (k / nx) as f64);
-            let t = (1.0 + *c as f64).ln() / ln_max;
+            let t = (1.0 + *c / data.dt_s).ln() / ln_max;
             let lerp = |a: f64, b: f64| (a + (b - a) * t).round() as u8;
             let color = RGBColor(lerp(222.0, 8.0), lerp(235.0, 48.0), lerp(247.0, 107.0));
             let (x0, y0) = (-hx + i * cell_m, -hy + j * cell_m);
@@ -615,6 +642,26 @@ mod tests {
             assert_eq!((width, height), (w, h), "{}", out.display());
         }
         let _ = std::fs::remove_dir_all(&dir);
+    }
+
+    #[test]
+    fn each_state_stands_for_the_time_to_its_copters_next() {
+        let row = |t_s: f64, id: usize| StateRow { t_s, hold_s: f64::NAN, id, pos_m: [0.0; 3], rpy_rad: [0.0; 3] };
+        // Copter 0 on every 50 ms step for 2 s; copter 1, a wreck at rest, once a second.
+        let mut states = Vec::new();
+        for k in 0..40 {
+            let t_s = k as f64 * 0.05;
+            states.push(row(t_s, 0));
+            if k % 20 == 0 {
+                states.push(row(t_s, 1));
+            }
+        }
+        hold_times(&mut states, 0.05);
+        let total = |id: usize| states.iter().filter(|s| s.id == id).map(|s| s.hold_s).sum::<f64>();
+        assert!((total(0) - 2.0).abs() < 1e-9, "{}", total(0));
+        assert!((total(1) - 2.0).abs() < 1e-9, "{}", total(1));
+        assert!(states.iter().filter(|s| s.id == 1).all(|s| (s.hold_s - 1.0).abs() < 1e-9));
+        assert!(states.iter().filter(|s| s.id == 0).all(|s| (s.hold_s - 0.05).abs() < 1e-9));
     }
 
     #[test]

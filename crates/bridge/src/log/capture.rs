@@ -5,7 +5,7 @@ use sim_core::{Command, CopterPose, CrashCause, Event, Inputs, SensorReadings, S
 
 /// One copter after a control step: its pose, rotors, controller outputs, readings and the
 /// command it flew.
-#[derive(Clone, Debug)]
+#[derive(Clone, Debug, PartialEq)]
 pub struct CopterSample {
     /// Pose and motion at the end of the step.
     pub pose: CopterPose,

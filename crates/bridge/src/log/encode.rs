@@ -13,7 +13,7 @@ use serde::Serialize;
 use sim_core::control::FlightMode;
 use sim_core::{CopterKind, CrashCause, Event, World};
 
-use super::capture::StepFrame;
+use super::capture::{CopterSample, StepFrame};
 use super::proto;
 
 /// A channel of the log.
@@ -229,6 +229,9 @@ struct CopterInfo {
     body_size_m: [f32; 3],
     /// The crash cause last written and its JSON text, so a wreck's text is made once.
     crash: Option<(CrashCause, String)>,
+    /// The sample last written, to find one that did not change (kept only when
+    /// [`Encoder::unchanged_every`] is above 1).
+    last: Option<CopterSample>,
 }
 
 /// The kind as the log names it (serde's name in the JSON logs of before).
@@ -284,6 +287,14 @@ pub struct Encoder {
     sonar: SonarGeometry,
     buf: Vec<u8>,
     scene_every: u64,
+    /// A copter whose sample is equal to the one last written for it (a wreck at rest, its
+    /// sensors stopped) is written again only on ticks that are multiples of this, or on a
+    /// step the caller marks full. 1: every copter on every step.
+    unchanged_every: u64,
+    /// Which copters the step being encoded writes.
+    write: Vec<bool>,
+    /// Copter samples not written because they had not changed.
+    held: u64,
     msg: Reused,
 }
 
@@ -348,6 +359,7 @@ impl Encoder {
                 kind: c.kind,
                 body_size_m: world.airframes[c.airframe].spec.body_size_m,
                 crash: None,
+                last: None,
             })
             .collect();
         let s = &world.sensors.spec;
@@ -369,8 +381,23 @@ impl Encoder {
             },
             buf: Vec::with_capacity(64 * 1024),
             scene_every: ((SCENE_COPTERS_PERIOD_S / world.params.control_dt_s).round() as u64).max(1),
+            unchanged_every: 1,
+            write: Vec::new(),
+            held: 0,
             msg,
         }
+    }
+
+    /// Writes a copter whose sample did not change since it was last written only on ticks
+    /// that are multiples of `every_ticks` (and on full steps, see [`Encoder::encode_step`]);
+    /// 1 (the default) writes every copter on every step.
+    pub fn set_unchanged_every(&mut self, every_ticks: u64) {
+        self.unchanged_every = every_ticks.max(1);
+    }
+
+    /// Copter samples left out so far because they had not changed.
+    pub fn held(&self) -> u64 {
+        self.held
     }
 
     /// `/scene/copters` goes out on ticks that are multiples of this.
@@ -408,18 +435,40 @@ impl Encoder {
     /// Every per-step message of a captured step: state, sensors, command, control and `/tf`
     /// per copter, one `/scene/copters` update every [`Encoder::scene_every_ticks`], and the
     /// step's events.
-    pub fn encode_step<E>(&mut self, frame: &StepFrame, sink: &mut impl Sink<E>) -> Result<(), E> {
+    ///
+    /// A copter whose sample equals the one last written for it is left out unless `full`
+    /// or the tick is a multiple of [`Encoder::set_unchanged_every`]'s period: a reader holds
+    /// a copter's last message until its next.
+    pub fn encode_step<E>(&mut self, frame: &StepFrame, full: bool, sink: &mut impl Sink<E>) -> Result<(), E> {
         let tick = frame.tick;
         let lt = self.log_time(tick);
         let t_s = self.t_s(tick);
+        let full = full || tick.is_multiple_of(self.unchanged_every);
+        self.write.resize(self.copters.len(), false);
+        for ((info, c), w) in self.copters.iter_mut().zip(&frame.copters).zip(&mut self.write) {
+            *w = c.owned;
+            if !c.owned || self.unchanged_every == 1 {
+                continue;
+            }
+            match &mut info.last {
+                Some(last) if last == c => {
+                    if full {
+                        continue;
+                    }
+                    *w = false;
+                    self.held += 1;
+                }
+                Some(last) => last.clone_from(c),
+                None => info.last = Some(c.clone()),
+            }
+        }
         let m = &mut self.msg;
         let b = &mut self.buf;
         // Topic by topic (all states, then all sensor readings, …): a chunk's messages of one
         // topic sit together, which zstd compresses better than copter by copter.
-        for (id, (info, c)) in self.copters.iter_mut().zip(&frame.copters).enumerate() {
-            if !c.owned {
-                continue;
-            }
+        for (id, ((info, c), _)) in
+            self.copters.iter_mut().zip(&frame.copters).zip(&self.write).enumerate().filter(|(_, (_, w))| **w)
+        {
             let p = &c.pose;
             let mode = c.command.mode.as_str();
             let id = id as u32;
@@ -448,10 +497,9 @@ impl Encoder {
             set(&mut st.rotor_speed_rad_s, &c.rotor_speed_rad_s);
             Self::emit(b, Topic::State, lt, st, sink)?;
         }
-        for (id, (info, c)) in self.copters.iter().zip(&frame.copters).enumerate() {
-            if !c.owned {
-                continue;
-            }
+        for (id, ((info, c), _)) in
+            self.copters.iter().zip(&frame.copters).zip(&self.write).enumerate().filter(|(_, (_, w))| **w)
+        {
             let id = id as u32;
             let r = &c.sensors;
             let se = &mut m.sensors;
@@ -471,10 +519,9 @@ impl Encoder {
                 (r.height_est_m, r.battery_v, r.battery_charge, r.battery_a);
             Self::emit(b, Topic::Sensors, lt, se, sink)?;
         }
-        for (id, (info, c)) in self.copters.iter().zip(&frame.copters).enumerate() {
-            if !c.owned {
-                continue;
-            }
+        for (id, ((info, c), _)) in
+            self.copters.iter().zip(&frame.copters).zip(&self.write).enumerate().filter(|(_, (_, w))| **w)
+        {
             let mode = c.command.mode.as_str();
             let id = id as u32;
             let cmd = &c.command;
@@ -489,10 +536,9 @@ impl Encoder {
             set(&mut co.virtual_sonar_m, cmd.virtual_sonar_m.as_ref().map_or(&[][..], |v| &v[..]));
             Self::emit(b, Topic::Command, lt, co, sink)?;
         }
-        for (id, (info, c)) in self.copters.iter().zip(&frame.copters).enumerate() {
-            if !c.owned {
-                continue;
-            }
+        for (id, ((info, c), _)) in
+            self.copters.iter().zip(&frame.copters).zip(&self.write).enumerate().filter(|(_, (_, w))| **w)
+        {
             let id = id as u32;
             let (sp, wa) = (&c.setpoint, &c.wall_avoid);
             let ct = &mut m.control;
@@ -508,10 +554,7 @@ impl Encoder {
             set(&mut w.rate_m_s, &wa.rate_m_s);
             Self::emit(b, Topic::Control, lt, ct, sink)?;
         }
-        for (info, c) in self.copters.iter().zip(&frame.copters) {
-            if !c.owned {
-                continue;
-            }
+        for ((info, c), _) in self.copters.iter().zip(&frame.copters).zip(&self.write).filter(|(_, w)| **w) {
             let p = &c.pose;
             let tf = &mut m.tf;
             tf.timestamp = Some(timestamp(lt));

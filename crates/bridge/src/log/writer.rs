@@ -72,6 +72,12 @@ pub struct LogOptions {
     /// A chunk is finished once it holds this many bytes of records (default 8 MiB), or at
     /// the flush interval. Big chunks let zstd find a copter's previous step.
     pub chunk_size: usize,
+    /// A copter whose logged values did not change since it was last written (a wreck at
+    /// rest: its pose, rotors, readings and command all stay as they were) is written again
+    /// only every this many simulated seconds (default 1), on whole multiples of it, and on
+    /// every step the live view gets. A reader holds a copter's last message until its next.
+    /// 0 writes every copter on every logged step.
+    pub unchanged_every_s: f64,
     /// Steps that may wait for the writer thread before `log_step` blocks (default 4).
     pub queue_steps: usize,
     /// A live view that gets every message too, as it is encoded for the file (the channels
@@ -90,6 +96,7 @@ impl Default for LogOptions {
             zstd_level: 3,
             every_ticks: 1,
             chunk_size: 8 << 20,
+            unchanged_every_s: 1.0,
             queue_steps: 4,
             live: None,
             live_max_hz: 30.0,
@@ -106,6 +113,9 @@ pub struct LogStats {
     pub messages: [u64; Topic::ALL.len()],
     /// Last tick logged.
     pub last_tick: u64,
+    /// Copter samples (five messages each) not written because they had not changed; see
+    /// [`LogOptions::unchanged_every_s`].
+    pub held_samples: u64,
     /// Paparazzi messages on `/pprz/…` channels (each also on `/bus`).
     pub pprz_messages: u64,
     /// CPU time of the writer thread (encoding, compression, I/O), s; `None` where the
@@ -119,6 +129,18 @@ impl LogOptions {
     /// number.
     pub fn every_ticks_for_rate(rate_hz: f64, control_dt_s: f64) -> Option<u64> {
         (rate_hz.is_finite() && rate_hz > 0.0).then(|| ((1.0 / (rate_hz * control_dt_s)).round() as u64).max(1))
+    }
+
+    /// The period, in ticks, on which unchanged copters are written again: a whole multiple
+    /// of [`LogOptions::every_ticks`], so that it falls on logged steps; 1 for every step.
+    pub fn unchanged_every_ticks(&self, control_dt_s: f64) -> u64 {
+        let every = self.every_ticks.max(1);
+        let s = self.unchanged_every_s;
+        if !(s.is_finite() && s > 0.0) {
+            return 1;
+        }
+        let steps = (s / control_dt_s).round().max(1.0) as u64;
+        steps.div_ceil(every) * every
     }
 }
 
@@ -293,6 +315,8 @@ impl Logger {
         let werr = |source| LogError::Write { path: path.clone(), source };
         let epoch_ns = meta.epoch_ns.unwrap_or_else(now_unix_ns);
         let mut encoder = Encoder::new(world, epoch_ns);
+        let unchanged_every = options.unchanged_every_ticks(world.params.control_dt_s);
+        encoder.set_unchanged_every(unchanged_every);
         let mut channels = [0u16; Topic::ALL.len()];
         let out = match file_path {
             None => None,
@@ -312,7 +336,10 @@ impl Logger {
                     })
                     .map_err(werr)?;
                 }
-                out.write_metadata(&metadata_record(world, &meta, epoch_ns, encoder.control_dt_ns())).map_err(werr)?;
+                let sampling =
+                    Sampling { every_ticks: options.every_ticks.max(1), unchanged_every_ticks: unchanged_every };
+                out.write_metadata(&metadata_record(world, &meta, epoch_ns, encoder.control_dt_ns(), sampling))
+                    .map_err(werr)?;
                 for topic in Topic::ALL {
                     if topic == Topic::Bus {
                         continue; // added on first use
@@ -375,7 +402,12 @@ impl Logger {
                                 live.last = Some(now);
                                 live.server.broadcast_time(encoder.log_time(frame.tick));
                             }
-                            encoder.encode_step(&frame, &mut |t, lt, d: &[u8]| state.write(t, lt, d)).map_err(werr)?;
+                            // A live step is whole: a client sees each copter at its rate.
+                            let full = state.live_due;
+                            encoder
+                                .encode_step(&frame, full, &mut |t, lt, d: &[u8]| state.write(t, lt, d))
+                                .map_err(werr)?;
+                            state.stats.held_samples = encoder.held();
                             state.live_due = true;
                             backlog.fetch_sub(1, Ordering::Relaxed);
                             state.stats.last_tick = frame.tick;
@@ -696,7 +728,14 @@ fn add_channel(out: &mut McapOut, topic: Topic) -> std::io::Result<u16> {
     out.add_channel(schema_id, topic.name(), "protobuf", &BTreeMap::new())
 }
 
-fn metadata_record(world: &World, meta: &LogMeta, epoch_ns: u64, dt_ns: u64) -> Metadata {
+/// How often the per-step messages were written, for the metadata record.
+#[derive(Clone, Copy, Debug)]
+struct Sampling {
+    every_ticks: u64,
+    unchanged_every_ticks: u64,
+}
+
+fn metadata_record(world: &World, meta: &LogMeta, epoch_ns: u64, dt_ns: u64, sampling: Sampling) -> Metadata {
     let copters: Vec<serde_json::Value> = world
         .copters
         .iter()
@@ -739,6 +778,15 @@ fn metadata_record(world: &World, meta: &LogMeta, epoch_ns: u64, dt_ns: u64) -> 
     put("arena_height_m", world.arena.height_m.to_string());
     put("control_dt_s", world.params.control_dt_s.to_string());
     put("physics_dt_s", world.params.physics_dt_s.to_string());
+    put("log_every_ticks", sampling.every_ticks.to_string());
+    put("unchanged_every_ticks", sampling.unchanged_every_ticks.to_string());
+    put(
+        "sampling",
+        "per-copter messages on ticks that are multiples of log_every_ticks; a copter whose values had not changed \
+         since its last message is left out except on multiples of unchanged_every_ticks (and on steps sent to a \
+         live view): its last message holds until its next"
+            .to_owned(),
+    );
     put("epoch_unix_ns", epoch_ns.to_string());
     put("epoch_utc", format_utc_iso(epoch_ns));
     put(
