@@ -13,7 +13,8 @@ cost of logging (median over rounds of the off/on ratio of a round, minus 1), an
 size per simulated second. Then the size ratio old/new, at equal content and rate.
 
     .venv/bin/python scripts/log-cost.py --n 100 1000 --seconds 20 --rounds 3 \\
-        --scenes "dense --air" hover --old /tmp/twinswarm-json [--log-rate HZ]
+        --scenes "dense --air" hover --old /tmp/twinswarm-json [--log-rate HZ] \\
+        [--variant "l2=--log-zstd-level 2"] [--variant "every=--log-unchanged 0"]
 
 `--old` is a binary built from an older commit, e.g. `git worktree add /tmp/old c8098a1 &&
 cargo build --release --manifest-path /tmp/old/Cargo.toml`. Without it only the new binary runs.
@@ -53,11 +54,19 @@ def main():
     ap.add_argument("--bin", default=str(ROOT / "target/release/twinswarm"))
     ap.add_argument("--old", help="an older binary to compare with (same scene files)")
     ap.add_argument("--log-rate", type=float, help="the new binary's --log-rate (the old one logs every step)")
+    ap.add_argument("--variant", action="append", default=[], metavar="NAME=ARGS",
+                    help="also fly the new binary with these `run` arguments, e.g. "
+                         "\"l2=--log-zstd-level 2\" (repeatable; each gets its own columns)")
     a = ap.parse_args()
     binaries = {"new": pathlib.Path(a.bin)}
+    extra = {"new": ["--log-rate", str(a.log_rate)] if a.log_rate else []}
+    for v in a.variant:
+        name, _, args = v.partition("=")
+        binaries[name] = pathlib.Path(a.bin)
+        extra[name] = extra["new"] + args.split()
     if a.old:
         binaries["old"] = pathlib.Path(a.old)
-    extra = {"new": ["--log-rate", str(a.log_rate)] if a.log_rate else [], "old": []}
+        extra["old"] = []
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
         tmp = pathlib.Path(tmp)
@@ -83,16 +92,18 @@ def main():
                               "cost_pct_rounds": [round(100 * (o / w - 1), 1) for o, w in zip(off, on)],
                               "mib_per_sim_s": mib_s}
                 if "old" in row:
-                    row["size_ratio_old_over_new"] = row["old"]["mib_per_sim_s"] / row["new"]["mib_per_sim_s"]
+                    for b in binaries:
+                        if b != "old":
+                            row[b]["size_ratio_old_over_this"] = row["old"]["mib_per_sim_s"] / row[b]["mib_per_sim_s"]
                 rows.append(row)
                 print(json.dumps(row), flush=True)
     print()
-    print("| scene | N | binary | off (×RT) | log on (×RT) | cost | MiB per sim. s | size old/new |")
+    print("| scene | N | binary | off (×RT) | log on (×RT) | cost | MiB per sim. s | size old/this |")
     print("|---|---:|---|---:|---:|---:|---:|---:|")
     for row in rows:
         for b in binaries:
             r = row[b]
-            ratio = f"{row['size_ratio_old_over_new']:.1f}×" if b == "new" and "old" in row else ""
+            ratio = f"{r['size_ratio_old_over_this']:.1f}×" if "size_ratio_old_over_this" in r else ""
             print(f"| {row['scene']} | {row['n']:,} | {b} | {r['rtf_off']:.1f} | {r['rtf_on']:.1f} | "
                   f"{r['cost_pct']:+.1f} % | {r['mib_per_sim_s']:.2f} | {ratio} |")
 
