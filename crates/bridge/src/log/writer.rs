@@ -799,3 +799,22 @@ fn metadata_record(world: &World, meta: &LogMeta, epoch_ns: u64, dt_ns: u64, sam
     );
     Metadata { name: "twinswarm".into(), metadata: m }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::LogOptions;
+
+    #[test]
+    fn unchanged_copters_come_back_on_logged_steps() {
+        let period = |every_ticks, unchanged_every_s| {
+            LogOptions { every_ticks, unchanged_every_s, ..LogOptions::default() }.unchanged_every_ticks(0.05)
+        };
+        assert_eq!(period(1, 1.0), 20, "a second of 50 ms steps");
+        assert_eq!(period(3, 1.0), 21, "the first logged step at or after the second");
+        assert_eq!(period(40, 1.0), 40, "slower logging than the period: every logged step");
+        assert_eq!(period(1, 0.0), 1, "0: every copter on every step");
+        assert_eq!(period(4, 0.0), 1);
+        assert_eq!(period(1, 0.01), 1, "less than a step: every step");
+        assert_eq!(period(1, f64::NAN), 1);
+    }
+}
