@@ -165,6 +165,58 @@ def test_replay_republishes_bus_traffic_under_a_new_prefix(twinswarm_bin, free_p
     assert any(k == "again/lab/clock" for k, _ in got)
 
 
+def test_replay_sends_held_copters_every_step_like_the_live_simulator(twinswarm_bin, free_port, tmp_path):
+    """A crash-heavy log holds wrecks at rest (written once a second): replay sends every
+    copter's state and the clock on every step anyway, with the values of the log that writes
+    every copter every step."""
+    scene = tmp_path / "dense.toml"
+    scene.write_text(subprocess.run([str(twinswarm_bin), "scene", "dense", "--n", "64", "--spacing", "1.0"],
+                                    check=True, capture_output=True, text=True).stdout)
+    held, full = tmp_path / "held.mcap", tmp_path / "full.mcap"
+    for path, extra in ((held, []), (full, ["--log-unchanged", "0"])):
+        subprocess.run([str(twinswarm_bin), "run", str(scene), "--no-bus", "--duration", "8", "--log", str(path),
+                        *extra], check=True, capture_output=True, timeout=120)
+    expected = {(s["copter"], s["tick"]): s["pos_m"] for s in read_log(full, "/copters/state")}
+    logged = read_log(held, "/copters/state")
+    assert len(logged) < len(expected) == 64 * 160, "wrecks held in the log"
+
+    endpoint = f"tcp/127.0.0.1:{free_port}"
+    replay = subprocess.Popen(
+        [str(twinswarm_bin), "replay", str(held), "--speed", "8", "--listen", endpoint, "--prefix", "held/dense",
+         "--wait-for-subscriber", "15"],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+    )
+    got = []
+    lock = threading.Lock()
+    try:
+        lines = wait_for_line(replay, "waiting up to", 20)
+        with session_to(endpoint) as session:
+            def on_sample(sample):
+                with lock:
+                    got.append((str(sample.key_expr), json.loads(sample.payload.to_string())))
+
+            sub = session.declare_subscriber("held/dense/**", on_sample)
+            out, err = replay.communicate(timeout=60)
+            time.sleep(0.3)
+            sub.undeclare()
+    finally:
+        if replay.poll() is None:
+            replay.kill()
+            replay.communicate(timeout=10)
+    assert replay.returncode == 0, err
+    out = "".join(lines) + out
+    assert f"{len(expected)} state" in out and "160 clock" in out, out
+    with lock:
+        states = [p for k, p in got if k.endswith("/state")]
+        clocks = [p["tick"] for k, p in got if k == "held/dense/clock"]
+    assert clocks == list(range(1, 161))
+    assert len(states) == len(expected)
+    replayed = {(p["name"], p["tick"]): p["pos_m"] for p in states}
+    assert replayed.keys() == expected.keys(), "every copter on every step"
+    differ = [k for k in expected if replayed[k] != pytest.approx(expected[k], rel=1e-7, abs=1e-12)]
+    assert not differ, f"{len(differ)} states differ from the full log, first {differ[:5]}"
+
+
 def test_replay_refuses_bad_files_and_speeds(twinswarm_bin, tmp_path):
     good = tmp_path / "good.mcap"
     subprocess.run(

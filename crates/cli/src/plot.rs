@@ -168,8 +168,14 @@ impl PlotData {
                 bad(anyhow::anyhow!("metadata \"log_every_ticks\" = {text:?} is not a positive whole number"))
             })?,
         };
+        // The last logged step, which may come after every copter's last state if all of
+        // them were held at the end.
+        let log_end_s = match (meta.get("epoch_unix_ns").and_then(|t| t.parse::<u64>().ok()), info.time_range_ns) {
+            (Some(epoch), Some((_, t1))) => t1.saturating_sub(epoch) as f64 / 1e9,
+            _ => f64::NEG_INFINITY,
+        };
         let mut states = states;
-        hold_times(&mut states, every as f64 * dt_s);
+        hold_times(&mut states, every as f64 * dt_s, log_end_s);
         let commands = if need_commands {
             let msgs = file.messages::<proto::CopterCommand>("/copters/command").map_err(read_error)?;
             let rows_of = msgs.into_iter().map(|(t, m)| {
@@ -202,11 +208,12 @@ impl PlotData {
 }
 
 /// Sets each state's [`StateRow::hold_s`]: the time to the same copter's next state, and for
-/// its last one the time to the log's last state plus one logging period `period_s`. With
-/// every copter on every step that is one step each; with `--log-rate` it is the rate's
-/// period; a wreck at rest, written once a second, stands for the whole second.
-fn hold_times(states: &mut [StateRow], period_s: f64) {
-    let end_s = states.iter().map(|s| s.t_s).fold(f64::NEG_INFINITY, f64::max) + period_s;
+/// its last one the time to the log's last step (the later of `log_end_s` and the last
+/// state) plus one logging period `period_s`. With every copter on every step that is one
+/// step each; with `--log-rate` it is the rate's period; a wreck at rest, written once a
+/// second, stands for the whole second.
+fn hold_times(states: &mut [StateRow], period_s: f64, log_end_s: f64) {
+    let end_s = states.iter().map(|s| s.t_s).fold(log_end_s, f64::max) + period_s;
     let mut next_t: std::collections::HashMap<usize, f64> = std::collections::HashMap::new();
     for s in states.iter_mut().rev() {
         let next = next_t.insert(s.id, s.t_s).unwrap_or(end_s);
@@ -656,12 +663,16 @@ mod tests {
                 states.push(row(t_s, 1));
             }
         }
-        hold_times(&mut states, 0.05);
+        hold_times(&mut states, 0.05, f64::NEG_INFINITY);
         let total = |id: usize| states.iter().filter(|s| s.id == id).map(|s| s.hold_s).sum::<f64>();
         assert!((total(0) - 2.0).abs() < 1e-9, "{}", total(0));
         assert!((total(1) - 2.0).abs() < 1e-9, "{}", total(1));
         assert!(states.iter().filter(|s| s.id == 1).all(|s| (s.hold_s - 1.0).abs() < 1e-9));
         assert!(states.iter().filter(|s| s.id == 0).all(|s| (s.hold_s - 0.05).abs() < 1e-9));
+        // The log goes on 0.5 s after the last state (every copter held at the end).
+        hold_times(&mut states, 0.05, 2.45);
+        let total = |id: usize| states.iter().filter(|s| s.id == id).map(|s| s.hold_s).sum::<f64>();
+        assert!((total(0) - 2.5).abs() < 1e-9 && (total(1) - 2.5).abs() < 1e-9);
     }
 
     #[test]

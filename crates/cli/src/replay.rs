@@ -8,7 +8,9 @@
 //! - `…/clock` ([`ClockMsg`]) once per logged control step, before that step's states;
 //! - `…/copters/<name>/state` ([`StateMsg`]) from `/copters/state`, every step. Every field of
 //!   the live message is in the log (`copter` → `name`, `t_s` → `time_s`, `rpy_rad` →
-//!   `attitude_rad`, kind `real` → `twin`); nothing is invented;
+//!   `attitude_rad`, kind `real` → `twin`); nothing is invented. A copter the log held on a
+//!   step (unchanged since its last message, e.g. a wreck at rest) gets its last state again
+//!   with that step's tick and time, as the live simulator sends every copter every step;
 //! - `…/copters/<name>/sensors` ([`SensorsMsg`]) from `/copters/sensors`, only on steps whose
 //!   sonar reading is fresh (its `sonar_tick` changed), i.e. at the sonar rate like the live
 //!   simulator (the log holds the held reading every step);
@@ -186,9 +188,21 @@ struct Replayer<'a> {
     publishers: HashMap<String, zenoh::pubsub::Publisher<'static>>,
     last_sonar_tick: HashMap<String, u64>,
     last_clock_tick: Option<u64>,
+    /// Each copter's last logged state, by id: a copter the log holds (unchanged since its
+    /// last message) goes out again with each step's tick, as the live simulator sends it.
+    latest: std::collections::BTreeMap<u32, proto::CopterState>,
+    /// The log's control step, ns.
+    dt_ns: u64,
+    /// Its logged ticks (`log_every_ticks`); `None` for logs from before copters were held,
+    /// which are not expanded.
+    every_ticks: Option<u64>,
+    /// Log time of tick 0 (from the first state), ns.
+    epoch_ns: Option<u64>,
     counts: Counts,
     start: Instant,
     t0_ns: u64,
+    /// The log's last log time, ns.
+    t1_ns: u64,
     speed: f64,
     stop: Arc<AtomicBool>,
 }
@@ -222,6 +236,51 @@ impl Replayer<'_> {
         wait_until(&self.stop, self.start + Duration::from_secs_f64(offset_s))
     }
 
+    fn put_clock(&mut self, tick: u64) -> anyhow::Result<()> {
+        let clock = ClockMsg { tick, time_s: (tick * self.dt_ns) as f64 / 1e9 };
+        self.put(&format!("{}/clock", self.prefix), serde_json::to_vec(&clock)?)?;
+        self.counts.clock += 1;
+        Ok(())
+    }
+
+    /// Sends again, with `tick`'s tick and time, the state of every copter the log held on
+    /// that step (its last state is older).
+    fn put_held(&mut self, tick: u64, bad: &impl Fn(String) -> anyhow::Error) -> anyhow::Result<()> {
+        let held: Vec<proto::CopterState> = self.latest.values().filter(|s| s.tick < tick).cloned().collect();
+        for mut s in held {
+            (s.tick, s.t_s) = (tick, (tick * self.dt_ns) as f64 / 1e9);
+            let key = format!("{}/copters/{}/state", self.prefix, s.copter);
+            self.put(&key, serde_json::to_vec(&state_msg(s).map_err(bad)?)?)?;
+            self.counts.state += 1;
+        }
+        Ok(())
+    }
+
+    /// Finishes the step last sent (its held copters), then sends every logged step before
+    /// `next` (or up to the log's end, `None`) that has no state in the log because every
+    /// copter was held: its clock and the held states, at its deadline. `Ok(false)`: stopped.
+    fn catch_up(&mut self, next: Option<u64>, bad: &impl Fn(String) -> anyhow::Error) -> anyhow::Result<bool> {
+        let (Some(last), Some(epoch), Some(every)) = (self.last_clock_tick, self.epoch_ns, self.every_ticks) else {
+            return Ok(true);
+        };
+        self.put_held(last, bad)?;
+        let end = match next {
+            Some(t) => t,
+            None => self.t1_ns.saturating_sub(epoch) / self.dt_ns.max(1) + 1,
+        };
+        let mut k = last + every;
+        while k < end {
+            if !self.wait_until(epoch + k * self.dt_ns) {
+                return Ok(false);
+            }
+            self.last_clock_tick = Some(k);
+            self.put_clock(k)?;
+            self.put_held(k, bad)?;
+            k += every;
+        }
+        Ok(true)
+    }
+
     /// Handles one message. `Ok(false)`: stopped by a signal.
     fn message(
         &mut self,
@@ -253,15 +312,18 @@ impl Replayer<'_> {
         match topic {
             "/copters/state" => {
                 let s = proto::CopterState::decode_as(encoding, data).map_err(bad)?;
+                self.epoch_ns.get_or_insert(log_time.saturating_sub(s.tick.saturating_mul(self.dt_ns)));
+                if self.last_clock_tick.is_some_and(|c| s.tick > c) && !self.catch_up(Some(s.tick), &bad)? {
+                    return Ok(false);
+                }
                 if !self.wait_until(log_time) {
                     return Ok(false);
                 }
                 if self.last_clock_tick != Some(s.tick) {
                     self.last_clock_tick = Some(s.tick);
-                    let clock = ClockMsg { tick: s.tick, time_s: s.t_s };
-                    self.put(&format!("{}/clock", self.prefix), serde_json::to_vec(&clock)?)?;
-                    self.counts.clock += 1;
+                    self.put_clock(s.tick)?;
                 }
+                self.latest.insert(s.id, s.clone());
                 let key = format!("{}/copters/{}/state", self.prefix, s.copter);
                 self.put(&key, serde_json::to_vec(&state_msg(s).map_err(bad)?)?)?;
                 self.counts.state += 1;
@@ -331,6 +393,16 @@ pub fn run(args: ReplayArgs) -> anyhow::Result<()> {
         return Err(bad(format!("{}: no state, sensor or bus messages to replay", path.display())));
     };
     let span_s = (t1_ns - t0_ns) as f64 / 1e9;
+    // The step, and whether the log may hold copters (logs from before say neither).
+    let dt_ns = meta
+        .and_then(|m| m.get("control_dt_s"))
+        .and_then(|t| t.parse::<f64>().ok())
+        .filter(|dt| dt.is_finite() && *dt > 0.0 && *dt < 3600.0)
+        .map_or(50_000_000, |dt| (dt * 1e9).round() as u64);
+    let every_ticks = meta
+        .and_then(|m| m.get("log_every_ticks"))
+        .and_then(|t| t.parse::<u64>().ok())
+        .filter(|n| (1..=1_000_000).contains(n));
     let copters: Vec<String> = meta
         .and_then(|m| m.get("copters"))
         .and_then(|s| serde_json::from_str::<Vec<serde_json::Value>>(s).ok())
@@ -388,9 +460,14 @@ pub fn run(args: ReplayArgs) -> anyhow::Result<()> {
         publishers: HashMap::new(),
         last_sonar_tick: HashMap::new(),
         last_clock_tick: None,
+        latest: std::collections::BTreeMap::new(),
+        dt_ns,
+        every_ticks,
+        epoch_ns: None,
         counts: Counts::default(),
         start: Instant::now(),
         t0_ns,
+        t1_ns,
         speed: args.speed,
         stop: stop.clone(),
     };
@@ -522,6 +599,21 @@ fn replay(r: &mut Replayer<'_>, file: &LogFile, copters: &[String], args: &Repla
         return f;
     }
     read.map_err(read_error)?;
+    // The log's last steps, if every copter was held on them.
+    if r.session.is_some() {
+        let t1_ns = r.t1_ns;
+        let bad = |what: String| {
+            read_error(LogReadError::Decode {
+                path: path.clone(),
+                topic: "/copters/state".into(),
+                log_time: t1_ns,
+                what,
+            })
+        };
+        if !r.catch_up(None, &bad)? {
+            return Ok(true);
+        }
+    }
     Ok(false)
 }
 

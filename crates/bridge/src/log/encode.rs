@@ -447,7 +447,13 @@ impl Encoder {
         self.write.resize(self.copters.len(), false);
         for ((info, c), w) in self.copters.iter_mut().zip(&frame.copters).zip(&mut self.write) {
             *w = c.owned;
-            if !c.owned || self.unchanged_every == 1 {
+            if !c.owned {
+                // Another shard writes it meanwhile: the sample this one wrote last no longer
+                // says what a reader holds, so it writes the copter again when it gets it back.
+                info.last = None;
+                continue;
+            }
+            if self.unchanged_every == 1 {
                 continue;
             }
             match &mut info.last {

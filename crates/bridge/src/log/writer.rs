@@ -74,9 +74,10 @@ pub struct LogOptions {
     pub chunk_size: usize,
     /// A copter whose logged values did not change since it was last written (a wreck at
     /// rest: its pose, rotors, readings and command all stay as they were) is written again
-    /// only every this many simulated seconds (default 1), on whole multiples of it, and on
-    /// every step the live view gets. A reader holds a copter's last message until its next.
-    /// 0 writes every copter on every logged step.
+    /// only every this many simulated seconds (default 1; the period in ticks is rounded up
+    /// to a multiple of `every_ticks`, see [`LogOptions::unchanged_every_ticks`]), and on every
+    /// step the live view gets. A reader holds a copter's last message until its next. 0 writes
+    /// every copter on every logged step.
     pub unchanged_every_s: f64,
     /// Steps that may wait for the writer thread before `log_step` blocks (default 4).
     pub queue_steps: usize,
@@ -140,7 +141,7 @@ impl LogOptions {
             return 1;
         }
         let steps = (s / control_dt_s).round().max(1.0) as u64;
-        steps.div_ceil(every) * every
+        steps.div_ceil(every).saturating_mul(every)
     }
 }
 
@@ -816,5 +817,6 @@ mod tests {
         assert_eq!(period(4, 0.0), 1);
         assert_eq!(period(1, 0.01), 1, "less than a step: every step");
         assert_eq!(period(1, f64::NAN), 1);
+        assert_eq!(period(2, 1e30), u64::MAX, "absurdly long: never again, no overflow");
     }
 }
