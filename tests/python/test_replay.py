@@ -44,6 +44,35 @@ def wait_for_line(proc, needle, timeout):
     return lines
 
 
+def replay_received(twinswarm_bin, log, endpoint, key_expr, args, timeout=30):
+    """Runs `twinswarm replay LOG --listen ENDPOINT ARGS --wait-for-subscriber 15`, subscribes to
+    `key_expr` once it waits, and collects what arrives until it exits (bounded by `timeout`).
+    Returns (exit code, stdout, stderr, [(arrival time, key, payload text)])."""
+    replay = subprocess.Popen(
+        [str(twinswarm_bin), "replay", str(log), "--listen", endpoint, *args, "--wait-for-subscriber", "15"],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+    )
+    received = []
+    lock = threading.Lock()
+    try:
+        lines = wait_for_line(replay, "waiting up to", 20)
+        with session_to(endpoint) as session:
+            def on_sample(sample):
+                with lock:
+                    received.append((time.monotonic(), str(sample.key_expr), sample.payload.to_string()))
+
+            sub = session.declare_subscriber(key_expr, on_sample)
+            out, err = replay.communicate(timeout=timeout)
+            time.sleep(0.3)
+            sub.undeclare()
+    finally:
+        if replay.poll() is None:
+            replay.kill()
+            replay.communicate(timeout=10)
+    with lock:
+        return replay.returncode, "".join(lines) + out, err, list(received)
+
+
 def test_replay_republishes_with_original_timing(twinswarm_bin, free_port, tmp_path):
     log = tmp_path / "run.mcap"
     subprocess.run(
@@ -57,35 +86,12 @@ def test_replay_republishes_with_original_timing(twinswarm_bin, free_port, tmp_p
 
     endpoint = f"tcp/127.0.0.1:{free_port}"
     speed = 2.0
-    replay = subprocess.Popen(
-        [str(twinswarm_bin), "replay", str(log), "--speed", str(speed), "--listen", endpoint,
-         "--wait-for-subscriber", "15"],
-        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-    )
-    received = []  # (arrival time, key, payload)
-    lock = threading.Lock()
-    try:
-        lines = wait_for_line(replay, "waiting up to", 20)
-        with session_to(endpoint) as session:
-            def on_sample(sample):
-                with lock:
-                    received.append((time.monotonic(), str(sample.key_expr), json.loads(sample.payload.to_string())))
-
-            sub = session.declare_subscriber("twinswarm/lab/**", on_sample)
-            out, err = replay.communicate(timeout=30)
-            time.sleep(0.3)
-            sub.undeclare()
-    finally:
-        if replay.poll() is None:
-            replay.kill()
-            replay.communicate(timeout=10)
-    out = "".join(lines) + out
+    code, out, err, received = replay_received(twinswarm_bin, log, endpoint, "twinswarm/lab/**", ["--speed", str(speed)])
     print(out)
-    assert replay.returncode == 0, err
+    assert code == 0, err
     assert f"{len(logged_states)} state" in out and f"{steps} clock" in out
 
-    with lock:
-        got = list(received)
+    got = [(t, k, json.loads(p)) for t, k, p in received]
     states = [(t, p) for t, k, p in got if k.endswith("/state")]
     clocks = [(t, p) for t, k, p in got if k == "twinswarm/lab/clock"]
     sensors = [(t, p) for t, k, p in got if k.endswith("/sensors")]
@@ -141,26 +147,11 @@ def test_replay_republishes_bus_traffic_under_a_new_prefix(twinswarm_bin, free_p
     assert any(m["key"] == "twinswarm/lab/copters/finken1/cmd" for m in bus), bus
 
     replay_ep = loopback_endpoint()
-    replay = subprocess.Popen(
-        [str(twinswarm_bin), "replay", str(log), "--speed", "4", "--listen", replay_ep, "--prefix", "again/lab",
-         "--wait-for-subscriber", "15"],
-        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-    )
-    got = []
-    try:
-        lines = wait_for_line(replay, "waiting up to", 20)
-        with session_to(replay_ep) as session:
-            sub = session.declare_subscriber("again/**", lambda s: got.append((str(s.key_expr), s.payload.to_string())))
-            out, err = replay.communicate(timeout=30)
-            time.sleep(0.3)
-            sub.undeclare()
-    finally:
-        if replay.poll() is None:
-            replay.kill()
-            replay.communicate(timeout=10)
-    assert replay.returncode == 0, err
-    out = "".join(lines) + out
+    code, out, err, received = replay_received(twinswarm_bin, log, replay_ep, "again/**",
+                                               ["--speed", "4", "--prefix", "again/lab"])
+    assert code == 0, err
     assert f"{len(bus)} bus" in out, out
+    got = [(k, p) for _t, k, p in received]
     assert ("again/lab/copters/finken1/cmd", '{"height": 0.6}') in got
     assert any(k == "again/lab/clock" for k, _ in got)
 
@@ -181,34 +172,13 @@ def test_replay_sends_held_copters_every_step_like_the_live_simulator(twinswarm_
     assert len(logged) < len(expected) == 64 * 160, "wrecks held in the log"
 
     endpoint = f"tcp/127.0.0.1:{free_port}"
-    replay = subprocess.Popen(
-        [str(twinswarm_bin), "replay", str(held), "--speed", "8", "--listen", endpoint, "--prefix", "held/dense",
-         "--wait-for-subscriber", "15"],
-        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-    )
-    got = []
-    lock = threading.Lock()
-    try:
-        lines = wait_for_line(replay, "waiting up to", 20)
-        with session_to(endpoint) as session:
-            def on_sample(sample):
-                with lock:
-                    got.append((str(sample.key_expr), json.loads(sample.payload.to_string())))
-
-            sub = session.declare_subscriber("held/dense/**", on_sample)
-            out, err = replay.communicate(timeout=60)
-            time.sleep(0.3)
-            sub.undeclare()
-    finally:
-        if replay.poll() is None:
-            replay.kill()
-            replay.communicate(timeout=10)
-    assert replay.returncode == 0, err
-    out = "".join(lines) + out
+    code, out, err, received = replay_received(twinswarm_bin, held, endpoint, "held/dense/**",
+                                               ["--speed", "8", "--prefix", "held/dense"], timeout=60)
+    assert code == 0, err
     assert f"{len(expected)} state" in out and "160 clock" in out, out
-    with lock:
-        states = [p for k, p in got if k.endswith("/state")]
-        clocks = [p["tick"] for k, p in got if k == "held/dense/clock"]
+    got = [(k, json.loads(p)) for _t, k, p in received]
+    states = [p for k, p in got if k.endswith("/state")]
+    clocks = [p["tick"] for k, p in got if k == "held/dense/clock"]
     assert clocks == list(range(1, 161))
     assert len(states) == len(expected)
     replayed = {(p["name"], p["tick"]): p["pos_m"] for p in states}
