@@ -75,7 +75,7 @@ fn main() {
     };
     let loop_thread = std::thread::spawn(move || {
         let (state, inputs) = (world.initial_state(), world.initial_inputs());
-        sim::run_loop(world, state, inputs, req_rx, Some(frame_tx), &mut (), &stop_loop, &opts)
+        sim::run_watched(world, state, inputs, req_rx, Some(frame_tx), (), &stop_loop, &opts)
     });
     let publisher = rt.spawn(async move {
         while let Some(frame) = frame_rx.recv().await {
@@ -131,7 +131,7 @@ fn main() {
     });
 
     stop.store(true, std::sync::atomic::Ordering::Relaxed);
-    let (_, _, stats) = loop_thread.join().unwrap();
+    let (_, _, stats, _) = loop_thread.join().unwrap();
     let node = rt.block_on(publisher).unwrap();
     let report = gateway.report();
     drop(gateway);

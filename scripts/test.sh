@@ -40,6 +40,13 @@ fi
 .venv/bin/python -m pip install --quiet --disable-pip-version-check -r tests/python/requirements.txt
 # Same targets and features as the test run above, so nothing is rebuilt.
 cargo build --workspace --all-targets --locked
+
+say "python package: pip install ./crates/py (the test profile, not release)"
+# The README's `pip install ./crates/py`, built with the test profile: a release build of the
+# extension would take longer than every test together. The maturin of tests/python's
+# requirements builds it in place, into this repository's target/.
+PATH="$PWD/.venv/bin:$PATH" MATURIN_PEP517_ARGS="--profile dev" \
+  .venv/bin/python -m pip install --quiet --disable-pip-version-check --no-build-isolation --force-reinstall --no-deps ./crates/py
 pytest_status=0
 TWINSWARM_BIN="$PWD/target/debug/twinswarm" .venv/bin/python -m pytest -q tests/python || pytest_status=$?
 if [ "$pytest_status" -eq 5 ]; then
@@ -56,4 +63,4 @@ if [ "$skipped" -gt 0 ]; then
   skip_note=" ($skipped shared-data tests skipped: $(cut -f2 "$TWINSWARM_SKIP_LOG" | sort -u | paste -sd, -) absent)"
 fi
 echo
-echo "all checks passed: fmt, clippy, cargo tests, doc tests, python tests (Zenoh client, MCAP reader, replay, Ivy peers)$skip_note"
+echo "all checks passed: fmt, clippy, cargo tests, doc tests, python tests (Zenoh client, MCAP reader, replay, Ivy peers, the Python package, PettingZoo and Gymnasium conformance, lockstep)$skip_note"

@@ -20,6 +20,7 @@
 //! on publishing.
 
 pub mod failsafe;
+pub mod flight;
 pub mod live;
 pub mod log;
 pub mod mixed;

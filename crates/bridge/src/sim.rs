@@ -6,20 +6,26 @@
 //!   blocks the step loop; frames that do not fit are dropped and counted.
 //! - Real-time mode paces control steps against absolute wall-clock deadlines (`start + k·dt`),
 //!   so there is no drift; a step that ends after its deadline counts as an overrun.
+//! - Lockstep mode ([`LockstepOptions`], `docs/lockstep.md`) holds each step until every
+//!   claimed copter's controller has answered the last state, or a timeout has passed; its
+//!   frames are never dropped.
+//!
+//! The loop only paces and routes: the [`Flight`] it drives does the rest.
 
 use std::collections::BTreeMap;
 use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, Ordering};
-use std::sync::mpsc::{Receiver, TryRecvError};
+use std::sync::mpsc::{Receiver, RecvTimeoutError};
 use std::time::{Duration, Instant};
 
 use sim_core::scene::CopterSpec;
-use sim_core::{Inputs, State, StepReport, World, step_into};
+use sim_core::{CopterKind, Inputs, State, StepReport, World};
 
-use crate::failsafe::{Failsafe, FailsafeEvent, FailsafeKind, FailsafeOptions};
-use crate::mixed::{Outbox, OutboxOptions, PprzOut, Sample, Summary};
-use crate::sync::{SyncOptions, SyncStats, TwinSync};
-use crate::wire::{CommandMsg, SensorsMsg, StateMsg, sensors_msg, state_msg};
+use crate::failsafe::{FailsafeEvent, FailsafeOptions};
+use crate::flight::{Flight, Halt, Recorder};
+use crate::mixed::{OutboxOptions, PprzOut, Sample, Summary};
+use crate::sync::{SyncOptions, SyncStats};
+use crate::wire::{CommandMsg, SensorsMsg, StateMsg};
 
 /// What can be asked of the step loop.
 #[derive(Debug)]
@@ -146,6 +152,35 @@ pub struct LoopOptions {
     /// A shard's link to its neighbours (see [`crate::shard`]): the state must be a shard's;
     /// every step first trades ghosts through it.
     pub shard: Option<Arc<std::sync::Mutex<crate::shard::ShardLink>>>,
+    /// Hold each step for the claimed copters' controllers (needs a frame channel).
+    pub lockstep: Option<LockstepOptions>,
+}
+
+/// `run --lockstep`: see `docs/lockstep.md`.
+#[derive(Clone, Debug)]
+pub struct LockstepOptions {
+    /// How long a step waits for the controllers' answers before it goes on without them.
+    pub timeout: Duration,
+    /// Copters that must be claimed before the first step.
+    pub wait_claims: Vec<String>,
+}
+
+/// What the lockstep did.
+#[derive(Debug, Default, Clone, serde::Serialize)]
+pub struct LockstepStats {
+    /// Steps that waited for at least one controller.
+    pub steps_held: u64,
+    /// Answers that arrived in time.
+    pub answers: u64,
+    /// Timeouts by controller (client name): its copter kept its last command.
+    pub timeouts: BTreeMap<String, u64>,
+    /// Answers for a tick already stepped past (after a timeout), refused.
+    pub late: u64,
+    /// Commands to a claimed copter without a tick, or with one that is not the current
+    /// tick's, refused.
+    pub refused: u64,
+    /// Wall-clock time spent waiting for answers, s.
+    pub wait_s: f64,
 }
 
 /// How well a twin follows its real copter.
@@ -170,6 +205,41 @@ pub struct TwinStats {
     pub link_lost: u64,
     #[serde(skip)]
     observed: Option<([f32; 3], Instant)>,
+}
+
+impl TwinStats {
+    /// A telemetry input received at `received_unix_ns` was applied now.
+    pub(crate) fn applied(&mut self, received_unix_ns: u64) {
+        self.inputs_applied += 1;
+        let now = crate::log::now_unix_ns();
+        self.latencies_ms.push(now.saturating_sub(received_unix_ns) as f32 / 1e6);
+    }
+
+    /// The real copter's attitude (roll, pitch, yaw), rad, as just received.
+    pub(crate) fn observe(&mut self, rpy: [f32; 3]) {
+        self.observed = Some((rpy, Instant::now()));
+    }
+
+    /// Accumulates the twin's attitude error against its real copter's, if that is at most
+    /// 0.2 s old.
+    pub(crate) fn track(&mut self, twin_rpy: [f32; 3]) {
+        let Some((rpy, at)) = self.observed else { return };
+        if at.elapsed().as_secs_f64() > 0.2 {
+            return;
+        }
+        for k in 0..2 {
+            let e = f64::from(sim_core::math::wrap_angle_rad(twin_rpy[k] - rpy[k]));
+            self.sq_sum[k] += e * e;
+        }
+        self.attitude_samples += 1;
+    }
+
+    /// Fills the summaries at the end of the run.
+    pub(crate) fn finish(&mut self) {
+        self.input_latency_ms = self.latencies_ms.summary();
+        let n = self.attitude_samples.max(1) as f64;
+        self.attitude_rms_deg = self.sq_sum.map(|s| (s / n).sqrt().to_degrees());
+    }
 }
 
 /// What the loop reports when it ends.
@@ -214,6 +284,8 @@ pub struct LoopStats {
     pub shard_error: Option<String>,
     /// A shard: copters it took over from another shard during the run.
     pub shard_taken_over: u64,
+    /// Lockstep: answers, timeouts, refusals.
+    pub lockstep: Option<LockstepStats>,
 }
 
 /// Observes every step from inside the loop (e.g. a logger). Runs on the loop's thread: keep
@@ -239,6 +311,8 @@ pub trait StepObserver: Send {
     fn frame_dropped(&mut self, _tick: u64, _pprz_lost: u64) {}
     /// Called for each failsafe transition (lost links, controllers).
     fn failsafe(&mut self, _tick: u64, _world: &World, _event: &FailsafeEvent) {}
+    /// Called when a lockstep controller did not answer tick `tick` in time.
+    fn lockstep_timeout(&mut self, _tick: u64, _world: &World, _copter: usize, _client: &str) {}
 }
 
 /// No observer.
@@ -246,308 +320,297 @@ impl StepObserver for () {
     fn after_step(&mut self, _: &World, _: &State, _: &Inputs, _: &StepReport) {}
 }
 
-/// Runs the loop until `ticks` steps, a stop request, or `stop_flag`. Returns the final state.
-#[allow(clippy::too_many_arguments)]
-pub fn run_loop(
-    world: World,
-    mut state: State,
-    mut inputs: Inputs,
+/// An observer lent to a flight.
+impl<O: StepObserver + ?Sized> StepObserver for &mut O {
+    fn after_step(&mut self, world: &World, state: &State, inputs: &Inputs, report: &StepReport) {
+        (**self).after_step(world, state, inputs, report);
+    }
+    fn spawned(&mut self, world: &World, id: usize, tick: u64) {
+        (**self).spawned(world, id, tick);
+    }
+    fn overrun(&mut self, tick: u64, late_s: f64) {
+        (**self).overrun(tick, late_s);
+    }
+    fn bus_input(&mut self, input: &BusInput) {
+        (**self).bus_input(input);
+    }
+    fn input_rejected(&mut self, tick: u64, input: &BusInput, reason: &str) {
+        (**self).input_rejected(tick, input, reason);
+    }
+    fn pprz_out(&mut self, tick: u64, out: &PprzOut) {
+        (**self).pprz_out(tick, out);
+    }
+    fn paired(&mut self, tick: u64, ac_id: u8, id: usize, copter: &str) {
+        (**self).paired(tick, ac_id, id, copter);
+    }
+    fn frame_dropped(&mut self, tick: u64, pprz_lost: u64) {
+        (**self).frame_dropped(tick, pprz_lost);
+    }
+    fn failsafe(&mut self, tick: u64, world: &World, event: &FailsafeEvent) {
+        (**self).failsafe(tick, world, event);
+    }
+    fn lockstep_timeout(&mut self, tick: u64, world: &World, copter: usize, client: &str) {
+        (**self).lockstep_timeout(tick, world, copter, client);
+    }
+}
+
+/// What a flight leaves when its loop ends.
+#[derive(Debug)]
+pub struct Finished<W> {
+    /// The world at the end (it grows on spawn).
+    pub world: Arc<World>,
+    /// The final state.
+    pub state: State,
+    /// The loop's counters.
+    pub stats: LoopStats,
+    /// The log and live view, to finish.
+    pub recorder: Recorder,
+    /// The front end's observer.
+    pub watch: W,
+}
+
+/// Runs `flight` until `opts.ticks` steps, a stop request, or `stop_flag`: requests are applied
+/// before each step, frames go out after it, and the clock or the lockstep paces it.
+pub fn run_loop<W: StepObserver>(
+    mut flight: Flight<W>,
     requests: Receiver<Request>,
     frames: Option<tokio::sync::mpsc::Sender<Frame>>,
-    observer: &mut dyn StepObserver,
     stop_flag: &AtomicBool,
     opts: &LoopOptions,
-) -> (Arc<World>, State, LoopStats) {
-    let mut world = Arc::new(world);
-    let mut stats = LoopStats::default();
-    let dt = Duration::from_secs_f64(world.params.control_dt_s);
-    let start = Instant::now();
-    let sonar_period = world.sensors.spec.sonar.period_steps.max(1) as u64;
-    let mut outbox = opts.outbox.clone().map(Outbox::new);
-    let mut failsafe = Failsafe::new(opts.failsafe.clone());
-    let mut fs_events: Vec<FailsafeEvent> = Vec::new();
-    // One report for the whole run: its event list keeps its capacity.
-    let mut report = StepReport::default();
-    let mut sync = opts.sync.clone().and_then(|o| match TwinSync::new(&world, o) {
-        Ok(s) => Some(s),
-        Err(e) => {
-            tracing::warn!("twin synchronisation is off: {e}");
-            None
+) -> Finished<W> {
+    let dt = Duration::from_secs_f64(flight.world().params.control_dt_s);
+    let mut lockstep = opts.lockstep.as_ref().filter(|_| frames.is_some()).map(|o| Lockstep::new(o.clone()));
+    let stopped = |f: &Flight<W>| f.stats().stopped_early || stop_flag.load(Ordering::Relaxed);
+    if let Some(ls) = lockstep.as_mut() {
+        ls.wait_for_claims(&mut flight, &requests, stop_flag);
+        if let Some(tx) = &frames {
+            // The state the controllers answer first. The receiver is gone only when the
+            // publisher stopped; then nobody is left to answer and the timeouts count it.
+            let _ = tx.blocking_send(flight.initial_frame());
         }
-    });
-    // A shard: which copters it owned after the last step.
-    let mut owned: Vec<bool> = Vec::new();
+    }
+    let mut start = Instant::now();
     for k in 0..opts.ticks {
-        // Requests, applied before this step.
-        loop {
-            match requests.try_recv() {
-                Ok(Request::Command { copter, cmd, origin }) => match world.copter_id(&copter) {
-                    Some(id) => {
-                        observer.bus_input(&origin);
-                        failsafe.commanded(id, &mut inputs, &mut fs_events);
-                        cmd.apply(&mut inputs.commands[id]);
-                        stats.commands_applied += 1;
-                    }
-                    None => {
-                        stats.commands_unknown_copter += 1;
-                        observer.input_rejected(state.tick, &origin, &format!("no copter named {copter:?}"));
-                    }
-                },
-                Ok(Request::Rejected { origin, reason }) => {
-                    stats.inputs_rejected += 1;
-                    observer.input_rejected(state.tick, &origin, &reason);
-                }
-                Ok(Request::Ignored { origin, reason: _ }) => {
-                    stats.inputs_ignored += 1;
-                    observer.bus_input(&origin);
-                }
-                Ok(Request::Spawn { spec, reply }) if state.shard().is_some() => {
-                    stats.spawns_failed += 1;
-                    let _ = reply.send(Err(format!(
-                        "cannot spawn {:?}: a sharded run's copters are fixed by its scene",
-                        spec.name
-                    )));
-                }
-                Ok(Request::Spawn { spec, reply }) => {
-                    let answer = spawn(&mut world, &mut state, &mut inputs, &spec, observer, &mut stats);
-                    if let Err(e) = &answer {
-                        stats.spawns_failed += 1;
-                        tracing::warn!("spawn of {:?} refused: {e}", spec.name);
-                    }
-                    // The requester may have given up (it waits 5 s); the spawn stands and is
-                    // logged either way.
-                    let _ = reply.send(answer.map(|_| spec.name.clone()));
-                }
-                Ok(Request::Tracking { copter, pos_m, origin }) => {
-                    let Some(id) = world.copter_id(&copter) else {
-                        observer.input_rejected(state.tick, &origin, &format!("no copter named {copter:?}"));
-                        continue;
-                    };
-                    observer.bus_input(&origin);
-                    if let Some(sync) = sync.as_mut() {
-                        let t = state.time_s(&world);
-                        sync.on_tracking(&world, &state, id, t, pos_m);
-                    }
-                }
-                Ok(Request::Twin { copter, spawn: spec, cmd, observed_rpy, sonar_m, yaw_rad, origin }) => {
-                    if world.copter_id(&copter).is_none()
-                        && let Some(spec) = spec
-                    {
-                        match spawn(&mut world, &mut state, &mut inputs, &spec, observer, &mut stats) {
-                            Ok(()) => {
-                                observer.paired(state.tick, spec.ac_id.unwrap_or(0), world.copters.len() - 1, &copter);
-                                stats.twins.entry(copter.clone()).or_default().spawned = true;
-                            }
-                            Err(e) => tracing::warn!("cannot spawn twin `{copter}`: {e}"),
-                        }
-                    }
-                    let Some(id) = world.copter_id(&copter) else {
-                        observer.input_rejected(state.tick, &origin, &format!("no copter named {copter:?}"));
-                        continue;
-                    };
-                    observer.bus_input(&origin);
-                    let twin = stats.twins.entry(copter).or_default();
-                    let cmd_attitude = cmd.as_ref().map(|c| [c.pitch, c.roll, c.yaw]);
-                    if let Some(cmd) = cmd {
-                        failsafe.telemetry(id, Instant::now(), &mut inputs, &mut fs_events);
-                        cmd.apply(&mut inputs.commands[id]);
-                        twin.inputs_applied += 1;
-                        let now = crate::log::now_unix_ns();
-                        twin.latencies_ms.push(now.saturating_sub(origin.received_unix_ns) as f32 / 1e6);
-                    }
-                    if let Some(rpy) = observed_rpy {
-                        twin.observed = Some((rpy, Instant::now()));
-                    }
-                    if let Some(sync) = sync.as_mut() {
-                        if let Some([p, r, y]) = cmd_attitude {
-                            sync.on_command(&world, &state, id, p, r, y);
-                        }
-                        if let Some(y) = yaw_rad {
-                            let t = state.time_s(&world);
-                            sync.on_yaw(&world, &state, id, t, y);
-                        }
-                        if let Some(r) = sonar_m {
-                            sync.on_sonar(&world, &state, id, r);
-                        }
-                    }
-                }
-                Ok(Request::Controller { copter, client, lost }) => {
-                    let Some(id) = world.copter_id(&copter) else {
-                        tracing::warn!("controller change for {copter:?}, which is not in the world");
-                        continue;
-                    };
-                    match (client, lost) {
-                        (None, Some(lost)) => {
-                            failsafe.client_lost(&world, &state, id, &lost, &mut inputs, &mut fs_events);
-                        }
-                        (client, _) => failsafe.controller(id, client, &mut fs_events),
-                    }
-                }
-                Ok(Request::Stop) => {
-                    stats.stopped_early = true;
-                }
-                Err(TryRecvError::Empty | TryRecvError::Disconnected) => break,
-            }
+        while let Ok(r) = requests.try_recv() {
+            route(&mut flight, lockstep.as_mut(), r);
         }
-        if stats.stopped_early || stop_flag.load(Ordering::Relaxed) {
-            stats.stopped_early = true;
+        if let Some(ls) = lockstep.as_mut() {
+            ls.wait_for_answers(&mut flight, &requests, stop_flag);
+        }
+        if stopped(&flight) {
+            flight.stopped_early();
             break;
         }
-        let sensed = state.tick.is_multiple_of(sonar_period);
-        if let Some(sync) = &sync {
-            sync.adjust_commands(&mut inputs);
+        if k == 0 {
+            // Real-time pacing starts with the first step, after any wait for claims.
+            start = Instant::now();
         }
-        if let Some(link) = &opts.shard {
-            let exchanged = crate::lock(link).exchange(&mut state);
-            if let Err(e) = exchanged {
-                stats.shard_error = Some(e.to_string());
-                stats.stopped_early = true;
+        let stepped = match flight.step() {
+            Ok(s) => s,
+            Err(halt) => {
+                if let Halt::Shard(e) = halt {
+                    flight.shard_error(e);
+                }
+                flight.stopped_early();
                 break;
             }
-        }
-        step_into(&world, &mut state, &inputs, &mut report);
-        observer.after_step(&world, &state, &inputs, &report);
-        if let Some(view) = state.shard() {
-            if report.shard_violations > 0 {
-                stats.shard_error = Some(format!(
-                    "at tick {} {} copter(s) were in a contact cluster or a wake wider than the halo ({:.1} m) \
-                     allows: the run would no longer be the one-process run",
-                    report.tick,
-                    report.shard_violations,
-                    view.partition.halo_m()
-                ));
-                stats.stopped_early = true;
-                break;
-            }
-            owned.resize(world.copters.len(), false);
-            for (i, o) in owned.iter_mut().enumerate() {
-                let now = state.owns(i);
-                stats.shard_taken_over += u64::from(now && !*o && k > 0);
-                *o = now;
-            }
-        }
-        stats.steps += 1;
-        track_twins(&world, &state, &mut stats.twins);
-        if let Some(sync) = sync.as_mut() {
-            sync.after_step(&world, &mut state, &inputs);
-        }
-        failsafe.after_step(&world, &state, &mut inputs, Instant::now(), &mut fs_events);
-        for e in fs_events.drain(..) {
-            if let FailsafeKind::Hold { .. } = e.kind {
-                if let Some(t) = stats.twins.get_mut(&world.copters[e.copter].name) {
-                    t.link_lost += 1;
-                }
-                if let Some(sync) = sync.as_mut() {
-                    sync.on_link_lost(e.copter);
-                }
-            }
-            tracing::warn!("failsafe: {}", e.message(&world));
-            observer.failsafe(state.tick, &world, &e);
-        }
-        let mut pprz_out = Vec::new();
-        if let Some(outbox) = outbox.as_mut() {
-            outbox.after_step(&world, &state, &inputs, sensed, &mut pprz_out);
-            for out in &pprz_out {
-                observer.pprz_out(state.tick, out);
-            }
-            stats.pprz_sent += pprz_out.len() as u64;
-        }
+        };
         if let Some(tx) = &frames {
-            let n = world.copters.len();
-            let ids: Vec<u32> = (0..n).filter(|&i| state.owns(i)).map(|i| i as u32).collect();
-            let frame = Frame {
-                world: world.clone(),
-                tick: state.tick,
-                time_s: state.time_s(&world),
-                states: ids.iter().map(|&i| state_msg(&world, &state, &inputs, i as usize)).collect(),
-                sensors: if sensed {
-                    ids.iter().map(|&i| sensors_msg(&world, &state, i as usize)).collect()
-                } else {
-                    Vec::new()
-                },
-                ids,
-                report: report.clone(),
-                pprz_out,
-                stepped_at: Instant::now(),
-            };
-            if let Err(e) = tx.try_send(frame) {
-                stats.frames_dropped += 1;
-                let lost = e.into_inner().pprz_out.len() as u64;
-                stats.pprz_sent -= lost;
-                stats.pprz_dropped += lost;
-                observer.frame_dropped(state.tick, lost);
+            let frame = flight.frame(stepped.sensed, stepped.pprz_out);
+            if lockstep.is_some() {
+                // Lockstep: the controllers wait for this frame; never drop it.
+                let _ = tx.blocking_send(frame);
+            } else if let Err(e) = tx.try_send(frame) {
+                flight.frame_dropped(e.into_inner());
             }
         }
         if opts.realtime {
             let deadline = start + dt * (k as u32 + 1);
             let now = Instant::now();
             if now > deadline {
-                stats.overruns += 1;
-                observer.overrun(state.tick, (now - deadline).as_secs_f64());
+                flight.overrun((now - deadline).as_secs_f64());
             } else {
                 std::thread::sleep(deadline - now);
             }
         }
     }
     // What arrived too late for a step: logged, so that no received input goes unrecorded.
-    while let Ok(r) = requests.try_recv() {
-        if let Request::Command { origin, .. }
-        | Request::Twin { origin, .. }
-        | Request::Tracking { origin, .. }
-        | Request::Rejected { origin, .. }
-        | Request::Ignored { origin, .. } = &r
-        {
-            stats.inputs_after_end += 1;
-            observer.input_rejected(state.tick, origin, "arrived after the last step");
-        }
-    }
-    stats.failsafe = failsafe.counts.clone();
-    if let Some(sync) = &sync {
-        stats.sync = sync.stats().into_iter().map(|(id, s)| (world.copters[id].name.clone(), s)).collect();
-    }
-    for t in stats.twins.values_mut() {
-        t.input_latency_ms = t.latencies_ms.summary();
-        let n = t.attitude_samples.max(1) as f64;
-        t.attitude_rms_deg = t.sq_sum.map(|s| (s / n).sqrt().to_degrees());
-    }
-    (world, state, stats)
+    let (world, state, mut stats, recorder, watch) = flight.finish(requests.try_iter());
+    stats.lockstep = lockstep.map(|l| l.stats);
+    Finished { world, state, stats, recorder, watch }
 }
 
-/// Adds a copter to the running world.
-fn spawn(
-    world: &mut Arc<World>,
-    state: &mut State,
-    inputs: &mut Inputs,
-    spec: &CopterSpec,
-    observer: &mut dyn StepObserver,
-    stats: &mut LoopStats,
-) -> Result<(), String> {
-    let w = world.with_spawned(state, spec).map_err(|e| e.to_string())?;
-    let id = w.copters.len() - 1;
-    state.add_copters(&w);
-    inputs.commands.push(w.copters[id].initial_command.clone());
-    *world = Arc::new(w);
-    observer.spawned(world, id, state.tick);
-    stats.spawned += 1;
-    Ok(())
+/// [`run_loop`] of a new flight that records nothing, watched by `watch`: for tests,
+/// evaluations and benchmarks. Returns the world, the state, the counters and the watch.
+#[allow(clippy::too_many_arguments)]
+pub fn run_watched<W: StepObserver>(
+    world: World,
+    state: State,
+    inputs: Inputs,
+    requests: Receiver<Request>,
+    frames: Option<tokio::sync::mpsc::Sender<Frame>>,
+    watch: W,
+    stop_flag: &AtomicBool,
+    opts: &LoopOptions,
+) -> (Arc<World>, State, LoopStats, W) {
+    let flight = Flight::new(world, state, inputs, opts, Recorder::default(), watch);
+    let end = run_loop(flight, requests, frames, stop_flag, opts);
+    (end.world, end.state, end.stats, end.watch)
 }
 
-/// Accumulates each twin's attitude error against its real copter's latest attitude.
-fn track_twins(world: &World, state: &State, twins: &mut BTreeMap<String, TwinStats>) {
-    for (name, t) in twins.iter_mut() {
-        let Some((rpy, at)) = t.observed else { continue };
-        if at.elapsed().as_secs_f64() > 0.2 {
-            continue;
+/// Hands a request to the flight, through the lockstep's bookkeeping when there is one.
+fn route<W: StepObserver>(flight: &mut Flight<W>, lockstep: Option<&mut Lockstep>, r: Request) {
+    match lockstep {
+        Some(ls) => {
+            if let Some(r) = ls.sort(flight, r) {
+                flight.apply(r);
+            }
         }
-        let Some(id) = world.copter_id(name) else { continue };
-        if state.copters[id].crash.is_some() {
-            continue;
+        None => flight.apply(r),
+    }
+}
+
+/// The lockstep's view of the run: who controls which copter, who has answered the current
+/// tick.
+#[derive(Debug)]
+struct Lockstep {
+    opts: LockstepOptions,
+    /// Controller (client name) by copter id: the copters the loop waits for.
+    controllers: BTreeMap<usize, String>,
+    /// Copters whose controller answered the current tick.
+    answered: std::collections::BTreeSet<usize>,
+    /// The tick `answered` is for.
+    tick: u64,
+    stats: LockstepStats,
+}
+
+impl Lockstep {
+    fn new(opts: LockstepOptions) -> Self {
+        Self {
+            opts,
+            controllers: BTreeMap::new(),
+            answered: Default::default(),
+            tick: 0,
+            stats: LockstepStats::default(),
         }
-        let twin = state.pose(id).rpy_rad;
-        for k in 0..2 {
-            let e = f64::from(sim_core::math::wrap_angle_rad(twin[k] - rpy[k]));
-            t.sq_sum[k] += e * e;
+    }
+
+    /// Files a request: claims change whom the loop waits for; a claimed copter's commands
+    /// must answer the current tick. Returns what the flight should apply (a refused command
+    /// comes back as [`Request::Rejected`], for the log).
+    fn sort<W: StepObserver>(&mut self, flight: &Flight<W>, r: Request) -> Option<Request> {
+        let tick = flight.state().tick;
+        if tick != self.tick {
+            self.tick = tick;
+            self.answered.clear();
         }
-        t.attitude_samples += 1;
+        match r {
+            Request::Controller { ref copter, ref client, .. } => {
+                let world = flight.world();
+                // Twins are paced by their real copters, never held by the lockstep.
+                if let Some(id) = world.copter_id(copter).filter(|&id| world.copters[id].kind == CopterKind::Virtual) {
+                    match client {
+                        Some(c) => self.controllers.insert(id, c.clone()),
+                        None => self.controllers.remove(&id),
+                    };
+                }
+                Some(r)
+            }
+            Request::Command { copter, cmd, origin } => {
+                let Some(id) = flight.world().copter_id(&copter).filter(|id| self.controllers.contains_key(id)) else {
+                    return Some(Request::Command { copter, cmd, origin });
+                };
+                let refuse = |reason: String| Request::Rejected { origin: origin.clone(), reason };
+                match cmd.tick {
+                    Some(t) if t == tick => {
+                        self.stats.answers += u64::from(self.answered.insert(id));
+                        Some(Request::Command { copter, cmd, origin })
+                    }
+                    Some(t) if t < tick => {
+                        self.stats.late += 1;
+                        Some(refuse(format!("lockstep: the answer to tick {t} came after tick {tick} had begun")))
+                    }
+                    t => {
+                        self.stats.refused += 1;
+                        Some(refuse(match t {
+                            Some(t) => format!("lockstep: tick {t} is ahead of the simulator's tick {tick}"),
+                            None => format!("lockstep: a command to claimed copter {copter:?} must carry \"tick\""),
+                        }))
+                    }
+                }
+            }
+            r => Some(r),
+        }
+    }
+
+    fn all_answered(&self) -> bool {
+        self.controllers.keys().all(|id| self.answered.contains(id))
+    }
+
+    /// Holds the first step until the copters of `wait_claims` have controllers.
+    fn wait_for_claims<W: StepObserver>(
+        &mut self,
+        flight: &mut Flight<W>,
+        requests: &Receiver<Request>,
+        stop: &AtomicBool,
+    ) {
+        let missing = |ls: &Self, f: &Flight<W>| -> Vec<String> {
+            let w = f.world();
+            let claimed = |n: &String| w.copter_id(n).is_some_and(|id| ls.controllers.contains_key(&id));
+            ls.opts.wait_claims.iter().filter(|n| !claimed(n)).cloned().collect()
+        };
+        let mut told = false;
+        while !missing(self, flight).is_empty() && !stop.load(Ordering::Relaxed) {
+            if !told {
+                tracing::info!("lockstep: waiting for claims on {}", missing(self, flight).join(", "));
+                told = true;
+            }
+            match requests.recv_timeout(Duration::from_millis(100)) {
+                Ok(r) => route(flight, Some(self), r),
+                Err(RecvTimeoutError::Timeout) => {}
+                Err(RecvTimeoutError::Disconnected) => return,
+            }
+        }
+    }
+
+    /// Waits until every controller answered the current tick, or the timeout: then each
+    /// silent controller is counted and logged, and its copter keeps its last command.
+    fn wait_for_answers<W: StepObserver>(
+        &mut self,
+        flight: &mut Flight<W>,
+        requests: &Receiver<Request>,
+        stop: &AtomicBool,
+    ) {
+        if self.tick != flight.state().tick {
+            self.tick = flight.state().tick;
+            self.answered.clear();
+        }
+        if self.all_answered() {
+            return;
+        }
+        self.stats.steps_held += 1;
+        let began = Instant::now();
+        let deadline = began + self.opts.timeout;
+        while !self.all_answered() && !stop.load(Ordering::Relaxed) {
+            // Short slices, so that a stop signal is seen.
+            let left = deadline.saturating_duration_since(Instant::now()).min(Duration::from_millis(100));
+            match requests.recv_timeout(left) {
+                Ok(r) => route(flight, Some(self), r),
+                Err(RecvTimeoutError::Timeout) if Instant::now() < deadline => {}
+                Err(RecvTimeoutError::Timeout) => {
+                    let silent: Vec<(usize, String)> = (self.controllers.iter())
+                        .filter(|(id, _)| !self.answered.contains(id))
+                        .map(|(&id, c)| (id, c.clone()))
+                        .collect();
+                    for (id, client) in silent {
+                        *self.stats.timeouts.entry(client.clone()).or_default() += 1;
+                        flight.lockstep_timeout(id, &client);
+                    }
+                    break;
+                }
+                Err(RecvTimeoutError::Disconnected) => break,
+            }
+        }
+        self.stats.wait_s += began.elapsed().as_secs_f64();
     }
 }

@@ -6,6 +6,79 @@ use serde::{Deserialize, Serialize};
 use sim_core::sensors::SONAR_NAMES;
 use sim_core::{Command, CopterKind, FlightMode, State, World};
 
+/// Writes `f32` values as the `f64` of the same value. The shortest text of an `f32` is
+/// exact only for a reader that parses it as an `f32`; Python and JavaScript parse JSON
+/// numbers as `f64` and would round again, and a controller would then see another number
+/// than the simulator has (a lockstep run would part from an in-process one).
+mod exact {
+    use serde::Serializer;
+    use serde::ser::SerializeTuple;
+
+    pub trait AsF64 {
+        fn ser<S: Serializer>(&self, s: S) -> Result<S::Ok, S::Error>;
+    }
+
+    impl AsF64 for f32 {
+        fn ser<S: Serializer>(&self, s: S) -> Result<S::Ok, S::Error> {
+            s.serialize_f64(f64::from(*self))
+        }
+    }
+
+    impl AsF64 for Option<f32> {
+        fn ser<S: Serializer>(&self, s: S) -> Result<S::Ok, S::Error> {
+            match self {
+                Some(v) => s.serialize_some(&f64::from(*v)),
+                None => s.serialize_none(),
+            }
+        }
+    }
+
+    impl<const N: usize> AsF64 for [f32; N] {
+        fn ser<S: Serializer>(&self, s: S) -> Result<S::Ok, S::Error> {
+            let mut t = s.serialize_tuple(N)?;
+            for v in self {
+                t.serialize_element(&f64::from(*v))?;
+            }
+            t.end()
+        }
+    }
+
+    pub fn serialize<T: AsF64, S: Serializer>(v: &T, s: S) -> Result<S::Ok, S::Error> {
+        v.ser(s)
+    }
+}
+
+/// Reads JSON numbers as `f64`, then rounds them to `f32`: what a client that computes in
+/// `f64` (Python, JavaScript) means by a number is its `f64` value, and rounding that value
+/// is what the Python package does with the same command. Parsing the text straight to `f32`
+/// rounds the decimal instead, which now and then gives the neighbouring `f32`.
+mod via_f64 {
+    use serde::{Deserialize, Deserializer};
+
+    pub trait FromF64: Sized {
+        fn read<'de, D: Deserializer<'de>>(d: D) -> Result<Self, D::Error>;
+    }
+
+    impl FromF64 for Option<f32> {
+        fn read<'de, D: Deserializer<'de>>(d: D) -> Result<Self, D::Error> {
+            Ok(Option::<f64>::deserialize(d)?.map(|v| v as f32))
+        }
+    }
+
+    impl<const N: usize> FromF64 for Option<[f32; N]>
+    where
+        [f64; N]: for<'a> Deserialize<'a>,
+    {
+        fn read<'de, D: Deserializer<'de>>(d: D) -> Result<Self, D::Error> {
+            Ok(Option::<[f64; N]>::deserialize(d)?.map(|a| a.map(|v| v as f32)))
+        }
+    }
+
+    pub fn deserialize<'de, T: FromF64, D: Deserializer<'de>>(d: D) -> Result<T, D::Error> {
+        T::read(d)
+    }
+}
+
 /// `…/clock`, every control step.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct ClockMsg {
@@ -31,16 +104,22 @@ pub struct StateMsg {
     /// Flight mode.
     pub mode: String,
     /// Position, world frame, m.
+    #[serde(serialize_with = "exact::serialize")]
     pub pos_m: [f32; 3],
     /// Velocity, world frame, m/s.
+    #[serde(serialize_with = "exact::serialize")]
     pub vel_m_s: [f32; 3],
     /// Roll, pitch, yaw (true attitude), rad.
+    #[serde(serialize_with = "exact::serialize")]
     pub attitude_rad: [f32; 3],
     /// Angular velocity, world frame, rad/s.
+    #[serde(serialize_with = "exact::serialize")]
     pub angvel_rad_s: [f32; 3],
     /// Orientation quaternion (x, y, z, w), world from body.
+    #[serde(serialize_with = "exact::serialize")]
     pub quat_xyzw: [f32; 4],
     /// Rotor thrusts (front-left, front-right, back-right, back-left), N.
+    #[serde(serialize_with = "exact::serialize")]
     pub rotor_thrust_n: [f32; 4],
     /// Whether it has crashed.
     pub crashed: bool,
@@ -50,12 +129,16 @@ pub struct StateMsg {
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
 pub struct SonarMsg {
     /// Front (body +x).
+    #[serde(serialize_with = "exact::serialize")]
     pub front: f32,
     /// Right (body −y).
+    #[serde(serialize_with = "exact::serialize")]
     pub right: f32,
     /// Back (body −x).
+    #[serde(serialize_with = "exact::serialize")]
     pub back: f32,
     /// Left (body +y).
+    #[serde(serialize_with = "exact::serialize")]
     pub left: f32,
 }
 
@@ -80,21 +163,28 @@ pub struct SensorsMsg {
     /// What the copter's behaviour uses: `min(physical, virtual)`, m.
     pub sonar_fused_m: SonarMsg,
     /// IR height, m; `null` when out of range.
+    #[serde(serialize_with = "exact::serialize")]
     pub ir_m: Option<f32>,
     /// AHRS estimate: roll, pitch, yaw (with drift), rad.
+    #[serde(serialize_with = "exact::serialize")]
     pub attitude_rad: [f32; 3],
     /// Gyro, body rates, rad/s.
+    #[serde(serialize_with = "exact::serialize")]
     pub rate_body_rad_s: [f32; 3],
     /// Accelerometer, body frame, m/s².
+    #[serde(serialize_with = "exact::serialize")]
     pub accel_body_m_s2: [f32; 3],
     /// The height estimate the copter holds (IR, filtered), m.
     #[serde(default)]
+    #[serde(serialize_with = "exact::serialize")]
     pub height_est_m: f32,
     /// Battery voltage, V.
     #[serde(default)]
+    #[serde(serialize_with = "exact::serialize")]
     pub battery_v: f32,
     /// Battery state of charge, in [0, 1].
     #[serde(default)]
+    #[serde(serialize_with = "exact::serialize")]
     pub battery_charge: f32,
 }
 
@@ -151,24 +241,41 @@ pub fn kind_str(kind: CopterKind) -> &'static str {
 #[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct CommandMsg {
-    /// `manual`, `mixed_manual`, `wall_avoid` or `target`.
+    /// `manual`, `mixed_manual`, `wall_avoid`, `target`, `velocity` or `rotors`.
     pub mode: Option<FlightMode>,
     /// Pitch target, rad (> 0: nose down, forward).
+    #[serde(default, deserialize_with = "via_f64::deserialize")]
     pub pitch: Option<f32>,
     /// Roll target, rad (> 0: right side down, rightwards).
+    #[serde(default, deserialize_with = "via_f64::deserialize")]
     pub roll: Option<f32>,
     /// Yaw target, rad, counter-clockwise from +x.
+    #[serde(default, deserialize_with = "via_f64::deserialize")]
     pub yaw: Option<f32>,
     /// Throttle, 0 to 1 (0.5 = hover), used when no height is held.
+    #[serde(default, deserialize_with = "via_f64::deserialize")]
     pub throttle: Option<f32>,
     /// Height to hold, m; 0 turns height hold off.
+    #[serde(default, deserialize_with = "via_f64::deserialize")]
     pub height: Option<f32>,
     /// Target point for `target` mode, m.
+    #[serde(default, deserialize_with = "via_f64::deserialize")]
     pub target: Option<[f32; 3]>,
-    /// Velocity when safe in `wall_avoid`, body frame (forward, left), m/s.
+    /// Velocity, body frame (forward, left), m/s: flown open loop in `velocity` mode, and
+    /// when safe in `wall_avoid`.
+    #[serde(default, deserialize_with = "via_f64::deserialize")]
     pub velocity: Option<[f32; 2]>,
     /// Virtual sonar readings to fuse as `min(physical, virtual)`, m (front, right, back, left).
+    #[serde(default, deserialize_with = "via_f64::deserialize")]
     pub virtual_sonar: Option<[f32; 4]>,
+    /// Rotor commands for `rotors` mode, each 0 to 1 of the rotor's maximum thrust
+    /// (front-left, front-right, back-right, back-left).
+    #[serde(default, skip_serializing_if = "Option::is_none", deserialize_with = "via_f64::deserialize")]
+    pub rotors: Option<[f32; 4]>,
+    /// Lockstep (`run --lockstep`): the tick of the state this command answers. A command of
+    /// only `{"tick": t}` keeps the last command (see `docs/lockstep.md`).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub tick: Option<u64>,
     /// Who sends it: the client name of its liveliness claim
     /// `…/alive/copters/<name>/<client>`. A copter that a client has claimed takes commands
     /// from that client only (see [`crate::zenoh_net::node`]).
@@ -253,6 +360,11 @@ impl CommandMsg {
                 range("virtual_sonar", c, 0.0, 100.0)?;
             }
         }
+        if let Some(v) = self.rotors {
+            for c in v {
+                range("rotors", c, 0.0, 1.0)?;
+            }
+        }
         Ok(())
     }
 
@@ -284,6 +396,9 @@ impl CommandMsg {
         }
         if let Some(v) = self.virtual_sonar {
             cmd.virtual_sonar_m = Some(v);
+        }
+        if let Some(v) = self.rotors {
+            cmd.rotors = Some(v);
         }
     }
 }

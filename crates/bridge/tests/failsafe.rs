@@ -103,9 +103,9 @@ fn a_silent_twin_holds_then_lands_and_follows_again_when_telemetry_returns() {
     let seen = recorder.0.clone();
     let loop_stop = stop.clone();
     let looper = std::thread::spawn(move || {
-        let mut obs = recorder;
+        let obs = recorder;
         let (state, inputs) = (world.initial_state(), world.initial_inputs());
-        sim::run_loop(world, state, inputs, rx, None, &mut obs, &loop_stop, &opts)
+        sim::run_watched(world, state, inputs, rx, None, obs, &loop_stop, &opts)
     });
     // Telemetry at 50 Hz for 3 s: the twin climbs to 1 m.
     // Returns when the last one was sent.
@@ -129,7 +129,7 @@ fn a_silent_twin_holds_then_lands_and_follows_again_when_telemetry_returns() {
     let z_landed = seen.lock().unwrap().steps.last().unwrap().1[0];
     send_for(1.5);
     stop.store(true, Ordering::Relaxed);
-    let (_, state, stats) = looper.join().unwrap();
+    let (_, state, stats, _) = looper.join().unwrap();
 
     let s = seen.lock().unwrap();
     let at = |kind: &str| {
@@ -185,9 +185,9 @@ async fn only_its_controller_commands_a_claimed_copter_and_losing_it_lands_the_c
         ..LoopOptions::default()
     };
     let looper = std::thread::spawn(move || {
-        let mut obs = recorder;
+        let obs = recorder;
         let (state, inputs) = (world.initial_state(), world.initial_inputs());
-        sim::run_loop(world, state, inputs, req_rx, Some(frame_tx), &mut obs, &loop_stop, &opts)
+        sim::run_watched(world, state, inputs, req_rx, Some(frame_tx), obs, &loop_stop, &opts)
     });
     let publisher = tokio::spawn(async move {
         while let Some(frame) = frame_rx.recv().await {
@@ -247,7 +247,7 @@ async fn only_its_controller_commands_a_claimed_copter_and_losing_it_lands_the_c
     .await;
 
     stop.store(true, Ordering::Relaxed);
-    let (_, state, stats) = looper.join().unwrap();
+    let (_, state, stats, _) = looper.join().unwrap();
     let node = within("publisher ends", publisher).await.unwrap();
     within("close node", node.close()).await.unwrap();
     within("close intruder", intruder.close()).await.unwrap();

@@ -32,7 +32,7 @@ async fn commands_queryables_spawn_liveliness_and_bad_payloads() {
         let state = world.initial_state();
         let inputs = world.initial_inputs();
         let opts = LoopOptions { realtime: true, ticks: 20 * 120, ..LoopOptions::default() };
-        sim::run_loop(world, state, inputs, req_rx, Some(frame_tx), &mut (), &stop2, &opts)
+        sim::run_watched(world, state, inputs, req_rx, Some(frame_tx), (), &stop2, &opts)
     });
     let publisher = tokio::spawn(async move {
         while let Some(frame) = frame_rx.recv().await {
@@ -111,7 +111,7 @@ async fn commands_queryables_spawn_liveliness_and_bad_payloads() {
     // Shut down: stop the loop, collect the node, check its counters, close sessions.
     token.undeclare().wait().unwrap();
     stop.store(true, Ordering::Relaxed);
-    let (_, _, stats) = loop_thread.join().unwrap();
+    let (_, _, stats, _) = loop_thread.join().unwrap();
     let node = within("publisher ends", publisher).await.unwrap();
     assert!(stats.commands_applied >= 1);
     assert_eq!(stats.spawned, 1);

@@ -9,6 +9,7 @@ mod ivycmd;
 mod localize;
 mod replay;
 mod report;
+mod runcmd;
 mod runner;
 mod shardcmd;
 mod standin;
@@ -16,13 +17,10 @@ mod synceval;
 
 use twinswarm::{BadInput, logcmd, plot};
 
-use std::io::IsTerminal;
 use std::path::PathBuf;
 use std::process::ExitCode;
-use std::time::Instant;
 
 use anyhow::Context;
-use bridge::failsafe::{ClientLostAction, FailsafeOptions};
 use clap::{Parser, Subcommand};
 use sim_core::World;
 use sim_core::scene::{self, SceneSpec};
@@ -39,7 +37,7 @@ struct Cli {
 #[derive(Debug, Subcommand)]
 enum Command {
     /// Fly a scene (default: the embedded FINken lab) and print a summary.
-    Run(RunArgs),
+    Run(runcmd::RunArgs),
     /// Start a Zenoh router and N local shard processes of one swarm (`run --shard K/N`),
     /// wait for them and merge their summaries. A launcher, not a scheduler.
     Cluster(ClusterArgs),
@@ -210,154 +208,6 @@ struct ClusterArgs {
     json: bool,
 }
 
-#[derive(Debug, clap::Args)]
-struct RunArgs {
-    /// Step only shard K of N of the swarm (a region of the arena), trading ghosts with the
-    /// other shards over Zenoh (`--connect` to their router). Logging, the client bus and the
-    /// live view are not sharded yet: a shard runs without them.
-    #[arg(long, value_name = "K/N", value_parser = shardcmd::parse_shard)]
-    shard: Option<(usize, usize)>,
-    /// With `--shard`: stop with an error when a neighbouring shard stays silent this long, s.
-    #[arg(long, value_name = "S", default_value_t = 30.0)]
-    barrier_timeout: f64,
-    /// With `--shard`: when a neighbouring shard's liveliness token goes away, `stop` with an
-    /// error (every log finished), or `hold` at the barrier until it is back (a router
-    /// restarting, a network partition), for at most `--barrier-timeout`.
-    #[arg(long, value_name = "WHAT", default_value = "stop")]
-    on_shard_lost: OnShardLost,
-    /// The scene file (TOML); default: the embedded FINken lab.
-    scene: Option<PathBuf>,
-    /// Simulated duration, s (default: the scene's `sim.duration_s`).
-    #[arg(long, value_name = "S")]
-    duration: Option<f64>,
-    /// Seed of all random draws (default: the scene's `sim.seed`).
-    #[arg(long, value_name = "N")]
-    seed: Option<u64>,
-    /// Pace control steps against the wall clock (1 simulated second per second).
-    #[arg(long)]
-    realtime: bool,
-    /// Worker threads of a step (default: the scene's `sim.threads`); results are the same
-    /// bits for any count.
-    #[arg(long, value_name = "N")]
-    threads: Option<usize>,
-    /// Print the summary as JSON on stdout.
-    #[arg(long)]
-    json: bool,
-    /// Log to this MCAP file (default: runs/<scene name>-<UTC timestamp>.mcap).
-    #[arg(long, value_name = "FILE", conflicts_with = "no_log")]
-    log: Option<PathBuf>,
-    /// Do not write a log.
-    #[arg(long)]
-    no_log: bool,
-    /// Run without Zenoh (with `--ivy`, on the Ivy bus alone).
-    #[arg(long)]
-    no_bus: bool,
-    /// Join a Paparazzi Ivy bus as agent `Twinswarm`: real aircraft's telemetry from `link`
-    /// drives their twins, VIRTUAL_SONAR goes back, virtual copters send telemetry. BUS as in
-    /// Paparazzi (`127.255.255.255:2010`, `127:2010`); default: `--ivy-bus`, else `IVYBUS`,
-    /// else 127.255.255.255:2010. With Zenoh on, texts are bridged both ways.
-    #[arg(long, value_name = "BUS", num_args = 0..=1, default_missing_value = "")]
-    ivy: Option<String>,
-    /// The Ivy bus address (same syntax as Paparazzi's `-b`); implies nothing without `--ivy`.
-    #[arg(long, value_name = "ADDR:PORT")]
-    ivy_bus: Option<String>,
-    /// A full Zenoh configuration file (JSON5), instead of the embedded default (peer mode,
-    /// listen on tcp/127.0.0.1:7447, multicast scouting off).
-    #[arg(long, value_name = "FILE.json5")]
-    zenoh_config: Option<PathBuf>,
-    /// Zenoh endpoint to listen on, e.g. tcp/127.0.0.1:7448 (repeatable; overrides the config).
-    #[arg(long, value_name = "ENDPOINT")]
-    listen: Vec<String>,
-    /// Zenoh endpoint to connect to (repeatable; overrides the config).
-    #[arg(long, value_name = "ENDPOINT")]
-    connect: Vec<String>,
-    /// Key-expression prefix (default: twinswarm/<world name>).
-    #[arg(long, value_name = "KEY")]
-    prefix: Option<String>,
-    /// Pairing file (XML): real aircraft and their twins, virtual aircraft, spawn rules.
-    #[arg(long, value_name = "FILE.xml")]
-    pairing: Option<PathBuf>,
-    /// Paparazzi telemetry file for virtual copters (default: the embedded
-    /// assets/paparazzi/telemetry.xml).
-    #[arg(long, value_name = "FILE.xml")]
-    telemetry: Option<PathBuf>,
-    /// Mode of the telemetry file (default: its first mode).
-    #[arg(long, value_name = "NAME")]
-    telemetry_mode: Option<String>,
-    /// Period of the virtual sonar readings sent to each real copter, s (default: every sonar
-    /// update of its twin).
-    #[arg(long, value_name = "S", default_value_t = 0.0)]
-    virtual_sonar_period: f64,
-    /// Which telemetry sets twins' attitude targets: `setpoint` (FINKEN_ACTUATORS_SET_POINT,
-    /// what the real copter asks for) or `measured` (ATTITUDE, what it does).
-    #[arg(long, value_name = "SOURCE", default_value = "setpoint", value_parser = parse_twin_attitude)]
-    twin_attitude: bridge::mixed::TwinAttitude,
-    /// How twins are kept where their real copters are: `medusa` (the real copter's sonars and
-    /// yaw), `tracking` (poses on …/copters/<name>/tracking), both, or `off` (command
-    /// prediction only).
-    #[arg(long, value_name = "SOURCES", default_value = "medusa,tracking")]
-    sync: String,
-    /// Lag of the tracking poses, s.
-    #[arg(long, value_name = "S", default_value_t = 0.2)]
-    tracking_lag: f64,
-    /// A twin whose telemetry stays silent this long levels out and holds its height, s.
-    #[arg(long, value_name = "S", default_value_t = FailsafeOptions::default().hold_after_s)]
-    link_hold: f64,
-    /// A twin whose telemetry stays silent this long descends and lands, s.
-    #[arg(long, value_name = "S", default_value_t = FailsafeOptions::default().land_after_s)]
-    link_land: f64,
-    /// Descent rate of a failsafe landing, m/s.
-    #[arg(long, value_name = "M_S", default_value_t = FailsafeOptions::default().descent_m_s)]
-    descent: f32,
-    /// What a virtual copter does when the client controlling it over Zenoh disappears:
-    /// `hover` where it is, `land`, or go back to its `scene` command.
-    #[arg(long, value_name = "ACTION", default_value = "hover")]
-    on_client_lost: ClientLostAction,
-    /// When the log cannot be written (disk full, file-size limit): `stop` the run (exit code
-    /// 1), or `continue` flying without a log. Either way the file keeps what was written,
-    /// readable after `twinswarm log recover`.
-    #[arg(long, value_name = "WHAT", default_value = "stop")]
-    on_log_error: OnLogError,
-    /// Log the per-step messages (state, sensors, command, control, transforms) at this rate,
-    /// Hz, instead of every control step (20 Hz); events, log lines and bus traffic are always
-    /// logged. E.g. `--log-rate 5` cuts a file to a quarter.
-    #[arg(long, value_name = "HZ")]
-    log_rate: Option<f64>,
-    /// The log's zstd level, 1–19, fixed for the whole run. 3 by default; 2 writes files 3–14 %
-    /// larger (less where many wrecks are held) for about a quarter less of the writer's CPU,
-    /// for fast runs of large swarms that must not wait for their log (see the README's
-    /// logging figures).
-    #[arg(long, value_name = "L", default_value_t = 3, value_parser = clap::value_parser!(u32).range(1..=19))]
-    log_zstd_level: u32,
-    /// A copter whose logged values have not changed since its last message (a wreck at rest:
-    /// its sensors stop) is written again only every this many seconds, and a reader holds its
-    /// last message until then; 0 writes every copter at every logged step.
-    #[arg(long, value_name = "SECONDS", default_value_t = 1.0)]
-    log_unchanged: f64,
-    /// Serve a live view on the Foxglove WebSocket protocol at ADDR (default
-    /// 127.0.0.1:8765): in Foxglove, "Open connection", "Foxglove WebSocket",
-    /// ws://ADDR. The same channels as the log; a slow client loses messages (counted), the
-    /// run never waits for it.
-    #[arg(long, value_name = "ADDR", num_args = 0..=1, default_missing_value = bridge::live::DEFAULT_ADDR)]
-    foxglove: Option<String>,
-}
-
-/// `--on-log-error`.
-/// `--on-shard-lost`.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
-enum OnShardLost {
-    /// Stop with an error.
-    Stop,
-    /// Hold at the barrier until the neighbour is back.
-    Hold,
-}
-
-#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
-enum OnLogError {
-    Stop,
-    Continue,
-}
-
 /// `--sync` and `--tracking-lag` as options (`None`: off).
 pub(crate) fn parse_sync(sources: &str, tracking_lag_s: f64) -> anyhow::Result<Option<bridge::sync::SyncOptions>> {
     let bad = |m: String| anyhow::Error::new(BadInput(anyhow::anyhow!(m)));
@@ -378,7 +228,7 @@ pub(crate) fn parse_sync(sources: &str, tracking_lag_s: f64) -> anyhow::Result<O
     Ok((o.medusa || o.tracking).then_some(o))
 }
 
-fn parse_twin_attitude(s: &str) -> Result<bridge::mixed::TwinAttitude, String> {
+pub(crate) fn parse_twin_attitude(s: &str) -> Result<bridge::mixed::TwinAttitude, String> {
     match s {
         "setpoint" => Ok(bridge::mixed::TwinAttitude::Setpoint),
         "measured" => Ok(bridge::mixed::TwinAttitude::Measured),
@@ -388,7 +238,7 @@ fn parse_twin_attitude(s: &str) -> Result<bridge::mixed::TwinAttitude, String> {
 
 /// Loads the mixed-reality options of `run` and `copter`: pairing (checked against its
 /// conf.xml) and telemetry plan.
-fn load_mixed(
+pub(crate) fn load_mixed(
     pairing: Option<&std::path::Path>,
     telemetry: Option<&std::path::Path>,
     mode: Option<&str>,
@@ -452,7 +302,7 @@ fn main() -> ExitCode {
         },
     };
     let result = match command {
-        Command::Run(args) => run(args),
+        Command::Run(args) => runcmd::run(args),
         Command::Copter(args) => standin::run(args),
         Command::Ivy(args) => ivycmd::run(args),
         Command::Check { scene } => check(&scene),
@@ -490,7 +340,7 @@ fn main() -> ExitCode {
 }
 
 /// Loads a scene file, or the embedded default.
-fn load_scene(path: Option<&std::path::Path>) -> anyhow::Result<(String, SceneSpec, World)> {
+pub(crate) fn load_scene(path: Option<&std::path::Path>) -> anyhow::Result<(String, SceneSpec, World)> {
     match path {
         None => {
             let (spec, world) = scene::load_default();
@@ -506,542 +356,6 @@ fn load_scene(path: Option<&std::path::Path>) -> anyhow::Result<(String, SceneSp
         }
     }
 }
-
-fn run(args: RunArgs) -> anyhow::Result<()> {
-    let (origin, mut spec, _) = load_scene(args.scene.as_deref())?;
-    if let Some(seed) = args.seed {
-        spec.sim.seed = seed;
-    }
-    if let Some(n) = args.threads {
-        if !(1..=256).contains(&n) {
-            return Err(BadInput(anyhow::anyhow!("--threads must be 1 to 256, got {n}")).into());
-        }
-        spec.sim.threads = n;
-    }
-    if let Some(d) = args.duration {
-        if !d.is_finite() || d <= 0.0 {
-            return Err(BadInput(anyhow::anyhow!("--duration must be a positive number of seconds, got {d}")).into());
-        }
-        spec.sim.duration_s = d;
-    }
-    if args.shard.is_some() {
-        check_shardable(&args, &spec)?;
-    }
-    let mixed = load_mixed(
-        args.pairing.as_deref(),
-        args.telemetry.as_deref(),
-        args.telemetry_mode.as_deref(),
-        args.virtual_sonar_period,
-    )?;
-    let mixed = runner::MixedOptions {
-        twin_attitude: args.twin_attitude,
-        sync: parse_sync(&args.sync, args.tracking_lag)?,
-        ..mixed
-    };
-    if let (Some(p), Some(path)) = (&mixed.pairing, &args.pairing) {
-        bridge::mixed::apply_pairing(&mut spec, p).map_err(|e| BadInput(anyhow::anyhow!("{}: {e}", path.display())))?;
-    }
-    let world = scene::compile(&spec).map_err(|e| {
-        let e = anyhow::Error::new(e);
-        let e = match &args.pairing {
-            Some(p) => e.context(format!("{origin} with the copters of pairing {}", p.display())),
-            None => e,
-        };
-        anyhow::Error::new(BadInput(e))
-    })?;
-    let failsafe = FailsafeOptions {
-        hold_after_s: args.link_hold,
-        land_after_s: args.link_land,
-        descent_m_s: args.descent,
-        client_lost: args.on_client_lost,
-    };
-    failsafe.validate().map_err(|e| BadInput(anyhow::anyhow!("--link-hold/--link-land/--descent: {e}")))?;
-    let log_every = match args.log_rate {
-        None => 1,
-        Some(hz) => bridge::log::LogOptions::every_ticks_for_rate(hz, world.params.control_dt_s)
-            .ok_or_else(|| BadInput(anyhow::anyhow!("--log-rate: {hz} is not a positive rate in Hz")))?,
-    };
-    let ticks = world.default_ticks();
-    let rt = tokio::runtime::Builder::new_multi_thread().worker_threads(2).enable_all().build()?;
-    let live = match &args.foxglove {
-        None => None,
-        Some(a) => {
-            let addr: std::net::SocketAddr = a.parse().map_err(|e| {
-                BadInput(anyhow::anyhow!("--foxglove: {a:?} is not an address like 127.0.0.1:8765: {e}"))
-            })?;
-            let server = bridge::live::LiveServer::start(addr, "twinswarm", rt.handle())
-                .with_context(|| format!("--foxglove: cannot listen on {addr}"))?;
-            if !args.json {
-                eprintln!("live view: ws://{} (Foxglove: Open connection, Foxglove WebSocket)", server.local_addr());
-            }
-            Some(std::sync::Arc::new(server))
-        }
-    };
-    if !(args.log_unchanged.is_finite() && args.log_unchanged >= 0.0) {
-        return Err(BadInput(anyhow::anyhow!(
-            "--log-unchanged: {} is not a number of seconds (0 or more)",
-            args.log_unchanged
-        ))
-        .into());
-    }
-    let log_options = bridge::log::LogOptions {
-        every_ticks: log_every,
-        zstd_level: args.log_zstd_level,
-        unchanged_every_s: args.log_unchanged,
-        ..Default::default()
-    };
-    let log = logcmd::start_run_log(
-        args.log.as_deref(),
-        args.no_log,
-        log_options,
-        &world,
-        args.scene.as_deref(),
-        &origin,
-        live.clone(),
-    )?;
-    let stop = logcmd::install_stop_flag()?;
-    let progress = (!args.json && !args.realtime && std::io::stderr().is_terminal()).then(|| {
-        let bar = indicatif::ProgressBar::new(ticks);
-        bar.set_style(
-            indicatif::ProgressStyle::with_template("{spinner} [{bar:40}] {pos}/{len} steps  {per_sec}  eta {eta}")
-                .unwrap_or_else(|_| indicatif::ProgressStyle::default_bar())
-                .progress_chars("=> "),
-        );
-        bar
-    });
-    let ivy = match &args.ivy {
-        None => None,
-        Some(b) => {
-            let explicit = if b.is_empty() { args.ivy_bus.as_deref() } else { Some(b.as_str()) };
-            Some(bridge::paparazzi::ivy::BusAddr::from_env_or(explicit).map_err(|e| BadInput(e.into()))?)
-        }
-    };
-    let bus = runner::BusOptions {
-        ivy,
-        no_bus: args.no_bus,
-        zenoh_config: args.zenoh_config.clone(),
-        listen: args.listen.clone(),
-        connect: args.connect.clone(),
-        prefix: args.prefix.clone(),
-        mixed,
-        failsafe,
-        shard: args.shard.map(|(shard, shards)| runner::ShardOptions {
-            shard,
-            shards,
-            timeout: std::time::Duration::from_secs_f64(args.barrier_timeout),
-            on_lost: match args.on_shard_lost {
-                OnShardLost::Stop => bridge::shard::OnLost::Stop,
-                OnShardLost::Hold => bridge::shard::OnLost::Hold,
-            },
-        }),
-    };
-    let stop_on_log_error = (args.on_log_error == OnLogError::Stop).then(|| stop.clone());
-    let log_path = log.as_ref().filter(|l| l.has_file()).map(|l| l.path().to_owned());
-    let mut observer = RunObserver {
-        tracker: report::Tracker::new(&world),
-        log,
-        log_error: None,
-        log_error_tick: None,
-        stop_on_log_error,
-        failsafe_events: Vec::new(),
-        tick: 0,
-        progress,
-    };
-    let started = Instant::now();
-    let outcome = runner::run(&rt, world, ticks, args.realtime, &bus, &mut observer, stop)?;
-    let wall_s = started.elapsed().as_secs_f64();
-    let RunObserver { tracker, log, log_error, log_error_tick, failsafe_events, progress, .. } = observer;
-    if let Some(bar) = progress {
-        bar.finish_and_clear();
-    }
-    let interrupted = (outcome.stats.stopped_early && log_error.is_none()).then_some(outcome.state.tick);
-    let mut log = log;
-    if let (Some(l), Some(b)) = (&mut log, &outcome.bus) {
-        // The drop counts belong in the log too: what never reached the loop is only there.
-        let mut detail = serde_json::to_value(b)?;
-        detail["inputs"] = inputs_json(&outcome.stats);
-        let event = bridge::log::LogEvent {
-            tick: outcome.state.tick,
-            kind: bridge::log::EventKind::BusReport,
-            copter: None,
-            message: format!(
-                "bus: {} commands accepted, {} rejected, {} inputs dropped (queue full), {} telemetry texts dropped",
-                b.commands_accepted, b.commands_rejected, b.requests_dropped, b.telemetry.queue_full
-            ),
-            detail: Some(detail),
-        };
-        if let Err(e) = l.log_event(event) {
-            tracing::warn!("could not log the bus report: {e}");
-        }
-    }
-    let log_stats = logcmd::finish_run_log(log, interrupted)?;
-    let live_stats = live.as_ref().map(|l| l.stats());
-    drop(live);
-    let log_error = log_error.map(|e| {
-        let tick = log_error_tick.unwrap_or(0);
-        let path = log_path.as_ref().map_or("the log".to_owned(), |p| p.display().to_string());
-        let what = match args.on_log_error {
-            OnLogError::Stop => format!("the run stopped at control step {tick}"),
-            OnLogError::Continue => {
-                format!("the run went on without a log from control step {tick} to {}", outcome.state.tick)
-            }
-        };
-        e.context(format!(
-            "logging failed at control step {tick}; {what}. {path} holds what was written before the failure: \
-             `twinswarm log recover {path} FIXED.mcap` makes it a complete log"
-        ))
-    });
-    let summary = tracker.summary(&outcome.world, &outcome.state, &origin, wall_s, outcome.stats.overruns);
-    if args.json {
-        let mut json = serde_json::to_value(&summary)?;
-        json["log"] = log_stats.as_ref().map_or(serde_json::Value::Null, |l| l.path.display().to_string().into());
-        json["live"] = serde_json::to_value(&live_stats)?;
-        json["interrupted"] = interrupted.is_some().into();
-        json["bus"] = serde_json::to_value(&outcome.bus)?;
-        json["frames_dropped"] = outcome.stats.frames_dropped.into();
-        json["twins"] = serde_json::to_value(&outcome.stats.twins)?;
-        json["sync"] = serde_json::to_value(&outcome.stats.sync)?;
-        json["pprz_sent"] = outcome.stats.pprz_sent.into();
-        json["failsafe"] = serde_json::to_value(&outcome.stats.failsafe)?;
-        json["inputs"] = inputs_json(&outcome.stats);
-        json["log_error"] = log_error.as_ref().map_or(serde_json::Value::Null, |e| format!("{e:#}").into());
-        json["shard"] = serde_json::to_value(shardcmd::section(&outcome.state, &outcome.stats, outcome.link.as_ref()))?;
-        outln!("{}", serde_json::to_string_pretty(&json)?);
-    } else {
-        out!("{}", summary.to_text());
-        if let Some(s) = shardcmd::section(&outcome.state, &outcome.stats, outcome.link.as_ref()) {
-            shardcmd::print_section(&s);
-        }
-        outln!("  log: {}", log_stats.as_ref().map_or("off (--no-log)".into(), logcmd::describe));
-        if let Some(l) = &live_stats {
-            outln!(
-                "  live view: ws://{}; {} clients, {} subscriptions, {} messages sent, {} dropped (slow clients), {} steps skipped (encoder behind), {} protocol errors ({} clients closed), {} handshakes refused",
-                l.address,
-                l.clients,
-                l.subscriptions,
-                l.messages_sent,
-                l.messages_dropped,
-                l.steps_skipped,
-                l.protocol_errors,
-                l.clients_closed,
-                l.handshakes_refused
-            );
-        }
-        match outcome.bus.as_ref().map(|b| (b, &b.prefix)) {
-            Some((b, Some(prefix))) => {
-                outln!(
-                    "  bus: zenoh, prefix {prefix}; {} commands accepted, {} rejected ({} not from the copter's controller); {} samples published; {} clients seen",
-                    b.commands_accepted,
-                    b.commands_rejected,
-                    b.commands_not_controller,
-                    b.published,
-                    b.clients_seen
-                );
-                if b.tracking_rejected + b.requests_dropped + b.spawns_rejected + b.publish_failed > 0 {
-                    outln!(
-                        "    {} tracking poses rejected, {} spawn requests refused; {} inputs dropped (step loop's queue full); {} frames not fully published",
-                        b.tracking_rejected,
-                        b.spawns_rejected,
-                        b.requests_dropped,
-                        b.publish_failed
-                    );
-                }
-            }
-            _ => outln!("  bus: zenoh off (--no-bus)"),
-        }
-        if let Some(i) = outcome.bus.as_ref().and_then(|b| b.ivy.as_ref()) {
-            outln!(
-                "  ivy: {} as {}; {} peers joined, {} left, at the end: {}; {} texts sent ({} msgs to peers), {} received, {} delivered",
-                i.bus,
-                i.app_name,
-                i.peers_joined,
-                i.peers_left,
-                if i.peers_at_end.is_empty() { "none".to_owned() } else { i.peers_at_end.join(", ") },
-                i.texts_sent,
-                i.msgs_sent,
-                i.msgs_received,
-                i.delivered
-            );
-            if i.bridged_ivy_to_zenoh + i.bridged_zenoh_to_ivy + i.bridge_dropped > 0 {
-                outln!(
-                    "    bridged: {} ivy -> zenoh, {} zenoh -> ivy, {} dropped",
-                    i.bridged_ivy_to_zenoh,
-                    i.bridged_zenoh_to_ivy,
-                    i.bridge_dropped
-                );
-            }
-            for (why, n) in &i.dropped {
-                outln!("    dropped {n}: {why}");
-            }
-        }
-        if let Some(b) = &outcome.bus {
-            outln!("  paparazzi: {} messages sent (virtual sonar, virtual telemetry)", outcome.stats.pprz_sent);
-            for a in &b.telemetry.arrivals {
-                outln!(
-                    "    from ac_id {:<3} {:<27} {:>6} received, every {:.1} ms (p50 {:.1}, p99 {:.1})",
-                    a.ac_id,
-                    a.message,
-                    a.count,
-                    a.gap_ms.mean,
-                    a.gap_ms.p50,
-                    a.gap_ms.p99
-                );
-            }
-            let t = &b.telemetry;
-            if !t.unknown_dropped.is_empty()
-                || t.own_virtual_dropped > 0
-                || t.decode_errors > 0
-                || t.rejected > 0
-                || t.queue_full > 0
-            {
-                outln!(
-                    "    not used (logged): unknown aircraft {:?}, as our virtual aircraft {}, undecodable {}, out of range {}; dropped (queue full) {}",
-                    t.unknown_dropped,
-                    t.own_virtual_dropped,
-                    t.decode_errors,
-                    t.rejected,
-                    t.queue_full
-                );
-            }
-            if let Some(z) = &b.zenoh_texts
-                && z.unmatched + z.not_utf8 > 0
-            {
-                outln!(
-                    "    zenoh: {} texts matched no binding, {} payloads not UTF-8 (dropped)",
-                    z.unmatched,
-                    z.not_utf8
-                );
-            }
-        }
-        for (name, s) in &outcome.stats.sync {
-            outln!(
-                "  sync {name}: {} MEDUSA updates ({} not used), {} tracking poses; moved {:.2} m in {} steps",
-                s.medusa_updates,
-                s.medusa_rejected,
-                s.tracking_updates,
-                s.corrected_m,
-                s.corrected_steps
-            );
-            if let Some(why) = &s.medusa_off {
-                outln!("    MEDUSA off for {name}: {why}");
-            }
-            if s.medusa_errors + s.sonar_superseded > 0 {
-                outln!(
-                    "    {} MEDUSA updates failed, {} sonar readings superseded before use",
-                    s.medusa_errors,
-                    s.sonar_superseded
-                );
-            }
-        }
-        for (name, t) in &outcome.stats.twins {
-            outln!(
-                "  twin {name}{}: {} telemetry inputs, latency p50 {:.1} ms, p99 {:.1} ms; attitude RMS roll {:.2}°, pitch {:.2}° ({} steps)",
-                if t.spawned { " (spawned on first telemetry)" } else { "" },
-                t.inputs_applied,
-                t.input_latency_ms.p50,
-                t.input_latency_ms.p99,
-                t.attitude_rms_deg[0],
-                t.attitude_rms_deg[1],
-                t.attitude_samples
-            );
-        }
-        let st = &outcome.stats;
-        if st.inputs_rejected + st.inputs_ignored + st.inputs_after_end + st.frames_dropped + st.spawns_failed > 0 {
-            outln!(
-                "  inputs: {} rejected, {} logged but not used (not ours), {} after the last step; {} spawns refused; {} frames not published ({} Paparazzi texts not sent)",
-                st.inputs_rejected,
-                st.inputs_ignored,
-                st.inputs_after_end,
-                st.spawns_failed,
-                st.frames_dropped,
-                st.pprz_dropped
-            );
-        }
-        if !outcome.stats.failsafe.is_empty() {
-            let counts: Vec<String> = outcome.stats.failsafe.iter().map(|(k, n)| format!("{n} {k}")).collect();
-            outln!("  failsafe: {}", counts.join(", "));
-            for (tick, message) in &failsafe_events {
-                outln!("    step {tick}: {message}");
-            }
-            let total: u64 = outcome.stats.failsafe.values().sum();
-            if total > failsafe_events.len() as u64 {
-                outln!("    … {} more in the log (/events)", total - failsafe_events.len() as u64);
-            }
-        }
-        if interrupted.is_some() {
-            outln!(
-                "  interrupted by a signal after {:.2} s simulated; the log was finished cleanly",
-                outcome.state.time_s(&outcome.world)
-            );
-        }
-    }
-    if let Some(e) = &outcome.stats.shard_error {
-        // The log and the summary hold everything up to here.
-        anyhow::bail!("shard stopped at control step {}: {e}", outcome.state.tick);
-    }
-    match log_error {
-        Some(e) => Err(e),
-        None => Ok(()),
-    }
-}
-
-/// What became of the inputs that reached the loop, for `--json` and the log's `bus_report`.
-fn inputs_json(st: &bridge::sim::LoopStats) -> serde_json::Value {
-    serde_json::json!({
-        "commands_applied": st.commands_applied,
-        "commands_unknown_copter": st.commands_unknown_copter,
-        "rejected": st.inputs_rejected,
-        "ignored": st.inputs_ignored,
-        "after_end": st.inputs_after_end,
-        "spawns_failed": st.spawns_failed,
-        "frames_dropped": st.frames_dropped,
-        "pprz_dropped": st.pprz_dropped,
-    })
-}
-
-/// Follows the step loop: summary tracker, MCAP log, progress bar.
-struct RunObserver {
-    tracker: report::Tracker,
-    log: Option<bridge::log::Logger>,
-    log_error: Option<anyhow::Error>,
-    /// The control step at which the log failed.
-    log_error_tick: Option<u64>,
-    /// `--on-log-error stop`: the run's stop flag, set when the log fails.
-    stop_on_log_error: Option<std::sync::Arc<std::sync::atomic::AtomicBool>>,
-    /// The first failsafe transitions, for the summary.
-    failsafe_events: Vec<(u64, String)>,
-    /// The last control step observed.
-    tick: u64,
-    progress: Option<indicatif::ProgressBar>,
-}
-
-impl RunObserver {
-    /// Logs an event, if logging.
-    fn log_event(&mut self, event: bridge::log::LogEvent) {
-        let tick = event.tick;
-        if let Some(log) = &mut self.log
-            && let Err(e) = log.log_event(event)
-        {
-            self.log_failed(tick, e.into());
-        }
-    }
-
-    /// The log failed: keep the first error, stop logging, and stop the run if asked to.
-    fn log_failed(&mut self, tick: u64, e: anyhow::Error) {
-        if self.log_error.is_none() {
-            tracing::error!("logging failed at control step {tick}: {e:#}");
-            self.log_error = Some(e);
-            self.log_error_tick = Some(tick);
-        }
-        self.log = None;
-        if let Some(stop) = &self.stop_on_log_error {
-            stop.store(true, std::sync::atomic::Ordering::Relaxed);
-        }
-    }
-}
-
-impl bridge::sim::StepObserver for RunObserver {
-    fn after_step(
-        &mut self,
-        world: &sim_core::World,
-        state: &sim_core::State,
-        inputs: &sim_core::Inputs,
-        report: &sim_core::StepReport,
-    ) {
-        self.tracker.observe(world, state, report);
-        self.tick = state.tick;
-        if let Some(log) = &mut self.log
-            && let Err(e) = log.log_step(world, state, inputs, report)
-        {
-            self.log_failed(state.tick, e.into());
-        }
-        if let Some(bar) = &self.progress
-            && state.tick.is_multiple_of(20)
-        {
-            bar.set_position(state.tick);
-        }
-    }
-
-    fn bus_input(&mut self, input: &bridge::sim::BusInput) {
-        if let Some(log) = &mut self.log
-            && let Err(e) = log.log_bus_message(&input.key, true, &input.text, input.received_unix_ns)
-        {
-            self.log_failed(self.tick, e.into());
-        }
-    }
-
-    fn input_rejected(&mut self, tick: u64, input: &bridge::sim::BusInput, reason: &str) {
-        self.bus_input(input);
-        self.log_event(bridge::log::LogEvent {
-            tick,
-            kind: bridge::log::EventKind::InputRejected,
-            copter: None,
-            detail: Some(serde_json::json!({ "key": input.key, "reason": reason })),
-            message: format!("rejected input on {}: {reason}", input.key),
-        });
-    }
-
-    fn spawned(&mut self, world: &sim_core::World, id: usize, tick: u64) {
-        self.log_event(bridge::log::LogEvent {
-            tick,
-            kind: bridge::log::EventKind::Spawned,
-            copter: Some(id),
-            detail: None,
-            message: format!("spawned copter {:?}", world.copters[id].name),
-        });
-    }
-
-    fn pprz_out(&mut self, tick: u64, out: &bridge::mixed::PprzOut) {
-        if let Some(log) = &mut self.log
-            && let Err(e) = log.log_bus_message(&out.key, false, &out.text, bridge::log::now_unix_ns())
-        {
-            self.log_failed(tick, e.into());
-        }
-    }
-
-    fn paired(&mut self, tick: u64, ac_id: u8, id: usize, copter: &str) {
-        self.log_event(bridge::log::LogEvent {
-            tick,
-            kind: bridge::log::EventKind::Paired,
-            copter: Some(id),
-            detail: Some(serde_json::json!({ "ac_id": ac_id, "copter": copter, "spawned": true })),
-            message: format!("aircraft {ac_id} paired with its new twin {copter:?} (spawned on first telemetry)"),
-        });
-    }
-
-    fn overrun(&mut self, tick: u64, late_s: f64) {
-        if let Err(e) = logcmd::log_overrun(&mut self.log, tick, late_s) {
-            self.log_failed(tick, e);
-        }
-    }
-
-    fn frame_dropped(&mut self, tick: u64, pprz_lost: u64) {
-        self.log_event(bridge::log::LogEvent {
-            tick,
-            kind: bridge::log::EventKind::FrameDropped,
-            copter: None,
-            detail: Some(serde_json::json!({ "pprz_lost": pprz_lost })),
-            message: format!("step {tick} not published (publisher behind); {pprz_lost} Paparazzi texts not sent"),
-        });
-    }
-
-    fn failsafe(&mut self, tick: u64, world: &sim_core::World, event: &bridge::failsafe::FailsafeEvent) {
-        let message = event.message(world);
-        if self.failsafe_events.len() < MAX_SUMMARY_EVENTS {
-            self.failsafe_events.push((tick, message.clone()));
-        }
-        self.log_event(bridge::log::LogEvent {
-            tick,
-            kind: bridge::log::EventKind::Failsafe,
-            copter: Some(event.copter),
-            detail: serde_json::to_value(&event.kind).ok(),
-            message,
-        });
-    }
-}
-
-/// Failsafe transitions the text summary lists one by one (the log has them all).
-const MAX_SUMMARY_EVENTS: usize = 8;
 
 fn check(path: &std::path::Path) -> anyhow::Result<()> {
     let (origin, spec, world) = load_scene(Some(path))?;
@@ -1137,23 +451,6 @@ fn inspect(path: Option<&std::path::Path>, json: bool) -> anyhow::Result<()> {
         for m in &models {
             out!("{}", m.to_text());
         }
-    }
-    Ok(())
-}
-
-/// What a shard cannot do yet.
-fn check_shardable(args: &RunArgs, spec: &SceneSpec) -> anyhow::Result<()> {
-    let unsharded = [(args.ivy.is_some(), "--ivy"), (args.pairing.is_some(), "--pairing")];
-    if let Some((_, flag)) = unsharded.iter().find(|(on, _)| *on) {
-        return Err(BadInput(anyhow::anyhow!("--shard: {flag} is not available for a shard yet")).into());
-    }
-    if spec.copters.iter().any(|c| c.kind == sim_core::CopterKind::Real) {
-        return Err(
-            BadInput(anyhow::anyhow!("--shard: scenes with twins (kind = \"real\") need one process for now")).into()
-        );
-    }
-    if !(args.barrier_timeout.is_finite() && args.barrier_timeout > 0.0) {
-        return Err(BadInput(anyhow::anyhow!("--barrier-timeout must be a positive number of seconds")).into());
     }
     Ok(())
 }

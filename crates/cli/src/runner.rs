@@ -9,15 +9,16 @@ use std::sync::atomic::{AtomicBool, Ordering};
 
 use anyhow::Context;
 use bridge::failsafe::FailsafeOptions;
+use bridge::flight::{Flight, Recorder};
 use bridge::mixed::{Gateway, GatewayReport, OutboxOptions, PprzLinks, TelemetryPlan, TwinAttitude};
 use bridge::paparazzi::ivy::{IvyAgent, IvyOptions};
 use bridge::paparazzi::pairing::ResolvedPairing;
 use bridge::shard::ShardLink;
-use bridge::sim::{self, LoopOptions, LoopStats, Request, StepObserver};
+use bridge::sim::{self, LoopOptions, Request, StepObserver};
 use bridge::sync::SyncOptions;
 use bridge::zenoh_net::node::{self, Node};
+use sim_core::World;
 use sim_core::shard::Partition;
-use sim_core::{State, World};
 use std::sync::Mutex;
 use twinswarm::BadInput;
 use zenoh::Wait;
@@ -85,10 +86,9 @@ impl Default for MixedOptions {
 
 /// What a run leaves behind.
 #[derive(Debug)]
-pub struct RunOutcome {
-    pub world: Arc<World>,
-    pub state: State,
-    pub stats: LoopStats,
+pub struct RunOutcome<W> {
+    /// The flight at its end.
+    pub end: sim::Finished<W>,
     pub bus: Option<BusReport>,
     /// A shard: what its barrier cost.
     pub link: Option<bridge::shard::LinkStats>,
@@ -206,19 +206,37 @@ pub fn zenoh_config(opts: &BusOptions) -> anyhow::Result<zenoh::Config> {
     }
 }
 
-/// Runs `ticks` control steps of `world`.
-pub fn run(
+/// How `run` paces the flight.
+#[derive(Debug, Clone, Default)]
+pub struct Pace {
+    /// Control steps to run.
+    pub ticks: u64,
+    /// Against the wall clock.
+    pub realtime: bool,
+    /// Hold each step for the claimed copters' controllers.
+    pub lockstep: Option<bridge::sim::LockstepOptions>,
+}
+
+/// Flies `world` for `pace.ticks` control steps, recording into `recorder`, with `watch`
+/// following every step.
+pub fn run<W: StepObserver + Send>(
     rt: &tokio::runtime::Runtime,
     world: World,
-    ticks: u64,
-    realtime: bool,
+    pace: &Pace,
     bus: &BusOptions,
-    observer: &mut (dyn StepObserver + Send),
+    recorder: Recorder,
+    watch: W,
     stop: Arc<AtomicBool>,
-) -> anyhow::Result<RunOutcome> {
+) -> anyhow::Result<RunOutcome<W>> {
     let mut state = world.initial_state();
     let inputs = world.initial_inputs();
-    let mut opts = LoopOptions { realtime, ticks, failsafe: bus.failsafe.clone(), ..Default::default() };
+    let mut opts = LoopOptions {
+        realtime: pace.realtime,
+        ticks: pace.ticks,
+        failsafe: bus.failsafe.clone(),
+        lockstep: pace.lockstep.clone(),
+        ..Default::default()
+    };
     // Room for 8,192 inputs between two steps: 160,000 per second at 50 ms, five times the
     // flood test's 30,000 (scripts/flood.sh); beyond, inputs are dropped and counted.
     let (req_tx, req_rx) = std::sync::mpsc::sync_channel::<Request>(REQUEST_QUEUE);
@@ -257,14 +275,15 @@ pub fn run(
             false => Some(zenoh::open(zenoh_config(bus)?).wait().map_err(|e| anyhow::anyhow!("zenoh: {e}"))?),
         };
         opts.shard = session.clone().map(&open_link).transpose()?;
-        let (world, state, stats) = sim::run_loop(world, state, inputs, req_rx, None, observer, &stop, &opts);
+        let flight = Flight::new(world, state, inputs, &opts, recorder, watch);
+        let end = sim::run_loop(flight, req_rx, None, &stop, &opts);
         drop(req_tx);
         let link_stats = opts.shard.take().map(|l| bridge::lock_shared(&l).stats().clone());
         if let Some(s) = session {
             // Closing withdraws the shard's token: neighbours still waiting learn it is gone.
             s.close().wait().map_err(|e| anyhow::anyhow!("zenoh: {e}"))?;
         }
-        return Ok(RunOutcome { world, state, stats, bus: None, link: link_stats });
+        return Ok(RunOutcome { end, bus: None, link: link_stats });
     }
 
     let world_arc = Arc::new(world.clone());
@@ -314,11 +333,11 @@ pub fn run(
     });
     let (frame_tx, mut frame_rx) = tokio::sync::mpsc::channel(256);
     let opts_link = opts.shard.clone();
+    let flight = Flight::new(world, state, inputs, &opts, recorder, watch);
 
-    let outcome = std::thread::scope(|s| -> anyhow::Result<(Arc<World>, State, LoopStats)> {
+    let end = std::thread::scope(|s| -> anyhow::Result<sim::Finished<W>> {
         let stop_loop = stop.clone();
-        let h =
-            s.spawn(move || sim::run_loop(world, state, inputs, req_rx, Some(frame_tx), observer, &stop_loop, &opts));
+        let h = s.spawn(move || sim::run_loop(flight, req_rx, Some(frame_tx), &stop_loop, &opts));
         rt.block_on(async {
             // Publish until the loop ends (its frame sender drops).
             while let Some(frame) = frame_rx.recv().await {
@@ -370,6 +389,5 @@ pub fn run(
         rt.block_on(node.close()).context("closing the Zenoh session")?;
     }
     let link = opts_link.map(|l| bridge::lock_shared(&l).stats().clone());
-    let (world, state, stats) = outcome;
-    Ok(RunOutcome { world, state, stats, bus: Some(report), link })
+    Ok(RunOutcome { end, bus: Some(report), link })
 }

@@ -291,7 +291,7 @@ pub fn run_variant(
     let (tx, rx) = std::sync::mpsc::sync_channel::<Request>(4096);
     let plan = TelemetryPlan::project_default();
     let messages = Arc::new(bridge::paparazzi::convert::project_messages());
-    let mut harness = Harness {
+    let harness = Harness {
         state: reality.initial_state(),
         inputs: reality.initial_inputs(),
         cruise: Cruise::new(reality.params.seed, 0, reality.copters[0].initial_command.yaw_rad),
@@ -319,7 +319,8 @@ pub fn run_variant(
         LoopOptions { realtime: false, ticks: world.default_ticks(), sync: variant.sync.clone(), ..Default::default() };
     let stop = AtomicBool::new(false);
     let (state, inputs) = (world.initial_state(), world.initial_inputs());
-    let (world, state, stats) = bridge::sim::run_loop(world, state, inputs, rx, None, &mut harness, &stop, &opts);
+    let (world, state, stats, harness) =
+        bridge::sim::run_watched(world, state, inputs, rx, None, harness, &stop, &opts);
     anyhow::ensure!(
         harness.queue_full == 0,
         "{} inputs did not fit the loop's queue: the evaluation would be biased",

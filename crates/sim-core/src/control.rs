@@ -19,6 +19,12 @@ pub enum FlightMode {
     WallAvoid,
     /// Position PIDs towards a target point, from ground truth (a development aid).
     Target,
+    /// The velocity command flown open loop (the tilt whose steady state against the linear
+    /// damping is that velocity), height and yaw held: Wall-Avoid's velocity without its
+    /// avoidance. For external swarm algorithms.
+    Velocity,
+    /// Four normalised rotor commands, straight to the motors: no attitude or height loop.
+    Rotors,
 }
 
 impl FlightMode {
@@ -29,6 +35,8 @@ impl FlightMode {
             FlightMode::MixedManual => "mixed_manual",
             FlightMode::WallAvoid => "wall_avoid",
             FlightMode::Target => "target",
+            FlightMode::Velocity => "velocity",
+            FlightMode::Rotors => "rotors",
         }
     }
 }
@@ -55,6 +63,10 @@ pub struct Command {
     /// Externally supplied virtual sonar readings (front, right, back, left), m. Fused as
     /// `min(physical, virtual)`: the original rule for real copters seeing virtual objects.
     pub virtual_sonar_m: Option<[Real; 4]>,
+    /// Rotor commands for [`FlightMode::Rotors`], each in [0, 1] of the rotor's maximum thrust
+    /// (front-left, front-right, back-right, back-left).
+    #[serde(default)]
+    pub rotors: Option<[Real; 4]>,
 }
 
 impl Default for Command {
@@ -69,6 +81,7 @@ impl Default for Command {
             target_m: None,
             velocity_m_s: None,
             virtual_sonar_m: None,
+            rotors: None,
         }
     }
 }
@@ -93,6 +106,10 @@ pub struct Setpoint {
     pub height_m: Real,
     /// Throttle in [0, 1] when no height is held.
     pub throttle: Real,
+    /// [`FlightMode::Rotors`]: the rotor commands, fractions of the maximum thrust; the
+    /// attitude and height loops are bypassed.
+    #[serde(default)]
+    pub rotors: Option<[Real; 4]>,
 }
 
 /// Integrator and memory of one PID axis, and its reference model.

@@ -757,6 +757,7 @@ fn compile_command(
         target_m: c.target_m,
         velocity_m_s: c.velocity_m_s,
         virtual_sonar_m: None,
+        rotors: None,
     })
 }
 

@@ -918,7 +918,10 @@ fn inner_loop(
     e.collective_sum_n += collective;
     e.collective_steps += 1;
     let torque = control::attitude_torque(af, &mut c.pids, &c.setpoint, e.attitude_rad, Vec3::from(e.rate_rad_s), dt);
-    let wanted = control::mix(af, collective, torque);
+    let wanted = match c.setpoint.rotors {
+        Some(u) => u.map(|u| u * af.max_thrust_per_rotor_n),
+        None => control::mix(af, collective, torque),
+    };
     let mut ground = [1.0; 4];
     let radius = 0.5 * af.spec.rotor_diameter_m;
     let height = lane.pos_m.z - lane.ground_m;
@@ -1097,9 +1100,16 @@ fn outer_loop(
         yaw_rad: cmd.yaw_rad,
         height_m: cmd.height_m,
         throttle: cmd.throttle,
+        rotors: None,
     };
     match cmd.mode {
         FlightMode::Manual | FlightMode::MixedManual => {}
+        FlightMode::Velocity => {
+            if let Some(v) = cmd.velocity_m_s {
+                (sp.pitch_rad, sp.roll_rad) = velocity_tilt(af, v);
+            }
+        }
+        FlightMode::Rotors => sp.rotors = Some(cmd.rotors.unwrap_or([0.0; 4]).map(|u| u.clamp(0.0, 1.0))),
         FlightMode::Target => {
             if let Some(t) = cmd.target_m {
                 let (pitch, roll) = control::target_tilt(t, pos_m, vel_m_s, true_yaw_rad);
@@ -1138,8 +1148,7 @@ fn outer_loop(
                             v_left = 0.0;
                         }
                     }
-                    let k = af.spec.linear_damping / GRAVITY_M_S2;
-                    ((k * v_fwd).atan(), -(k * v_left).atan())
+                    velocity_tilt(af, [v_fwd, v_left])
                 }
                 None => (sp.pitch_rad, sp.roll_rad),
             };
@@ -1162,6 +1171,13 @@ fn outer_loop(
         sp.height_m = sp.height_m.min(est.ir.max_range_m - 0.1);
     }
     sp
+}
+
+/// The velocity command, open loop: the (pitch, roll) whose steady state against the linear
+/// damping is `v` (forward, left), m/s. The FINken measures no velocity of its own.
+fn velocity_tilt(af: &Airframe, [v_fwd, v_left]: [Real; 2]) -> (Real, Real) {
+    let k = af.spec.linear_damping / GRAVITY_M_S2;
+    ((k * v_fwd).atan(), -(k * v_left).atan())
 }
 
 /// Gathers what sonars can see in the current state: the arena walls, the static boxes and

@@ -117,6 +117,8 @@ pub enum EventKind {
     FrameDropped,
     /// At the end of a run on a bus: what the bus received, refused and dropped.
     BusReport,
+    /// Lockstep: a controller did not answer a tick in time; its copter kept its last command.
+    LockstepTimeout,
 }
 
 impl EventKind {
@@ -129,7 +131,8 @@ impl EventKind {
             | EventKind::StepOverrun
             | EventKind::Interrupted
             | EventKind::Failsafe
-            | EventKind::FrameDropped => Level::Warning,
+            | EventKind::FrameDropped
+            | EventKind::LockstepTimeout => Level::Warning,
             EventKind::Crashed => Level::Error,
         }
     }
@@ -147,6 +150,7 @@ impl EventKind {
             EventKind::Failsafe => "failsafe",
             EventKind::FrameDropped => "frame_dropped",
             EventKind::BusReport => "bus_report",
+            EventKind::LockstepTimeout => "lockstep_timeout",
         }
     }
 }
