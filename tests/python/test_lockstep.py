@@ -13,11 +13,10 @@ import threading
 import time
 
 import numpy as np
-import pytest
 import zenoh
 
 import twinswarm
-from conftest import ROOT, free_tcp_port, zenoh_client_config
+from conftest import free_tcp_port, zenoh_client_config
 
 DURATION_S = 4.0
 COPTERS = ("finken1", "finken2")

@@ -470,6 +470,16 @@ impl Sim {
         &self.text
     }
 
+    /// The scene's static boxes as the engine has them: (name, centre (x, y, z) m, half
+    /// extents m, yaw rad, virtual only).
+    #[getter]
+    #[allow(clippy::type_complexity)]
+    fn boxes(&self) -> Vec<(String, (f32, f32, f32), (f32, f32, f32), f32, bool)> {
+        let t = |v: sim_core::math::Vec3| (v.x, v.y, v.z);
+        let world = self.world();
+        world.boxes.iter().map(|b| (b.name.clone(), t(b.center_m), t(b.half_extents_m), b.yaw_rad, b.virtual_only)).collect()
+    }
+
     #[getter]
     fn threads(&self) -> usize {
         self.spec.sim.threads

@@ -154,6 +154,13 @@ class Sim:
         return self._sim.threads
 
     @property
+    def boxes(self) -> list:
+        """The static boxes: dicts of name, center_m (x, y, z), half_extents_m, yaw_rad and
+        virtual_only (seen only by twins' virtual sonars)."""
+        return [dict(name=n, center_m=c, half_extents_m=h, yaw_rad=y, virtual_only=v)
+                for n, c, h, y, v in self._sim.boxes]
+
+    @property
     def scene_toml(self) -> str:
         """The scene's TOML text as given (the embedded lab's file for `scene=None`)."""
         return self._sim.scene_toml
@@ -334,12 +341,16 @@ def vector_env(num_envs: int = 8, **kwargs):
     return TwinswarmVectorEnv(num_envs=num_envs, **kwargs)
 
 
-try:  # gymnasium.make("twinswarm/Hover-v0") once twinswarm is imported
-    import gymnasium as _gymnasium  # noqa: F401
-except ImportError:  # the environments are optional: pip install twinswarm[envs]
-    pass
-else:
-    from .gym_env import register_envs as _register_envs
+def _register_gymnasium_envs() -> None:
+    """gymnasium.make("twinswarm/Hover-v0") once twinswarm is imported, if gymnasium is there
+    (the environments are optional: pip install "twinswarm[envs]")."""
+    import importlib.util
 
-    _register_envs()
+    if importlib.util.find_spec("gymnasium") is not None:
+        from .gym_env import register_envs
+
+        register_envs()
+
+
+_register_gymnasium_envs()
 

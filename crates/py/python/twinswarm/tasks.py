@@ -32,9 +32,6 @@ from __future__ import annotations
 
 import copy
 import math
-import os
-import tomllib
-import warnings
 from typing import Any, Callable, Mapping, Sequence
 
 import numpy as np
@@ -112,56 +109,25 @@ def sensor_features(sensors: np.ndarray) -> np.ndarray:
 
 
 class StaticBox:
-    """A static box of the scene: footprint centre (x, y), bottom height, size, yaw."""
+    """A static box of the scene: centre (x, y, z), half extents, yaw (from `Sim.boxes`)."""
 
-    def __init__(self, pos_m: Sequence[float], size_m: Sequence[float], z_m: float = 0.0, yaw_deg: float = 0.0):
-        self.pos_m = (float(pos_m[0]), float(pos_m[1]))
-        self.size_m = (float(size_m[0]), float(size_m[1]), float(size_m[2]))
-        self.z_m = float(z_m)
-        self.yaw_rad = math.radians(float(yaw_deg))
+    def __init__(self, center_m: Sequence[float], half_extents_m: Sequence[float], yaw_rad: float = 0.0):
+        self.center_m = tuple(float(v) for v in center_m)
+        self.half_m = tuple(float(v) for v in half_extents_m)
+        self.yaw_rad = float(yaw_rad)
 
     def contains(self, p: np.ndarray, margin_m: float = 0.0) -> bool:
         """Whether the point p = (x, y, z) lies inside the box grown by `margin_m`."""
-        dx, dy = p[0] - self.pos_m[0], p[1] - self.pos_m[1]
+        dx, dy = p[0] - self.center_m[0], p[1] - self.center_m[1]
         c, s = math.cos(self.yaw_rad), math.sin(self.yaw_rad)
         lx, ly = c * dx + s * dy, -s * dx + c * dy
-        return (abs(lx) <= self.size_m[0] / 2 + margin_m and abs(ly) <= self.size_m[1] / 2 + margin_m
-                and self.z_m - margin_m <= p[2] <= self.z_m + self.size_m[2] + margin_m)
+        return (abs(lx) <= self.half_m[0] + margin_m and abs(ly) <= self.half_m[1] + margin_m
+                and abs(p[2] - self.center_m[2]) <= self.half_m[2] + margin_m)
 
 
-def scene_boxes(scene: Any) -> list[StaticBox] | None:
-    """The `[[box]]` entries of a scene given as a path or TOML text; None if `scene` is None
-    or cannot be read (the Sim has already accepted or rejected it)."""
-    if scene is None:
-        return None
-    text = None
-    if isinstance(scene, os.PathLike) or (isinstance(scene, str) and "\n" not in scene and os.path.isfile(scene)):
-        try:
-            with open(scene, "rb") as f:
-                text = f.read().decode("utf-8")
-        except OSError:
-            return None
-    elif isinstance(scene, str):
-        text = scene
-    if text is None:
-        return None
-    try:
-        spec = tomllib.loads(text)
-    except tomllib.TOMLDecodeError:
-        return None
-    return [StaticBox(b["pos_m"], b["size_m"], b.get("z_m", 0.0), b.get("yaw_deg", 0.0)) for b in spec.get("box", [])]
-
-
-def sim_boxes(sim: Any, scene: Any) -> list[StaticBox]:
-    """The static boxes of `sim`, built from `scene`: from the scene text when there is one,
-    else from the Sim itself (`Sim.scene_toml`, the embedded lab's text)."""
-    boxes = scene_boxes(scene)
-    if boxes is None:
-        boxes = scene_boxes(getattr(sim, "scene_toml", None))
-    if boxes is None:
-        warnings.warn("the Sim does not tell its scene's boxes (no Sim.scene_toml): tasks treat the arena as empty",
-                      stacklevel=3)
-    return boxes or []
+def sim_boxes(sim: Any) -> list[StaticBox]:
+    """The static boxes of `sim`, as its engine has them (`Sim.boxes`)."""
+    return [StaticBox(b["center_m"], b["half_extents_m"], b["yaw_rad"]) for b in sim.boxes]
 
 
 # ---- tasks ----
@@ -581,7 +547,7 @@ class TaskRunner:
                             f"got {type(reward_fn).__name__}")
         self.sim = sim
         self.task = make_task(task)
-        self.task.bind(sim, sim_boxes(sim, scene))
+        self.task.bind(sim, sim_boxes(sim))
         self.actions = ActionMap(action, sim)
         self.reward_fn = reward_fn
         self.max_steps = int(max_steps)
