@@ -6,7 +6,8 @@
 Back to back, in one process run, on this machine:
 1. `dense` take-off (a 1.5 m grid among 10 pillars, Wall-Avoid at 1 m) at N = 100 and 1,000 on
    one thread: the CLI (`twinswarm run --no-bus --no-log`), the Python batched path (each step:
-   `truth()`, `sensors()`, a batched `command("mode", "wall_avoid")` that keeps the physics
+   `truth()`, `sensors()`, a batched `command("mode", "wall_avoid")` for every copter (it keeps
+   the physics)
    and `step()`; its digests must equal the CLI's), and the pybullet peer
    (`peer_pybullet.py bench --scheme ctrl50_zoh --k 10 --rays 1`); real-time factors on the
    wall clock and their ratios;
@@ -64,11 +65,10 @@ def peer(n, seconds):
 
 def python_path(text, steps):
     sim = twinswarm.Sim(scene=text, threads=1)
-    modes = ["wall_avoid"] * sim.n
     t0 = time.perf_counter()
     for _ in range(steps):
         truth, sensors = sim.truth(), sim.sensors()
-        sim.command("mode", modes)
+        sim.command("mode", "wall_avoid")
         sim.step()
     wall = time.perf_counter() - t0
     assert truth.shape[0] == sensors.shape[0] == sim.n

@@ -266,26 +266,13 @@ impl Sim {
     /// Ground truth, `n × 14` little-endian f32 (see `TRUTH_COLUMNS`).
     fn truth<'py>(&self, py: Python<'py>) -> Bound<'py, PyByteArray> {
         let flight = self.flight();
-        let (world, state) = (flight.world(), flight.state());
-        let mut out = Vec::with_capacity(world.copters.len() * TRUTH_COLUMNS * 4);
-        for (i, c) in state.copters.iter().enumerate() {
-            let p = state.pose(i);
-            let row: [f32; TRUTH_COLUMNS] = [
-                p.pos_m.x,
-                p.pos_m.y,
-                p.pos_m.z,
-                p.vel_m_s.x,
-                p.vel_m_s.y,
-                p.vel_m_s.z,
-                p.quat_xyzw[0],
-                p.quat_xyzw[1],
-                p.quat_xyzw[2],
-                p.quat_xyzw[3],
-                p.angvel_rad_s.x,
-                p.angvel_rad_s.y,
-                p.angvel_rad_s.z,
-                f32::from(u8::from(c.crash.is_some())),
-            ];
+        let state = flight.state();
+        let mut out = Vec::with_capacity(state.copters.len() * TRUTH_COLUMNS * 4);
+        for c in &state.copters {
+            let m = &c.motion;
+            let (p, v, q, w) = (m.pos_m, m.vel_m_s, m.rot, m.angvel_rad_s);
+            let crashed = f32::from(u8::from(c.crash.is_some()));
+            let row: [f32; TRUTH_COLUMNS] = [p.x, p.y, p.z, v.x, v.y, v.z, q.x, q.y, q.z, q.w, w.x, w.y, w.z, crashed];
             row.iter().for_each(|v| out.extend_from_slice(&v.to_le_bytes()));
         }
         PyByteArray::new(py, &out)
@@ -344,8 +331,14 @@ impl Sim {
 
     /// Flight modes by name for copters `ids`.
     fn command_mode(&mut self, modes: Vec<String>, ids: Vec<usize>) -> PyResult<()> {
-        let n = self.world().copters.len();
+        let world = self.world();
+        let n = world.copters.len();
         let mut cmds = Vec::with_capacity(ids.len());
+        let modes = match modes.len() {
+            // One mode for every copter of `ids`.
+            1 => vec![modes[0].clone(); ids.len()],
+            _ => modes,
+        };
         for (row, (mode, &id)) in modes.iter().zip(&ids).enumerate() {
             if id >= n {
                 return Err(bad(format!("command('mode'): no copter with id {id} (ids are 0 to {})", n - 1)));
@@ -477,7 +470,11 @@ impl Sim {
     fn boxes(&self) -> Vec<(String, (f32, f32, f32), (f32, f32, f32), f32, bool)> {
         let t = |v: sim_core::math::Vec3| (v.x, v.y, v.z);
         let world = self.world();
-        world.boxes.iter().map(|b| (b.name.clone(), t(b.center_m), t(b.half_extents_m), b.yaw_rad, b.virtual_only)).collect()
+        world
+            .boxes
+            .iter()
+            .map(|b| (b.name.clone(), t(b.center_m), t(b.half_extents_m), b.yaw_rad, b.virtual_only))
+            .collect()
     }
 
     #[getter]

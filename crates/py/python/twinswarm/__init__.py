@@ -118,6 +118,7 @@ class Sim:
         self._sim = _native.Sim(path, text, seed, threads, os.fspath(log) if log is not None else None, foxglove)
         self.names = list(self._sim.names)
         self._ids = {name: i for i, name in enumerate(self.names)}
+        self._all = list(range(len(self.names)))
 
     # -- what it is -------------------------------------------------------------------------
     @property
@@ -219,7 +220,7 @@ class Sim:
     def ids(self, ids: Union[None, int, str, Iterable[Union[int, str]]] = None) -> list:
         """Copter ids from ids or names (None: all)."""
         if ids is None:
-            return list(range(self.n))
+            return list(self._all)
         if isinstance(ids, (str, int, np.integer)):
             ids = [ids]
         out = []
@@ -248,14 +249,14 @@ class Sim:
         """
         if not isinstance(kind, str):
             raise TypeError(f"command kind: expected a string, got {type(kind).__name__}")
-        rows = self.ids(ids)
+        rows = self._all if ids is None else self.ids(ids)
         if kind == "mode":
-            modes = [array] * len(rows) if isinstance(array, str) else list(array)
-            if len(modes) != len(rows):
+            modes = [array] if isinstance(array, str) else list(array)
+            if len(modes) != len(rows) and len(modes) != 1:
                 raise ValueError(f"command('mode'): {len(modes)} modes for {len(rows)} copters")
-            for m in modes:
-                if m not in MODES:
-                    raise ValueError(f"command('mode'): unknown mode {m!r} (one of {', '.join(MODES)})")
+            unknown = set(modes).difference(MODES)
+            if unknown:
+                raise ValueError(f"command('mode'): unknown mode {sorted(unknown)[0]!r} (one of {', '.join(MODES)})")
             self._sim.command_mode(modes, rows)
             return
         if kind not in COMMAND_KINDS:
