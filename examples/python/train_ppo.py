@@ -1,6 +1,6 @@
 """Train a PPO policy (stable-baselines3) on Twinswarm, then fly it once and report.
 
-    python train_ppo.py hover  [--num-envs 8] [--steps 200000] [--out ppo_hover.zip]
+    python train_ppo.py hover  [--num-envs 8] [--steps 200000] [--out ppo_hover.zip] [--curve ppo_hover_curve.csv]
     python train_ppo.py swarm  [--task coverage] [--copies 4] [--steps 200000]
 
 `hover`: B one-copter worlds of `twinswarm.vector_env` (one `Sim` each, all stepped in one
@@ -27,7 +27,38 @@ from twinswarm.pettingzoo_env import parallel_env
 
 from pettingzoo.utils.wrappers import BaseParallelWrapper
 from stable_baselines3 import PPO
+from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.vec_env import VecEnv, VecMonitor
+
+
+class Curve(BaseCallback):
+    """The learning curve: after each rollout, the mean return and length of the last 100
+    finished episodes, written as CSV lines `timesteps,mean_return,mean_length,seconds`."""
+
+    def __init__(self, path):
+        super().__init__()
+        self.path = path
+        self.rows = []
+
+    def _on_training_start(self):
+        import time
+
+        self.t0 = time.perf_counter()
+
+    def _on_step(self):
+        return True
+
+    def _on_rollout_end(self):
+        import time
+
+        buf = self.model.ep_info_buffer
+        if buf:
+            row = (self.num_timesteps, float(np.mean([e["r"] for e in buf])), float(np.mean([e["l"] for e in buf])),
+                   time.perf_counter() - self.t0)
+            self.rows.append(row)
+            with open(self.path, "w") as f:
+                f.write("timesteps,mean_return,mean_length,seconds\n")
+                f.writelines(f"{t},{r:.3f},{l:.1f},{s:.1f}\n" for t, r, l, s in self.rows)
 
 
 class SB3VecEnv(VecEnv):
@@ -110,7 +141,7 @@ def train_hover(args):
                                            autoreset_mode="same_step")))
     venv.seed(args.seed)
     model = PPO("MlpPolicy", venv, n_steps=256, batch_size=256, gamma=0.98, seed=args.seed, verbose=1)
-    model.learn(total_timesteps=args.steps)
+    model.learn(total_timesteps=args.steps, callback=Curve(args.curve))
     model.save(args.out)
     env = twinswarm.gym_env.HoverEnv(max_steps=args.max_steps)
     obs, _ = env.reset(seed=args.seed + 1000)
@@ -136,7 +167,7 @@ def train_swarm(args):
 
     venv = VecMonitor(SB3VecEnvWrapper(ConcatVecEnv([copy_fn(k) for k in range(args.copies)])))
     model = PPO("MlpPolicy", venv, n_steps=256, batch_size=256, gamma=0.98, seed=args.seed, verbose=1)
-    model.learn(total_timesteps=args.steps)
+    model.learn(total_timesteps=args.steps, callback=Curve(args.curve))
     model.save(args.out)
     env = parallel_env(task=args.task, max_steps=args.max_steps)
     obs, _ = env.reset(seed=args.seed + 1000)
@@ -159,8 +190,10 @@ def main():
     p.add_argument("--max-steps", type=int, default=400, help="control steps per episode (20 per second)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--out", default=None, help="where to save the model (default ppo_<mode>.zip)")
+    p.add_argument("--curve", default=None, help="the learning curve, CSV (default ppo_<mode>_curve.csv)")
     args = p.parse_args()
     args.out = args.out or f"ppo_{args.mode}.zip"
+    args.curve = args.curve or f"ppo_{args.mode}_curve.csv"
     (train_hover if args.mode == "hover" else train_swarm)(args)
 
 
