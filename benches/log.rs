@@ -2,7 +2,7 @@
 //! logging off versus on (every state, sensor reading, command, controller output, transform
 //! and 3D view, to a file in a temporary directory), N = 100, 1000 and 10 000, on 1 and 2
 //! threads. The step thread only copies numbers; the logger's writer thread encodes and
-//! compresses, and the step waits for it only when it falls behind (see the README's logging
+//! compresses, and the step waits for it only when it falls behind (see docs/logging.md's
 //! table, made with `swarm_rt --log-cost`).
 //!
 //! A second group, `mcap_writer`, writes protobuf messages (20 steps of 1,000 hovering

@@ -229,6 +229,9 @@ pub fn merge(inputs: &[std::path::PathBuf], out: &Path) -> anyhow::Result<()> {
     if r.shifts_ns.iter().any(|&s| s != 0) {
         outln!("  log times shifted onto the first log's epoch by {:?} ns", r.shifts_ns);
     }
+    for (path, &n) in inputs.iter().zip(&r.undeclared).filter(|(_, n)| **n > 0) {
+        outln!("  {n} messages of {} on channels it never declared: not written", path.display());
+    }
     Ok(())
 }
 

@@ -394,22 +394,35 @@ pub fn run(args: ReplayArgs) -> anyhow::Result<()> {
     };
     let span_s = (t1_ns - t0_ns) as f64 / 1e9;
     // The step, and whether the log may hold copters (logs from before say neither).
-    let dt_ns = meta
-        .and_then(|m| m.get("control_dt_s"))
+    let field = |key: &str| meta.and_then(|m| m.get(key));
+    let dt_s = field("control_dt_s")
         .and_then(|t| t.parse::<f64>().ok())
-        .filter(|dt| dt.is_finite() && *dt > 0.0 && *dt < 3600.0)
-        .map_or(50_000_000, |dt| (dt * 1e9).round() as u64);
-    let every_ticks = meta
-        .and_then(|m| m.get("log_every_ticks"))
-        .and_then(|t| t.parse::<u64>().ok())
-        .filter(|n| (1..=1_000_000).contains(n));
-    let copters: Vec<String> = meta
-        .and_then(|m| m.get("copters"))
-        .and_then(|s| serde_json::from_str::<Vec<serde_json::Value>>(s).ok())
-        .unwrap_or_default()
-        .iter()
-        .filter_map(|c| c["name"].as_str().map(str::to_owned))
-        .collect();
+        .filter(|dt| dt.is_finite() && *dt > 0.0 && *dt < 3600.0);
+    let dt_ns = dt_s.map_or(50_000_000, |dt| (dt * 1e9).round() as u64);
+    let every_ticks =
+        field("log_every_ticks").and_then(|t| t.parse::<u64>().ok()).filter(|n| (1..=1_000_000).contains(n));
+    let copter_list = field("copters").and_then(|s| serde_json::from_str::<Vec<serde_json::Value>>(s).ok());
+    let copters: Vec<String> =
+        (copter_list.iter().flatten()).filter_map(|c| c["name"].as_str().map(str::to_owned)).collect();
+    // Entries present but not understood: said, and replayed with the defaults (a 50 ms step,
+    // no held copters), never dropped without a word.
+    let unreadable: Vec<&str> = [
+        ("control_dt_s", dt_s.is_some()),
+        ("log_every_ticks", every_ticks.is_some()),
+        ("copters", copter_list.is_some()),
+    ]
+    .into_iter()
+    .filter(|&(key, ok)| field(key).is_some() && !ok)
+    .map(|(key, _)| key)
+    .collect();
+    if !unreadable.is_empty() {
+        eprintln!(
+            "replay: {}: {} unreadable `twinswarm` metadata entries ({}); replaying with their defaults",
+            path.display(),
+            unreadable.len(),
+            unreadable.join(", ")
+        );
+    }
 
     let stop = crate::logcmd::install_stop_flag()?;
     let bus = BusOptions {
@@ -519,6 +532,13 @@ pub fn run(args: ReplayArgs) -> anyhow::Result<()> {
             String::new()
         }
     );
+    if !unreadable.is_empty() {
+        outln!(
+            "  {} unreadable metadata entries ({}): replayed with their defaults",
+            unreadable.len(),
+            unreadable.join(", ")
+        );
+    }
     if interrupted {
         outln!(
             "  interrupted by a signal after {wall_s:.2} s wall (speed {}); the session was closed cleanly",

@@ -150,7 +150,7 @@ pub(crate) struct RunArgs {
     log_rate: Option<f64>,
     /// The log's zstd level, 1–19, fixed for the whole run. 3 by default; 2 writes files 3–14 %
     /// larger (less where many wrecks are held) for about a quarter less of the writer's CPU,
-    /// for fast runs of large swarms that must not wait for their log (see the README's
+    /// for fast runs of large swarms that must not wait for their log (see docs/logging.md's
     /// logging figures).
     #[arg(long, value_name = "L", default_value_t = 3, value_parser = clap::value_parser!(u32).range(1..=19))]
     log_zstd_level: u32,

@@ -9,7 +9,7 @@
 //!
 //! It checks that every input is accounted for (applied, rejected, ignored or dropped, in the
 //! summary and in the log), that the step loop keeps its deadlines, and that memory stays
-//! flat. It prints the figures; `scripts/flood.sh` collects them for the README.
+//! flat. It prints the figures; `scripts/flood.sh` collects them for docs/reliability.md.
 
 use std::path::PathBuf;
 use std::process::{Command, Stdio};

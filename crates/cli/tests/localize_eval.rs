@@ -68,7 +68,7 @@ fn four_sonars_filtered_meet_the_target_on_a_two_minute_wall_avoid_flight() {
     assert_eq!(report["target_4_sensors_met"], Value::Bool(true));
 }
 
-/// The same target in the lab with its table, crate and pillar, the arena the README's claim
+/// The same target in the lab with its table, crate and pillar, the arena docs/accuracy.md's claim
 /// is about (boxes in MEDUSA's map, echoes off them in the readings).
 #[test]
 fn four_sonars_filtered_meet_the_target_in_the_lab_with_its_boxes() {

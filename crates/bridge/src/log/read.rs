@@ -640,6 +640,9 @@ pub struct MergeReport {
     pub duplicates: u64,
     /// Log time shift applied to each input to put it on the first one's epoch, ns.
     pub shifts_ns: Vec<i64>,
+    /// Messages on a channel their input never declared (a damaged writer), per input: not
+    /// written, since nothing says what they are.
+    pub undeclared: Vec<u64>,
 }
 
 /// A schema as [`merge`] matches them: name, encoding, data.
@@ -693,7 +696,11 @@ pub fn merge(inputs: &[PathBuf], out: &Path) -> Result<MergeReport, LogReadError
     }
     let werr = |source| LogReadError::Write { path: out.to_owned(), source };
     let mut w = create_mcap(out, 3, "log merge")?;
-    let mut report = MergeReport { shifts_ns: loaded.iter().map(|i| i.shift_ns).collect(), ..MergeReport::default() };
+    let mut report = MergeReport {
+        shifts_ns: loaded.iter().map(|i| i.shift_ns).collect(),
+        undeclared: vec![0; loaded.len()],
+        ..MergeReport::default()
+    };
     // Per input: its records, the head message, its schemas and channels mapped to the output's.
     let mut streams: Vec<_> = loaded.iter().map(|i| bounded_records(&i.data, false).peekable()).collect();
     let mut schemas: Vec<HashMap<u16, SchemaKey>> = vec![HashMap::new(); loaded.len()];
@@ -703,8 +710,10 @@ pub fn merge(inputs: &[PathBuf], out: &Path) -> Result<MergeReport, LogReadError
     let mut topics: HashMap<u16, String> = HashMap::new();
     let mut heads: Vec<Option<(mcap::records::MessageHeader, Vec<u8>)>> = vec![None; loaded.len()];
     let mut attachments: std::collections::HashSet<String> = std::collections::HashSet::new();
-    // What went out at the current log time: (channel, crc and length) → from which input.
-    let mut seen_at: (u64, HashMap<(u16, u64), usize>) = (0, HashMap::new());
+    // What went out at the current log time: (channel, crc and length) → the inputs and bytes
+    // of the messages with that key. The CRC only narrows the search: messages are duplicates
+    // when their bytes are equal.
+    let mut seen_at: (u64, HashMap<(u16, u64), Vec<(usize, Vec<u8>)>>) = (0, HashMap::new());
     let corrupt = |k: usize, e: McapError| LogReadError::Corrupt { path: loaded[k].path.clone(), source: e };
     loop {
         // Refill each input's head: the next message, taking in its definitions on the way.
@@ -744,7 +753,10 @@ pub fn merge(inputs: &[PathBuf], out: &Path) -> Result<MergeReport, LogReadError
                         channels[k].insert(c.id, cid);
                     }
                     Record::Message { header, data } => {
-                        let Some(&cid) = channels[k].get(&header.channel_id) else { continue };
+                        let Some(&cid) = channels[k].get(&header.channel_id) else {
+                            report.undeclared[k] += 1;
+                            continue;
+                        };
                         let log_time = header.log_time.saturating_add_signed(loaded[k].shift_ns);
                         let publish_time = header.publish_time.saturating_add_signed(loaded[k].shift_ns);
                         let h = mcap::records::MessageHeader { channel_id: cid, log_time, publish_time, ..header };
@@ -770,16 +782,19 @@ pub fn merge(inputs: &[PathBuf], out: &Path) -> Result<MergeReport, LogReadError
             seen_at = (header.log_time, Default::default());
         }
         let digest = u64::from(crc32fast::hash(&data)) << 32 | data.len() as u64;
-        if *seen_at.1.entry((header.channel_id, digest)).or_insert(k) != k {
+        let same = seen_at.1.entry((header.channel_id, digest)).or_default();
+        if same.iter().any(|(j, bytes)| *j != k && *bytes == data) {
             report.duplicates += 1;
             continue;
         }
+        same.push((k, data.clone()));
         w.write_to_known_channel(&header, &data).map_err(werr)?;
         *report.messages.entry(topics.get(&header.channel_id).cloned().unwrap_or_default()).or_insert(0) += 1;
     }
     let mut meta = BTreeMap::new();
     meta.insert("sources".to_owned(), inputs.iter().map(|p| p.display().to_string()).collect::<Vec<_>>().join("\n"));
     meta.insert("duplicates_dropped".to_owned(), report.duplicates.to_string());
+    meta.insert("undeclared_channel_messages".to_owned(), format!("{:?}", report.undeclared));
     w.write_metadata(&mcap::records::Metadata { name: "merge".into(), metadata: meta }).map_err(werr)?;
     w.finish().map_err(werr)?;
     Ok(report)
