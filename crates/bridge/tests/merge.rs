@@ -33,7 +33,7 @@ fn crc_twin(a: &[u8]) -> Vec<u8> {
             return flip(m);
         }
         basis.push((v, m));
-        basis.sort_by(|x, y| y.0.cmp(&x.0));
+        basis.sort_by_key(|b| std::cmp::Reverse(b.0));
     }
     unreachable!("40 vectors in a 32-dimensional space are dependent")
 }

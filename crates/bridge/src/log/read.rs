@@ -645,6 +645,10 @@ pub struct MergeReport {
     pub undeclared: Vec<u64>,
 }
 
+/// Messages [`merge`] wrote at one log time under one (channel, CRC and length) key: the
+/// input and bytes of each.
+type Sent = Vec<(usize, Vec<u8>)>;
+
 /// A schema as [`merge`] matches them: name, encoding, data.
 type SchemaKey = (String, String, Vec<u8>);
 
@@ -713,7 +717,7 @@ pub fn merge(inputs: &[PathBuf], out: &Path) -> Result<MergeReport, LogReadError
     // What went out at the current log time: (channel, crc and length) → the inputs and bytes
     // of the messages with that key. The CRC only narrows the search: messages are duplicates
     // when their bytes are equal.
-    let mut seen_at: (u64, HashMap<(u16, u64), Vec<(usize, Vec<u8>)>>) = (0, HashMap::new());
+    let mut seen_at: (u64, HashMap<(u16, u64), Sent>) = (0, HashMap::new());
     let corrupt = |k: usize, e: McapError| LogReadError::Corrupt { path: loaded[k].path.clone(), source: e };
     loop {
         // Refill each input's head: the next message, taking in its definitions on the way.
