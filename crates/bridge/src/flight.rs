@@ -300,9 +300,7 @@ impl Core {
                     sync.on_tracking(&self.world, &self.state, id, t, pos_m);
                 }
             }
-            Request::Twin { copter, spawn, cmd, observed_rpy, sonar_m, yaw_rad, origin } => {
-                self.twin(copter, spawn, cmd, observed_rpy, sonar_m, yaw_rad, origin, obs);
-            }
+            twin @ Request::Twin { .. } => self.twin(twin, obs),
             Request::Controller { copter, client, lost } => {
                 let Some(id) = self.world.copter_id(&copter) else {
                     tracing::warn!("controller change for {copter:?}, which is not in the world");
@@ -326,20 +324,10 @@ impl Core {
         }
     }
 
-    /// Telemetry of a real copter for its twin: spawn it on first telemetry if paired so,
-    /// apply its command, feed synchronisation.
-    #[allow(clippy::too_many_arguments)]
-    fn twin(
-        &mut self,
-        copter: String,
-        spawn: Option<Box<CopterSpec>>,
-        cmd: Option<CommandMsg>,
-        observed_rpy: Option<[f32; 3]>,
-        sonar_m: Option<[f32; 4]>,
-        yaw_rad: Option<f32>,
-        origin: BusInput,
-        obs: &mut dyn StepObserver,
-    ) {
+    /// Telemetry of a real copter for its twin ([`Request::Twin`]): spawn it on first
+    /// telemetry if paired so, apply its command, feed synchronisation.
+    fn twin(&mut self, request: Request, obs: &mut dyn StepObserver) {
+        let Request::Twin { copter, spawn, cmd, observed_rpy, sonar_m, yaw_rad, origin } = request else { return };
         if self.world.copter_id(&copter).is_none()
             && let Some(spec) = spawn
         {

@@ -103,20 +103,6 @@ pub fn install_stop_flag() -> anyhow::Result<Arc<AtomicBool>> {
     Ok(stop)
 }
 
-/// Logs a real-time overrun (if logging).
-pub fn log_overrun(log: &mut Option<Logger>, tick: u64, late_s: f64) -> anyhow::Result<()> {
-    if let Some(l) = log {
-        l.log_event(LogEvent {
-            tick,
-            kind: EventKind::StepOverrun,
-            copter: None,
-            detail: Some(serde_json::json!({ "late_s": late_s })),
-            message: format!("control step {tick} finished {:.1} ms after its deadline", late_s * 1e3),
-        })?;
-    }
-    Ok(())
-}
-
 /// Finishes the log of a run.
 pub fn finish_run_log(log: Option<Logger>, interrupted_at_tick: Option<u64>) -> anyhow::Result<Option<LogStats>> {
     let Some(mut log) = log else { return Ok(None) };

@@ -3,8 +3,9 @@
 //! bus on the default loopback endpoint).
 //!
 //! The defaults are checked on a free port (`run --listen`), so no test depends on the default
-//! port being free. Only the no-argument run itself must take the default endpoint; it skips,
-//! saying so on stderr, when another process holds that port.
+//! port being free. Only the no-argument run itself must take the default endpoint: when
+//! another process holds that port it fails under `CI=true` (CI's machine must have it free),
+//! and elsewhere skips, saying so on stderr.
 
 use std::io::Write;
 use std::net::TcpListener;
@@ -47,8 +48,10 @@ fn default_port_taken() -> Option<std::io::Error> {
 }
 
 /// A notice straight to stderr (`std::io::stderr()` bypasses libtest's capture, which would
-/// hide an `eprintln!` of a passing test).
+/// hide an `eprintln!` of a passing test); under `CI=true` a failure instead.
 fn skip_notice(test: &str, why: &str) {
+    let ci = std::env::var("CI").is_ok_and(|v| v.eq_ignore_ascii_case("true") || v == "1");
+    assert!(!ci, "{test}: {why}; under CI=true the default endpoint must be free");
     let _ = std::io::stderr().write_all(format!("\nSKIPPED {test}: {why}\n").as_bytes());
 }
 
