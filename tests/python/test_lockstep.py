@@ -24,7 +24,7 @@ COPTERS = ("finken1", "finken2")
 
 def decide(name_index: int, tick: int, x: float, y: float) -> list:
     """The controller: fly to one of two points, switching every 2 s, at 1 m. Positions are
-    float32 on both paths (the state message's JSON holds the shortest text of an f32)."""
+    float32 on both paths (the state message's JSON holds the f64 of each f32, exactly)."""
     x, y = float(np.float32(x)), float(np.float32(y))
     goal = (0.9, 0.2) if (tick // 40 + name_index) % 2 == 0 else (-0.9, 0.4)
     clip = lambda v: max(-0.6, min(0.6, v))  # noqa: E731

@@ -105,10 +105,10 @@ def test_replay_republishes_with_original_timing(twinswarm_bin, free_port, tmp_p
         ticks = [p["tick"] for _t, p in states if p["name"] == name]
         assert ticks == sorted(ticks) and len(set(ticks)) == len(ticks) == steps, (name, ticks[:5])
         logged = [s for s in logged_states if s["copter"] == name]
-        # The log holds f32 (protobuf `float`), decoded here as doubles; the Zenoh JSON prints
-        # the shortest f32 text. The same f32 both ways.
+        # The log holds f32 (protobuf `float`), decoded here as doubles; the Zenoh JSON holds
+        # the f64 of each f32. The same numbers both ways, exactly.
         replayed = [p["pos_m"] for _t, p in states if p["name"] == name]
-        assert replayed == [pytest.approx(s["pos_m"], rel=1e-7, abs=1e-12) for s in logged]
+        assert replayed == [list(s["pos_m"]) for s in logged]
     assert [p["tick"] for _t, p in clocks] == sorted({s["tick"] for s in logged_states})
 
     # Timing: clock inter-arrival ≈ 50 ms / speed, whole replay ≈ 3 s / speed.

@@ -525,6 +525,8 @@ impl<W: StepObserver> StepObserver for Tee<'_, W> {
 #[derive(Debug, Default)]
 pub struct Recorder {
     log: Option<Logger>,
+    /// The log file's path, kept after a failure (the error message names it).
+    path: Option<std::path::PathBuf>,
     error: Option<(u64, LogError)>,
     stop_on_error: Option<Arc<AtomicBool>>,
     /// The last control step observed.
@@ -535,7 +537,8 @@ impl Recorder {
     /// Records into `log`, if any. With `stop_on_error`, a log error sets that flag (and
     /// [`Flight::step`] refuses further steps).
     pub fn new(log: Option<Logger>, stop_on_error: Option<Arc<AtomicBool>>) -> Self {
-        Self { log, error: None, stop_on_error, tick: 0 }
+        let path = log.as_ref().filter(|l| l.has_file()).map(|l| l.path().to_owned());
+        Self { log, path, error: None, stop_on_error, tick: 0 }
     }
 
     /// Whether it logs (a file or the live view).
@@ -543,9 +546,9 @@ impl Recorder {
         self.log.is_some()
     }
 
-    /// The log's path, if it writes a file.
+    /// The log's path, if it writes (or wrote, until it failed) a file.
     pub fn path(&self) -> Option<&std::path::Path> {
-        self.log.as_ref().filter(|l| l.has_file()).map(|l| l.path())
+        self.path.as_deref()
     }
 
     /// The first log error and the control step it happened at.

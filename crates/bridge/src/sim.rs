@@ -388,6 +388,7 @@ pub fn run_loop<W: StepObserver>(
             // publisher stopped; then nobody is left to answer and the timeouts count it.
             let _ = tx.blocking_send(flight.initial_frame());
         }
+        ls.started = true;
     }
     let mut start = Instant::now();
     for k in 0..opts.ticks {
@@ -475,8 +476,12 @@ fn route<W: StepObserver>(flight: &mut Flight<W>, lockstep: Option<&mut Lockstep
 #[derive(Debug)]
 struct Lockstep {
     opts: LockstepOptions,
-    /// Controller (client name) by copter id: the copters the loop waits for.
-    controllers: BTreeMap<usize, String>,
+    /// Controller (client name) by copter id, and the first tick it must answer: the copters
+    /// the loop waits for.
+    controllers: BTreeMap<usize, (String, u64)>,
+    /// Whether the first state (tick 0) has gone out: a claim made later is waited for from
+    /// the next tick on, the first state its controller is sure to see.
+    started: bool,
     /// Copters whose controller answered the current tick.
     answered: std::collections::BTreeSet<usize>,
     /// The tick `answered` is for.
@@ -489,6 +494,7 @@ impl Lockstep {
         Self {
             opts,
             controllers: BTreeMap::new(),
+            started: false,
             answered: Default::default(),
             tick: 0,
             stats: LockstepStats::default(),
@@ -509,8 +515,9 @@ impl Lockstep {
                 let world = flight.world();
                 // Twins are paced by their real copters, never held by the lockstep.
                 if let Some(id) = world.copter_id(copter).filter(|&id| world.copters[id].kind == CopterKind::Virtual) {
+                    let from = if self.started { tick + 1 } else { 0 };
                     match client {
-                        Some(c) => self.controllers.insert(id, c.clone()),
+                        Some(c) => self.controllers.insert(id, (c.clone(), from)),
                         None => self.controllers.remove(&id),
                     };
                 }
@@ -543,8 +550,15 @@ impl Lockstep {
         }
     }
 
+    /// The controllers that owe an answer for the current tick and have not given it.
+    fn silent(&self) -> impl Iterator<Item = (usize, &str)> {
+        (self.controllers.iter())
+            .filter(|(id, (_, from))| *from <= self.tick && !self.answered.contains(id))
+            .map(|(&id, (client, _))| (id, client.as_str()))
+    }
+
     fn all_answered(&self) -> bool {
-        self.controllers.keys().all(|id| self.answered.contains(id))
+        self.silent().next().is_none()
     }
 
     /// Holds the first step until the copters of `wait_claims` have controllers.
@@ -560,7 +574,7 @@ impl Lockstep {
             ls.opts.wait_claims.iter().filter(|n| !claimed(n)).cloned().collect()
         };
         let mut told = false;
-        while !missing(self, flight).is_empty() && !stop.load(Ordering::Relaxed) {
+        while !missing(self, flight).is_empty() && !stop.load(Ordering::Relaxed) && !flight.stats().stopped_early {
             if !told {
                 tracing::info!("lockstep: waiting for claims on {}", missing(self, flight).join(", "));
                 told = true;
@@ -588,26 +602,28 @@ impl Lockstep {
         if self.all_answered() {
             return;
         }
+        let stopped = |f: &Flight<W>| stop.load(Ordering::Relaxed) || f.stats().stopped_early;
+        if stopped(flight) {
+            return;
+        }
         self.stats.steps_held += 1;
         let began = Instant::now();
         let deadline = began + self.opts.timeout;
-        while !self.all_answered() && !stop.load(Ordering::Relaxed) {
-            // Short slices, so that a stop signal is seen.
-            let left = deadline.saturating_duration_since(Instant::now()).min(Duration::from_millis(100));
-            match requests.recv_timeout(left) {
-                Ok(r) => route(flight, Some(self), r),
-                Err(RecvTimeoutError::Timeout) if Instant::now() < deadline => {}
-                Err(RecvTimeoutError::Timeout) => {
-                    let silent: Vec<(usize, String)> = (self.controllers.iter())
-                        .filter(|(id, _)| !self.answered.contains(id))
-                        .map(|(&id, c)| (id, c.clone()))
-                        .collect();
-                    for (id, client) in silent {
-                        *self.stats.timeouts.entry(client.clone()).or_default() += 1;
-                        flight.lockstep_timeout(id, &client);
-                    }
-                    break;
+        while !self.all_answered() && !stopped(flight) {
+            // The deadline holds even while other traffic keeps the queue busy.
+            let now = Instant::now();
+            if now >= deadline {
+                let silent: Vec<(usize, String)> = self.silent().map(|(id, c)| (id, c.to_owned())).collect();
+                for (id, client) in silent {
+                    *self.stats.timeouts.entry(client.clone()).or_default() += 1;
+                    flight.lockstep_timeout(id, &client);
                 }
+                break;
+            }
+            // Short slices, so that a stop signal is seen.
+            match requests.recv_timeout((deadline - now).min(Duration::from_millis(100))) {
+                Ok(r) => route(flight, Some(self), r),
+                Err(RecvTimeoutError::Timeout) => {}
                 Err(RecvTimeoutError::Disconnected) => break,
             }
         }

@@ -98,7 +98,9 @@ fn start_recorder(
             )
         }
     };
-    Ok(Recorder::new(logger, None))
+    // A log error stops the Sim (its next `step` raises it), as `run --on-log-error stop` does.
+    let stop = logger.is_some().then(|| Arc::new(std::sync::atomic::AtomicBool::new(false)));
+    Ok(Recorder::new(logger, stop))
 }
 
 fn new_flight(world: World, recorder: Recorder) -> Flight {
@@ -139,6 +141,7 @@ impl Sim {
         let recorder = std::mem::take(&mut self.flight_mut().recorder);
         let (log, error) = recorder.into_parts();
         self.live = None;
+        self.recording = false;
         if let Some(l) = log {
             l.finish().map_err(|e| format!("finishing the log: {e}"))?;
         }
@@ -191,8 +194,14 @@ impl Sim {
                     },
                     other => return Err(bad(format!("unknown command kind {other:?}"))),
                 };
-                cmd.validate(world)
-                    .map_err(|e| bad(format!("command({kind:?}): row {row} (copter {id}, {name:?}): {e}")))?;
+                cmd.validate(world).map_err(|e| {
+                    // The attitude kind's fourth column is `thrust` (the bus calls it throttle).
+                    let e = match kind {
+                        "attitude" => e.to_string().replace("`throttle`", "`thrust`"),
+                        _ => e.to_string(),
+                    };
+                    bad(format!("command({kind:?}): row {row} (copter {id}, {name:?}): {e}"))
+                })?;
                 Ok(cmd)
             })
             .collect()
@@ -317,7 +326,7 @@ impl Sim {
         }
         let n = self.world().copters.len();
         if let Some(&id) = ids.iter().find(|&&id| id >= n) {
-            return Err(bad(format!("command({kind:?}): no copter with id {id} (ids are 0 to {})", n - 1)));
+            return Err(bad(format!("command({kind:?}): no copter with id {id} (the swarm has {n})")));
         }
         let values: Vec<f64> =
             rows.chunks_exact(8).map(|b| f64::from_le_bytes(b.try_into().expect("8 bytes"))).collect();
@@ -337,11 +346,12 @@ impl Sim {
         let modes = match modes.len() {
             // One mode for every copter of `ids`.
             1 => vec![modes[0].clone(); ids.len()],
-            _ => modes,
+            k if k == ids.len() => modes,
+            k => return Err(bad(format!("command('mode'): {k} modes for {} copters", ids.len()))),
         };
         for (row, (mode, &id)) in modes.iter().zip(&ids).enumerate() {
             if id >= n {
-                return Err(bad(format!("command('mode'): no copter with id {id} (ids are 0 to {})", n - 1)));
+                return Err(bad(format!("command('mode'): no copter with id {id} (the swarm has {n})")));
             }
             let parsed: FlightMode = serde_json::from_value(serde_json::Value::String(mode.clone())).map_err(|_| {
                 bad(format!(
