@@ -28,6 +28,7 @@ from twinswarm.pettingzoo_env import parallel_env
 from pettingzoo.utils.wrappers import BaseParallelWrapper
 from stable_baselines3 import PPO
 from stable_baselines3.common.callbacks import BaseCallback
+from stable_baselines3.common.utils import set_random_seed
 from stable_baselines3.common.vec_env import VecEnv, VecMonitor
 
 
@@ -166,7 +167,10 @@ def train_swarm(args):
             BlackDeath(parallel_env(task=args.task, max_steps=args.max_steps, seed=args.seed + k)))
 
     venv = VecMonitor(SB3VecEnvWrapper(ConcatVecEnv([copy_fn(k) for k in range(args.copies)])))
-    model = PPO("MlpPolicy", venv, n_steps=256, batch_size=256, gamma=0.98, seed=args.seed, verbose=1)
+    # SuperSuit's ConcatVecEnv has no `seed()`, which PPO(seed=...) calls: the copies are
+    # seeded at construction above; torch and numpy here.
+    set_random_seed(args.seed)
+    model = PPO("MlpPolicy", venv, n_steps=256, batch_size=256, gamma=0.98, verbose=1)
     model.learn(total_timesteps=args.steps, callback=Curve(args.curve))
     model.save(args.out)
     env = parallel_env(task=args.task, max_steps=args.max_steps)
