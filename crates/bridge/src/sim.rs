@@ -506,10 +506,7 @@ impl Lockstep {
     /// comes back as [`Request::Rejected`], for the log).
     fn sort<W: StepObserver>(&mut self, flight: &Flight<W>, r: Request) -> Option<Request> {
         let tick = flight.state().tick;
-        if tick != self.tick {
-            self.tick = tick;
-            self.answered.clear();
-        }
+        self.at(tick);
         match r {
             Request::Controller { ref copter, ref client, .. } => {
                 let world = flight.world();
@@ -547,6 +544,14 @@ impl Lockstep {
                 }
             }
             r => Some(r),
+        }
+    }
+
+    /// The answers so far are for `tick`: a new tick starts with none.
+    fn at(&mut self, tick: u64) {
+        if tick != self.tick {
+            self.tick = tick;
+            self.answered.clear();
         }
     }
 
@@ -595,10 +600,7 @@ impl Lockstep {
         requests: &Receiver<Request>,
         stop: &AtomicBool,
     ) {
-        if self.tick != flight.state().tick {
-            self.tick = flight.state().tick;
-            self.answered.clear();
-        }
+        self.at(flight.state().tick);
         if self.all_answered() {
             return;
         }

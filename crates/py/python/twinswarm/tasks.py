@@ -36,12 +36,9 @@ from typing import Any, Callable, Mapping, Sequence
 
 import numpy as np
 
-# Column order of `Sim.truth()` and `Sim.sensors()` (twinswarm.TRUTH_COLUMNS, SENSOR_COLUMNS).
-TRUTH_COLUMNS = ("x", "y", "z", "vx", "vy", "vz", "qx", "qy", "qz", "qw", "wx", "wy", "wz", "crashed")
-SENSOR_COLUMNS = (
-    "sonar_front", "sonar_right", "sonar_back", "sonar_left", "ir", "roll", "pitch", "yaw",
-    "p", "q", "r", "ax", "ay", "az", "height_est", "battery_v", "battery_charge",
-)
+# Column order of `Sim.truth()` and `Sim.sensors()`: the package's own definitions.
+from twinswarm import SENSOR_COLUMNS, TRUTH_COLUMNS
+
 _T = {name: i for i, name in enumerate(TRUTH_COLUMNS)}
 _S = {name: i for i, name in enumerate(SENSOR_COLUMNS)}
 
