@@ -82,6 +82,13 @@ pub struct AirframeSpec {
     pub particle_noise: ParticleNoise,
     /// Standard deviation of each rotor's seeded manufacturing tolerance, relative (0.02 = 2 %).
     pub rotor_tolerance_sigma: Real,
+    /// Standard deviation of each copter's IMU mounting error (roll and pitch), deg.
+    pub imu_mount_sigma_deg: Real,
+    /// Whether the lab's procedure has trimmed the copter: the IMU calibration (the copter set
+    /// level, the accelerometer's reading taken as level) cancels the mounting error, and the
+    /// roll and pitch trims cancel the torque of the rotors' tolerances at hover. What is left
+    /// is the AHRS's wandering bias (`[sensors.estimator]`).
+    pub trimmed: bool,
     /// Roll and pitch attitude PID.
     pub roll_pitch_pid: PidGains,
     /// Yaw attitude PID.
@@ -132,6 +139,8 @@ impl Default for AirframeSpec {
             particle_rate_hover_hz: 430.0,
             particle_noise: ParticleNoise::Dither,
             rotor_tolerance_sigma: 0.02,
+            imu_mount_sigma_deg: 0.5,
+            trimmed: true,
             // The real FINken's Paparazzi gains (PHI_PGAIN 650, PHI_DGAIN 300, IGAIN 0) in SI
             // units; see docs/model.md for the conversion and why the report's are not used.
             roll_pitch_pid: PidGains { kp: 280.0, ki: 0.0, kd: 65.0 },
@@ -325,7 +334,8 @@ impl AirframeSpec {
             ("throttle_curve_b", self.throttle_curve_b),
             ("crash_impact_speed_m_s", self.crash_impact_speed_m_s),
         ];
-        let non_negative: [(&'static str, Real); 14] = [
+        let non_negative: [(&'static str, Real); 15] = [
+            ("imu_mount_sigma_deg", self.imu_mount_sigma_deg),
             ("attitude_ref_omega_rad_s", self.attitude_ref_omega_rad_s),
             ("attitude_ref_zeta", self.attitude_ref_zeta),
             ("height_ki_n_per_m_s", self.height_ki_n_per_m_s),

@@ -299,54 +299,177 @@ pub fn attitude_torque(
     Vec3::new(ix * ax, iy * ay, iz * az)
 }
 
+/// Which Wall-Avoid controller a copter flies.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum WallAvoidController {
+    /// The FINken firmware's (`finken_wall_avoid` with `finken_sonar_filter`): per axis, the
+    /// difference of opposite sonars clamped at the goal distance, through a lead-lag at 5 Hz.
+    #[default]
+    Firmware,
+    /// A PD on each sonar's intrusion into the safety distance, every sonar update (the
+    /// simulator's own controller before the firmware was ported).
+    Pd,
+}
+
 /// Parameters of the Wall-Avoid behaviour.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
 pub struct WallAvoidSpec {
-    /// Objects closer than this repel the copter, m.
+    /// Which controller.
+    pub controller: WallAvoidController,
+    /// Objects closer than this repel the copter, m (the firmware's `SONAR_DIFF_GOAL_DIST`).
     pub safety_distance_m: Real,
-    /// Tilt per metre of intrusion into the safety distance, deg/m.
+    /// Firmware: readings are clamped to `[filter_min_m, filter_max_m]` before averaging, m.
+    pub filter_min_m: Real,
+    /// Firmware: the upper clamp, m.
+    pub filter_max_m: Real,
+    /// Firmware: each sonar's moving average spans this many of its readings.
+    pub filter_len: u32,
+    /// Firmware: the lead-lag's gain Kp, deg per m.
+    pub gain_deg_per_m: Real,
+    /// Firmware: the lead time Tv, s.
+    pub hold_time_s: Real,
+    /// Firmware: the lag time T1, s.
+    pub delay_time_s: Real,
+    /// Firmware: the controller's rate, Hz (Tustin-discretised at this rate).
+    pub update_hz: Real,
+    /// Firmware: the lead-lag's output is capped at ± this, deg.
+    pub max_control_deg: Real,
+    /// Firmware: a pilot (velocity) input towards an obstacle is scaled down linearly to zero
+    /// between the safety distance and this distance, m.
+    pub guard_distance_m: Real,
+    /// PD: tilt per metre of intrusion into the safety distance, deg/m.
     pub kp_deg_per_m: Real,
-    /// Tilt per m/s of approach speed (from the filtered sonar rate), deg/(m/s).
+    /// PD: tilt per m/s of approach speed (from the filtered sonar rate), deg/(m/s).
     pub kd_deg_s_per_m: Real,
-    /// Largest tilt Wall-Avoid commands, deg.
+    /// PD: largest tilt it commands, deg.
     pub max_tilt_deg: Real,
-    /// Time constant of the low-pass on sonar rates, s.
+    /// PD: time constant of the low-pass on sonar rates, s.
     pub rate_filter_s: Real,
 }
 
-/// Defaults, tuned on the lab scene (4 m × 3 m, σ = 5 cm sonar noise, linear damping 0.3,
-/// open-loop tilt):
+/// Defaults. The firmware's are the FINken fork's (`docs/model.md` §7 cites file and commit).
+/// The PD's were tuned on the lab scene (4 m × 3 m, σ = 5 cm sonar noise, linear damping 0.3,
+/// open-loop tilt, all four sonars every 50 ms):
 /// - `kp` 5°/m and `kd` 5°/(m/s) give the wall-approach dynamics `ẍ = g (kp e + kd ė) − 0.3 ẋ`
-///   a natural frequency `√(g kp) ≈ 0.93 rad/s` and damping ratio `(g kd + 0.3) / 2ω ≈ 0.62`:
-///   the copter is pushed out of the safety distance with little overshoot and leaves it slowly
-///   (typical speeds 0.1 m/s rms), which keeps copter-copter contacts, only seen inside the
-///   30° cones, below the 0.6 m/s crash speed;
+///   a natural frequency `√(g kp) ≈ 0.93 rad/s` and damping ratio `(g kd + 0.3) / 2ω ≈ 0.62`;
 /// - the rate filter (0.15 s) keeps the derivative noise from σ = 5 cm readings at 20 Hz near
 ///   0.27 m/s (1.3° of tilt) while still braking within a few readings;
-/// - `max_tilt` 10° (1.7 m/s² of braking) bounds what the PD can command. The proportional part
-///   reaches it only for readings near the minimum range; reading jumps (an object at the edge
-///   of a cone, a cross-talk echo) drive the derivative part to it for a step or two. That is
-///   the original controller's weakness the paper (VII-D) reports: with cross-talk on, the
-///   false near echoes kick the copters into the walls.
+/// - `max_tilt` 10° (1.7 m/s² of braking) bounds what the PD can command.
 impl Default for WallAvoidSpec {
     fn default() -> Self {
-        Self { safety_distance_m: 1.2, kp_deg_per_m: 5.0, kd_deg_s_per_m: 5.0, max_tilt_deg: 10.0, rate_filter_s: 0.15 }
+        Self {
+            controller: WallAvoidController::Firmware,
+            safety_distance_m: 1.2,
+            filter_min_m: 0.2,
+            filter_max_m: 3.0,
+            filter_len: 3,
+            gain_deg_per_m: 3.65,
+            hold_time_s: 2.29,
+            delay_time_s: 0.213,
+            update_hz: 5.0,
+            max_control_deg: 8.0,
+            guard_distance_m: 0.7,
+            kp_deg_per_m: 5.0,
+            kd_deg_s_per_m: 5.0,
+            max_tilt_deg: 10.0,
+            rate_filter_s: 0.15,
+        }
     }
 }
 
-/// Memory of the Wall-Avoid PD: the last fused readings and their filtered rates.
+/// Longest moving average the firmware's sonar filter keeps.
+pub const SONAR_FILTER_MAX_LEN: usize = 8;
+
+/// Memory of Wall-Avoid: the firmware's sonar filter and lead-lag, or the PD's last readings
+/// and filtered rates.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Serialize, Deserialize)]
 pub struct WallAvoidState {
-    /// Last fused sonar readings (front, right, back, left), m; 0 before the first.
+    /// PD: last fused sonar readings (front, right, back, left), m; 0 before the first.
     pub last_m: [Real; 4],
-    /// Low-passed rate of each reading, m/s.
+    /// PD: low-passed rate of each reading, m/s.
     pub rate_m_s: [Real; 4],
-    /// The PD outputs of the last step (pitch, roll), rad: the FINKEN_WALL_AVOID fields.
+    /// The controller's outputs of the last update (pitch, roll), rad: the FINKEN_WALL_AVOID
+    /// fields.
     pub out_rad: [Real; 2],
+    /// Firmware: each sonar's last clamped readings (a ring), m.
+    #[serde(default)]
+    pub history_m: [[Real; SONAR_FILTER_MAX_LEN]; 4],
+    /// Firmware: how many readings each ring holds.
+    #[serde(default)]
+    pub history_len: [u8; 4],
+    /// Firmware: where each ring writes next.
+    #[serde(default)]
+    pub history_at: [u8; 4],
+    /// Firmware: the filtered distances (front, right, back, left), m: `distance_d_*`.
+    #[serde(default)]
+    pub filtered_m: [Real; 4],
+    /// Firmware: `distance_diff_x`, `distance_diff_y`, m.
+    #[serde(default)]
+    pub diff_m: [Real; 2],
+    /// Firmware: the lead-lag's last input (x, y), m.
+    #[serde(default)]
+    pub error_k1_m: [Real; 2],
+    /// Firmware: the lead-lag's last output (x, y), deg.
+    #[serde(default)]
+    pub out_k1_deg: [Real; 2],
 }
 
-/// Wall-Avoid: pitch from front/back, roll from left/right, a PD on how far each sonar
+impl WallAvoidState {
+    /// The firmware's sonar filter (`finken_sonar_filter`): a new reading of sonar `k`,
+    /// clamped to `[filter_min_m, filter_max_m]`, enters that sonar's moving average; the
+    /// per-axis differences follow: `x = min(back, G) − min(front, G)`,
+    /// `y = min(right, G) − min(left, G)` with G the goal (safety) distance.
+    pub fn filter(&mut self, spec: &WallAvoidSpec, k: usize, reading_m: Real) {
+        let len = (spec.filter_len as usize).clamp(1, SONAR_FILTER_MAX_LEN);
+        let at = self.history_at[k] as usize % len;
+        self.history_m[k][at] = reading_m.clamp(spec.filter_min_m, spec.filter_max_m);
+        self.history_at[k] = ((at + 1) % len) as u8;
+        self.history_len[k] = (self.history_len[k] as usize + 1).min(len) as u8;
+        let n = self.history_len[k] as usize;
+        self.filtered_m[k] = self.history_m[k][..n].iter().sum::<Real>() / n as Real;
+        let g = spec.safety_distance_m;
+        let [front, right, back, left] = self.filtered_m.map(|d| d.min(g));
+        self.diff_m = [back - front, right - left];
+    }
+
+    /// Whether every sonar has been read at least once.
+    pub fn filter_ready(&self) -> bool {
+        self.history_len.iter().all(|&n| n > 0)
+    }
+}
+
+/// The firmware's Wall-Avoid (`finken_wall_avoid`), one update at `spec.update_hz`: per axis
+/// the lead-lag `Kp (1 + Tv s) / (1 + T1 s)`, Tustin-discretised, on the filtered difference
+/// of opposite sonars, capped at `max_control_deg`. Returns (pitch, roll), rad, in this
+/// crate's convention (pitch > 0 flies forward, roll > 0 flies right): a wall ahead makes
+/// `x > 0`, the firmware's pitch up, here a negative pitch.
+pub fn wall_avoid_firmware(spec: &WallAvoidSpec, st: &mut WallAvoidState) -> (Real, Real) {
+    let t = 1.0 / spec.update_hz;
+    let (t1, tv, kp) = (spec.delay_time_s, spec.hold_time_s, spec.gain_deg_per_m);
+    let a0 = (t - 2.0 * t1) / (t + 2.0 * t1);
+    let b0 = kp * (t - 2.0 * tv) / (t + 2.0 * t1);
+    let b1 = kp * (t + 2.0 * tv) / (t + 2.0 * t1);
+    let max = spec.max_control_deg;
+    for axis in 0..2 {
+        let e = st.diff_m[axis];
+        let u = (-a0 * st.out_k1_deg[axis] + b1 * e + b0 * st.error_k1_m[axis]).clamp(-max, max);
+        st.out_k1_deg[axis] = u;
+        st.error_k1_m[axis] = e;
+    }
+    st.out_rad = [-st.out_k1_deg[0].to_radians(), st.out_k1_deg[1].to_radians()];
+    (st.out_rad[0], st.out_rad[1])
+}
+
+/// The firmware's scaling of a pilot input towards an obstacle: 1 beyond the safety distance,
+/// down to 0 at the guard distance, for the filtered distance `d` on that side.
+pub fn pilot_scale(spec: &WallAvoidSpec, d: Real) -> Real {
+    let span = (spec.safety_distance_m - spec.guard_distance_m).max(1e-3);
+    ((d - spec.guard_distance_m) / span).clamp(0.0, 1.0)
+}
+
+/// Wall-Avoid's PD: pitch from front/back, roll from left/right, a PD on how far each sonar
 /// reading intrudes into the safety distance. Uses only the copter's fused (noisy) sonar
 /// readings, never ground truth. Returns (pitch, roll) in rad, or `None` when all is safe.
 pub fn wall_avoid(spec: &WallAvoidSpec, st: &mut WallAvoidState, sonar_m: [Real; 4], dt: Real) -> Option<(Real, Real)> {
@@ -454,5 +577,44 @@ mod tests {
         let (pitch, roll) = wall_avoid(&spec, &mut st, [3.0, 3.0, 3.0, 0.5], 0.05).unwrap();
         assert!(pitch == 0.0 && roll > 0.0);
         assert!(wall_avoid(&spec, &mut WallAvoidState::default(), [3.0; 4], 0.05).is_none());
+    }
+
+    #[test]
+    fn the_firmware_filter_clamps_averages_and_differences_opposite_sonars() {
+        let spec = WallAvoidSpec::default();
+        let mut st = WallAvoidState::default();
+        for (k, d) in [(0, 0.5), (1, 7.65), (2, 0.1), (3, 2.0)] {
+            st.filter(&spec, k, d);
+        }
+        assert!(st.filter_ready());
+        assert_eq!(st.filtered_m, [0.5, 3.0, 0.2, 2.0], "clamped to 0.2–3.0");
+        assert!((st.diff_m[0] - (0.2 - 0.5)).abs() < 1e-6 && (st.diff_m[1] - 0.0).abs() < 1e-6, "{:?}", st.diff_m);
+        for d in [0.8, 1.1, 1.4] {
+            st.filter(&spec, 0, d);
+        }
+        assert!((st.filtered_m[0] - (0.8 + 1.1 + 1.4) / 3.0).abs() < 1e-6, "the last three: {}", st.filtered_m[0]);
+    }
+
+    #[test]
+    fn the_firmware_lead_lag_matches_its_continuous_form_and_backs_off_from_walls() {
+        let spec = WallAvoidSpec::default();
+        // A step of the error: the Tustin lead-lag starts at Kp (T + 2 Tv) / (T + 2 T1) and
+        // settles at the DC gain Kp.
+        let mut st = WallAvoidState { diff_m: [0.1, -0.1], ..WallAvoidState::default() };
+        let (pitch, roll) = wall_avoid_firmware(&spec, &mut st);
+        let first = 3.65 * (0.2 + 2.0 * 2.29) / (0.2 + 2.0 * 0.213) * 0.1;
+        assert!((st.out_k1_deg[0] - first).abs() < 1e-4, "{} vs {first}", st.out_k1_deg[0]);
+        assert!(pitch < 0.0, "a wall ahead (x > 0) backs off: {pitch}");
+        assert!(roll < 0.0, "a wall right (y < 0) moves left: {roll}");
+        for _ in 0..200 {
+            wall_avoid_firmware(&spec, &mut st);
+        }
+        assert!((st.out_k1_deg[0] - 0.365).abs() < 1e-4, "DC gain Kp: {}", st.out_k1_deg[0]);
+        st.diff_m = [2.0, 0.0];
+        wall_avoid_firmware(&spec, &mut st);
+        assert_eq!(st.out_k1_deg[0], 8.0, "capped at 8°");
+        assert_eq!(pilot_scale(&spec, 1.5), 1.0);
+        assert_eq!(pilot_scale(&spec, 0.5), 0.0);
+        assert!((pilot_scale(&spec, 0.95) - 0.5).abs() < 1e-5);
     }
 }

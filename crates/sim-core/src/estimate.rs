@@ -59,7 +59,7 @@ impl Default for EstimatorSpec {
             height_beta: 0.1,
             fallback_leak_s: 1.0,
             ahrs_lag_s: 0.005,
-            attitude_bias_deg: 0.25,
+            attitude_bias_deg: 0.15,
             attitude_bias_time_s: 20.0,
             gyro_bias_deg_s: 0.2,
             thrust_adapt_time_s: 1.0,
@@ -121,6 +121,9 @@ pub struct Estimate {
     pub attitude_bias_rad: [Real; 2],
     /// This copter's residual gyro bias, rad/s.
     pub gyro_bias_rad_s: [Real; 3],
+    /// The IMU's mounting error left by an uncalibrated copter (roll, pitch), rad.
+    #[serde(default)]
+    pub mount_offset_rad: [Real; 2],
     /// Measured over commanded thrust, low-passed (1 = as calibrated).
     pub thrust_gain: Real,
     /// Sum of the collective commanded in this control step's physics steps, N.
@@ -149,6 +152,7 @@ impl Estimate {
             rate_lag_rad_s: [0.0; 3],
             attitude_bias_rad: [0.0; 2],
             gyro_bias_rad_s,
+            mount_offset_rad: [0.0; 2],
             thrust_gain: 1.0,
             collective_sum_n: 0.0,
             collective_steps: 0,
@@ -172,8 +176,8 @@ impl Estimate {
         rate_sigma: Real,
         rng: Option<&mut Rng32>,
     ) {
-        let target =
-            [rpy_rad[0] + self.attitude_bias_rad[0], rpy_rad[1] + self.attitude_bias_rad[1], rpy_rad[2] + yaw_bias_rad];
+        let (b, m) = (self.attitude_bias_rad, self.mount_offset_rad);
+        let target = [rpy_rad[0] + b[0] + m[0], rpy_rad[1] + b[1] + m[1], rpy_rad[2] + yaw_bias_rad];
         for k in 0..3 {
             let lag = &mut self.attitude_lag_rad[k];
             *lag = wrap_angle_rad(*lag + alpha * wrap_angle_rad(target[k] - *lag));

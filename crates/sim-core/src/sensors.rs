@@ -32,6 +32,19 @@ pub enum CrosstalkPhase {
     FreeRunning,
 }
 
+/// Which sonars a sonar update reads.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum SonarSchedule {
+    /// The FINken firmware's (`sonar_array_i2c`): one sonar per update, round robin (front,
+    /// right, back, left), so each is read every fourth update. Use it with cross-talk
+    /// `cycle_s = 0.2` and crystal-close `cycle_spread = 0.00005`.
+    RoundRobin,
+    /// All four at every update (free-running sonars).
+    #[default]
+    Together,
+}
+
 /// `[sensors.sonar]`.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
@@ -50,8 +63,10 @@ pub struct SonarSpec {
     pub quantum_m: Real,
     /// Distance of each sonar from the centre of the body, m.
     pub mount_offset_m: Real,
-    /// A new reading every this many control steps.
+    /// A sonar update every this many control steps.
     pub period_steps: u32,
+    /// Which sonars an update reads.
+    pub schedule: SonarSchedule,
     /// Whether the floor and the ceiling echo when they lie inside a cone.
     pub floor_echo: bool,
 }
@@ -67,6 +82,7 @@ impl Default for SonarSpec {
             quantum_m: 0.01,
             mount_offset_m: 0.05,
             period_steps: 1,
+            schedule: SonarSchedule::Together,
             floor_echo: true,
         }
     }
@@ -102,6 +118,10 @@ pub struct ImuSpec {
     pub yaw_noise_deg: Real,
     /// Random walk of the yaw bias, deg per √s.
     pub yaw_bias_walk_deg_per_sqrt_s: Real,
+    /// The yaw bias reverts to zero with this time constant, s: the AHRS pulls its heading
+    /// back to the magnetometer's (a Gauss–Markov process; its spread is
+    /// `walk · √(time / 2)`). 0: an unbounded random walk.
+    pub yaw_bias_time_s: Real,
     /// Gyro noise, deg/s.
     pub rate_noise_deg_s: Real,
     /// Accelerometer noise, m/s².
@@ -114,6 +134,8 @@ impl Default for ImuSpec {
             attitude_noise_deg: 0.5,
             yaw_noise_deg: 2.0,
             yaw_bias_walk_deg_per_sqrt_s: 0.5,
+            // Paparazzi's AHRS_MAG_OMEGA 0.04 rad/s, ζ 0.9: 1 / (ζ ω) = 27.8 s.
+            yaw_bias_time_s: 27.8,
             rate_noise_deg_s: 0.5,
             accel_noise_m_s2: 0.05,
         }
@@ -130,16 +152,13 @@ pub struct CrosstalkSpec {
     pub enabled: bool,
     /// How pings are timed.
     pub phase: CrosstalkPhase,
-    /// Nominal ranging cycle of a free-running sonar, s (MB1232: 49 ms).
+    /// Nominal ping cycle of each sonar, s: with the firmware's round robin one sonar per
+    /// 50 ms tick, 0.2 s; free-running sonars pinging together, 0.049 s.
     pub cycle_s: Real,
     /// Standard deviation of each copter's cycle, relative (its oscillator's tolerance).
     pub cycle_spread: Real,
     /// Speed of sound, m/s.
     pub speed_of_sound_m_s: Real,
-    /// The FINken firmware's schedule instead of four sonars pinging together: one sonar per
-    /// quarter cycle, round robin (front, right, back, left), each every `cycle_s` (the
-    /// firmware's 50 ms tick gives `cycle_s = 0.2`).
-    pub round_robin: bool,
 }
 
 impl Default for CrosstalkSpec {
@@ -150,7 +169,6 @@ impl Default for CrosstalkSpec {
             cycle_s: 0.049,
             cycle_spread: 0.002,
             speed_of_sound_m_s: 343.0,
-            round_robin: false,
         }
     }
 }
@@ -267,6 +285,7 @@ impl SensorSpec {
             ("attitude_noise_deg", imu.attitude_noise_deg),
             ("yaw_noise_deg", imu.yaw_noise_deg),
             ("yaw_bias_walk_deg_per_sqrt_s", imu.yaw_bias_walk_deg_per_sqrt_s),
+            ("yaw_bias_time_s", imu.yaw_bias_time_s),
             ("rate_noise_deg_s", imu.rate_noise_deg_s),
             ("accel_noise_m_s2", imu.accel_noise_m_s2),
         ] {
@@ -287,7 +306,28 @@ impl SensorSpec {
         est_path.0.push(PathSeg::Key("estimator".into()));
         self.estimator.validate(&est_path)?;
         let w = &self.wall_avoid;
+        if !(w.filter_max_m > w.filter_min_m && w.filter_max_m.is_finite()) {
+            let msg = format!("must be finite and above filter_min_m = {}, got {}", w.filter_min_m, w.filter_max_m);
+            return Err(err("wall_avoid", "filter_max_m", msg));
+        }
         for (field, v) in [
+            ("gain_deg_per_m", w.gain_deg_per_m),
+            ("delay_time_s", w.delay_time_s),
+            ("hold_time_s", w.hold_time_s),
+            ("update_hz", w.update_hz),
+            ("max_control_deg", w.max_control_deg),
+        ] {
+            if !v.is_finite() || v <= 0.0 {
+                return Err(err("wall_avoid", field, format!("must be positive and finite, got {v}")));
+            }
+        }
+        if !(1..=crate::control::SONAR_FILTER_MAX_LEN as u32).contains(&w.filter_len) {
+            let max = crate::control::SONAR_FILTER_MAX_LEN;
+            return Err(err("wall_avoid", "filter_len", format!("must be 1 to {max}, got {}", w.filter_len)));
+        }
+        for (field, v) in [
+            ("filter_min_m", w.filter_min_m),
+            ("guard_distance_m", w.guard_distance_m),
             ("safety_distance_m", w.safety_distance_m),
             ("kp_deg_per_m", w.kp_deg_per_m),
             ("kd_deg_s_per_m", w.kd_deg_s_per_m),

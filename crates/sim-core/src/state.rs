@@ -90,6 +90,10 @@ pub struct CopterState {
     pub collider: ColliderHandle,
     /// Seeded manufacturing tolerance of each rotor's thrust (1 = nominal; always 1 for twins).
     pub rotor_tolerance: [Real; 4],
+    /// The trim: a constant body torque (roll, pitch) that cancels the rotors' tolerances at
+    /// hover, N·m (0 when untrimmed, and for twins).
+    #[serde(default)]
+    pub trim_torque_n_m: [Real; 2],
     /// Rotor speeds, rad/s.
     pub rotor_speed_rad_s: [Real; 4],
     /// Rotor thrusts applied in the last physics step, N.
@@ -167,6 +171,26 @@ pub(crate) mod crash_snapshot {
     }
 }
 
+/// The roll and pitch trim of a copter whose rotors make `tolerance` times their nominal
+/// thrust: the body torque command that levels it at hover, in commands at a thrust gain of 1
+/// (the inner loop divides it by the current gain), N·m. Found as a lab trims by flying: the
+/// command is corrected by the torque the rotors then actually make until that is zero (the
+/// mixer's own response to the trim goes through the tolerant rotors too).
+pub fn trim_torque(af: &crate::airframe::Airframe, tolerance: [Real; 4]) -> [Real; 2] {
+    let mean = tolerance.iter().sum::<Real>() / 4.0;
+    let collective = 4.0 * af.hover_thrust_per_rotor_n / mean;
+    let mut trim = Vec3::ZERO;
+    for _ in 0..8 {
+        let f = crate::control::mix(af, collective, trim);
+        let mut made = Vec3::ZERO;
+        for ((p, tol), f) in af.rotor_pos_in_body_m.iter().zip(tolerance).zip(f) {
+            made += p.cross(Vec3::new(0.0, 0.0, tol * f));
+        }
+        trim -= Vec3::new(made.x, made.y, 0.0);
+    }
+    [trim.x * mean, trim.y * mean]
+}
+
 impl CopterState {
     /// FNV-1a over the bits of its motion, rotor speeds, battery charge, crash and the next
     /// draw of its random stream: two runs whose copters have equal digests flew the same bits.
@@ -222,11 +246,23 @@ impl CopterState {
                 (f64::from(rng.uniform()) * cycle, cycle)
             }
         };
-        let estimate = Estimate::new(&world.sensors.spec.estimator, def.start_pos_m.z, def.start_yaw_rad, &mut rng);
+        let mut estimate = Estimate::new(&world.sensors.spec.estimator, def.start_pos_m.z, def.start_yaw_rad, &mut rng);
+        // The IMU's mounting error, drawn whether or not the calibration cancels it (the same
+        // random stream either way).
+        let mount_sigma = af.spec.imu_mount_sigma_deg.to_radians();
+        let mount = [mount_sigma * rng.normal(), mount_sigma * rng.normal()];
+        let twin = world.copters[id].kind == crate::CopterKind::Real;
+        let (trim_torque_n_m, mount) = if af.spec.trimmed || twin {
+            (if twin { [0.0; 2] } else { trim_torque(af, rotor_tolerance) }, [0.0; 2])
+        } else {
+            ([0.0; 2], mount)
+        };
+        estimate.mount_offset_rad = mount;
         Self {
             body,
             collider,
             rotor_tolerance,
+            trim_torque_n_m,
             rotor_speed_rad_s: [0.0; 4],
             rotor_thrust_n: [0.0; 4],
             pids: [PidState::default(); 3],

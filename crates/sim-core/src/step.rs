@@ -23,11 +23,11 @@ use serde::Serialize;
 
 use crate::airflow::{Wake, ground_effect_ratio};
 use crate::airframe::{Airframe, ParticleNoise, ROTOR_YAW_SIGN};
-use crate::control::{self, Command, FlightMode, Inputs, Setpoint};
+use crate::control::{self, Command, FlightMode, Inputs, Setpoint, WallAvoidController};
 use crate::geometry::OrientedBox;
 use crate::math::{GRAVITY_M_S2, Quat, Real, Vec3, euler_from_quat, wrap_angle_rad};
 use crate::sensors::{
-    self, SensorParams, SonarScene, crosstalk_eligible, crosstalk_reading, sonar_cones, sonar_reading,
+    self, SensorParams, SonarScene, SonarSchedule, crosstalk_eligible, crosstalk_reading, sonar_cones, sonar_reading,
 };
 use crate::shard::{Role, ShardView};
 use crate::state::{CopterState, CrashCause, Lane, Motion, Pinger, State};
@@ -917,7 +917,10 @@ fn inner_loop(
     }
     e.collective_sum_n += collective;
     e.collective_steps += 1;
-    let torque = control::attitude_torque(af, &mut c.pids, &c.setpoint, e.attitude_rad, Vec3::from(e.rate_rad_s), dt);
+    // The trim cancels the rotors' tolerances in thrust actually made; in commands, like the
+    // collective, that is the trim over the thrust gain (a full pack makes more per command).
+    let torque = control::attitude_torque(af, &mut c.pids, &c.setpoint, e.attitude_rad, Vec3::from(e.rate_rad_s), dt)
+        + Vec3::new(c.trim_torque_n_m[0], c.trim_torque_n_m[1], 0.0) / e.thrust_gain;
     let wanted = match c.setpoint.rotors {
         Some(u) => u.map(|u| u * af.max_thrust_per_rotor_n),
         None => control::mix(af, collective, torque),
@@ -1119,49 +1122,14 @@ fn outer_loop(
             }
         }
         FlightMode::WallAvoid => {
-            let spec = &world.sensors.spec.wall_avoid;
-            let fused = c.sensors.sonar_fused_m;
-            // The PD runs on fresh readings only, with the sonar period as its time step;
-            // between sonar updates the last output holds.
-            let period = world.sensors.spec.sonar.period_steps.max(1);
-            let fresh = c.sensors.sonar_tick == tick;
-            let avoid = if !world.sensors.spec.enabled || c.sensors.sonar_fused_m == [0.0; 4] {
-                None
-            } else if fresh {
-                control::wall_avoid(spec, &mut c.wall_avoid, fused, dt * period as Real)
-            } else {
-                (c.wall_avoid.out_rad != [0.0; 2]).then_some((c.wall_avoid.out_rad[0], c.wall_avoid.out_rad[1]))
-            };
-            // The velocity command, open loop: the tilt whose steady state against the linear
-            // damping is v. It is obeyed as long as it keeps a safe distance (paper, III): a
-            // component towards a sonar that sees something inside the safety distance is
-            // dropped, the rest flies, and avoidance adds its push.
-            let (mut pitch, mut roll) = match cmd.velocity_m_s {
-                Some([mut v_fwd, mut v_left]) => {
-                    if avoid.is_some() {
-                        let inside = |k: usize| fused[k] < spec.safety_distance_m;
-                        let [front, right, back, left] = [0, 1, 2, 3];
-                        if (v_fwd > 0.0 && inside(front)) || (v_fwd < 0.0 && inside(back)) {
-                            v_fwd = 0.0;
-                        }
-                        if (v_left > 0.0 && inside(left)) || (v_left < 0.0 && inside(right)) {
-                            v_left = 0.0;
-                        }
-                    }
-                    velocity_tilt(af, [v_fwd, v_left])
-                }
+            let pilot = match cmd.velocity_m_s {
+                Some(v) => velocity_tilt(af, v),
                 None => (sp.pitch_rad, sp.roll_rad),
             };
-            match (avoid, cmd.velocity_m_s) {
-                (Some((p, r)), Some(_)) => {
-                    let max = spec.max_tilt_deg.to_radians();
-                    (pitch, roll) = ((pitch + p).clamp(-max, max), (roll + r).clamp(-max, max));
-                }
-                (Some(avoid), None) => (pitch, roll) = avoid,
-                (None, _) => {}
-            }
-            sp.pitch_rad = pitch;
-            sp.roll_rad = roll;
+            (sp.pitch_rad, sp.roll_rad) = match world.sensors.spec.wall_avoid.controller {
+                WallAvoidController::Firmware => wall_avoid_firmware(world, c, pilot, dt, tick),
+                WallAvoidController::Pd => wall_avoid_pd(world, af, c, cmd, pilot, dt, tick),
+            };
         }
     }
     // A copter holding height on its IR cannot hold one beyond the IR's range: the setpoint
@@ -1171,6 +1139,85 @@ fn outer_loop(
         sp.height_m = sp.height_m.min(est.ir.max_range_m - 0.1);
     }
     sp
+}
+
+/// Wall-Avoid as the FINken firmware flies it: the lead-lag at its own rate on the filtered
+/// sonar differences, plus the pilot's (pitch, roll), each scaled down towards an obstacle
+/// on its side. Returns (pitch, roll), rad.
+fn wall_avoid_firmware(world: &World, c: &mut CopterState, pilot: (Real, Real), dt: Real, tick: u64) -> (Real, Real) {
+    let spec = &world.sensors.spec.wall_avoid;
+    let every = ((1.0 / (spec.update_hz * dt)).round() as u64).max(1);
+    let st = &mut c.wall_avoid;
+    if world.sensors.spec.enabled && st.filter_ready() && tick.is_multiple_of(every) {
+        control::wall_avoid_firmware(spec, st);
+    }
+    let [front, right, back, left] = st.filtered_m;
+    let ready = st.filter_ready();
+    let scale = |input: Real, ahead: Real, behind: Real| match () {
+        _ if !ready => input,
+        _ if input > 0.0 => input * control::pilot_scale(spec, ahead),
+        _ => input * control::pilot_scale(spec, behind),
+    };
+    // Pitch > 0 flies forward (towards the front sonar), roll > 0 flies right.
+    (st.out_rad[0] + scale(pilot.0, front, back), st.out_rad[1] + scale(pilot.1, right, left))
+}
+
+/// Wall-Avoid's PD (`controller = "pd"`), on every full round of sonar readings: the velocity
+/// command, open loop, is obeyed as long as it keeps a safe distance (paper, III): a component
+/// towards a sonar that sees something inside the safety distance is dropped, the rest flies,
+/// and avoidance adds its push. Returns (pitch, roll), rad.
+#[allow(clippy::too_many_arguments)]
+fn wall_avoid_pd(
+    world: &World,
+    af: &Airframe,
+    c: &mut CopterState,
+    cmd: &Command,
+    pilot: (Real, Real),
+    dt: Real,
+    tick: u64,
+) -> (Real, Real) {
+    let spec = &world.sensors.spec.wall_avoid;
+    let sonar = &world.sensors.spec.sonar;
+    let fused = c.sensors.sonar_fused_m;
+    let period = sonar.period_steps.max(1) as u64;
+    let (round, last_of_round) = match sonar.schedule {
+        SonarSchedule::Together => (period, true),
+        SonarSchedule::RoundRobin => (4 * period, tick / period % 4 == 3),
+    };
+    // The PD runs on a fresh round of readings, with the round as its time step; between
+    // rounds the last output holds.
+    let fresh = c.sensors.sonar_tick == tick && last_of_round;
+    let avoid = if !world.sensors.spec.enabled || fused == [0.0; 4] {
+        None
+    } else if fresh {
+        control::wall_avoid(spec, &mut c.wall_avoid, fused, dt * round as Real)
+    } else {
+        (c.wall_avoid.out_rad != [0.0; 2]).then_some((c.wall_avoid.out_rad[0], c.wall_avoid.out_rad[1]))
+    };
+    let (pitch, roll) = match cmd.velocity_m_s {
+        Some([mut v_fwd, mut v_left]) => {
+            if avoid.is_some() {
+                let inside = |k: usize| fused[k] < spec.safety_distance_m;
+                let [front, right, back, left] = [0, 1, 2, 3];
+                if (v_fwd > 0.0 && inside(front)) || (v_fwd < 0.0 && inside(back)) {
+                    v_fwd = 0.0;
+                }
+                if (v_left > 0.0 && inside(left)) || (v_left < 0.0 && inside(right)) {
+                    v_left = 0.0;
+                }
+            }
+            velocity_tilt(af, [v_fwd, v_left])
+        }
+        None => pilot,
+    };
+    match (avoid, cmd.velocity_m_s) {
+        (Some((p, r)), Some(_)) => {
+            let max = spec.max_tilt_deg.to_radians();
+            ((pitch + p).clamp(-max, max), (roll + r).clamp(-max, max))
+        }
+        (Some(avoid), None) => avoid,
+        (None, _) => (pitch, roll),
+    }
 }
 
 /// The velocity command, open loop: the (pitch, roll) whose steady state against the linear
@@ -1261,6 +1308,9 @@ fn sense(world: &World, state: &mut State, inputs: &Inputs, sonar_due: bool, par
     let scene = &scratch.sonar_scene;
 
     let noise = spec.noise;
+    let fresh = fresh_sonars(spec, tick, sonar_due);
+    let yaw_tau = spec.imu.yaw_bias_time_s;
+    let yaw_decay = if yaw_tau > 0.0 { (-dt_control / yaw_tau).exp() } else { 1.0 };
     let walk = spec.imu.yaw_bias_walk_deg_per_sqrt_s.to_radians() * dt_control.sqrt();
     let yaw_sigma = spec.imu.yaw_noise_deg.to_radians();
     let ideal = spec.estimator.ideal;
@@ -1276,7 +1326,7 @@ fn sense(world: &World, state: &mut State, inputs: &Inputs, sonar_due: bool, par
             let cones = sonar_cones(params, pos, rot);
             r.sonar_tick = tick;
             let truths = scene.cone_distances(&cones, pos, i, spec.sonar.max_range_m);
-            for (s, &truth) in truths.iter().enumerate() {
+            for (s, &truth) in truths.iter().enumerate().filter(|(s, _)| fresh[*s]) {
                 let nz = if noise { spec.sonar.noise_sigma_m * c.rng.normal() } else { 0.0 };
                 r.sonar_truth_m[s] = truth.min(spec.sonar.cap_m);
                 r.sonar_m[s] = sonar_reading(&spec.sonar, truth, nz);
@@ -1299,7 +1349,7 @@ fn sense(world: &World, state: &mut State, inputs: &Inputs, sonar_due: bool, par
         let twin = world.copters[i].kind == CopterKind::Real;
         let noise = noise && !twin;
         if noise {
-            c.yaw_bias_rad = wrap_angle_rad(c.yaw_bias_rad + walk * c.rng.normal());
+            c.yaw_bias_rad = wrap_angle_rad(c.yaw_bias_rad * yaw_decay + walk * c.rng.normal());
         }
         let acc_world = if tick == 0 { Vec3::ZERO } else { (vel - c.prev_vel_m_s) / dt_control };
         let specific = rot.inverse() * (acc_world + Vec3::new(0.0, 0.0, GRAVITY_M_S2));
@@ -1352,7 +1402,7 @@ fn sense(world: &World, state: &mut State, inputs: &Inputs, sonar_due: bool, par
     if sonar_due && spec.crosstalk.enabled && n > 1 {
         let ct = &spec.crosstalk;
         let now_s = world.time_at(tick);
-        let stagger = if ct.round_robin { 0.25 } else { 0.0 };
+        let stagger = if spec.sonar.schedule == SonarSchedule::RoundRobin { 0.25 } else { 0.0 };
         let sonar = &spec.sonar;
         let crate::state::Scratch { pingers, ping_points, ping_grid, ping_offsets, lanes, heard_min, .. } =
             &mut state.scratch;
@@ -1445,7 +1495,9 @@ fn sense(world: &World, state: &mut State, inputs: &Inputs, sonar_due: bool, par
             (0..cells.div_ceil(chunk)).into_par_iter().for_each(|ci| {
                 grid.visit_pairs(ci * chunk..((ci + 1) * chunk).min(cells), offsets, |x, y| {
                     pair(x, y, &mut |i, k, q| {
-                        heard_min[4 * i + k].fetch_min(q.to_bits(), Relaxed);
+                        if fresh[k] {
+                            heard_min[4 * i + k].fetch_min(q.to_bits(), Relaxed);
+                        }
                     });
                 });
             });
@@ -1457,15 +1509,39 @@ fn sense(world: &World, state: &mut State, inputs: &Inputs, sonar_due: bool, par
         } else {
             let copters = &mut state.copters;
             grid.visit_pairs(0..cells, offsets, |x, y| {
-                pair(x, y, &mut |i, k, q| lower_reading(&mut copters[i].sensors, k, q));
+                pair(x, y, &mut |i, k, q| {
+                    if fresh[k] {
+                        lower_reading(&mut copters[i].sensors, k, q);
+                    }
+                });
             });
         }
     }
 
+    let wall_avoid = &spec.wall_avoid;
     for i in 0..n {
         let virt = inputs.commands.get(i).and_then(|c| c.virtual_sonar_m);
-        let r = &mut state.copters[i].sensors;
+        let c = &mut state.copters[i];
+        let r = &mut c.sensors;
         r.sonar_fused_m = sensors::fuse_min(r.sonar_m, virt);
+        // The firmware's sonar filter takes each fresh reading (a wreck's sonars are silent).
+        if sonar_due && c.crash.is_none() && roles.near(i) {
+            for k in (0..4).filter(|&k| fresh[k]) {
+                c.wall_avoid.filter(wall_avoid, k, r.sonar_fused_m[k]);
+            }
+        }
+    }
+}
+
+/// Which sonars a sonar update at `tick` reads: all four, or the firmware's one in turn.
+fn fresh_sonars(spec: &sensors::SensorSpec, tick: u64, sonar_due: bool) -> [bool; 4] {
+    match spec.sonar.schedule {
+        _ if !sonar_due => [false; 4],
+        SonarSchedule::Together => [true; 4],
+        SonarSchedule::RoundRobin => {
+            let k = (tick / spec.sonar.period_steps.max(1) as u64 % 4) as usize;
+            std::array::from_fn(|s| s == k)
+        }
     }
 }
 

@@ -26,7 +26,7 @@ fn sense_once(world: &World) -> sim_core::State {
 }
 
 /// A copter hanging at 0.8 m (its first sensing happens before it has fallen) in an arena
-/// of `arena_x × arena_y`, facing `yaw_deg`, with noise off.
+/// of `arena_x × arena_y`, facing `yaw_deg`, with noise off, all four sonars read at once.
 fn probe_scene(arena_x: Real, arena_y: Real, yaw_deg: Real, boxes: &str, extra_copters: &str) -> World {
     load(&format!(
         r#"
@@ -42,6 +42,7 @@ noise = false
 
 [sensors.sonar]
 floor_echo = false
+schedule = "together"
 
 {boxes}
 

@@ -135,23 +135,24 @@ fn a_virtual_wall_ahead_fused_by_min_pushes_the_copter_back() {
 /// The paper's single-copter figure (VII.A, Fig. 10 left): one copter in Wall-Avoid in the
 /// empty 4 m × 3 m arena for 9 minutes from (1.9, 1.6) (corner origin) "stays in the middle
 /// of the arena and avoids the walls by 1.20 m". Clearance is the distance from the copter's
-/// centre to the nearest wall, sampled every control step after take-off (10 s).
+/// centre to the nearest wall, sampled every control step after take-off (10 s); "in the
+/// middle" is a clearance of at least 1.0 m on every side. `TWINSWARM_SCENE_EXTRA` appends
+/// TOML to the scene (for exploring a parameter without editing the file).
 #[test]
 fn a_single_wall_avoid_copter_keeps_about_1_2_m_from_the_walls_for_9_minutes() {
     let text = include_str!("../../../assets/scenes/wall_avoid_single.toml");
+    let extra = std::env::var("TWINSWARM_SCENE_EXTRA").unwrap_or_default();
     let mut all_mean = Vec::new();
     let mut all_min: f32 = f32::MAX;
     for seed in [2016u64, 1, 2, 3, 4] {
-        let world = match sim_core::scene::load(
-            "wall_avoid_single.toml",
-            &text.replace("seed = 2016", &format!("seed = {seed}")),
-        ) {
+        let text = format!("{}\n{extra}", text.replace("seed = 2016", &format!("seed = {seed}")));
+        let world = match sim_core::scene::load("wall_avoid_single.toml", &text) {
             Ok((_, w)) => w,
             Err(e) => panic!("{e}"),
         };
         let mut state = world.initial_state();
         let inputs = world.initial_inputs();
-        let (mut sum, mut n, mut min) = (0.0f64, 0u32, f32::MAX);
+        let (mut sum, mut n, mut min, mut middle) = (0.0f64, 0u32, f32::MAX, 0u32);
         for tick in 0..world.default_ticks() {
             sim_core::step(&world, &mut state, &inputs);
             if tick >= 200 {
@@ -160,16 +161,23 @@ fn a_single_wall_avoid_copter_keeps_about_1_2_m_from_the_walls_for_9_minutes() {
                 sum += f64::from(clearance);
                 n += 1;
                 min = min.min(clearance);
+                middle += u32::from(clearance >= 1.0);
             }
         }
         assert!(state.copters[0].crash.is_none(), "seed {seed}: {:?}", state.copters[0].crash);
         let mean = (sum / f64::from(n)) as f32;
-        println!("seed {seed:4}: clearance from the walls over 9 min: mean {mean:.2} m, min {min:.2} m");
+        let middle = f64::from(middle) / f64::from(n);
+        println!(
+            "seed {seed:4}: clearance from the walls over 9 min: mean {mean:.3} m, min {min:.3} m, \
+             {:.0} % of the time in the middle",
+            100.0 * middle
+        );
+        assert!((mean - 1.2).abs() <= 0.1, "seed {seed}: mean clearance {mean}");
+        assert!(min >= 0.9, "seed {seed}: minimum clearance {min}");
+        assert!(middle >= 0.8, "seed {seed}: {middle} of the time in the middle");
         all_mean.push(mean);
         all_min = all_min.min(min);
     }
     let mean = all_mean.iter().sum::<f32>() / all_mean.len() as f32;
     println!("all seeds: mean clearance {mean:.2} m, minimum {all_min:.2} m (paper: 1.20 m)");
-    assert!((mean - 1.2).abs() < 0.15, "mean clearance {mean}");
-    assert!(all_min > 0.5, "minimum clearance {all_min}");
 }
