@@ -21,6 +21,7 @@
 
 pub mod failsafe;
 pub mod flight;
+pub mod link;
 pub mod live;
 pub mod log;
 pub mod mixed;

@@ -98,9 +98,10 @@ pub struct LocalizeArgs {
     /// and a tracking pose that drops out.
     #[arg(long, conflicts_with = "eval")]
     pub sync_eval: bool,
-    /// `--sync-eval`: telemetry delay jitter, ms (uniform).
-    #[arg(long, value_name = "MS", default_value_t = 10.0)]
-    pub jitter_ms: f64,
+    /// `--sync-eval`: a uniform telemetry link instead of the measured one (`bridge::link`):
+    /// every message on time, up to this late, ms.
+    #[arg(long, value_name = "MS")]
+    pub jitter_ms: Option<f64>,
     /// `--sync-eval`: probability that a telemetry message is lost.
     #[arg(long, value_name = "P", default_value_t = 0.05)]
     pub loss: f64,
@@ -256,11 +257,15 @@ fn run_sync_eval(args: &LocalizeArgs) -> anyhow::Result<()> {
     use bridge::mixed::TwinAttitude;
     use bridge::sync::SyncOptions;
     let bad = |m: String| anyhow::Error::new(BadInput(anyhow::anyhow!(m)));
-    if !((0.0..=1.0).contains(&args.loss) && args.jitter_ms.is_finite() && args.jitter_ms >= 0.0) {
+    if !(0.0..=1.0).contains(&args.loss) || args.jitter_ms.is_some_and(|j| !j.is_finite() || j < 0.0) {
         return Err(bad("--loss must be in [0, 1] and --jitter-ms >= 0".into()));
     }
     let choice = if args.world == WorldChoice::Both { WorldChoice::Empty } else { args.world };
-    let link = Link { jitter_ms: args.jitter_ms, loss: args.loss };
+    let timing = match args.jitter_ms {
+        Some(ms) => bridge::link::LinkTiming::Uniform { jitter_s: ms / 1e3 },
+        None => bridge::link::LinkTiming::Measured { copters: u32::from(args.copters) },
+    };
+    let link = Link { timing, loss: args.loss };
     let medusa_only = SyncOptions { tracking: false, ..SyncOptions::default() };
     let variant = |label: &str, sync: Option<SyncOptions>, attitude| Variant {
         label: label.into(),

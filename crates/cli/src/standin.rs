@@ -5,8 +5,9 @@
 //! the `virtual_only` ones and without the other copters, one copter, its own seed. Like the
 //! firmware, it
 //! - publishes its telemetry on the bus as aircraft `--ac-id`, at the periods of a telemetry
-//!   plan (default: the embedded `Main/mixed` mode, 22 ms for what drives a twin), each
-//!   message delayed by a uniform random jitter and dropped with a loss probability;
+//!   plan (default: the embedded `Main/mixed` mode, 22 ms for what drives a twin), timed by
+//!   the paper's measured link ([`bridge::link`]; `--jitter-ms`: every slot, a uniform delay)
+//!   and dropped with a loss probability;
 //! - receives `VIRTUAL_SONAR` for its `ac_id` and fuses it as `min(real, virtual)` into its
 //!   own Wall-Avoid; a virtual reading older than [`VIRTUAL_STALE_S`] is ignored.
 //!
@@ -19,6 +20,7 @@ use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
 use anyhow::Context;
+use bridge::link::{LinkClock, LinkTiming};
 use bridge::mixed::TelemetryPlan;
 use bridge::paparazzi::convert::{TELEMETRY_MESSAGES, TelemetrySource, telemetry_text, virtual_sonar_readings};
 use bridge::wire::{SensorsMsg, StateMsg, sensors_msg, state_msg};
@@ -59,9 +61,12 @@ pub struct CopterArgs {
     /// Velocity to fly when no obstacle is near, body frame `FORWARD,LEFT`, m/s.
     #[arg(long, value_name = "FWD,LEFT", allow_hyphen_values = true)]
     velocity: Option<String>,
-    /// Telemetry delay jitter: each message is sent up to this late, ms (uniform).
-    #[arg(long, value_name = "MS", default_value_t = 5.0)]
-    jitter_ms: f64,
+    /// A uniform link instead of the measured one: every message on time, up to this late, ms.
+    #[arg(long, value_name = "MS")]
+    jitter_ms: Option<f64>,
+    /// The measured link: copters sharing the radio channel (each slows it a little).
+    #[arg(long, value_name = "N", default_value_t = 1, value_parser = clap::value_parser!(u32).range(1..=16))]
+    link_copters: u32,
     /// Probability that a telemetry message is lost, 0..1.
     #[arg(long, value_name = "P", default_value_t = 0.0)]
     loss: f64,
@@ -171,7 +176,7 @@ fn reality(args: &CopterArgs) -> anyhow::Result<(World, TelemetryPlan)> {
         }
     };
     let velocity = args.velocity.as_deref().map(|v| parse_pair::<2>(v, "--velocity")).transpose()?;
-    if !(0.0..=1.0).contains(&args.loss) || !args.jitter_ms.is_finite() || args.jitter_ms < 0.0 {
+    if !(0.0..=1.0).contains(&args.loss) || args.jitter_ms.is_some_and(|j| !j.is_finite() || j < 0.0) {
         return Err(BadInput(anyhow::anyhow!("--loss must be in [0, 1] and --jitter-ms >= 0")).into());
     }
     spec.boxes.retain(|b| !b.virtual_only);
@@ -193,6 +198,14 @@ fn reality(args: &CopterArgs) -> anyhow::Result<(World, TelemetryPlan)> {
     }];
     let world = scene::compile(&spec).map_err(|e| anyhow::Error::new(BadInput(e.into())))?;
     Ok((world, mixed.plan))
+}
+
+/// The telemetry link's timing: the measured one unless `--jitter-ms` asks for a uniform one.
+fn link_timing(args: &CopterArgs) -> LinkTiming {
+    match args.jitter_ms {
+        Some(ms) => LinkTiming::Uniform { jitter_s: ms / 1e3 },
+        None => LinkTiming::Measured { copters: args.link_copters },
+    }
 }
 
 /// Runs `twinswarm copter`.
@@ -236,14 +249,15 @@ pub fn run(args: CopterArgs) -> anyhow::Result<()> {
             let (link, messages, shared) = (link.clone(), messages.clone(), shared.clone());
             let (sent, lost, done, send_failed) = (sent.clone(), lost.clone(), done.clone(), send_failed.clone());
             let (name, period) = (name.clone(), Duration::from_secs_f64(*period));
-            let (ac_id, jitter_s, loss) = (args.ac_id, args.jitter_ms / 1e3, args.loss as f32);
+            let (ac_id, loss) = (args.ac_id, args.loss as f32);
             let mut rng = Rng32::new(world.params.seed, 0x7e1e_0000 + k as u64);
+            let timing = link_timing(&args);
+            let mut clock =
+                LinkClock::new(period.as_secs_f64(), timing, Rng32::new(world.params.seed, 0x7e1f_0000 + k as u64));
             senders.push(rt.spawn(async move {
                 let start = tokio::time::Instant::now();
-                let mut n: u32 = 0;
                 while !done.load(Ordering::Relaxed) {
-                    n += 1;
-                    let due = start + period * n + Duration::from_secs_f64(jitter_s * f64::from(rng.uniform()));
+                    let due = start + Duration::from_secs_f64(clock.next_s());
                     tokio::time::sleep_until(due).await;
                     if rng.uniform() < loss {
                         lost.fetch_add(1, Ordering::Relaxed);

@@ -7,8 +7,9 @@
 //!   flying the localization evaluation's cruise legs, σ = 5 cm sonar noise, 2° AHRS yaw noise
 //!   plus the yaw-bias random walk, its own seed);
 //! - its **telemetry**: every message of the telemetry plan (22 ms for
-//!   `FINKEN_ACTUATORS_SET_POINT` and `ATTITUDE`, 50 ms for `SONAR_ARRAY`, …), each delayed by a
-//!   uniform jitter and lost with a probability, encoded to Ivy text and decoded again;
+//!   `FINKEN_ACTUATORS_SET_POINT` and `ATTITUDE`, 50 ms for `SONAR_ARRAY`, …), timed by the
+//!   paper's measured link ([`bridge::link`]) or a uniform jitter, lost with a probability,
+//!   encoded to Ivy text and decoded again;
 //! - the **simulation**: `bridge::sim::run_loop` with the twin, fed by the gateway's
 //!   [`Interpreter`] through the loop's request queue, with [`TwinSync`](bridge::sync::TwinSync)
 //!   on or off, and optionally a tracking pose that lags and drops out.
@@ -22,6 +23,7 @@ use std::sync::mpsc::SyncSender;
 use std::time::{Duration, Instant};
 
 use anyhow::Context;
+use bridge::link::{LinkClock, LinkTiming};
 use bridge::mixed::{Interpreter, TelemetryPlan, TwinAttitude};
 use bridge::paparazzi::convert::{TelemetrySource, telemetry_text};
 use bridge::paparazzi::messages::MessageSet;
@@ -56,9 +58,9 @@ pub struct Variant {
 /// Telemetry conditions.
 #[derive(Clone, Copy, Debug, Serialize)]
 pub struct Link {
-    /// Each message is delayed by up to this, uniformly, ms.
-    pub jitter_ms: f64,
-    /// Probability that a message is lost.
+    /// When messages arrive: the measured link, or every slot with a uniform delay.
+    pub timing: LinkTiming,
+    /// Probability that a message is lost, on top of the timing.
     pub loss: f64,
 }
 
@@ -119,10 +121,10 @@ impl SyncEvalReport {
     /// A table.
     pub fn to_text(&self) -> String {
         let mut s = format!(
-            "twin synchronisation, {:.1} simulated minutes, reality seed {}, telemetry jitter {} ms, loss {:.0} %\n",
+            "twin synchronisation, {:.1} simulated minutes, reality seed {}, telemetry link {:?}, loss {:.0} %\n",
             self.minutes,
             self.seed,
-            self.link.jitter_ms,
+            self.link.timing,
             self.link.loss * 100.0
         );
         s += "  variant                              median    p95     max   final  outside  crash\n";
@@ -156,7 +158,10 @@ struct Harness {
     inputs: Inputs,
     cruise: Cruise,
     plan: TelemetryPlan,
+    /// When each message of the plan arrives next, s.
     next_due_s: Vec<f64>,
+    /// Each message's link timing.
+    clocks: Vec<LinkClock>,
     messages: Arc<MessageSet>,
     interpreter: Interpreter,
     requests: SyncSender<Request>,
@@ -212,10 +217,10 @@ impl StepObserver for Harness {
         let se = sensors_msg(&self.world, &self.state, 0);
         let src = TelemetrySource { state: &st, sensors: &se, setpoint: self.state.copters[0].setpoint };
         for k in 0..self.plan.periods.len() {
-            let (name, period) = (&self.plan.periods[k].0, self.plan.periods[k].1);
+            let name = &self.plan.periods[k].0;
             while self.next_due_s[k] <= t + 1e-9 {
-                let sent_at = self.next_due_s[k] + self.link.jitter_ms / 1e3 * f64::from(self.rng.uniform());
-                self.next_due_s[k] += period;
+                let sent_at = self.next_due_s[k];
+                self.next_due_s[k] = self.clocks[k].next_s();
                 if f64::from(self.rng.uniform()) < self.link.loss {
                     self.lost += 1;
                     continue;
@@ -291,11 +296,18 @@ pub fn run_variant(
     let (tx, rx) = std::sync::mpsc::sync_channel::<Request>(4096);
     let plan = TelemetryPlan::project_default();
     let messages = Arc::new(bridge::paparazzi::convert::project_messages());
+    let mut clocks: Vec<LinkClock> = (0..plan.periods.len())
+        .map(|k| {
+            LinkClock::new(plan.periods[k].1, link.timing, Rng32::new(reality.params.seed, 0x7e1f_0000 + k as u64))
+        })
+        .collect();
+    let next_due_s = clocks.iter_mut().map(LinkClock::next_s).collect();
     let harness = Harness {
         state: reality.initial_state(),
         inputs: reality.initial_inputs(),
         cruise: Cruise::new(reality.params.seed, 0, reality.copters[0].initial_command.yaw_rad),
-        next_due_s: vec![0.0; plan.periods.len()],
+        next_due_s,
+        clocks,
         plan,
         messages,
         interpreter: Interpreter::new(Arc::new(world.clone()), None, variant.attitude),

@@ -229,6 +229,13 @@ fn encode_by_field(
     crate::paparazzi::codec::encode(&Sender::Aircraft(ac_id), def, &values)
 }
 
+/// The firmware's `distance_diff_*` of two opposite sonar readings, cm: each clamped to
+/// 20–300 cm and capped at the 120 cm goal distance, `a − b`.
+fn diff_cm(a: f64, b: f64) -> f64 {
+    let side = |d: f64| d.clamp(20.0, 300.0).min(120.0);
+    side(a) - side(b)
+}
+
 /// The Ivy text of telemetry message `name` for aircraft `ac_id`, from `src`; `None` for a
 /// message the simulator cannot produce (see [`TELEMETRY_MESSAGES`]).
 ///
@@ -244,7 +251,10 @@ pub fn telemetry_text(
     let st = src.state;
     let se = src.sensors;
     let sp = src.setpoint;
-    let [roll, pitch, yaw] = st.attitude_rad.map(f64::from);
+    // The attitude the copter reports is its AHRS's (bias, noise and all), as a real FINken's
+    // is; its position is the truth (a FINken has no horizontal position estimate of its own),
+    // its height the IR estimate.
+    let [roll, pitch, yaw] = se.attitude_rad.map(f64::from);
     let (phi, theta, psi) = (roll, -pitch, f64::from(wrap(-yaw as f32)));
     let [x, y, z] = st.pos_m.map(f64::from);
     let [vx, vy, vz] = st.vel_m_s.map(f64::from);
@@ -266,8 +276,12 @@ pub fn telemetry_text(
             ("SONAR_ARRAY", "sonar_right") | ("FINKEN_SENSOR_MODEL", "distance_d_rigth") => sonar[1],
             ("SONAR_ARRAY", "sonar_back") | ("FINKEN_SENSOR_MODEL", "distance_d_back") => sonar[2],
             ("SONAR_ARRAY", "sonar_left") | ("FINKEN_SENSOR_MODEL", "distance_d_left") => sonar[3],
-            ("FINKEN_SENSOR_MODEL", "distance_diff_x") => sonar[0] - sonar[2],
-            ("FINKEN_SENSOR_MODEL", "distance_diff_y") => sonar[3] - sonar[1],
+            // The firmware's sign and clamp (`finken_sonar_filter`): readings held to
+            // 20–300 cm, each side capped at the 120 cm goal distance; x = back − front,
+            // y = right − left. (The firmware averages three readings first; these are the
+            // latest readings.)
+            ("FINKEN_SENSOR_MODEL", "distance_diff_x") => diff_cm(sonar[2], sonar[0]),
+            ("FINKEN_SENSOR_MODEL", "distance_diff_y") => diff_cm(sonar[1], sonar[3]),
             ("FINKEN_SENSOR_MODEL", "pos_x") => x,
             ("FINKEN_SENSOR_MODEL", "pos_y") => y,
             ("FINKEN_SENSOR_MODEL", "pos_z") => f64::from(se.height_est_m),
@@ -333,6 +347,15 @@ pub fn telemetry_text(
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn distance_diff_follows_the_firmwares_sign_and_clamp() {
+        // A wall 50 cm ahead, nothing behind: x = min(back, 120) − min(front, 120) = 70 cm,
+        // which the firmware turns into a pitch up (backwards).
+        assert_eq!(diff_cm(765.0, 50.0), 70.0);
+        assert_eq!(diff_cm(10.0, 765.0), 20.0 - 120.0, "readings under 20 cm count as 20 cm");
+        assert_eq!(diff_cm(250.0, 130.0), 0.0, "both beyond the goal distance");
+    }
 
     #[test]
     fn the_embedded_definitions_parse_and_have_what_the_bridge_uses() {
