@@ -8,15 +8,28 @@
 //! particle model's `v_final`), which fixes the initial width `b₀ = √(4A / π)` (= the rotor
 //! diameter); downstream it spreads linearly, `b = b₀ + k x`, with `k` from the round jet's
 //! spreading rate (`S = dr½/dx ≈ 0.094`, `k = S / √ln 2`). The centreline speed then decays as
-//! `v_final b₀ / b`. A copter in the wake loses thrust on each rotor that the wake blows
-//! through: a rotor in an axial inflow `w` meets its air at a smaller angle of attack, and
-//! blade-element theory linearised about hover gives a loss `k_w w` (`k_w ≈ 0.08 N per m/s` for
-//! the FINken's 5×3" props), applied along the wake at the rotor: force and torque.
-//! Turbulence makes each rotor's `w` fluctuate with the jet's centreline intensity.
+//! `v_final b₀ / b`. Closer than [`AirflowSpec::wake_merge_sizes`] motor diagonals below the
+//! rotors (2.5, Bauersfeld et al.'s "jet-like after 2.5 drone diameters") the wake is still
+//! four rotor jets, each a Gaussian from its hub carrying its rotor's thrust (initial width the
+//! rotor radius); they blend into the round jet by adding squared speeds (Reichardt's
+//! superposition of momentum), with a smoothstep weight in depth, so the momentum flux is the
+//! thrust at every depth.
 //!
-//! **Ground effect.** A rotor at height `z` above a surface below it makes more thrust at the
-//! same speed: Cheeseman & Bennett's image-vortex result `T / T∞ = 1 / (1 − (R / 4z)²)`,
-//! bounded below `z = z_min R` where the formula stops being valid.
+//! A copter in the wake loses thrust on each rotor the wake blows through: a rotor in an axial
+//! inflow `w` meets its air at a smaller angle of attack. Uniform-inflow blade-element momentum
+//! theory with a linear lift curve and helical twist gives, at rotor speed ω, radius R,
+//! `λ_c = w / (ωR)`, `C_T = K (θ − λ_c − λ_i)` with momentum's `λ_i`, in closed form
+//! ([`inflow_thrust_factor`]). `K` (the effective `σa/4`) is the blade's one parameter; `θ`
+//! follows from the still-air thrust. Linearised about hover it loses 0.042 N per m/s for the
+//! FINken's 5×3" props; at 5 m/s it keeps 74 % of its thrust. The loss acts along the rotor's
+//! axis, at the rotor: force and torque. Turbulence makes each rotor's `w` fluctuate with the
+//! jet's centreline intensity.
+//!
+//! **Ground effect.** A rotor at height `z` above the surface below **it** (the floor, or a box
+//! top under that rotor: a copter half over a table's edge has two rotors in ground effect)
+//! makes more thrust at the same speed: Cheeseman & Bennett's image-vortex result
+//! `T / T∞ = 1 / (1 − (R / 4z)²)`, bounded below `z = z_min R` where the formula stops being
+//! valid.
 //!
 //! Sources and constants: `docs/model.md`.
 
@@ -37,8 +50,11 @@ pub struct AirflowSpec {
     pub wake_spread: Real,
     /// Centreline turbulence intensity of the wake, `w' / w`.
     pub wake_turbulence: Real,
-    /// Thrust a rotor loses per m/s of wake blowing through it, N·s/m.
-    pub wake_thrust_loss_n_s_per_m: Real,
+    /// The blade-element model's `K` (effective solidity × lift slope / 4) of the rotors that
+    /// feel a wake: how much thrust a rotor loses in an axial inflow.
+    pub rotor_inflow_k: Real,
+    /// Below the rotors, the wake is four rotor jets for this many motor diagonals, then one.
+    pub wake_merge_sizes: Real,
     /// Ground effect is held constant below this height, in rotor radii.
     pub ground_effect_min_height_radii: Real,
 }
@@ -50,7 +66,10 @@ impl Default for AirflowSpec {
             ground_effect: true,
             wake_spread: 0.094,
             wake_turbulence: 0.25,
-            wake_thrust_loss_n_s_per_m: 0.08,
+            // Fitted to a tip-loss blade-element model of a 5x3" prop (chord 9.2 mm at 0.75 R,
+            // lift slope 5.5/rad) over 0-8 m/s: docs/model.md.
+            rotor_inflow_k: 0.1026,
+            wake_merge_sizes: 2.5,
             ground_effect_min_height_radii: 0.5,
         }
     }
@@ -69,7 +88,8 @@ impl AirflowSpec {
     pub(crate) fn compile(&self, path: &FieldPath) -> Result<AirflowParams, SceneError> {
         for (field, v, lo) in [
             ("wake_spread", self.wake_spread, 1e-3),
-            ("wake_thrust_loss_n_s_per_m", self.wake_thrust_loss_n_s_per_m, 0.0),
+            ("rotor_inflow_k", self.rotor_inflow_k, 1e-3),
+            ("wake_merge_sizes", self.wake_merge_sizes, 0.0),
             ("wake_turbulence", self.wake_turbulence, 0.0),
             ("ground_effect_min_height_radii", self.ground_effect_min_height_radii, 0.26),
         ] {
@@ -86,6 +106,20 @@ impl AirflowSpec {
         }
         Ok(AirflowParams { spec: self.clone(), width_per_m: self.wake_spread / std::f32::consts::LN_2.sqrt() })
     }
+}
+
+/// The fraction of its still-air thrust a rotor makes at speed `omega_rad_s` in an axial inflow
+/// `w_m_s` coming down through its disc (uniform-inflow blade-element momentum theory, linear
+/// lift, helical twist; see the module docs). `k` is the blade's `K`, `ct0` the still-air
+/// thrust coefficient `k_T / (ρ A R²)`. 1 at no inflow, falling to 0 at `w = θ ω R`; an
+/// upward inflow (`w < 0`, the vortex-ring regime) is not modelled and counts as none.
+#[inline]
+pub fn inflow_thrust_factor(w_m_s: Real, omega_rad_s: Real, radius_m: Real, k: Real, ct0: Real) -> Real {
+    let theta = ct0 / k + (0.5 * ct0).sqrt();
+    let lc = w_m_s.max(0.0) / (omega_rad_s * radius_m).max(1.0);
+    let u = theta - 0.5 * lc;
+    let s = (k * k / 16.0 + 0.25 * lc * lc + 0.5 * k * u).sqrt();
+    (k / ct0 * (u + 0.25 * k - s)).clamp(0.0, 1.0)
 }
 
 /// Cheeseman & Bennett's ground-effect thrust ratio for a rotor of radius `radius_m` at
@@ -111,23 +145,61 @@ pub struct Wake {
     pub b0_m: Real,
     /// How far the wake goes (to the floor), m.
     pub length_m: Real,
+    /// The rotor hubs, where the four rotor jets start, m.
+    pub hubs: [crate::math::Vec3; 4],
+    /// Each rotor jet's initial speed (its rotor's `v_final`), m/s.
+    pub hub_v0_m_s: [Real; 4],
+    /// Each rotor jet's initial width (the rotor radius), m.
+    pub hub_b0_m: Real,
+    /// Depth below the rotors where the four jets have become one, m (0: always one).
+    pub merge_m: Real,
 }
 
 impl Wake {
     /// The mean air speed of the wake at a point, m/s (0 outside it).
     #[inline]
     pub fn speed_at(&self, p: crate::math::Vec3, width_per_m: Real) -> Real {
+        self.speed_over_disc(p, width_per_m, 0.0)
+    }
+
+    /// The mean air speed of the wake over a disc of radius `disc_m` centred at `p` across the
+    /// flow (a rotor's), m/s: each Gaussian `exp(−r²/b²)` averaged over the disc is close to
+    /// one of width `√(b² + disc²/2)` with its amplitude scaled by `b² / (b² + disc²/2)`
+    /// (within 4 % for a disc as wide as the jet).
+    #[inline]
+    pub fn speed_over_disc(&self, p: crate::math::Vec3, width_per_m: Real, disc_m: Real) -> Real {
         let d = p - self.origin;
         let x = d.dot(self.dir);
         if x <= 0.0 || x > self.length_m {
             return 0.0;
         }
+        let spread = 0.5 * disc_m * disc_m;
         let b = self.b0_m + width_per_m * x;
         let r2 = (d - self.dir * x).length_squared();
-        if r2 > 9.0 * b * b {
-            return 0.0;
+        let b2 = b * b + spread;
+        let round = match r2 > 9.0 * b2 {
+            true => 0.0,
+            false => self.v0_m_s * self.b0_m / b * (b * b / b2) * (-r2 / b2).exp(),
+        };
+        if x >= self.merge_m {
+            return round;
         }
-        self.v0_m_s * self.b0_m / b * (-r2 / (b * b)).exp()
+        // The near wake: the four rotor jets, blended into the round jet by momentum.
+        let t = x / self.merge_m;
+        let beta = t * t * (3.0 - 2.0 * t);
+        let mut sum = 0.0;
+        for (hub, v0) in self.hubs.iter().zip(self.hub_v0_m_s) {
+            let dj = p - *hub;
+            let xj = dj.dot(self.dir).max(0.0);
+            let bj = self.hub_b0_m + width_per_m * xj;
+            let rj2 = (dj - self.dir * xj).length_squared();
+            let bj2 = bj * bj + spread;
+            if rj2 < 9.0 * bj2 {
+                let u = v0 * self.hub_b0_m / bj * (bj * bj / bj2);
+                sum += u * u * (-2.0 * rj2 / bj2).exp();
+            }
+        }
+        ((1.0 - beta) * sum + beta * round * round).sqrt()
     }
 
     /// The largest horizontal distance from the origin at which the wake can be felt, m.
@@ -150,9 +222,74 @@ mod tests {
     }
 
     #[test]
+    fn a_rotor_in_inflow_loses_thrust_as_blade_element_theory_says() {
+        // The FINken's 5x3" at hover: 1108.7 rad/s, R 0.0637 m, C_T0 0.012684, K 0.1026.
+        let f = |w: Real| inflow_thrust_factor(w, 1108.7, 0.0637, 0.1026, 0.012684);
+        assert!((f(0.0) - 1.0).abs() < 1e-6);
+        // The tip-loss blade-element reference (docs/model.md) at 1, 2, 5, 8 m/s.
+        for (w, want) in [(1.0, 0.958), (2.0, 0.911), (5.0, 0.740), (8.0, 0.521)] {
+            assert!((f(w) - want).abs() < 0.012, "w = {w}: {} vs {want}", f(w));
+        }
+        let slope = (1.0 - f(0.1)) / 0.1 * 0.971;
+        assert!((0.035..0.05).contains(&slope), "{slope} N per m/s, not the old 0.08");
+        assert!((f(-3.0) - 1.0).abs() < 1e-6, "no upward inflow modelled");
+        assert_eq!(f(30.0), 0.0);
+    }
+
+    fn round_wake(v0: Real, merge_m: Real) -> Wake {
+        let arm = 0.1 / std::f32::consts::SQRT_2;
+        let hubs = [
+            Vec3::new(arm, arm, 0.0),
+            Vec3::new(arm, -arm, 0.0),
+            Vec3::new(-arm, -arm, 0.0),
+            Vec3::new(-arm, arm, 0.0),
+        ];
+        Wake {
+            origin: Vec3::ZERO,
+            dir: Vec3::NEG_Z,
+            v0_m_s: v0,
+            b0_m: 0.127,
+            length_m: 3.0,
+            hubs,
+            hub_v0_m_s: [v0; 4],
+            hub_b0_m: 0.0637,
+            merge_m,
+        }
+    }
+
+    #[test]
+    fn the_near_wake_is_four_rotor_jets_with_the_same_momentum_flux() {
+        let k = 0.094 / std::f32::consts::LN_2.sqrt();
+        let w = round_wake(11.0, 0.5);
+        // ∫ ρ w² dA over a plane below the rotors is the thrust at every depth.
+        let flux = |x: Real| {
+            let (n, half) = (200, 1.0);
+            let h = 2.0 * half / n as Real;
+            let mut sum = 0.0;
+            for i in 0..n {
+                for j in 0..n {
+                    let p = Vec3::new(-half + (i as Real + 0.5) * h, -half + (j as Real + 0.5) * h, -x);
+                    let v = w.speed_at(p, k);
+                    sum += v * v * h * h;
+                }
+            }
+            sum
+        };
+        let far = flux(1.0);
+        for x in [0.05, 0.2, 0.4] {
+            assert!((flux(x) / far - 1.0).abs() < 0.02, "x = {x}: {} vs {far}", flux(x));
+        }
+        // Below a rotor, near the rotors, faster than on the axis; beyond the merge, one jet.
+        let (hub, axis) = (w.speed_at(Vec3::new(0.0707, 0.0707, -0.1), k), w.speed_at(Vec3::new(0.0, 0.0, -0.1), k));
+        assert!(hub > 1.5 * axis, "{hub} vs {axis}");
+        let one = round_wake(11.0, 0.0);
+        assert_eq!(w.speed_at(Vec3::new(0.05, 0.0, -0.7), k), one.speed_at(Vec3::new(0.05, 0.0, -0.7), k));
+    }
+
+    #[test]
     fn the_wake_keeps_its_momentum_flux_as_it_spreads() {
         let k = 0.094 / std::f32::consts::LN_2.sqrt();
-        let w = Wake { origin: Vec3::ZERO, dir: Vec3::NEG_Z, v0_m_s: 11.0, b0_m: 0.127, length_m: 3.0 };
+        let w = round_wake(11.0, 0.0);
         for x in [0.1, 0.5, 1.0, 2.0] {
             // ∫ w² 2πr dr over the Gaussian: π b² U₀² / 2 = π b₀² v₀² / 2.
             let b = 0.127 + k * x;

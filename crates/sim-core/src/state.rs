@@ -318,6 +318,12 @@ impl State {
         }
     }
 
+    /// The downwash force copter `id` felt in the last step (world frame), N: the thrust the
+    /// wakes of the others cost its rotors.
+    pub fn downwash_force_n(&self, id: usize) -> Vec3 {
+        self.scratch.lanes.get(id).map_or(Vec3::ZERO, |l| l.downwash_force_n)
+    }
+
     /// Adds the bodies and runtime state of copters that `world` has and this state does not
     /// yet (after [`World::with_spawned`]). Existing copters are untouched.
     pub fn add_copters(&mut self, world: &World) {
@@ -473,8 +479,8 @@ pub(crate) struct Lane {
     pub(crate) reach_m: Real,
     /// Bounding radius of the copter's colliders plus `reach_m`, m.
     pub(crate) reserved_m: Real,
-    /// Height of the surface below (floor or box top), m, for ground effect.
-    pub(crate) ground_m: Real,
+    /// Height of the surface below each rotor (floor or box top), m, for ground effect.
+    pub(crate) ground_m: [Real; 4],
     /// Speed at which it hit the floor in free flight this substep, too fast to land (a
     /// crash for the serial pass to record), m/s; 0 if none.
     pub(crate) floor_impact_m_s: Real,

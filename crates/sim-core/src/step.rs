@@ -21,7 +21,7 @@
 
 use serde::Serialize;
 
-use crate::airflow::{Wake, ground_effect_ratio};
+use crate::airflow::{Wake, ground_effect_ratio, inflow_thrust_factor};
 use crate::airframe::{Airframe, ParticleNoise, ROTOR_YAW_SIGN};
 use crate::control::{self, Command, FlightMode, Inputs, Setpoint, WallAvoidController};
 use crate::geometry::OrientedBox;
@@ -732,7 +732,11 @@ fn airflow(world: &World, state: &mut State, parallel: bool, roles: Roles<'_>) -
             return;
         }
         let twin = world.copters[i].kind == CopterKind::Real;
-        lane.ground_m = if spec.ground_effect { ground_below(world, lane.pos_m, twin) } else { 0.0 };
+        let af = &world.airframes[world.copters[i].airframe];
+        lane.ground_m = match spec.ground_effect {
+            true => af.rotor_pos_in_body_m.map(|arm| ground_below(world, lane.pos_m + lane.rot * arm, twin)),
+            false => [0.0; 4],
+        };
         lane.downwash_force_n = Vec3::ZERO;
         lane.downwash_torque_n_m = Vec3::ZERO;
     });
@@ -765,6 +769,10 @@ fn airflow(world: &World, state: &mut State, parallel: bool, roles: Roles<'_>) -
             v0_m_s: (0.5 * thrust / rho_a).sqrt(),
             b0_m: af.spec.rotor_diameter_m,
             length_m: origin.z / -dir.z,
+            hubs: af.rotor_pos_in_body_m.map(|arm| lane.pos_m + lane.rot * arm),
+            hub_v0_m_s: c.rotor_thrust_n.map(|t| (2.0 * t.max(0.0) / rho_a).sqrt()),
+            hub_b0_m: 0.5 * af.spec.rotor_diameter_m,
+            merge_m: spec.wake_merge_sizes * 2.0 * af.spec.arm_length_m,
         }
     });
     let wakes = &scratch.wakes;
@@ -798,7 +806,9 @@ fn airflow(world: &World, state: &mut State, parallel: bool, roles: Roles<'_>) -
             return;
         }
         let af = &world.airframes[world.copters[i].airframe];
-        let loss = spec.wake_thrust_loss_n_s_per_m;
+        let (k, rotor_r) = (spec.rotor_inflow_k, 0.5 * af.spec.rotor_diameter_m);
+        let ct0 = af.spec.thrust_coeff_n_s2 / (af.spec.air_density_kg_m3 * af.disc_area_m2 * rotor_r * rotor_r);
+        let axis = lane.rot * Vec3::Z;
         let (mut force, mut torque) = (Vec3::ZERO, Vec3::ZERO);
         let radius = af.radius_m;
         grid.visit_near(lane.pos_m, radius, |j| {
@@ -806,12 +816,17 @@ fn airflow(world: &World, state: &mut State, parallel: bool, roles: Roles<'_>) -
             if j == i || w.length_m <= 0.0 {
                 return radius;
             }
-            for arm in &af.rotor_pos_in_body_m {
+            for (r, arm) in af.rotor_pos_in_body_m.iter().enumerate() {
                 let arm = lane.rot * *arm;
-                let v = w.speed_at(lane.pos_m + arm, width_per_m);
+                let v = w.speed_over_disc(lane.pos_m + arm, width_per_m, rotor_r);
                 if v > MIN_WAKE_SPEED_M_S {
+                    // The inflow through this rotor's disc, and the thrust it costs along the
+                    // rotor's axis (at the rotor speed and thrust of the step's start).
                     let v = v * (1.0 + turbulence * c.rng.triangular()).max(0.0);
-                    let f = w.dir * (loss * v);
+                    let inflow = v * -w.dir.dot(axis);
+                    let omega = c.rotor_speed_rad_s[r];
+                    let kept = inflow_thrust_factor(inflow, omega, rotor_r, k, ct0);
+                    let f = axis * -((1.0 - kept) * c.rotor_thrust_n[r].max(0.0));
                     force += f;
                     torque += arm.cross(f);
                 }
@@ -925,12 +940,17 @@ fn inner_loop(
         Some(u) => u.map(|u| u * af.max_thrust_per_rotor_n),
         None => control::mix(af, collective, torque),
     };
+    // Each rotor over the surface below it.
     let mut ground = [1.0; 4];
     let radius = 0.5 * af.spec.rotor_diameter_m;
-    let height = lane.pos_m.z - lane.ground_m;
-    if p.ground_effect && height < GROUND_EFFECT_RADII * radius {
-        for (g, arm) in ground.iter_mut().zip(&af.rotor_pos_in_body_m) {
-            *g = ground_effect_ratio(radius, height + (rot * *arm).z, p.ground_effect_min_radii);
+    if p.ground_effect {
+        for ((g, arm), below) in ground.iter_mut().zip(&af.rotor_pos_in_body_m).zip(lane.ground_m) {
+            let height = lane.pos_m.z + (rot * *arm).z - below;
+            // Less what it is at the cut-off, so that a rotor crossing it sees no step.
+            if height < GROUND_EFFECT_RADII * radius {
+                let at_cut_off = ground_effect_ratio(radius, GROUND_EFFECT_RADII * radius, p.ground_effect_min_radii);
+                *g = 1.0 + ground_effect_ratio(radius, height, p.ground_effect_min_radii) - at_cut_off;
+            }
         }
     }
     let spec = &af.spec.battery;

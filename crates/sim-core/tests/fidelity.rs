@@ -202,8 +202,55 @@ fn a_copter_below_another_loses_height_and_shakes() {
     let (on, off) = (pair_flight(0.0, 0.5, true), pair_flight(0.0, 0.5, false));
     describe("0.5 m below another", on, off);
     let ((drop, _, tilt), (drop0, _, tilt0)) = (on, off);
-    assert!(drop > 0.1 && drop > 5.0 * drop0.max(0.005), "the wake pushes the lower copter down");
+    assert!(drop > 0.05 && drop > 3.0 * drop0.max(0.005), "the wake pushes the lower copter down");
     assert!(tilt > 3.0 * tilt0, "and shakes it");
+}
+
+/// The thrust a copter hovering `dz` below another loses to its wake, as a share of its
+/// weight: the mean downward downwash force over 10–30 s.
+fn thrust_lost_below(dz: Real) -> Real {
+    let world = load(&format!(
+        r#"
+[sim]
+seed = 8
+[arena]
+size_m = [6.0, 6.0]
+height_m = 3.0
+[sensors.estimator]
+ideal = true
+[[copter]]
+name = "below"
+start = {{ pos_m = [0.0, 0.0], z_m = 0.6 }}
+mode = "target"
+command = {{ target_m = [0.0, 0.0, 0.6] }}
+[[copter]]
+name = "above"
+start = {{ pos_m = [0.0, 0.0], z_m = {z} }}
+mode = "target"
+command = {{ target_m = [0.0, 0.0, {z}] }}
+"#,
+        z = 0.6 + dz,
+    ));
+    let weight = world.airframes[0].mass_kg * sim_core::math::GRAVITY_M_S2;
+    let mut lost = Vec::new();
+    fly(&world, 30.0, |t, s| {
+        if t >= 10.0 {
+            lost.push(-s.downwash_force_n(0).z / weight);
+        }
+    });
+    mean(&lost)
+}
+
+/// The model against the literature (docs/model.md, the downwash table): a FINken 0.5 m below
+/// another loses about 27–30 % of its weight (Neural-Swarm's Crazyflie figure scaled by size:
+/// 27 %; the blade-element and jet model: 30 %), 1 m below 14–26 % (the sources disagree).
+/// The upper copter holds 1.1 m and 1.6 m on ground truth (beyond its IR's range).
+#[test]
+fn the_thrust_lost_below_another_copter_is_the_literatures() {
+    let (half, one) = (thrust_lost_below(0.5), thrust_lost_below(1.0));
+    println!("thrust lost hovering below another: 0.5 m {:.1} % of the weight, 1 m {:.1} %", 100.0 * half, 100.0 * one);
+    assert!((0.2..0.36).contains(&half), "{half}");
+    assert!((0.1..0.3).contains(&one) && one < half, "{one}");
 }
 
 #[test]
@@ -275,6 +322,63 @@ fn hover_thrust_drops_near_the_floor_and_over_a_box() {
     // At 0.2 m over the table top: ≈ 0.995.
     assert!(pct(table, high) < -0.3);
     assert!(pct(low_off, high_off).abs() < 0.05);
+}
+
+/// Mean ω² hovering at `z` m over the floor at `x`, on ground truth (so the height held is the
+/// same whatever the IR sees), beside or over the table (x 1.0–1.8 m, top 0.75 m).
+fn hover_omega2_at(x: Real, z: Real) -> Real {
+    let world = load(&format!(
+        r#"
+[sim]
+seed = 2
+[arena]
+size_m = [4.0, 3.0]
+height_m = 2.5
+[[box]]
+name = "table"
+pos_m = [1.4, 0.0]
+size_m = [0.8, 0.5, 0.75]
+[sensors]
+noise = false
+[sensors.estimator]
+ideal = true
+[airframes.f]
+particle_noise = "off"
+rotor_tolerance_sigma = 0.0
+battery = {{ enabled = false }}
+[[copter]]
+name = "f"
+airframe = "f"
+start = {{ pos_m = [{x}, 0.0], z_m = {z} }}
+mode = "target"
+command = {{ target_m = [{x}, 0.0, {z}] }}
+"#
+    ));
+    let mut w2 = Vec::new();
+    fly(&world, 20.0, |t, s| {
+        if t > 10.0 {
+            w2.push(s.copters[0].rotor_speed_rad_s.iter().map(|w| w * w).sum::<Real>() / 4.0);
+        }
+    });
+    mean(&w2)
+}
+
+/// Ground effect under each rotor: a copter hovering over the table's edge (two rotors over
+/// the table top 0.2 m below them, two over the floor 0.95 m below) gains about half of what
+/// it gains wholly over the table.
+#[test]
+fn a_copter_half_over_a_table_edge_has_half_the_ground_effect() {
+    let z = 0.95;
+    let (floor, edge, table) = (hover_omega2_at(-1.0, z), hover_omega2_at(1.0, z), hover_omega2_at(1.4, z));
+    let pct = |a: Real| 100.0 * (a / floor - 1.0);
+    println!(
+        "hover ω² at {z} m: over the table edge {:+.3} %, over the table {:+.3} % (vs over the floor)",
+        pct(edge),
+        pct(table)
+    );
+    assert!(pct(table) < -0.3, "{}", pct(table));
+    let half = pct(edge) / pct(table);
+    assert!((0.35..0.65).contains(&half), "half the rotors in ground effect: {half}");
 }
 
 /// A copter at `z` in a 20 m arena, facing +x, 9 m from the wall; returns its front reading
