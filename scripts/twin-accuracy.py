@@ -2,7 +2,7 @@
 """Twin accuracy on the real path: two processes in real time, over Ivy or over Zenoh.
 
 `twinswarm run` (mixed_lab, FINken_01's twin, a log) and a `twinswarm copter` stand-in for
-aircraft 5 (Wall-Avoid at 0.3 m/s, telemetry jitter and loss, `--track`) fly together for
+aircraft 5 (Wall-Avoid at 0.3 m/s, the measured telemetry link plus a loss, `--track`) fly together for
 MINUTES. Afterwards:
 - the stand-in's trajectory is its `--track` CSV (its simulated time, paced in real time);
 - the twin's is `/copters/state` in the simulator's MCAP log (read with the PyPI `mcap` reader,
@@ -61,16 +61,24 @@ def interp(ts, vs, t):
 
 
 def read_log(path, dt_s=0.05):
-    twin, fsm = {}, []
+    """The twin's positions by tick, and the (time, x, y) of the stand-in's FINKEN_SENSOR_MODEL
+    texts, from the log (protobuf through PyPI mcap-protobuf-support, CRCs checked)."""
+    from google.protobuf import json_format
+    from mcap_protobuf.decoder import DecoderFactory
+
+    twin, fsm, decoders, factory = {}, [], {}, DecoderFactory()
     with open(path, "rb") as f:
-        for _s, channel, msg in make_reader(f, validate_crcs=True).iter_messages(
+        for schema, channel, msg in make_reader(f, validate_crcs=True).iter_messages(
                 topics=["/copters/state", "/pprz/5/FINKEN_SENSOR_MODEL/decoded"]):
-            body = json.loads(msg.data)
+            if schema.id not in decoders:
+                decoders[schema.id] = factory.decoder_for(channel.message_encoding, schema)
+            body = json_format.MessageToDict(decoders[schema.id](msg.data), preserving_proto_field_name=True)
             if channel.topic == "/copters/state":
                 if body.get("copter") == "finken_01":
-                    twin[body["tick"]] = body["pos_m"]
+                    twin[int(body["tick"])] = body["pos_m"]
             else:
-                fsm.append((body["tick"] * dt_s, body["fields"]["pos_x"], body["fields"]["pos_y"]))
+                fields = body["fields"]
+                fsm.append((int(body["tick"]) * dt_s, fields["pos_x"], fields["pos_y"]))
     return twin, fsm
 
 
@@ -84,7 +92,8 @@ def main():
     ap.add_argument("--transport", choices=["ivy", "zenoh"], required=True)
     ap.add_argument("--minutes", type=float, default=3.0)
     ap.add_argument("--bin", default=str(ROOT / "target/release/twinswarm"))
-    ap.add_argument("--jitter-ms", default="10")
+    ap.add_argument("--jitter-ms", default=None,
+                    help="a uniform telemetry link with this jitter instead of the measured one")
     ap.add_argument("--loss", default="0.05")
     a = ap.parse_args()
     secs = a.minutes * 60
@@ -102,7 +111,8 @@ def main():
                             "--log", str(log), *sim_net], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     time.sleep(1.0)
     copter = subprocess.run([a.bin, "copter", str(SCENE), "--pairing", str(PAIRING), "--ac-id", "5",
-                             "--velocity", "0.3,0", "--duration", str(secs), "--jitter-ms", a.jitter_ms,
+                             "--velocity", "0.3,0", "--duration", str(secs),
+                             *(["--jitter-ms", a.jitter_ms] if a.jitter_ms else []),
                              "--loss", a.loss, "--json", "--track", str(track), *copter_net],
                             capture_output=True, text=True, timeout=secs + 120)
     out, err = sim.communicate(timeout=120)
@@ -130,7 +140,8 @@ def main():
         outside += int(abs(x) > HALF_X or abs(y) > HALF_Y)
     summary = json.loads(out)
     lat = summary["twins"]["finken_01"]["input_latency_ms"]
-    print(f"transport {a.transport}, {a.minutes} min, jitter {a.jitter_ms} ms, loss {a.loss}: "
+    link = f"uniform {a.jitter_ms} ms jitter" if a.jitter_ms else "the measured link"
+    print(f"transport {a.transport}, {a.minutes} min, {link}, loss {a.loss}: "
           f"{len(errors)} samples, clock offset {best:.3f} s")
     print(f"  twin vs stand-in horizontal error: median {100 * percentile(errors, 0.5):.1f} cm, "
           f"p95 {100 * percentile(errors, 0.95):.1f} cm, max {100 * max(errors):.1f} cm; "

@@ -37,11 +37,11 @@ pub enum CrosstalkPhase {
 #[serde(rename_all = "snake_case")]
 pub enum SonarSchedule {
     /// The FINken firmware's (`sonar_array_i2c`): one sonar per update, round robin (front,
-    /// right, back, left), so each is read every fourth update. Use it with cross-talk
-    /// `cycle_s = 0.2` and crystal-close `cycle_spread = 0.00005`.
-    RoundRobin,
-    /// All four at every update (free-running sonars).
+    /// right, back, left), so each is read every fourth update (with cross-talk `cycle_s`
+    /// 0.2, crystal-close `cycle_spread` 0.00005, the defaults).
     #[default]
+    RoundRobin,
+    /// All four at every update (free-running sonars; with cross-talk `cycle_s` 0.049).
     Together,
 }
 
@@ -82,7 +82,7 @@ impl Default for SonarSpec {
             quantum_m: 0.01,
             mount_offset_m: 0.05,
             period_steps: 1,
-            schedule: SonarSchedule::Together,
+            schedule: SonarSchedule::RoundRobin,
             floor_echo: true,
         }
     }
@@ -166,8 +166,9 @@ impl Default for CrosstalkSpec {
         Self {
             enabled: true,
             phase: CrosstalkPhase::FreeRunning,
-            cycle_s: 0.049,
-            cycle_spread: 0.002,
+            cycle_s: 0.2,
+            // The ping schedule is timed by the autopilot's crystal (tens of ppm).
+            cycle_spread: 0.00005,
             speed_of_sound_m_s: 343.0,
         }
     }

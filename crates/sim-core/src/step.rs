@@ -33,7 +33,7 @@ use crate::shard::{Role, ShardView};
 use crate::state::{CopterState, CrashCause, Lane, Motion, Pinger, State};
 use crate::world::{ColliderTag, CopterKind, World};
 use rapier3d::prelude::{
-    PhysicsWorld, RigidBody, RigidBodyActivation, RigidBodyBuilder, RigidBodyHandle, RigidBodyType,
+    InteractionGroups, PhysicsWorld, RigidBody, RigidBodyActivation, RigidBodyBuilder, RigidBodyHandle, RigidBodyType,
 };
 
 /// Something that happened during a step.
@@ -580,7 +580,7 @@ fn reserve_free_flight(world: &World, state: &mut State, parallel: bool, view: &
             if c.crash.is_some() && !body.is_enabled() {
                 if closed_form {
                     // Disabled here, so the same body (the handle does not change).
-                    fix_wreck(world, &mut state.physics, c.body, lane, i);
+                    fix_wreck(world, &mut state.physics, c.body, lane, i, !c.grounded);
                 } else {
                     take_over_wreck(&mut state.physics.bodies[c.body], lane, v.asleep[i]);
                 }
@@ -1743,7 +1743,7 @@ fn crash(world: &World, state: &mut State, i: usize, cause: CrashCause, report: 
     if let (true, Some(lane)) = (state.physics.bodies.contains(c.body), state.scratch.lanes.get_mut(i)) {
         if world.params.closed_form {
             // It falls in closed form from the next substep on; its body, fixed, follows it.
-            c.body = fix_wreck(world, &mut state.physics, c.body, lane, i);
+            c.body = fix_wreck(world, &mut state.physics, c.body, lane, i, true);
             (lane.free, lane.watch, c.grounded) = (true, false, false);
             insert_sorted(&mut state.scratch.falling, i as u32);
         } else {
@@ -1768,13 +1768,15 @@ fn crash(world: &World, state: &mut State, i: usize, cause: CrashCause, report: 
 /// and recomputes its colliders' AABBs at every step for the rest of the run; so a body
 /// Rapier has in hand (enabled) makes way for a new fixed body. (Body handles therefore
 /// differ between shards; each keeps its own.) A disabled body is in no island and simply
-/// turns fixed. Either way the wreck has one collider, its parts as one compound.
+/// turns fixed. Either way the wreck has one collider, its parts as one compound; `falling`,
+/// it pushes nothing ([`FALLING_WRECK`]).
 fn fix_wreck(
     world: &World,
     physics: &mut PhysicsWorld,
     old: RigidBodyHandle,
     lane: &Lane,
     id: usize,
+    falling: bool,
 ) -> RigidBodyHandle {
     let handle = if physics.bodies[old].is_enabled() {
         physics.insert_body(RigidBodyBuilder::fixed().user_data(id as u128))
@@ -1794,9 +1796,20 @@ fn fix_wreck(
     if handle != old {
         physics.remove_body(old);
     }
-    physics.insert_collider(world.wreck_collider(id), Some(handle));
+    let solver = if falling { FALLING_WRECK } else { InteractionGroups::all() };
+    physics.insert_collider(world.wreck_collider(id).solver_groups(solver), Some(handle));
     handle
 }
+
+/// A falling wreck's solver groups: none. Its fixed body has no velocity in Rapier, so a contact
+/// with a flying copter would be a static body jumping into it at every substep (a kick of
+/// several rad/s in one substep); and when a wreck that crashed against a copter gets its new
+/// body, all the pairs of the copter's parts with it begin to touch in one step, and Rapier
+/// solves those in the order its broad phase found them, which follows the whole world's
+/// history (a shard's differs from one process's). So it only reports its touches: a flying
+/// copter faster than the crash speed crashes into it, a slower one passes through, as falling
+/// wrecks pass through each other. At rest it is solid again.
+const FALLING_WRECK: InteractionGroups = InteractionGroups::none();
 
 /// One physics step of a wreck in closed form (`[sim] closed_form`, the default). It falls
 /// with its momentum under gravity, damping and the downwash on it; walls, the ceiling and the
@@ -1884,6 +1897,11 @@ fn fall_wreck(world: &World, state: &mut State, i: usize, dt: Real) {
         lane.vel_m_s = Vec3::ZERO;
         lane.angvel_rad_s = Vec3::ZERO;
         state.copters[i].grounded = true;
+        // At rest for good: solid for the copters that come to it.
+        let physics = &mut state.physics;
+        for &collider in physics.bodies[state.copters[i].body].colliders() {
+            physics.colliders[collider].set_solver_groups(InteractionGroups::all());
+        }
     }
     scratch.lanes[i] = lane;
     let body = &mut state.physics.bodies[state.copters[i].body];

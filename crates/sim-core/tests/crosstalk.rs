@@ -18,10 +18,10 @@ fn load(text: &str) -> World {
 /// Which sonar schedule a flight uses.
 #[derive(Clone, Copy, Debug)]
 enum Schedule {
-    /// The FINken firmware's, one sonar per 50 ms tick, each pinging every 0.2 s on the
-    /// autopilot's crystal (copters 50 ppm apart).
+    /// The default: the FINken firmware's, one sonar per 50 ms tick, each pinging every 0.2 s
+    /// on the autopilot's crystal (copters 50 ppm apart).
     Firmware,
-    /// The default: all four sonars together on free-running 49 ms cycles, 2000 ppm apart.
+    /// All four sonars together on free-running 49 ms cycles, 2000 ppm apart.
     FreeRunning,
 }
 
@@ -31,10 +31,10 @@ fn lab(seed: u64, crosstalk: bool, schedule: Schedule) -> World {
     let facing = LAB.replace("yaw_deg = 225.0", "yaw_deg = 180.0");
     assert_ne!(facing, LAB);
     let (sonar, cycle) = match schedule {
-        Schedule::Firmware => {
-            ("[sensors.sonar]\nschedule = \"round_robin\"\n", "cycle_s = 0.2\ncycle_spread = 0.00005\n")
+        Schedule::Firmware => ("", ""),
+        Schedule::FreeRunning => {
+            ("[sensors.sonar]\nschedule = \"together\"\n", "cycle_s = 0.049\ncycle_spread = 0.002\n")
         }
-        Schedule::FreeRunning => ("", ""),
     };
     load(&format!(
         "{}\n{sonar}[sensors.crosstalk]\nenabled = {crosstalk}\n{cycle}",

@@ -428,12 +428,12 @@ fn crosstalk_minute(phase: &str) -> (f64, u32, Vec<Real>) {
     crosstalk_minute_with(4, &format!("{FREE_RUNNING}phase = \"{phase}\""))
 }
 
-/// Sonars pinging together on 49 ms cycles, 2000 ppm apart (the default).
+/// Sonars pinging together on 49 ms cycles, 2000 ppm apart.
 const FREE_RUNNING: &str =
     "[sensors.sonar]\nschedule = \"together\"\n[sensors.crosstalk]\ncycle_s = 0.049\ncycle_spread = 0.002\n";
 
-/// The firmware's schedule: one sonar per 50 ms tick, each every 0.2 s, on crystals 50 ppm
-/// apart.
+/// The firmware's schedule (the default): one sonar per 50 ms tick, each every 0.2 s, on
+/// crystals 50 ppm apart.
 const ROUND_ROBIN: &str =
     "[sensors.sonar]\nschedule = \"round_robin\"\n[sensors.crosstalk]\ncycle_s = 0.2\ncycle_spread = 0.00005\n";
 
