@@ -35,15 +35,11 @@ pub mod zenoh_net;
 /// Paparazzi aircraft id (one byte on the link, the Ivy sender of telemetry).
 pub type AcId = u8;
 
-/// Locks `m`, also after a panic elsewhere poisoned it: what the lock guards (counters,
-/// bindings, the world) stays usable, and an input path never drops what arrives because an
-/// earlier handler panicked (the panic itself was reported by the panic hook).
-/// [`lock`] for callers outside the crate (a poisoned lock still holds good data here).
-pub fn lock_shared<T>(m: &std::sync::Mutex<T>) -> std::sync::MutexGuard<'_, T> {
-    lock(m)
-}
-
-pub(crate) fn lock<T>(m: &std::sync::Mutex<T>) -> std::sync::MutexGuard<'_, T> {
+/// Locks `m`, also after a panic elsewhere poisoned it. A poisoned lock still guards usable
+/// data (counters, bindings, the world), and an input path never drops what arrives because an
+/// earlier handler panicked; the panic itself was reported by the panic hook. Every
+/// `std::sync::Mutex` in the bridge and the CLI is locked through this function.
+pub fn lock<T>(m: &std::sync::Mutex<T>) -> std::sync::MutexGuard<'_, T> {
     m.lock().unwrap_or_else(std::sync::PoisonError::into_inner)
 }
 

@@ -659,14 +659,12 @@ impl Gateway {
 
     /// Tells the gateway about the world after a spawn (for command validation).
     pub fn set_world(&self, world: &Arc<World>) {
-        if let Ok(mut sh) = self.shared.lock() {
-            sh.set_world(world);
-        }
+        crate::lock(&self.shared).set_world(world);
     }
 
     /// A copy of the statistics so far, and of the router's counters.
     pub fn report(&self) -> GatewayReport {
-        self.shared.lock().map(|sh| sh.report()).unwrap_or_default()
+        crate::lock(&self.shared).report()
     }
 
     /// The Zenoh bus the gateway uses, if any (for counters).

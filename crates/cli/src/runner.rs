@@ -278,7 +278,7 @@ pub fn run<W: StepObserver + Send>(
         let flight = Flight::new(world, state, inputs, &opts, recorder, watch);
         let end = sim::run_loop(flight, req_rx, None, &stop, &opts);
         drop(req_tx);
-        let link_stats = opts.shard.take().map(|l| bridge::lock_shared(&l).stats().clone());
+        let link_stats = opts.shard.take().map(|l| bridge::lock(&l).stats().clone());
         if let Some(s) = session {
             // Closing withdraws the shard's token: neighbours still waiting learn it is gone.
             s.close().wait().map_err(|e| anyhow::anyhow!("zenoh: {e}"))?;
@@ -388,6 +388,6 @@ pub fn run<W: StepObserver + Send>(
     if let Some(node) = node {
         rt.block_on(node.close()).context("closing the Zenoh session")?;
     }
-    let link = opts_link.map(|l| bridge::lock_shared(&l).stats().clone());
+    let link = opts_link.map(|l| bridge::lock(&l).stats().clone());
     Ok(RunOutcome { end, bus: Some(report), link })
 }

@@ -264,7 +264,7 @@ pub fn run(args: CopterArgs) -> anyhow::Result<()> {
                         continue;
                     }
                     let text = {
-                        let Ok(s) = shared.lock() else { break };
+                        let s = bridge::lock(&shared);
                         let src = TelemetrySource { state: &s.state, sensors: &s.sensors, setpoint: s.setpoint };
                         telemetry_text(&messages, ac_id, &name, &src)
                     };
@@ -297,18 +297,12 @@ pub fn run(args: CopterArgs) -> anyhow::Result<()> {
         if stop.load(Ordering::Relaxed) {
             break;
         }
-        let fresh = virt
-            .lock()
-            .ok()
-            .and_then(|v| *v)
-            .filter(|(_, at)| at.elapsed().as_secs_f64() <= VIRTUAL_STALE_S)
-            .map(|(r, _)| r);
+        let fresh =
+            (*bridge::lock(&virt)).filter(|(_, at)| at.elapsed().as_secs_f64() <= VIRTUAL_STALE_S).map(|(r, _)| r);
         inputs.commands[0].virtual_sonar_m = fresh;
         with_virtual += u64::from(fresh.is_some());
         sim_core::step(&world, &mut state, &inputs);
-        if let Ok(mut s) = shared.lock() {
-            *s = snapshot(&world, &state, &inputs);
-        }
+        *bridge::lock(&shared) = snapshot(&world, &state, &inputs);
         if let Some(w) = &mut track {
             let p = state.pose(0);
             let r = &state.copters[0].sensors;
@@ -449,9 +443,7 @@ fn on_virtual_sonar(
     // For another aircraft: link forwards every VIRTUAL_SONAR; ours carries our ac_id.
     if to == ac_id {
         received.fetch_add(1, Ordering::Relaxed);
-        if let Ok(mut v) = virt.lock() {
-            *v = Some((readings, Instant::now()));
-        }
+        *bridge::lock(virt) = Some((readings, Instant::now()));
     }
 }
 

@@ -110,7 +110,7 @@ fn new_flight(world: World, recorder: Recorder) -> Flight {
 
 impl Sim {
     fn flight(&self) -> MutexGuard<'_, Flight> {
-        bridge::lock_shared(&self.flight)
+        bridge::lock(&self.flight)
     }
 
     fn flight_mut(&mut self) -> &mut Flight {

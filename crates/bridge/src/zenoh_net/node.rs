@@ -128,7 +128,7 @@ impl RateLimiter {
     }
     fn warn(&self, what: &str) {
         let now = Instant::now();
-        let Ok(mut last) = self.last.lock() else { return };
+        let mut last = crate::lock(&self.last);
         if last.is_none_or(|t| now.duration_since(t) >= self.period) {
             *last = Some(now);
             let n = self.suppressed.swap(0, Ordering::Relaxed);

@@ -125,7 +125,7 @@ impl ZenohBus {
         handler: crate::paparazzi::bus::Handler,
     ) -> Result<BindId, ZenohBusError> {
         let (id, key) = {
-            let mut bus = self.bus.lock().map_err(|_| poisoned())?;
+            let mut bus = crate::lock(&self.bus);
             let id = match from {
                 Some(ac) => bus.bind_from(ac, pattern, handler)?,
                 None => bus.bind(pattern, handler)?,
@@ -137,7 +137,7 @@ impl ZenohBus {
                 .map(|b| crate::zenoh_net::keyexpr::key_expr(&b.narrowing, &self.prefix));
             (id, key.unwrap_or_else(|| format!("{}/pprz/**", self.prefix)))
         };
-        self.key_of.lock().map_err(|_| poisoned())?.insert(id, key.clone());
+        crate::lock(&self.key_of).insert(id, key.clone());
         if let Err(e) = self.subscribe(&key).await {
             self.unbind(id).await;
             return Err(e);
@@ -146,7 +146,7 @@ impl ZenohBus {
     }
 
     async fn subscribe(&self, key: &str) -> Result<(), ZenohBusError> {
-        if let Some(s) = self.subs.lock().map_err(|_| poisoned())?.get_mut(key) {
+        if let Some(s) = crate::lock(&self.subs).get_mut(key) {
             s.users += 1;
             return Ok(());
         }
@@ -179,7 +179,7 @@ impl ZenohBus {
             })
             .await
             .map_err(|e| ZenohBusError::Zenoh(e.to_string()))?;
-        let mut subs = self.subs.lock().map_err(|_| poisoned())?;
+        let mut subs = crate::lock(&self.subs);
         // Another bind may have raced us to the same key: keep one subscriber.
         match subs.get_mut(key) {
             Some(s) => s.users += 1,
@@ -194,14 +194,17 @@ impl ZenohBus {
     /// Returns `false` if it was not bound (e.g. it unbound itself from its handler; its
     /// subscriber is then released here).
     pub async fn unbind(&self, id: BindId) -> bool {
-        let was_bound = self.bus.lock().map(|mut b| b.unbind(id)).unwrap_or(false);
-        let key = self.key_of.lock().ok().and_then(|mut k| k.remove(&id));
+        let was_bound = crate::lock(&self.bus).unbind(id);
+        let key = crate::lock(&self.key_of).remove(&id);
         if let Some(key) = key {
-            let dead = self.subs.lock().ok().and_then(|mut subs| {
-                let s = subs.get_mut(&key)?;
-                s.users -= 1;
-                if s.users == 0 { subs.remove(&key) } else { None }
-            });
+            let dead = {
+                let mut subs = crate::lock(&self.subs);
+                let last = subs.get_mut(&key).is_some_and(|s| {
+                    s.users -= 1;
+                    s.users == 0
+                });
+                if last { subs.remove(&key) } else { None }
+            };
             drop(dead);
         }
         was_bound
@@ -209,7 +212,7 @@ impl ZenohBus {
 
     /// The key expressions this bus is subscribed to.
     pub fn subscribed_keys(&self) -> Vec<String> {
-        self.subs.lock().map(|s| s.keys().cloned().collect()).unwrap_or_default()
+        crate::lock(&self.subs).keys().cloned().collect()
     }
 
     /// Publishes `text` under its key (`<prefix>/pprz/<sender>/<NAME>`).
@@ -222,15 +225,11 @@ impl ZenohBus {
 
     /// Number of live bindings.
     pub fn len(&self) -> usize {
-        self.bus.lock().map(|b| b.len()).unwrap_or(0)
+        crate::lock(&self.bus).len()
     }
 
     /// Whether there is no binding.
     pub fn is_empty(&self) -> bool {
         self.len() == 0
     }
-}
-
-fn poisoned() -> ZenohBusError {
-    ZenohBusError::Zenoh("a bus handler panicked earlier".into())
 }

@@ -215,16 +215,13 @@ const MAX_EVENTS: usize = 10_000;
 
 impl Inner {
     fn drop_one(&self, reason: &'static str) {
-        if let Ok(mut d) = self.drops.lock() {
-            *d.entry(reason).or_insert(0) += 1;
-        }
+        *crate::lock(&self.drops).entry(reason).or_insert(0) += 1;
     }
 
     fn event(&self, what: &'static str, app_name: &str, why: &str) {
         tracing::info!("ivy: {app_name} {what}{}", if why.is_empty() { String::new() } else { format!(" ({why})") });
-        if let Ok(mut e) = self.events.lock()
-            && e.len() < MAX_EVENTS
-        {
+        let mut e = crate::lock(&self.events);
+        if e.len() < MAX_EVENTS {
             e.push(PeerEvent {
                 t_s: self.started.elapsed().as_secs_f64(),
                 what,
@@ -355,17 +352,17 @@ impl IvyAgent {
 
     /// Dropped hellos, lines and messages, by reason.
     pub fn drops(&self) -> BTreeMap<&'static str, u64> {
-        self.inner.drops.lock().map(|d| d.clone()).unwrap_or_default()
+        crate::lock(&self.inner.drops).clone()
     }
 
     /// Peers joining and leaving, in order.
     pub fn events(&self) -> Vec<PeerEvent> {
-        self.inner.events.lock().map(|e| e.clone()).unwrap_or_default()
+        crate::lock(&self.inner.events).clone()
     }
 
     /// The peers connected now, by app name.
     pub fn peers(&self) -> Vec<PeerInfo> {
-        let Ok(peers) = self.inner.peers.lock() else { return Vec::new() };
+        let peers = crate::lock(&self.inner.peers);
         let mut v: Vec<PeerInfo> = peers
             .values()
             .map(|p| PeerInfo {
@@ -392,7 +389,7 @@ impl IvyAgent {
         handler: impl FnMut(&Delivery<'_>, &mut Control) + Send + 'static,
     ) -> Result<u32, IvyError> {
         let wire = format!("^(.*?(?:{pattern}).*)$");
-        let mut local = self.inner.local.lock().map_err(|_| poisoned())?;
+        let mut local = crate::lock(&self.inner.local);
         let bind_id = local.bus.bind(pattern, handler)?;
         Ok(self.add_wire(&mut local, wire, LocalKind::Text(bind_id)))
     }
@@ -403,7 +400,7 @@ impl IvyAgent {
         if pattern.contains(['\n', '\x02']) {
             return Err(IvyError::Unsendable);
         }
-        let mut local = self.inner.local.lock().map_err(|_| poisoned())?;
+        let mut local = crate::lock(&self.inner.local);
         Ok(self.add_wire(&mut local, pattern.to_owned(), LocalKind::Raw(Box::new(handler))))
     }
 
@@ -414,27 +411,23 @@ impl IvyAgent {
         Frame::AddRegexp { id, regex: wire.clone() }.encode(&mut line);
         local.wire.insert(id, (wire, kind));
         // Lock order: local, then peers (as in the handshake).
-        if let Ok(mut peers) = self.inner.peers.lock() {
-            for p in peers.values_mut() {
-                queue(&self.inner, p, line.clone());
-            }
+        for p in crate::lock(&self.inner.peers).values_mut() {
+            queue(&self.inner, p, line.clone());
         }
         id
     }
 
     /// Removes binding `id` and tells every peer (DelRegexp). Returns whether it was bound.
     pub fn unbind(&self, id: u32) -> bool {
-        let Ok(mut local) = self.inner.local.lock() else { return false };
+        let mut local = crate::lock(&self.inner.local);
         let Some((_, kind)) = local.wire.remove(&id) else { return false };
         if let LocalKind::Text(b) = kind {
             local.bus.unbind(b);
         }
         let mut line = Vec::new();
         Frame::DelRegexp { id }.encode(&mut line);
-        if let Ok(mut peers) = self.inner.peers.lock() {
-            for p in peers.values_mut() {
-                queue(&self.inner, p, line.clone());
-            }
+        for p in crate::lock(&self.inner.peers).values_mut() {
+            queue(&self.inner, p, line.clone());
         }
         true
     }
@@ -491,7 +484,7 @@ impl IvyAgent {
     }
 
     fn for_peers_named(&self, app_name: &str, line: &[u8]) -> usize {
-        let Ok(mut peers) = self.inner.peers.lock() else { return 0 };
+        let mut peers = crate::lock(&self.inner.peers);
         let mut n = 0;
         for p in peers.values_mut().filter(|p| p.app_name == app_name) {
             queue(&self.inner, p, line.to_vec());
@@ -504,20 +497,13 @@ impl IvyAgent {
     pub async fn stop(&self) {
         let mut bye = Vec::new();
         Frame::Bye.encode(&mut bye);
-        let txs: Vec<mpsc::Sender<Vec<u8>>> = self
-            .inner
-            .peers
-            .lock()
-            .map(|mut peers| {
-                peers
-                    .values_mut()
-                    .map(|p| {
-                        queue(&self.inner, p, bye.clone());
-                        p.tx.clone()
-                    })
-                    .collect()
+        let txs: Vec<mpsc::Sender<Vec<u8>>> = crate::lock(&self.inner.peers)
+            .values_mut()
+            .map(|p| {
+                queue(&self.inner, p, bye.clone());
+                p.tx.clone()
             })
-            .unwrap_or_default();
+            .collect();
         // Give the writers a moment to flush the Bye.
         let deadline = tokio::time::Instant::now() + Duration::from_secs(1);
         for tx in txs {
@@ -529,9 +515,7 @@ impl IvyAgent {
         for t in &self.tasks {
             t.abort();
         }
-        if let Ok(mut peers) = self.inner.peers.lock() {
-            peers.clear();
-        }
+        crate::lock(&self.inner.peers).clear();
     }
 }
 
@@ -540,14 +524,8 @@ impl Drop for IvyAgent {
         for t in &self.tasks {
             t.abort();
         }
-        if let Ok(mut peers) = self.inner.peers.lock() {
-            peers.clear();
-        }
+        crate::lock(&self.inner.peers).clear();
     }
-}
-
-fn poisoned() -> IvyError {
-    IvyError::Io { bus: String::new(), what: "state", source: std::io::Error::other("a handler panicked earlier") }
 }
 
 fn queue(inner: &Inner, p: &mut Peer, line: Vec<u8>) {
@@ -596,9 +574,9 @@ async fn hello_loop(inner: Arc<Inner>, udp: Arc<UdpSocket>) {
             continue;
         }
         let addr = SocketAddr::new(from.ip(), hello.port);
-        let known = inner.peers.lock().is_ok_and(|peers| {
-            peers.values().any(|p| p.app_id == hello.app_id || (p.addr.ip() == addr.ip() && p.port == hello.port))
-        });
+        let known = crate::lock(&inner.peers)
+            .values()
+            .any(|p| p.app_id == hello.app_id || (p.addr.ip() == addr.ip() && p.port == hello.port));
         if known {
             inner.drop_one("hello: agent already connected");
             continue;
@@ -658,7 +636,7 @@ async fn run_peer(inner: Arc<Inner>, stream: TcpStream, addr: SocketAddr, hello:
     let writer = tokio::spawn(write_loop(wr, rx));
     let why = read_loop(&inner, key, &mut rd).await;
     writer.abort();
-    let name = inner.peers.lock().ok().and_then(|mut p| p.remove(&key)).map(|p| (p.app_name, p.ready));
+    let name = crate::lock(&inner.peers).remove(&key).map(|p| (p.app_name, p.ready));
     if let Some((name, ready)) = name
         && ready
     {
@@ -744,7 +722,7 @@ fn handle_frame(inner: &Arc<Inner>, key: u64, frame: Frame) -> Option<String> {
         Frame::AddRegexp { id, regex } => {
             inner.counters.peer_regexes.fetch_add(1, Ordering::Relaxed);
             let compiled = compile(&regex);
-            let Ok(mut peers) = inner.peers.lock() else { return None };
+            let mut peers = crate::lock(&inner.peers);
             let p = peers.get_mut(&key)?;
             match compiled {
                 Ok((re, narrowing)) => {
@@ -766,28 +744,21 @@ fn handle_frame(inner: &Arc<Inner>, key: u64, frame: Frame) -> Option<String> {
             }
         }
         Frame::DelRegexp { id } => {
-            if let Ok(mut peers) = inner.peers.lock()
-                && let Some(p) = peers.get_mut(&key)
-            {
+            if let Some(p) = crate::lock(&inner.peers).get_mut(&key) {
                 p.regexes.remove(&id);
                 p.refused.remove(&id);
             }
         }
         Frame::StartRegexp { port, app_name } => {
-            if let Ok(mut peers) = inner.peers.lock()
-                && let Some(p) = peers.get_mut(&key)
-            {
+            if let Some(p) = crate::lock(&inner.peers).get_mut(&key) {
                 p.app_name = app_name;
                 p.port = port;
             }
         }
         Frame::EndRegexp => {
-            let name = inner.peers.lock().ok().and_then(|mut peers| {
-                let p = peers.get_mut(&key)?;
-                (!p.ready).then(|| {
-                    p.ready = true;
-                    p.app_name.clone()
-                })
+            let name = crate::lock(&inner.peers).get_mut(&key).filter(|p| !p.ready).map(|p| {
+                p.ready = true;
+                p.app_name.clone()
             });
             if let Some(name) = name {
                 inner.counters.peers_joined.fetch_add(1, Ordering::Relaxed);
@@ -797,9 +768,7 @@ fn handle_frame(inner: &Arc<Inner>, key: u64, frame: Frame) -> Option<String> {
         Frame::Ping { id } => {
             let mut line = Vec::new();
             Frame::Pong { id }.encode(&mut line);
-            if let Ok(mut peers) = inner.peers.lock()
-                && let Some(p) = peers.get_mut(&key)
-            {
+            if let Some(p) = crate::lock(&inner.peers).get_mut(&key) {
                 queue(inner, p, line);
             }
         }
