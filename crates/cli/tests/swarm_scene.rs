@@ -33,7 +33,9 @@ fn a_generated_dense_swarm_runs_and_its_summary_scales() {
     assert!(out.contains("copters: 60 flew"), "aggregates: {out}");
     assert!(out.contains("crashes: ") && out.contains("worst |dz|"), "{out}");
     assert!(out.lines().count() < 20, "no row per copter: {out}");
-    assert!(!out.contains("c59 "), "no row per copter: {out}");
+    // The worst few are named (crashes, height errors), not all 60.
+    let named = (0..60).filter(|k| out.contains(&format!("c{k} "))).count();
+    assert!(named <= 15, "{named} copters named: {out}");
 }
 
 #[test]
