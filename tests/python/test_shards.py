@@ -17,15 +17,18 @@ from conftest import free_tcp_port, log_messages, zenoh_client_config
 
 
 def flock(twinswarm_bin, tmp_path):
-    """`twinswarm scene flock`, with free-running sonars: with the firmware's round robin no two
-    of its copters meet, and the tests are about crashes across borders too."""
+    """`twinswarm scene flock` with free-running sonars and the PD Wall-Avoid, the flock these
+    tests were written for: crashes within seconds (with the firmware's round robin no two of
+    its copters meet), and a copter that goes where it is sent (the firmware's Wall-Avoid holds
+    a pilot's input back near anything its filtered sonars see, cross-talk echoes included)."""
     path = tmp_path / "flock.toml"
     text = subprocess.run(
         [str(twinswarm_bin), "scene", "flock", "--n", "144", "--seed", "3"],
         check=True, capture_output=True, text=True,
     ).stdout
     for old, new in [('schedule = "round_robin"', 'schedule = "together"'),
-                     ("cycle_s = 0.2\n", "cycle_s = 0.049\n"), ("cycle_spread = 0.00005", "cycle_spread = 0.002")]:
+                     ("cycle_s = 0.2\n", "cycle_s = 0.049\n"), ("cycle_spread = 0.00005", "cycle_spread = 0.002"),
+                     ('controller = "firmware"', 'controller = "pd"')]:
         assert text.count(old) == 1, old
         text = text.replace(old, new)
     path.write_text(text)
