@@ -134,6 +134,10 @@ pub struct LinkStats {
     /// Batches sent again while waiting (see [`RESEND`]).
     #[serde(default)]
     pub resent: u64,
+    /// Batches that came for a step already taken (a batch sent again that crossed the first,
+    /// or a neighbour's defect): dropped, counted.
+    #[serde(default)]
+    pub stale_batches: u64,
     /// Times a neighbour left and this shard held for it ([`OnLost::Hold`]).
     #[serde(default)]
     pub holds: u64,
@@ -204,6 +208,8 @@ pub struct ShardLink {
     _watch: zenoh::pubsub::Subscriber<()>,
     /// Batches that came early (a neighbour one step ahead), by (tick, from).
     early: BTreeMap<(u64, ShardId), GhostBatch>,
+    /// The last step whose batches were taken: a batch for it or before is stale.
+    taken_tick: Option<u64>,
     joined: Vec<ShardId>,
     /// Neighbours whose token went away, and when this shard learnt it.
     left: Vec<(ShardId, Instant)>,
@@ -271,6 +277,7 @@ impl ShardLink {
             _alive: alive,
             _watch: watch,
             early: BTreeMap::new(),
+            taken_tick: None,
             joined: Vec::new(),
             left: Vec::new(),
             rejoined: false,
@@ -334,6 +341,10 @@ impl ShardLink {
         match msg {
             Incoming::Batch(b, bytes) => {
                 self.stats.bytes_received += bytes as u64;
+                if self.taken_tick.is_some_and(|t| b.tick <= t) {
+                    self.stats.stale_batches += 1;
+                    return Ok(());
+                }
                 self.stats.ghosts_received += b.ghosts.len() as u64;
                 self.early.insert((b.tick, b.from), b);
             }
@@ -447,7 +458,10 @@ impl ShardLink {
             }
         }
         // Anything older than this tick is a defect of the sender; nothing waits for it.
+        let before = self.early.len();
         self.early.retain(|&(t, _), _| t > tick);
+        self.stats.stale_batches += (before - self.early.len()) as u64;
+        self.taken_tick = Some(tick);
         state.receive_ghosts(batches.into_iter().flat_map(|b| b.ghosts))?;
         Ok(())
     }

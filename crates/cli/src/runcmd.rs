@@ -497,13 +497,14 @@ fn print_bus(bus: Option<&runner::BusReport>, stats: &bridge::sim::LoopStats) {
                 b.published,
                 b.clients_seen
             );
-            if b.tracking_rejected + b.requests_dropped + b.spawns_rejected + b.publish_failed > 0 {
+            if b.tracking_rejected + b.requests_dropped + b.spawns_rejected + b.publish_failed + b.replies_failed > 0 {
                 outln!(
-                    "    {} tracking poses rejected, {} spawn requests refused; {} inputs dropped (step loop's queue full); {} frames not fully published",
+                    "    {} tracking poses rejected, {} spawn requests refused; {} inputs dropped (step loop's queue full); {} frames not fully published; {} query replies not sent",
                     b.tracking_rejected,
                     b.spawns_rejected,
                     b.requests_dropped,
-                    b.publish_failed
+                    b.publish_failed,
+                    b.replies_failed
                 );
             }
         }

@@ -111,6 +111,8 @@ pub struct BusReport {
     pub publish_failed: u64,
     /// Inputs dropped because the step loop's queue was full.
     pub requests_dropped: u64,
+    /// Queryable replies (scene, copters, spawn) that could not be sent.
+    pub replies_failed: u64,
     pub telemetry: GatewayReport,
     /// Paparazzi texts on Zenoh (`None` without Zenoh).
     pub zenoh_texts: Option<ZenohTexts>,
@@ -369,6 +371,7 @@ pub fn run<W: StepObserver + Send>(
         spawns_rejected: counters.as_ref().map_or(0, |c| l(&c.spawns_rejected)),
         publish_failed: counters.as_ref().map_or(0, |c| l(&c.publish_failed)),
         requests_dropped: counters.as_ref().map_or(0, |c| l(&c.requests_dropped)),
+        replies_failed: counters.as_ref().map_or(0, |c| l(&c.replies_failed)),
         telemetry: gateway.report(),
         zenoh_texts: gateway.zenoh_bus().map(|z| {
             let c = &z.counters;

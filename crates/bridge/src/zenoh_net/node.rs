@@ -112,6 +112,15 @@ pub struct NodeCounters {
     /// Requests for the step loop dropped because its queue was full (commands, tracking,
     /// controller changes, rejections for the log).
     pub requests_dropped: AtomicU64,
+    /// Queryable replies that could not be sent (the querier gone, the session closing).
+    pub replies_failed: AtomicU64,
+}
+
+/// Counts a queryable reply that could not be sent.
+fn count_failed<E>(counters: &NodeCounters, sent: Result<(), E>) {
+    if sent.is_err() {
+        counters.replies_failed.fetch_add(1, Ordering::Relaxed);
+    }
 }
 
 /// Logs at most once per `period` (plus a count of what was suppressed).
@@ -348,22 +357,22 @@ impl Node {
         // Queryables.
         let mut queryables = Vec::new();
         {
-            let scene_json = scene_json.clone();
+            let (scene_json, counters) = (scene_json.clone(), counters.clone());
             queryables.push(
                 session
                     .declare_queryable(format!("{prefix}/scene"))
                     .callback(move |q| {
                         let body = crate::lock(&scene_json).clone();
                         // A reply fails only when the querier is gone or the session is closing:
-                        // nobody is left to tell (the same below).
-                        let _ = q.reply(q.key_expr().clone(), body).wait();
+                        // nobody is left to tell, so it is counted (the same below).
+                        count_failed(&counters, q.reply(q.key_expr().clone(), body).wait());
                     })
                     .await
                     .map_err(zerr)?,
             );
         }
         {
-            let world_cell = world_cell.clone();
+            let (world_cell, counters) = (world_cell.clone(), counters.clone());
             queryables.push(
                 session
                     .declare_queryable(format!("{prefix}/copters"))
@@ -381,7 +390,8 @@ impl Node {
                             })
                             .collect();
                         // Strings and numbers: serialising cannot fail.
-                        let _ = q.reply(q.key_expr().clone(), serde_json::to_string(&list).unwrap_or_default()).wait();
+                        let body = serde_json::to_string(&list).unwrap_or_default();
+                        count_failed(&counters, q.reply(q.key_expr().clone(), body).wait());
                     })
                     .await
                     .map_err(zerr)?,
@@ -400,7 +410,7 @@ impl Node {
                             Err(e) => {
                                 counters.spawns_rejected.fetch_add(1, Ordering::Relaxed);
                                 limiter.warn(&format!("rejected a spawn request: {e}"));
-                                let _ = q.reply_err(format!("malformed spawn request: {e}")).wait();
+                                count_failed(&counters, q.reply_err(format!("malformed spawn request: {e}")).wait());
                                 return;
                             }
                         };
@@ -408,13 +418,14 @@ impl Node {
                         if requests.try_send(Request::Spawn { spec: Box::new(spec), reply: tx }).is_err() {
                             counters.spawns_rejected.fetch_add(1, Ordering::Relaxed);
                             counters.requests_dropped.fetch_add(1, Ordering::Relaxed);
-                            let _ = q.reply_err("the step loop is busy or stopped").wait();
+                            count_failed(&counters, q.reply_err("the step loop is busy or stopped").wait());
                             return;
                         }
                         // Answer from a task: the step loop replies at its next step.
+                        let counters = counters.clone();
                         tokio::spawn(async move {
                             let answer = tokio::time::timeout(Duration::from_secs(5), rx).await;
-                            let _ = match answer {
+                            let sent = match answer {
                                 Ok(Ok(Ok(name))) => {
                                     q.reply(q.key_expr().clone(), serde_json::json!({ "spawned": name }).to_string())
                                         .await
@@ -422,6 +433,7 @@ impl Node {
                                 Ok(Ok(Err(e))) => q.reply_err(e).await,
                                 _ => q.reply_err("the step loop did not answer").await,
                             };
+                            count_failed(&counters, sent);
                         });
                     })
                     .await
