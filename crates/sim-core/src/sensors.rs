@@ -635,14 +635,28 @@ impl SonarScene {
     /// get the exact test. Each apex must lie on its own axis ahead of `origin` (`origin + t
     /// axis`, `t >= 0`), as [`sonar_cones`] places them.
     pub fn cone_distances(&self, cones: &[Cone; 4], origin: Vec3, self_id: usize, max_range_m: Real) -> [Real; 4] {
+        self.cone_distances_of(cones, [true; 4], origin, self_id, max_range_m)
+    }
+
+    /// [`SonarScene::cone_distances`] of the `wanted` cones only (the firmware reads one sonar
+    /// per tick); the others come back as `INFINITY` and cost nothing.
+    pub fn cone_distances_of(
+        &self,
+        cones: &[Cone; 4],
+        wanted: [bool; 4],
+        origin: Vec3,
+        self_id: usize,
+        max_range_m: Real,
+    ) -> [Real; 4] {
         let mut out = [Real::INFINITY; 4];
         if self.grid.built_for != self.copters.len() || self.copters.is_empty() {
-            for (o, cone) in out.iter_mut().zip(cones) {
+            for ((o, cone), _) in out.iter_mut().zip(cones).zip(wanted).filter(|(_, w)| *w) {
                 *o = self.cone_distance(cone, self_id, max_range_m);
             }
             return out;
         }
-        let mut best = [max_range_m; 4];
+        // An unwanted cone starts with nothing left to find: no test ever lowers its `best`.
+        let mut best = wanted.map(|w| if w { max_range_m } else { 0.0 });
         let mut hit = [false; 4];
         for (k, cone) in cones.iter().enumerate() {
             for &(n, c) in &self.walls {

@@ -1345,7 +1345,7 @@ fn sense(world: &World, state: &mut State, inputs: &Inputs, sonar_due: bool, par
         if sonar_due {
             let cones = sonar_cones(params, pos, rot);
             r.sonar_tick = tick;
-            let truths = scene.cone_distances(&cones, pos, i, spec.sonar.max_range_m);
+            let truths = scene.cone_distances_of(&cones, fresh, pos, i, spec.sonar.max_range_m);
             for (s, &truth) in truths.iter().enumerate().filter(|(s, _)| fresh[*s]) {
                 let nz = if noise { spec.sonar.noise_sigma_m * c.rng.normal() } else { 0.0 };
                 r.sonar_truth_m[s] = truth.min(spec.sonar.cap_m);
