@@ -29,9 +29,7 @@ fn hover_at_1m_holds_within_3cm_after_10s_with_rotor_noise_on() {
     }
     let rms = (sum_sq / n as f64).sqrt();
     println!("hover at 1.0 m, 10..30 s: worst |z - 1| = {:.2} cm, rms = {:.2} cm", worst * 100.0, rms * 100.0);
-    // 2.81 cm before the copters were trimmed, 3.29 cm after (the random stream moved with
-    // the IMU mounting draw; rms 0.90 → 1.27 cm): the 3 cm target is not met on this seed.
-    assert!(worst < 0.035, "worst height error {worst} m");
+    assert!(worst < 0.03, "worst height error {worst} m");
 }
 
 /// The height's rms error hovering at 1.0 m from 10 s to 30 s with the given particle noise,
