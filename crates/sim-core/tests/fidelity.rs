@@ -261,11 +261,11 @@ fn side_by_side_copters_barely_feel_each_other() {
     assert!((drop - drop0).abs() < 0.005 && (sd - sd0).abs() < 0.002 && (tilt - tilt0).abs() < 0.1f32.to_radians());
 }
 
-/// Mean of the rotors' ω² while hovering at `height_m` over the floor, or over the lab's
-/// table (top at 0.75 m) when `over_table`; noise and battery off, so that ω² is the thrust
-/// the copter needs over `k`.
-fn hover_omega2(height_m: Real, over_table: bool, ground_effect: bool) -> Real {
-    let (x, z0) = if over_table { (1.4, 0.75) } else { (-1.0, 0.0) };
+/// Mean of the rotors' ω² over 10–20 s of hover at `x` beside or over the lab's table (x
+/// 1.0–1.8 m, top at 0.75 m), started at `z` m and holding `target_m` (over what the IR sees,
+/// or over the floor on ground truth with `ideal`); noise and battery off, so that ω² is the
+/// thrust the copter needs over `k`.
+fn hover_omega2_in(x: Real, z: Real, target_m: Real, ideal: bool, ground_effect: bool) -> Real {
     let world = load(&format!(
         r#"
 [sim]
@@ -279,6 +279,8 @@ pos_m = [1.4, 0.0]
 size_m = [0.8, 0.5, 0.75]
 [sensors]
 noise = false
+[sensors.estimator]
+ideal = {ideal}
 [airflow]
 ground_effect = {ground_effect}
 [airframes.f]
@@ -290,9 +292,8 @@ name = "f"
 airframe = "f"
 start = {{ pos_m = [{x}, 0.0], z_m = {z} }}
 mode = "target"
-command = {{ target_m = [{x}, 0.0, {height_m}] }}
-"#,
-        z = z0 + height_m,
+command = {{ target_m = [{x}, 0.0, {target_m}] }}
+"#
     ));
     let mut w2 = Vec::new();
     fly(&world, 20.0, |t, s| {
@@ -301,6 +302,12 @@ command = {{ target_m = [{x}, 0.0, {height_m}] }}
         }
     });
     mean(&w2)
+}
+
+/// Hovering `height_m` over the floor, or over the table when `over_table`, on the IR.
+fn hover_omega2(height_m: Real, over_table: bool, ground_effect: bool) -> Real {
+    let (x, z0) = if over_table { (1.4, 0.75) } else { (-1.0, 0.0) };
+    hover_omega2_in(x, z0 + height_m, height_m, false, ground_effect)
 }
 
 #[test]
@@ -324,43 +331,10 @@ fn hover_thrust_drops_near_the_floor_and_over_a_box() {
     assert!(pct(low_off, high_off).abs() < 0.05);
 }
 
-/// Mean ω² hovering at `z` m over the floor at `x`, on ground truth (so the height held is the
-/// same whatever the IR sees), beside or over the table (x 1.0–1.8 m, top 0.75 m).
+/// Hovering at `z` m over the floor at `x`, on ground truth (the same height whatever the IR
+/// sees).
 fn hover_omega2_at(x: Real, z: Real) -> Real {
-    let world = load(&format!(
-        r#"
-[sim]
-seed = 2
-[arena]
-size_m = [4.0, 3.0]
-height_m = 2.5
-[[box]]
-name = "table"
-pos_m = [1.4, 0.0]
-size_m = [0.8, 0.5, 0.75]
-[sensors]
-noise = false
-[sensors.estimator]
-ideal = true
-[airframes.f]
-particle_noise = "off"
-rotor_tolerance_sigma = 0.0
-battery = {{ enabled = false }}
-[[copter]]
-name = "f"
-airframe = "f"
-start = {{ pos_m = [{x}, 0.0], z_m = {z} }}
-mode = "target"
-command = {{ target_m = [{x}, 0.0, {z}] }}
-"#
-    ));
-    let mut w2 = Vec::new();
-    fly(&world, 20.0, |t, s| {
-        if t > 10.0 {
-            w2.push(s.copters[0].rotor_speed_rad_s.iter().map(|w| w * w).sum::<Real>() / 4.0);
-        }
-    });
-    mean(&w2)
+    hover_omega2_in(x, z, z, true, true)
 }
 
 /// Ground effect under each rotor: a copter hovering over the table's edge (two rotors over
