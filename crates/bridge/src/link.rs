@@ -43,6 +43,15 @@ pub enum LinkTiming {
 }
 
 impl LinkTiming {
+    /// The command line's choice: a uniform link with `jitter_ms` if given, else the measured
+    /// link with `copters` on the channel.
+    pub fn from_args(jitter_ms: Option<f64>, copters: u32) -> Self {
+        match jitter_ms {
+            Some(ms) => LinkTiming::Uniform { jitter_s: ms / 1e3 },
+            None => LinkTiming::Measured { copters },
+        }
+    }
+
     /// The probability that a slot is skipped.
     pub fn skip_probability(self) -> f64 {
         match self {

@@ -579,7 +579,7 @@ mod tests {
             last = x;
         }
         // It hovers on its own while being pulled to the pose: uncommanded, the particle model's
-        // thrust noise drifts it at up to 0.2 m/s here, which the 2/s pull holds to a few cm.
+        // thrust noise drifts it at up to 0.2 m/s here, which the pull holds to a few cm.
         let p = state.pose(0).pos_m;
         let error = ((p.x - real[0]).powi(2) + (p.y - real[1]).powi(2)).sqrt();
         assert!(error < 0.08, "{error} m from the tracked pose after 5 s (0.5 m at the start)");

@@ -261,10 +261,7 @@ fn run_sync_eval(args: &LocalizeArgs) -> anyhow::Result<()> {
         return Err(bad("--loss must be in [0, 1] and --jitter-ms >= 0".into()));
     }
     let choice = if args.world == WorldChoice::Both { WorldChoice::Empty } else { args.world };
-    let timing = match args.jitter_ms {
-        Some(ms) => bridge::link::LinkTiming::Uniform { jitter_s: ms / 1e3 },
-        None => bridge::link::LinkTiming::Measured { copters: u32::from(args.copters) },
-    };
+    let timing = bridge::link::LinkTiming::from_args(args.jitter_ms, u32::from(args.copters));
     let link = Link { timing, loss: args.loss };
     let medusa_only = SyncOptions { tracking: false, ..SyncOptions::default() };
     let variant = |label: &str, sync: Option<SyncOptions>, attitude| Variant {

@@ -200,14 +200,6 @@ fn reality(args: &CopterArgs) -> anyhow::Result<(World, TelemetryPlan)> {
     Ok((world, mixed.plan))
 }
 
-/// The telemetry link's timing: the measured one unless `--jitter-ms` asks for a uniform one.
-fn link_timing(args: &CopterArgs) -> LinkTiming {
-    match args.jitter_ms {
-        Some(ms) => LinkTiming::Uniform { jitter_s: ms / 1e3 },
-        None => LinkTiming::Measured { copters: args.link_copters },
-    }
-}
-
 /// Runs `twinswarm copter`.
 pub fn run(args: CopterArgs) -> anyhow::Result<()> {
     let (world, plan) = reality(&args)?;
@@ -251,7 +243,7 @@ pub fn run(args: CopterArgs) -> anyhow::Result<()> {
             let (name, period) = (name.clone(), Duration::from_secs_f64(*period));
             let (ac_id, loss) = (args.ac_id, args.loss as f32);
             let mut rng = Rng32::new(world.params.seed, 0x7e1e_0000 + k as u64);
-            let timing = link_timing(&args);
+            let timing = LinkTiming::from_args(args.jitter_ms, args.link_copters);
             let mut clock =
                 LinkClock::new(period.as_secs_f64(), timing, Rng32::new(world.params.seed, 0x7e1f_0000 + k as u64));
             senders.push(rt.spawn(async move {
