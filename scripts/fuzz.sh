@@ -4,22 +4,24 @@
 #   scripts/fuzz.sh [EXECS_PER_TARGET] [TARGET...]
 #
 # Default: 1,000,000 executions for each target of crates/fuzz (scene, messages_xml, conf_xml,
-# pairing_xml, telemetry_xml, ivy_text, ivy_wire, zenoh_json, mcap, plot), one after the other
-# on one core. Prints one line per target (executions, corpus size, crashes, hangs) and
-# writes it to target/afl/report.tsv.
+# pairing_xml, telemetry_xml, ivy_text, ivy_wire, zenoh_json, mcap, plot, log, log_merge,
+# foxglove_client, ghost_batch), one after the other on one core. Prints one line per target
+# (executions, corpus size, crashes, hangs), writes it to target/afl/report.tsv, and appends
+# it, with the commit fuzzed and the date, to the record in crates/fuzz/RESULTS.md.
 #
 # How: Debian's afl++ (apt-get install afl++) provides afl-fuzz and its compiler runtime;
 # rustc's own SanitizerCoverage pass (stable flags) instruments the code, the way cargo-afl
 # does; the `afl` crate gives the persistent-mode loop. The corpus of each run is merged
 # back into crates/fuzz/corpus/<target> (minimised with afl-cmin) so that CI's smoke pass
-# (`cargo test -p twinswarm-fuzz`) replays it; crashes are kept in target/afl/out/<target>/
-# and belong, minimised, in crates/fuzz/regressions/<target>/ once fixed.
+# (`cargo test -p twinswarm-fuzz`) replays it. Every crash and hang is copied into
+# crates/fuzz/regressions/<target>/ (the smoke pass then fails on it until it is fixed).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
 execs="${1:-1000000}"
 shift || true
-all=(scene messages_xml conf_xml pairing_xml telemetry_xml ivy_text ivy_wire zenoh_json mcap plot)
+all=(scene messages_xml conf_xml pairing_xml telemetry_xml ivy_text ivy_wire zenoh_json mcap plot log log_merge
+  foxglove_client ghost_batch)
 targets=("$@")
 [ "${#targets[@]}" -gt 0 ] || targets=("${all[@]}")
 
@@ -51,9 +53,17 @@ seeds_of() {
     conf_xml) echo assets/paparazzi/conf.xml ;;
     pairing_xml) ls assets/pairing/*.xml ;;
     telemetry_xml) echo assets/paparazzi/telemetry.xml ;;
-    plot) ls crates/fuzz/corpus/mcap/* crates/fuzz/regressions/mcap/* ;;
+    plot) ls crates/fuzz/corpus/mcap/* ;;
   esac
   find "crates/fuzz/corpus/$1" "crates/fuzz/regressions/$1" -type f -size +0 2>/dev/null || true
+}
+
+# The record: one row per campaign, appended to crates/fuzz/RESULTS.md.
+results=crates/fuzz/RESULTS.md
+commit="$(git rev-parse --short HEAD)$(git diff --quiet HEAD -- crates scripts Cargo.lock || echo -dirty)"
+record() {
+  printf '| %s | %s | %s | %s | %s | %s | %s | %s | %s |\n' "$1" "$2" "$3" "$(( $2 / ($3 > 0 ? $3 : 1) ))" \
+    "$4" "$5" "$6" "$commit" "$(date -u +%Y-%m-%d)" >> "$results"
 }
 
 export AFL_SKIP_CPUFREQ=1 AFL_I_DONT_CARE_ABOUT_MISSING_CRASHES=1 AFL_NO_UI=1 AFL_QUIET=1
@@ -65,6 +75,7 @@ for t in "${targets[@]}"; do
   rm -rf "$in" "$out"
   mkdir -p "$in" "$work/out"
   seeds_of "$t" | sort -u | while read -r f; do cp "$f" "$in/"; done
+  "$bin" --seeds "$t" "$in"
   echo "==> $t: $execs executions from $(ls "$in" | wc -l) seed(s)"
   start=$(date +%s)
   # -E: stop after that many executions; -t: 2 s per input (the file targets read a log).
@@ -83,6 +94,15 @@ for t in "${targets[@]}"; do
   printf '%s\t%s\t%s\t%s\t%s\t%s\t%s\n' "$t" "$done_execs" "$corpus" "$crashes" "$hangs" "$secs" \
     "$(( done_execs / (secs > 0 ? secs : 1) ))" >> "$report"
   echo "    $done_execs executions in ${secs} s; corpus $corpus; crashes $crashes; hangs $hangs"
+  record "$t" "$done_execs" "$secs" "$corpus" "$crashes" "$hangs"
+  # Every crash and hang becomes a regression file.
+  for kind in crashes hangs; do
+    for f in "$out/default/$kind"/id:*; do
+      [ -f "$f" ] || continue
+      mkdir -p "crates/fuzz/regressions/$t"
+      cp "$f" "crates/fuzz/regressions/$t/${kind%es}-$(sha1sum "$f" | cut -c1-16)"
+    done
+  done
   # Keep the new coverage: minimise the queue into the checked-in corpus (small files only).
   if [ "${FUZZ_KEEP_CORPUS:-1}" = 1 ]; then
     mkdir -p "$work/cmin/$t"

@@ -250,22 +250,7 @@ impl LiveServer {
     /// Sends a message of channel `id` with timestamp `time_ns` to its subscribers, without
     /// waiting: a client whose queue is full loses it (counted).
     pub fn publish(&self, id: u32, time_ns: u64, payload: &[u8]) {
-        let Some(entry) = lock(&self.shared.channels).get((id as usize).wrapping_sub(1)).cloned() else {
-            return;
-        };
-        if entry.def.latched {
-            *lock(&entry.last) = Some((time_ns, payload.to_vec()));
-        }
-        if entry.subscribers.load(Ordering::Relaxed) == 0 {
-            return;
-        }
-        for c in lock(&self.shared.clients).iter() {
-            for &(sub, ch) in &c.subs {
-                if ch == id {
-                    queue(&self.shared, c, Message::Binary(message_data(sub, time_ns, payload)));
-                }
-            }
-        }
+        publish(&self.shared, id, time_ns, payload);
     }
 
     /// Tells the clients the current time (op 2), e.g. each control step's log time.
@@ -312,6 +297,26 @@ impl Drop for LiveServer {
         self.accept.abort();
         // Closing the queues ends each client's task, which closes its socket.
         lock(&self.shared.clients).clear();
+    }
+}
+
+/// [`LiveServer::publish`].
+fn publish(shared: &Shared, id: u32, time_ns: u64, payload: &[u8]) {
+    let Some(entry) = lock(&shared.channels).get((id as usize).wrapping_sub(1)).cloned() else {
+        return;
+    };
+    if entry.def.latched {
+        *lock(&entry.last) = Some((time_ns, payload.to_vec()));
+    }
+    if entry.subscribers.load(Ordering::Relaxed) == 0 {
+        return;
+    }
+    for c in lock(&shared.clients).iter() {
+        for &(sub, ch) in &c.subs {
+            if ch == id {
+                queue(shared, c, Message::Binary(message_data(sub, time_ns, payload)));
+            }
+        }
     }
 }
 
@@ -465,9 +470,7 @@ async fn serve_client(stream: TcpStream, peer: SocketAddr, shared: Arc<Shared>) 
                 Some(Ok(Message::Binary(b))) => {
                     errors += 1;
                     shared.counters.protocol_errors.fetch_add(1, Ordering::Relaxed);
-                    let op = b.first().map_or("empty".to_owned(), |op| format!("op {op:#04x}"));
-                    let e = format!("binary message ({op}, {} bytes) not accepted: this server advertises no client channels", b.len());
-                    if !reply(&shared, id, status_json(2, &e)) {
+                    if !reply(&shared, id, status_json(2, &binary_refused(&b))) {
                         break None;
                     }
                 }
@@ -530,6 +533,12 @@ fn remove_client(shared: &Shared, id: u64) {
             shared.active.fetch_sub(1, Ordering::Relaxed);
         }
     }
+}
+
+/// Why a client's binary message is refused (the server advertises no client channels).
+fn binary_refused(b: &[u8]) -> String {
+    let op = b.first().map_or("empty".to_owned(), |op| format!("op {op:#04x}"));
+    format!("binary message ({op}, {} bytes) not accepted: this server advertises no client channels", b.len())
 }
 
 /// A client's text message: `subscribe` and `unsubscribe`; anything else is an error, whose
@@ -624,6 +633,91 @@ fn handle_text(shared: &Shared, id: u64, text: &str) -> Result<(), String> {
             Err(format!("op \"{op}\" is not supported by this server (see serverInfo capabilities)"))
         }
         other => Err(format!("unknown op \"{}\"", other.chars().take(64).collect::<String>())),
+    }
+}
+
+/// The fuzz target of client messages (`crates/fuzz`, target `foxglove_client`): the
+/// server's request handling without sockets.
+#[doc(hidden)]
+pub mod fuzzing {
+    use super::*;
+
+    fn shared() -> Shared {
+        Shared {
+            name: "fuzz".into(),
+            session_id: "0".into(),
+            channels: Mutex::new(Vec::new()),
+            clients: Mutex::new(Vec::new()),
+            active: AtomicU32::new(0),
+            clock_ns: AtomicU64::new(0),
+            next_client: AtomicU64::new(1),
+            counters: Counters::default(),
+        }
+    }
+
+    /// Checks the subscription counts against the clients' subscription lists.
+    fn check_counts(shared: &Shared) {
+        let channels = lock(&shared.channels);
+        let clients = lock(&shared.clients);
+        let total: usize = clients.iter().map(|c| c.subs.len()).sum();
+        assert_eq!(shared.active.load(Ordering::Relaxed) as usize, total, "active subscriptions");
+        for (k, ch) in channels.iter().enumerate() {
+            let n = clients.iter().flat_map(|c| &c.subs).filter(|&&(_, c)| c as usize == k + 1).count();
+            assert_eq!(ch.subscribers.load(Ordering::Relaxed) as usize, n, "subscribers of channel {}", k + 1);
+        }
+        for c in clients.iter() {
+            let mut ids: Vec<u32> = c.subs.iter().map(|&(s, _)| s).collect();
+            ids.sort_unstable();
+            ids.dedup();
+            assert_eq!(ids.len(), c.subs.len(), "subscription ids of client {} are unique", c.id);
+        }
+    }
+
+    /// Two clients on a server of three channels (one latched): `frames` come from client 1,
+    /// text (`Ok`) or binary (`Err`), each answered as the server would; a message is
+    /// published on every channel after each. The subscription counts must match the
+    /// clients' lists throughout and fall to zero when the clients leave, and every text
+    /// queued for a client must be JSON with an `op`.
+    pub fn client_session<'a>(frames: impl IntoIterator<Item = Result<&'a str, &'a [u8]>>) {
+        let shared = shared();
+        let defs = [("/a", false), ("/b", false), ("/arena", true)];
+        for (topic, latched) in defs {
+            let mut def = LiveChannel::from_schema_bytes(topic, "json", "s", "jsonschema", b"{}");
+            def.latched = latched;
+            let entry = Arc::new(ChannelEntry { def, subscribers: AtomicU32::new(0), last: Mutex::new(None) });
+            lock(&shared.channels).push(entry);
+        }
+        *lock(&lock(&shared.channels)[2].last) = Some((5, b"{}".to_vec()));
+        let (tx1, mut rx1) = mpsc::channel(CLIENT_QUEUE);
+        let (tx2, mut rx2) = mpsc::channel(CLIENT_QUEUE);
+        lock(&shared.clients).push(ClientEntry { id: 1, tx: tx1, subs: Vec::new() });
+        lock(&shared.clients).push(ClientEntry { id: 2, tx: tx2, subs: Vec::new() });
+        let _ = handle_text(&shared, 2, r#"{"op":"subscribe","subscriptions":[{"id":1,"channelId":1}]}"#);
+        for (k, frame) in frames.into_iter().enumerate().take(1000) {
+            let error = match frame {
+                Ok(text) => handle_text(&shared, 1, text).err(),
+                Err(bytes) => Some(binary_refused(bytes)),
+            };
+            if let Some(e) = error {
+                assert!(reply(&shared, 1, status_json(2, &e)), "client 1 is listed");
+            }
+            check_counts(&shared);
+            for ch in 1..=3 {
+                publish(&shared, ch, k as u64, b"{}");
+            }
+        }
+        for rx in [&mut rx1, &mut rx2] {
+            while let Ok(m) = rx.try_recv() {
+                if let Message::Text(t) = m {
+                    let v: serde_json::Value = serde_json::from_str(&t).expect("a text sent is JSON");
+                    assert!(v.get("op").and_then(|o| o.as_str()).is_some(), "a text sent has an op: {t}");
+                }
+            }
+        }
+        remove_client(&shared, 1);
+        remove_client(&shared, 2);
+        check_counts(&shared);
+        assert_eq!(shared.active.load(Ordering::Relaxed), 0, "no subscription outlives its client");
     }
 }
 

@@ -23,6 +23,29 @@ macro_rules! outln {
 
 pub mod logcmd;
 pub mod plot;
+pub mod replay;
+
+/// A Zenoh configuration file (JSON5), with `--listen` and `--connect` endpoints, when given,
+/// in place of its own.
+pub fn zenoh_config_file(
+    path: &std::path::Path,
+    listen: &[String],
+    connect: &[String],
+) -> anyhow::Result<zenoh::Config> {
+    use anyhow::Context;
+    let mut c = zenoh::Config::from_file(path)
+        .map_err(|e| anyhow::anyhow!("{e}"))
+        .with_context(|| format!("cannot load zenoh config {}", path.display()))?;
+    if !listen.is_empty() {
+        c.insert_json5("listen/endpoints", &serde_json::to_string(listen)?)
+            .map_err(|e| anyhow::anyhow!("--listen: {e}"))?;
+    }
+    if !connect.is_empty() {
+        c.insert_json5("connect/endpoints", &serde_json::to_string(connect)?)
+            .map_err(|e| anyhow::anyhow!("--connect: {e}"))?;
+    }
+    Ok(c)
+}
 
 /// An error that is the user's input's fault (exit code 2).
 #[derive(Debug)]

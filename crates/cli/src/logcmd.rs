@@ -129,30 +129,39 @@ pub fn describe(stats: &LogStats) -> String {
 
 /// `twinswarm log info FILE`.
 pub fn info(path: &Path) -> anyhow::Result<()> {
+    out!("{}", summarise(path)?);
+    Ok(())
+}
+
+/// What `log info` prints about a log.
+pub fn summarise(path: &Path) -> anyhow::Result<String> {
+    use std::fmt::Write as _;
+    let mut out = String::new();
     let file = LogFile::open(path).map_err(read_error)?;
     let info = file.info().map_err(read_error)?;
-    outln!("{}: MCAP, {:.2} MB, {} chunks ({})", path.display(), info.file_bytes as f64 / 1e6, info.chunks, {
+    writeln!(out, "{}: MCAP, {:.2} MB, {} chunks ({})", path.display(), info.file_bytes as f64 / 1e6, info.chunks, {
         if info.compression.is_empty() { "uncompressed" } else { &info.compression }
-    });
+    })?;
     let meta = info.metadata.get("twinswarm");
     let get = |k: &str| meta.and_then(|m| m.get(k)).map(String::as_str).unwrap_or("?");
     if meta.is_some() {
-        outln!(
+        writeln!(
+            out,
             "  twinswarm {}, world {:?}, seed {}, scene {}",
             get("version"),
             get("world"),
             get("seed"),
             get("scene_origin")
-        );
-        outln!("  command line: {}", get("command_line"));
-        outln!("  started {} (log_time epoch)", get("epoch_utc"));
+        )?;
+        writeln!(out, "  command line: {}", get("command_line"))?;
+        writeln!(out, "  started {} (log_time epoch)", get("epoch_utc"))?;
     } else {
-        outln!("  no `twinswarm` metadata record: not written by twinswarm run");
+        writeln!(out, "  no `twinswarm` metadata record: not written by twinswarm run")?;
     }
     let (dt_s, epoch) = (get("control_dt_s").parse::<f64>().ok(), get("epoch_unix_ns").parse::<u64>().ok());
     match info.time_range_ns {
         Some((a, b)) => {
-            let sim_s = (b - a) as f64 / 1e9;
+            let sim_s = b.saturating_sub(a) as f64 / 1e9;
             let from_epoch = epoch.map(|e| {
                 format!(
                     ", {:.2} s to {:.2} s simulated",
@@ -161,39 +170,45 @@ pub fn info(path: &Path) -> anyhow::Result<()> {
                 )
             });
             let steps = dt_s.map(|dt| format!(", control step {:.0} ms", dt * 1e3));
-            outln!("  duration {sim_s:.2} s (sim){}{}", from_epoch.unwrap_or_default(), steps.unwrap_or_default());
+            writeln!(
+                out,
+                "  duration {sim_s:.2} s (sim){}{}",
+                from_epoch.unwrap_or_default(),
+                steps.unwrap_or_default()
+            )?;
         }
-        None => outln!("  no messages"),
+        None => writeln!(out, "  no messages")?,
     }
     if let Some(Ok(serde_json::Value::Array(copters))) =
         meta.and_then(|m| m.get("copters")).map(|s| serde_json::from_str(s))
     {
-        outln!("  {} copter(s):", copters.len());
+        writeln!(out, "  {} copter(s):", copters.len())?;
         for c in &copters {
-            outln!(
+            writeln!(
+                out,
                 "    {:<12} {:<8} ac_id {}",
                 c["name"].as_str().unwrap_or("?"),
                 c["kind"].as_str().unwrap_or("?"),
                 c["ac_id"].as_u64().map_or("-".into(), |a| a.to_string())
-            );
+            )?;
         }
     }
-    outln!("  {} messages on {} channels:", info.messages, info.channels.len());
+    writeln!(out, "  {} messages on {} channels:", info.messages, info.channels.len())?;
     let w = info.channels.iter().map(|c| c.topic.len()).max().unwrap_or(0).max(18);
-    outln!("    {:<w$} {:<26} {:<8} {:>10}", "topic", "schema", "encoding", "messages");
+    writeln!(out, "    {:<w$} {:<26} {:<8} {:>10}", "topic", "schema", "encoding", "messages")?;
     for c in &info.channels {
-        outln!("    {:<w$} {:<26} {:<8} {:>10}", c.topic, c.schema, c.encoding, c.messages);
+        writeln!(out, "    {:<w$} {:<26} {:<8} {:>10}", c.topic, c.schema, c.encoding, c.messages)?;
     }
-    outln!("  attachments:");
+    writeln!(out, "  attachments:")?;
     for (name, media, bytes) in &info.attachments {
-        outln!("    {name} ({media}, {bytes} bytes)");
+        writeln!(out, "    {name} ({media}, {bytes} bytes)")?;
     }
     if let Some(scene) = file.attachment("scene.toml").map_err(read_error)? {
         let text = String::from_utf8_lossy(&scene);
         let first: Vec<&str> = text.lines().filter(|l| !l.trim().is_empty() && !l.starts_with('#')).take(3).collect();
-        outln!("  scene.toml begins: {}", first.join(" | "));
+        writeln!(out, "  scene.toml begins: {}", first.join(" | "))?;
     }
-    Ok(())
+    Ok(out)
 }
 
 /// `twinswarm log recover BROKEN FIXED`.

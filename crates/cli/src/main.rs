@@ -7,7 +7,6 @@ extern crate twinswarm;
 
 mod ivycmd;
 mod localize;
-mod replay;
 mod report;
 mod runcmd;
 mod runner;
@@ -15,7 +14,7 @@ mod shardcmd;
 mod standin;
 mod synceval;
 
-use twinswarm::{BadInput, logcmd, plot};
+use twinswarm::{BadInput, logcmd, plot, replay};
 
 use std::path::PathBuf;
 use std::process::ExitCode;

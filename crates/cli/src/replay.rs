@@ -39,7 +39,6 @@ use zenoh::qos::CongestionControl;
 
 use crate::BadInput;
 use crate::logcmd::read_error;
-use crate::runner::{BusOptions, zenoh_config};
 
 /// `twinswarm replay` arguments.
 #[derive(Debug, clap::Args)]
@@ -179,13 +178,22 @@ struct LiveReplay {
     sent: u64,
 }
 
-/// Replays into a Zenoh session, a live view, or both.
+/// Where a replay's bus messages go.
+enum Out<'a> {
+    /// Nowhere (`--no-bus`: the live view only).
+    None,
+    /// A Zenoh session, a publisher per key.
+    Zenoh { session: &'a zenoh::Session, publishers: HashMap<String, zenoh::pubsub::Publisher<'static>> },
+    /// Memory, at most `limit` messages ([`replay_in_memory`]).
+    Memory { sent: Vec<(String, Vec<u8>)>, limit: usize },
+}
+
+/// Replays into a Zenoh session (or memory), a live view, or both.
 struct Replayer<'a> {
-    session: Option<&'a zenoh::Session>,
+    out: Out<'a>,
     live: Option<LiveReplay>,
     prefix: String,
     recorded: Option<String>,
-    publishers: HashMap<String, zenoh::pubsub::Publisher<'static>>,
     last_sonar_tick: HashMap<String, u64>,
     last_clock_tick: Option<u64>,
     /// Each copter's last logged state, by id: a copter the log holds (unchanged since its
@@ -207,27 +215,45 @@ struct Replayer<'a> {
     stop: Arc<AtomicBool>,
 }
 
+/// The publisher of `key` in `publishers`, declared on first use.
+fn publisher<'p>(
+    session: &zenoh::Session,
+    publishers: &'p mut HashMap<String, zenoh::pubsub::Publisher<'static>>,
+    key: &str,
+) -> anyhow::Result<&'p zenoh::pubsub::Publisher<'static>> {
+    if !publishers.contains_key(key) {
+        let p = session
+            .declare_publisher(key.to_owned())
+            .congestion_control(CongestionControl::Block)
+            .wait()
+            .map_err(|e| anyhow::anyhow!("{e}"))
+            .with_context(|| format!("cannot declare a publisher on {key}"))?;
+        publishers.insert(key.to_owned(), p);
+    }
+    Ok(&publishers[key])
+}
+
 impl Replayer<'_> {
-    fn publisher(&mut self, key: &str) -> anyhow::Result<&zenoh::pubsub::Publisher<'static>> {
-        if !self.publishers.contains_key(key) {
-            let session = self.session.ok_or_else(|| anyhow::anyhow!("no Zenoh session (--no-bus)"))?;
-            let p = session
-                .declare_publisher(key.to_owned())
-                .congestion_control(CongestionControl::Block)
-                .wait()
-                .map_err(|e| anyhow::anyhow!("{e}"))
-                .with_context(|| format!("cannot declare a publisher on {key}"))?;
-            self.publishers.insert(key.to_owned(), p);
-        }
-        Ok(&self.publishers[key])
+    fn has_bus(&self) -> bool {
+        !matches!(self.out, Out::None)
     }
 
     fn put(&mut self, key: &str, payload: Vec<u8>) -> anyhow::Result<()> {
-        self.publisher(key)?
-            .put(payload)
-            .wait()
-            .map_err(|e| anyhow::anyhow!("{e}"))
-            .with_context(|| format!("put {key}"))
+        match &mut self.out {
+            Out::None => Ok(()),
+            Out::Zenoh { session, publishers } => publisher(session, publishers, key)?
+                .put(payload)
+                .wait()
+                .map_err(|e| anyhow::anyhow!("{e}"))
+                .with_context(|| format!("put {key}")),
+            Out::Memory { sent, limit } => {
+                if sent.len() >= *limit {
+                    anyhow::bail!("more than {limit} messages to replay");
+                }
+                sent.push((key.to_owned(), payload));
+                Ok(())
+            }
+        }
     }
 
     /// Sleeps until the deadline of `log_time_ns`; false if stopped meanwhile.
@@ -237,7 +263,7 @@ impl Replayer<'_> {
     }
 
     fn put_clock(&mut self, tick: u64) -> anyhow::Result<()> {
-        let clock = ClockMsg { tick, time_s: (tick * self.dt_ns) as f64 / 1e9 };
+        let clock = ClockMsg { tick, time_s: tick as f64 * self.dt_ns as f64 / 1e9 };
         self.put(&format!("{}/clock", self.prefix), serde_json::to_vec(&clock)?)?;
         self.counts.clock += 1;
         Ok(())
@@ -248,7 +274,7 @@ impl Replayer<'_> {
     fn put_held(&mut self, tick: u64, bad: &impl Fn(String) -> anyhow::Error) -> anyhow::Result<()> {
         let held: Vec<proto::CopterState> = self.latest.values().filter(|s| s.tick < tick).cloned().collect();
         for mut s in held {
-            (s.tick, s.t_s) = (tick, (tick * self.dt_ns) as f64 / 1e9);
+            (s.tick, s.t_s) = (tick, tick as f64 * self.dt_ns as f64 / 1e9);
             let key = format!("{}/copters/{}/state", self.prefix, s.copter);
             self.put(&key, serde_json::to_vec(&state_msg(s).map_err(bad)?)?)?;
             self.counts.state += 1;
@@ -270,13 +296,13 @@ impl Replayer<'_> {
         };
         let mut k = last + every;
         while k < end {
-            if !self.wait_until(epoch + k * self.dt_ns) {
+            if !self.wait_until(epoch.saturating_add(k.saturating_mul(self.dt_ns))) {
                 return Ok(false);
             }
             self.last_clock_tick = Some(k);
             self.put_clock(k)?;
             self.put_held(k, bad)?;
-            k += every;
+            k = k.saturating_add(every);
         }
         Ok(true)
     }
@@ -303,7 +329,7 @@ impl Replayer<'_> {
             live.server.publish(id, log_time, data);
             live.sent += 1;
         }
-        if self.session.is_none() {
+        if !self.has_bus() {
             return Ok(true);
         }
         let bad = |what: String| {
@@ -361,9 +387,120 @@ impl Replayer<'_> {
     }
 }
 
+/// What a log says about replaying it.
+struct Plan {
+    prefix: String,
+    /// The prefix the run published under, as far as the log tells.
+    recorded: Option<String>,
+    /// The control step, ns (50 ms if the log does not say).
+    dt_ns: u64,
+    /// Logged ticks (`log_every_ticks`), if the log says.
+    every_ticks: Option<u64>,
+    copters: Vec<String>,
+    /// First and last log time, ns.
+    t0_ns: u64,
+    t1_ns: u64,
+    /// `twinswarm` metadata entries present but not understood (replayed with defaults).
+    unreadable: Vec<&'static str>,
+}
+
+fn bad_input(msg: String) -> anyhow::Error {
+    anyhow::Error::new(BadInput(anyhow::anyhow!(msg)))
+}
+
+/// Reads the replay's parameters from the log's metadata and summary. `everything`: every
+/// channel is replayed (the live view), not only state, sensors and bus.
+fn plan(file: &LogFile, prefix: Option<&str>, everything: bool) -> anyhow::Result<Plan> {
+    let path = file.path();
+    let info = file.info().map_err(read_error)?;
+    let meta = info.metadata.get("twinswarm");
+    let recorded = recorded_prefix(meta);
+    let Some(prefix) = prefix.map(str::to_owned).or_else(|| recorded.clone()) else {
+        return Err(bad_input(format!(
+            "{}: no `twinswarm` metadata record (not written by twinswarm run?); give --prefix",
+            path.display()
+        )));
+    };
+    let count = |topic: &str| info.channels.iter().find(|c| c.topic == topic).map_or(0, |c| c.messages);
+    let replayable =
+        if everything { info.messages } else { count("/copters/state") + count("/copters/sensors") + count("/bus") };
+    let Some((t0_ns, t1_ns)) = info.time_range_ns.filter(|_| replayable > 0) else {
+        return Err(bad_input(format!("{}: no state, sensor or bus messages to replay", path.display())));
+    };
+    // The step, and whether the log may hold copters (logs from before say neither). A step
+    // under a microsecond is not one a run takes (and would round to nothing).
+    let field = |key: &str| meta.and_then(|m| m.get(key));
+    let dt_s = field("control_dt_s")
+        .and_then(|t| t.parse::<f64>().ok())
+        .filter(|dt| dt.is_finite() && *dt >= 1e-6 && *dt < 3600.0);
+    let every_ticks =
+        field("log_every_ticks").and_then(|t| t.parse::<u64>().ok()).filter(|n| (1..=1_000_000).contains(n));
+    let copter_list = field("copters").and_then(|s| serde_json::from_str::<Vec<serde_json::Value>>(s).ok());
+    let copters = (copter_list.iter().flatten()).filter_map(|c| c["name"].as_str().map(str::to_owned)).collect();
+    // Entries present but not understood: said, and replayed with the defaults (a 50 ms step,
+    // no held copters), never dropped without a word.
+    let unreadable = [
+        ("control_dt_s", dt_s.is_some()),
+        ("log_every_ticks", every_ticks.is_some()),
+        ("copters", copter_list.is_some()),
+    ]
+    .into_iter()
+    .filter(|&(key, ok)| field(key).is_some() && !ok)
+    .map(|(key, _)| key)
+    .collect();
+    Ok(Plan {
+        prefix,
+        recorded,
+        dt_ns: dt_s.map_or(50_000_000, |dt| (dt * 1e9).round() as u64),
+        every_ticks,
+        copters,
+        t0_ns,
+        t1_ns,
+        unreadable,
+    })
+}
+
+impl<'a> Replayer<'a> {
+    fn new(plan: &Plan, out: Out<'a>, live: Option<LiveReplay>, speed: f64, stop: Arc<AtomicBool>) -> Self {
+        Replayer {
+            out,
+            live,
+            prefix: plan.prefix.clone(),
+            recorded: plan.recorded.clone(),
+            last_sonar_tick: HashMap::new(),
+            last_clock_tick: None,
+            latest: std::collections::BTreeMap::new(),
+            dt_ns: plan.dt_ns,
+            every_ticks: plan.every_ticks,
+            epoch_ns: None,
+            counts: Counts::default(),
+            start: Instant::now(),
+            t0_ns: plan.t0_ns,
+            t1_ns: plan.t1_ns,
+            speed,
+            stop,
+        }
+    }
+}
+
+/// Replays `path` into memory, as fast as it reads: every (key, payload) that `twinswarm
+/// replay` would put on Zenoh, in order, under the log's own prefix. More than `limit`
+/// messages is an error. (The fuzz target of logs, and tests.)
+pub fn replay_in_memory(path: &Path, limit: usize) -> anyhow::Result<Vec<(String, Vec<u8>)>> {
+    let file = LogFile::open(path).map_err(read_error)?;
+    let plan = plan(&file, None, false)?;
+    let out = Out::Memory { sent: Vec::new(), limit };
+    let mut r = Replayer::new(&plan, out, None, f64::INFINITY, Arc::new(AtomicBool::new(false)));
+    replay_messages(&mut r, &file)?;
+    match r.out {
+        Out::Memory { sent, .. } => Ok(sent),
+        _ => unreachable!("a memory replay"),
+    }
+}
+
 /// `twinswarm replay FILE`.
 pub fn run(args: ReplayArgs) -> anyhow::Result<()> {
-    let bad = |msg: String| anyhow::Error::new(BadInput(anyhow::anyhow!(msg)));
+    let bad = bad_input;
     if !args.speed.is_finite() || args.speed <= 0.0 {
         return Err(bad(format!("--speed must be a positive finite number, got {}", args.speed)));
     }
@@ -374,65 +511,19 @@ pub fn run(args: ReplayArgs) -> anyhow::Result<()> {
     }
     let path = args.file.as_path();
     let file = LogFile::open(path).map_err(read_error)?;
-    let info = file.info().map_err(read_error)?;
-    let meta = info.metadata.get("twinswarm");
-    let recorded = recorded_prefix(meta);
-    let Some(prefix) = args.prefix.clone().or_else(|| recorded.clone()) else {
-        return Err(bad(format!(
-            "{}: no `twinswarm` metadata record (not written by twinswarm run?); give --prefix",
-            path.display()
-        )));
-    };
-    let count = |topic: &str| info.channels.iter().find(|c| c.topic == topic).map_or(0, |c| c.messages);
-    let replayable = if args.foxglove.is_some() {
-        info.messages
-    } else {
-        count("/copters/state") + count("/copters/sensors") + count("/bus")
-    };
-    let Some((t0_ns, t1_ns)) = info.time_range_ns.filter(|_| replayable > 0) else {
-        return Err(bad(format!("{}: no state, sensor or bus messages to replay", path.display())));
-    };
-    let span_s = (t1_ns - t0_ns) as f64 / 1e9;
-    // The step, and whether the log may hold copters (logs from before say neither).
-    let field = |key: &str| meta.and_then(|m| m.get(key));
-    let dt_s = field("control_dt_s")
-        .and_then(|t| t.parse::<f64>().ok())
-        .filter(|dt| dt.is_finite() && *dt > 0.0 && *dt < 3600.0);
-    let dt_ns = dt_s.map_or(50_000_000, |dt| (dt * 1e9).round() as u64);
-    let every_ticks =
-        field("log_every_ticks").and_then(|t| t.parse::<u64>().ok()).filter(|n| (1..=1_000_000).contains(n));
-    let copter_list = field("copters").and_then(|s| serde_json::from_str::<Vec<serde_json::Value>>(s).ok());
-    let copters: Vec<String> =
-        (copter_list.iter().flatten()).filter_map(|c| c["name"].as_str().map(str::to_owned)).collect();
-    // Entries present but not understood: said, and replayed with the defaults (a 50 ms step,
-    // no held copters), never dropped without a word.
-    let unreadable: Vec<&str> = [
-        ("control_dt_s", dt_s.is_some()),
-        ("log_every_ticks", every_ticks.is_some()),
-        ("copters", copter_list.is_some()),
-    ]
-    .into_iter()
-    .filter(|&(key, ok)| field(key).is_some() && !ok)
-    .map(|(key, _)| key)
-    .collect();
-    if !unreadable.is_empty() {
+    let plan = plan(&file, args.prefix.as_deref(), args.foxglove.is_some())?;
+    let prefix = plan.prefix.clone();
+    let span_s = (plan.t1_ns - plan.t0_ns) as f64 / 1e9;
+    if !plan.unreadable.is_empty() {
         eprintln!(
             "replay: {}: {} unreadable `twinswarm` metadata entries ({}); replaying with their defaults",
             path.display(),
-            unreadable.len(),
-            unreadable.join(", ")
+            plan.unreadable.len(),
+            plan.unreadable.join(", ")
         );
     }
 
     let stop = crate::logcmd::install_stop_flag()?;
-    let bus = BusOptions {
-        no_bus: false,
-        zenoh_config: args.zenoh_config.clone(),
-        listen: args.listen.clone(),
-        connect: args.connect.clone(),
-        prefix: Some(prefix.clone()),
-        ..BusOptions::default()
-    };
     let rt = tokio::runtime::Builder::new_multi_thread().worker_threads(1).enable_all().build()?;
     let live = match &args.foxglove {
         None => None,
@@ -459,31 +550,20 @@ pub fn run(args: ReplayArgs) -> anyhow::Result<()> {
     let session = match args.no_bus {
         true => None,
         false => Some(
-            zenoh::open(zenoh_config(&bus)?)
-                .wait()
-                .map_err(|e| anyhow::anyhow!("{e}"))
-                .context("cannot open the Zenoh session")?,
+            zenoh::open(match &args.zenoh_config {
+                Some(file) => crate::zenoh_config_file(file, &args.listen, &args.connect)?,
+                None => bridge::zenoh_net::node::default_config(&args.listen, &args.connect)?,
+            })
+            .wait()
+            .map_err(|e| anyhow::anyhow!("{e}"))
+            .context("cannot open the Zenoh session")?,
         ),
     };
-    let mut r = Replayer {
-        session: session.as_ref(),
-        live,
-        prefix: prefix.clone(),
-        recorded,
-        publishers: HashMap::new(),
-        last_sonar_tick: HashMap::new(),
-        last_clock_tick: None,
-        latest: std::collections::BTreeMap::new(),
-        dt_ns,
-        every_ticks,
-        epoch_ns: None,
-        counts: Counts::default(),
-        start: Instant::now(),
-        t0_ns,
-        t1_ns,
-        speed: args.speed,
-        stop: stop.clone(),
+    let out = match &session {
+        Some(session) => Out::Zenoh { session, publishers: HashMap::new() },
+        None => Out::None,
     };
+    let mut r = Replayer::new(&plan, out, live, args.speed, stop.clone());
     outln!(
         "replay {}: {:.2} s of log at speed {} ({:.2} s), prefix {prefix}",
         path.display(),
@@ -491,11 +571,14 @@ pub fn run(args: ReplayArgs) -> anyhow::Result<()> {
         args.speed,
         span_s / args.speed
     );
-    let result = replay(&mut r, &file, &copters, &args);
+    let result = replay(&mut r, &file, &plan.copters, &args);
     let wall_s = r.start.elapsed().as_secs_f64();
     let counts = r.counts;
     let live = r.live.take();
-    let publishers = std::mem::take(&mut r.publishers);
+    let publishers = match std::mem::replace(&mut r.out, Out::None) {
+        Out::Zenoh { publishers, .. } => publishers,
+        _ => HashMap::new(),
+    };
     drop(r);
     // Let the last samples leave the transmission queue (and the live clients' queues), then
     // close explicitly.
@@ -532,11 +615,11 @@ pub fn run(args: ReplayArgs) -> anyhow::Result<()> {
             String::new()
         }
     );
-    if !unreadable.is_empty() {
+    if !plan.unreadable.is_empty() {
         outln!(
             "  {} unreadable metadata entries ({}): replayed with their defaults",
-            unreadable.len(),
-            unreadable.join(", ")
+            plan.unreadable.len(),
+            plan.unreadable.join(", ")
         );
     }
     if interrupted {
@@ -559,22 +642,27 @@ pub fn run(args: ReplayArgs) -> anyhow::Result<()> {
 /// Waits for subscribers, then replays. `Ok(true)`: interrupted by a signal.
 fn replay(r: &mut Replayer<'_>, file: &LogFile, copters: &[String], args: &ReplayArgs) -> anyhow::Result<bool> {
     let mut keys = Vec::new();
-    if r.session.is_some() {
+    if let Out::Zenoh { session, publishers } = &mut r.out {
         keys.push(format!("{}/clock", r.prefix));
         for c in copters {
             keys.push(format!("{}/copters/{c}/state", r.prefix));
             keys.push(format!("{}/copters/{c}/sensors", r.prefix));
         }
-    }
-    for k in &keys {
-        r.publisher(k)?;
+        for k in &keys {
+            publisher(session, publishers, k)?;
+        }
     }
     if let Some(wait_s) = args.wait_for_subscriber {
         outln!("  waiting up to {wait_s} s for a subscriber");
         let until = Instant::now() + Duration::from_secs_f64(wait_s);
         let matched = |r: &Replayer<'_>| {
-            r.live.as_ref().is_some_and(|l| l.server.active())
-                || keys.iter().any(|k| r.publishers[k].matching_status().wait().is_ok_and(|m| m.matching()))
+            let bus = match &r.out {
+                Out::Zenoh { publishers, .. } => {
+                    keys.iter().any(|k| publishers[k].matching_status().wait().is_ok_and(|m| m.matching()))
+                }
+                _ => false,
+            };
+            bus || r.live.as_ref().is_some_and(|l| l.server.active())
         };
         while !matched(r) {
             if r.stop.load(Ordering::Relaxed) {
@@ -595,6 +683,11 @@ fn replay(r: &mut Replayer<'_>, file: &LogFile, copters: &[String], args: &Repla
         std::thread::sleep((delay_until - Instant::now()).min(Duration::from_millis(50)));
     }
     r.start = Instant::now();
+    replay_messages(r, file)
+}
+
+/// Sends every message of the log, at its time. `Ok(true)`: interrupted by a signal.
+fn replay_messages(r: &mut Replayer<'_>, file: &LogFile) -> anyhow::Result<bool> {
     // The reader's callback can only fail with a `LogReadError`: our own failures and a stop
     // are parked here and signalled with a placeholder error.
     let mut failure: Option<anyhow::Result<bool>> = None;
@@ -620,7 +713,7 @@ fn replay(r: &mut Replayer<'_>, file: &LogFile, copters: &[String], args: &Repla
     }
     read.map_err(read_error)?;
     // The log's last steps, if every copter was held on them.
-    if r.session.is_some() {
+    if r.has_bus() {
         let t1_ns = r.t1_ns;
         let bad = |what: String| {
             read_error(LogReadError::Decode {
@@ -657,6 +750,33 @@ mod tests {
         assert_eq!(rekey("twinswarm/lab/copters/a/cmd", Some("twinswarm/lab"), "r/x"), "r/x/copters/a/cmd");
         assert_eq!(rekey("twinswarm/labx/a", Some("twinswarm/lab"), "r/x"), "twinswarm/labx/a");
         assert_eq!(rekey("other/a", Some("twinswarm/lab"), "r/x"), "other/a");
+    }
+
+    #[test]
+    fn a_log_replays_in_memory_every_step_under_its_prefix() {
+        use bridge::log::{LogMeta, LogOptions, Logger};
+        let text = sim_core::scene::DEFAULT_SCENE_TOML;
+        let (_, world) = sim_core::scene::load("lab.toml", text).unwrap();
+        let (mut state, inputs) = (world.initial_state(), world.initial_inputs());
+        let path = std::env::temp_dir().join(format!("twinswarm-replay-mem-{}.mcap", std::process::id()));
+        let meta = LogMeta { command_line: "twinswarm run --prefix mem/lab".into(), ..LogMeta::default() };
+        // Every second step logged: the replay still sends every logged step's clock.
+        let options = LogOptions { every_ticks: 2, ..LogOptions::default() };
+        let mut log = Logger::with_options(&path, &world, text, meta, options).unwrap();
+        for _ in 0..20 {
+            let r = sim_core::step(&world, &mut state, &inputs);
+            log.log_step(&world, &state, &inputs, &r).unwrap();
+        }
+        log.finish().unwrap();
+        let sent = replay_in_memory(&path, 10_000).unwrap();
+        let count =
+            |suffix: &str| sent.iter().filter(|(k, _)| k.starts_with("mem/lab/") && k.ends_with(suffix)).count();
+        let n = world.copters.len();
+        assert_eq!((count("/clock"), count("/state")), (10, 10 * n), "{:?}", &sent[..4]);
+        assert!(count("/sensors") > 0);
+        let err = replay_in_memory(&path, 5).unwrap_err();
+        assert!(format!("{err:#}").contains("more than 5 messages"), "{err:#}");
+        let _ = std::fs::remove_file(&path);
     }
 
     #[test]

@@ -191,20 +191,7 @@ pub fn zenoh_config(opts: &BusOptions) -> anyhow::Result<zenoh::Config> {
         // a shard is a client of the router it connects to.
         None if opts.shard.is_some() && opts.listen.is_empty() => Ok(node::config("client", &[], &opts.connect)?),
         None => Ok(node::default_config(&opts.listen, &opts.connect)?),
-        Some(path) => {
-            let mut c = zenoh::Config::from_file(path)
-                .map_err(|e| anyhow::anyhow!("{e}"))
-                .with_context(|| format!("cannot load zenoh config {}", path.display()))?;
-            if !opts.listen.is_empty() {
-                c.insert_json5("listen/endpoints", &serde_json::to_string(&opts.listen)?)
-                    .map_err(|e| anyhow::anyhow!("--listen: {e}"))?;
-            }
-            if !opts.connect.is_empty() {
-                c.insert_json5("connect/endpoints", &serde_json::to_string(&opts.connect)?)
-                    .map_err(|e| anyhow::anyhow!("--connect: {e}"))?;
-            }
-            Ok(c)
-        }
+        Some(path) => twinswarm::zenoh_config_file(path, &opts.listen, &opts.connect),
     }
 }
 

@@ -21,6 +21,9 @@ use bridge::{Bus, ConfXml, MessageSet, Pairing, Telemetry};
 use sim_core::World;
 use sim_core::scene::{self, CopterSpec};
 
+mod seeds;
+pub use seeds::seeds;
+
 /// A fuzz target: its name (the corpus folder) and its function.
 pub type Target = (&'static str, fn(&[u8]));
 
@@ -36,6 +39,10 @@ pub const TARGETS: &[Target] = &[
     ("zenoh_json", zenoh_json),
     ("mcap", mcap),
     ("plot", plot),
+    ("log", log),
+    ("log_merge", log_merge),
+    ("foxglove_client", foxglove_client),
+    ("ghost_batch", ghost_batch),
 ];
 
 /// The target called `name`.
@@ -231,4 +238,92 @@ pub fn plot(data: &[u8]) {
     }
     let _ = twinswarm::plot::draw_all_in_memory(&path);
     let _ = std::fs::remove_file(&path);
+}
+
+/// Messages a replay of one fuzzed log may produce before it is cut short (an error).
+const MAX_REPLAYED: usize = 100_000;
+
+/// A log as the CLI's log commands meet it: `log info`, `log recover`, `log merge` of the
+/// file with its recovered copy, and `replay` (into memory, at full speed).
+pub fn log(data: &[u8]) {
+    let (path, fixed, merged) = (scratch("log.mcap"), scratch("log-fixed.mcap"), scratch("log-merged.mcap"));
+    if std::fs::write(&path, data).is_err() {
+        return;
+    }
+    let _ = twinswarm::logcmd::summarise(&path);
+    if bridge::log::recover(&path, &fixed).is_ok() {
+        let _ = twinswarm::logcmd::summarise(&fixed);
+        if bridge::log::merge(&[path.clone(), fixed.clone()], &merged).is_ok() {
+            let _ = twinswarm::logcmd::summarise(&merged);
+        }
+    }
+    let _ = twinswarm::replay::replay_in_memory(&path, MAX_REPLAYED);
+    for p in [&path, &fixed, &merged] {
+        let _ = std::fs::remove_file(p);
+    }
+}
+
+/// Where [`log_merge`] cuts its input into logs.
+pub const MERGE_SEPARATOR: &[u8] = b"--merge--";
+
+/// `log merge` of two to four logs (the input cut at [`MERGE_SEPARATOR`]). When it succeeds,
+/// the merged log must open, and hold as many messages as the merge says it wrote.
+pub fn log_merge(data: &[u8]) {
+    let mut parts: Vec<&[u8]> = Vec::new();
+    let mut rest = data;
+    while parts.len() < 3
+        && let Some(k) = rest.windows(MERGE_SEPARATOR.len()).position(|w| w == MERGE_SEPARATOR)
+    {
+        parts.push(&rest[..k]);
+        rest = &rest[k + MERGE_SEPARATOR.len()..];
+    }
+    parts.push(rest);
+    if parts.len() < 2 {
+        return;
+    }
+    let paths: Vec<PathBuf> = (0..parts.len()).map(|k| scratch(&format!("merge-{k}.mcap"))).collect();
+    let out = scratch("merge-out.mcap");
+    if paths.iter().zip(&parts).all(|(p, d)| std::fs::write(p, d).is_ok())
+        && let Ok(report) = bridge::log::merge(&paths, &out)
+    {
+        let file = bridge::log::LogFile::open(&out).expect("a merged log opens");
+        let info = file.info().expect("a merged log has a summary");
+        let written: u64 = report.messages.values().sum();
+        assert_eq!(info.messages, written, "messages in the merged log, as the merge counted them");
+    }
+    for p in paths.iter().chain([&out]) {
+        let _ = std::fs::remove_file(p);
+    }
+}
+
+/// A Foxglove WebSocket client's messages, one per line (a line that is not UTF-8 is a binary
+/// message), handled by the live view's server.
+pub fn foxglove_client(data: &[u8]) {
+    let frames = data.split(|&b| b == b'\n').map(|line| std::str::from_utf8(line).map_err(|_| line));
+    bridge::live::fuzzing::client_session(frames);
+}
+
+/// The 2-shard world of [`ghost_batch`] and its seeds: 16 copters 0.6 m apart across the
+/// split, and a pillar.
+pub(crate) fn ghost_world() -> &'static (World, sim_core::shard::Partition) {
+    static WORLD: OnceLock<(World, sim_core::shard::Partition)> = OnceLock::new();
+    WORLD.get_or_init(|| {
+        let mut spec = scene::dense_swarm(16, 0.6, false, 1, 3);
+        spec.sensors.sonar.schedule = sim_core::sensors::SonarSchedule::Together;
+        let world = scene::compile(&spec).expect("the flock compiles");
+        let partition = sim_core::shard::Partition::new(&world, 2).expect("two shards");
+        (world, partition)
+    })
+}
+
+/// A shard's ghost batch as it arrives from Zenoh (postcard), taken in by shard 0 of a
+/// 2-shard flock, which then steps.
+pub fn ghost_batch(data: &[u8]) {
+    let Ok(batch) = postcard::from_bytes::<bridge::shard::GhostBatch>(data) else { return };
+    let (world, partition) = ghost_world();
+    let mut state = world.initial_state();
+    state.make_shard(partition.clone(), 0).expect("shard 0 of 2");
+    if state.receive_ghosts(batch.ghosts).is_ok() {
+        sim_core::step(world, &mut state, &world.initial_inputs());
+    }
 }

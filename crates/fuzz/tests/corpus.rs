@@ -107,12 +107,19 @@ fn every_target_survives_its_corpus_and_mutations_of_it() {
             let data = std::fs::read(&p).unwrap_or_else(|e| panic!("{}: {e}", p.display()));
             seeds.push((p.display().to_string(), data));
         }
+        for (k, data) in twinswarm_fuzz::seeds(name).into_iter().enumerate() {
+            seeds.push((format!("generated seed {k}"), data));
+        }
         assert!(!seeds.is_empty(), "fuzz target {name} has no corpus");
         for (what, data) in &seeds {
             run_one(name, f, what, data);
         }
         // The file-reading targets cost milliseconds an input; the parsers microseconds.
-        let per_seed = if matches!(name, "mcap" | "plot") { 12 } else { 150 };
+        let per_seed = match name {
+            "mcap" | "plot" | "log" | "log_merge" => 12,
+            "ghost_batch" => 40,
+            _ => 150,
+        };
         let mut rng = Rng(0x9E37_79B9_7F4A_7C15 ^ name.len() as u64);
         let mut runs = seeds.len();
         for (what, data) in &seeds {
