@@ -90,13 +90,22 @@ struct Pacer {
     per_tick: u64,
     ticks_left: u64,
     next: u64,
+    /// When the first batch was due.
+    started: Option<Instant>,
 }
 
 impl Pacer {
     fn new(rate: u64, secs: u64) -> Self {
         let mut tick = tokio::time::interval(Duration::from_millis(10));
         tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Burst);
-        Self { tick, per_tick: rate / 100, ticks_left: secs * 100, next: 0 }
+        Self { tick, per_tick: rate / 100, ticks_left: secs * 100, next: 0, started: None }
+    }
+
+    /// Items sent, and the rate they were offered at (items over the time from the first
+    /// batch to the end of the last, 10 ms after it was due), per second.
+    fn offered(&self) -> (u64, f64) {
+        let secs = self.started.map_or(0.0, |t| t.elapsed().as_secs_f64() + 0.01);
+        (self.next, if secs > 0.0 { self.next as f64 / secs } else { 0.0 })
     }
 
     /// The numbers of the next batch, when it is due; `None` at the end.
@@ -106,6 +115,7 @@ impl Pacer {
         }
         self.ticks_left -= 1;
         self.tick.tick().await;
+        self.started.get_or_insert_with(Instant::now);
         let start = self.next;
         self.next += self.per_tick;
         Some(start..self.next)
@@ -139,7 +149,7 @@ fn floods_of_commands_and_texts_are_all_counted_and_the_loop_keeps_time() {
     let pid = child.id();
 
     let rt = tokio::runtime::Builder::new_multi_thread().worker_threads(2).enable_all().build().unwrap();
-    let (sent_cmds, sent_zenoh, sent_ivy, [rss_start, rss_mid, rss_end]) = rt.block_on(async {
+    let (sent_cmds, sent_zenoh, sent_ivy, offered, [rss_start, rss_mid, rss_end]) = rt.block_on(async {
         let config = bridge::zenoh_net::node::client_config(std::slice::from_ref(&endpoint)).unwrap();
         let session = zenoh::open(config).await.expect("zenoh client");
         let addr = BusAddr::parse(&bus).expect("bus address");
@@ -158,7 +168,7 @@ fn floods_of_commands_and_texts_are_all_counted_and_the_loop_keeps_time() {
                         put.await.expect("put");
                     }
                 }
-                pacer.next
+                pacer.offered()
             })
         };
         let texts = {
@@ -172,7 +182,7 @@ fn floods_of_commands_and_texts_are_all_counted_and_the_loop_keeps_time() {
                         put.congestion_control(CongestionControl::Block).await.expect("put");
                     }
                 }
-                pacer.next
+                pacer.offered()
             })
         };
         let ivy_sent = {
@@ -188,7 +198,7 @@ fn floods_of_commands_and_texts_are_all_counted_and_the_loop_keeps_time() {
                         }
                     }
                 }
-                pacer.next
+                pacer.offered()
             })
         };
         let started = Instant::now();
@@ -196,7 +206,7 @@ fn floods_of_commands_and_texts_are_all_counted_and_the_loop_keeps_time() {
             tokio::time::sleep(Duration::from_secs_f64(secs as f64 / 2.0)).await;
             rss_kb(pid)
         });
-        let (c, z, _) = (cmds.await.unwrap(), texts.await.unwrap(), ivy_sent.await.unwrap());
+        let (c, z, i) = (cmds.await.unwrap(), texts.await.unwrap(), ivy_sent.await.unwrap());
         let rss_mid = mid.await.unwrap();
         eprintln!("flooded for {:.1} s", started.elapsed().as_secs_f64());
         let rss_end = rss_kb(pid);
@@ -206,7 +216,8 @@ fn floods_of_commands_and_texts_are_all_counted_and_the_loop_keeps_time() {
         assert_eq!(ivy_drops, 0, "the flooder's own Ivy agent dropped: {:?}", agent.drops());
         agent.stop().await;
         session.close().await.unwrap();
-        (c, z, cmd_sent.load(Ordering::Relaxed), [rss_start, rss_mid, rss_end])
+        let offered = [c.1, z.1, i.1];
+        (c.0, z.0, cmd_sent.load(Ordering::Relaxed), offered, [rss_start, rss_mid, rss_end])
     });
     let out = child.wait_with_output().expect("twinswarm run ends");
     let stderr = String::from_utf8_lossy(&out.stderr);
@@ -228,7 +239,8 @@ fn floods_of_commands_and_texts_are_all_counted_and_the_loop_keeps_time() {
         "flood {secs} s at {rate}/s each: commands sent {sent_cmds}, accepted {}, rejected {} (not from the \
          controller {}), dropped {}; texts sent {} (zenoh {sent_zenoh}, ivy {sent_ivy}), seen {texts_seen} \
          (decode errors {}, out of range {}, ignored {}, queue full {}); ivy drops {}; steps {steps}, \
-         overruns {overruns}; RSS {rss_start} kB at the start, {rss_mid} kB half-way, {rss_end} kB at the end",
+         overruns {overruns}; offered {:.0}/{:.0}/{:.0} per s; RSS {rss_start} kB at the start, {rss_mid} kB \
+         half-way, {rss_end} kB at the end",
         n(&b["commands_accepted"]),
         n(&b["commands_rejected"]),
         n(&b["commands_not_controller"]),
@@ -239,29 +251,41 @@ fn floods_of_commands_and_texts_are_all_counted_and_the_loop_keeps_time() {
         sum(&t["ignored"]),
         n(&t["queue_full"]),
         sum_texts(&ivy["dropped"]),
+        offered[0],
+        offered[1],
+        offered[2],
     );
 
     // Every command is accounted for: accepted (and applied) or rejected; none lost.
     assert_eq!(n(&b["commands_accepted"]) + n(&b["commands_rejected"]), sent_cmds, "{b}");
     // Commands 1 and 4 of every 6 are bad.
     let bad = 2 * (sent_cmds / 6) + u64::from(sent_cmds % 6 > 1) + u64::from(sent_cmds % 6 > 4);
-    assert_eq!(n(&b["commands_rejected"]), bad, "{b}");
+    // A good command that found the loop's queue full is rejected too, and counted dropped.
+    let rejected = n(&b["commands_rejected"]);
+    assert!(rejected >= bad && rejected - bad <= n(&b["requests_dropped"]), "{bad} bad commands: {b}");
     // Every text that left is accounted for: decoded (twin input, ignored) or undecodable.
     assert_eq!(texts_seen, sent_zenoh + sent_ivy, "{t}");
     assert_eq!(sum_texts(&ivy["dropped"]), 0, "{ivy}");
-    // What fell off a full queue is counted; a loaded 2-core CI machine may drop a little,
-    // the script's release build reports the exact figure.
+    // What fell off a full queue is counted, and the rest reached the loop: the accepted
+    // commands applied, the others logged as rejected or ignored, every one on `/bus`, once.
     let dropped = n(&b["requests_dropped"]) + n(&t["queue_full"]);
     let incoming = n(&b["commands_accepted"]) + n(&b["commands_rejected"]) + texts_seen;
-    assert!(dropped * 20 <= incoming, "{dropped} of {incoming} inputs dropped");
-    // The loop saw the rest: accepted commands applied, the others logged as rejected or ignored.
     let inputs = &json["inputs"];
     assert_eq!(n(&inputs["commands_applied"]), n(&b["commands_accepted"]), "{inputs}");
-    // The log has every input that reached the loop on /bus, and the drop counts in /events.
     let file = bridge::log::LogFile::open(&log).expect("log");
-    let info = file.info().expect("log info");
-    let on_bus = info.channels.iter().find(|c| c.topic == "/bus").map_or(0, |c| c.messages);
-    assert!(on_bus + dropped >= incoming, "{on_bus} messages on /bus for {incoming} inputs, {dropped} dropped");
+    let bus = file.messages::<bridge::log::proto::BusMessage>("/bus").expect("/bus");
+    let on_bus = bus.iter().filter(|(_, m)| m.direction == "in").count() as u64;
+    assert_eq!(on_bus, incoming - dropped, "inputs on /bus: {incoming} came, {dropped} dropped");
+    // The rate offered, measured: a sender that fell behind would prove less than it says.
+    for (what, r) in ["commands", "Zenoh texts", "Ivy texts"].iter().zip(offered) {
+        assert!(r >= 0.9 * rate as f64, "{what} offered at {r:.0}/s, not {rate}/s");
+    }
+    // Every step was flown. A loop that kept every deadline was not overloaded: it dropped
+    // nothing. (Deadlines missed are the machine's load: reported, not asserted.)
+    assert_eq!(steps, (secs + 4) * 20, "control steps of a {}-s run", secs + 4);
+    if overruns == 0 {
+        assert_eq!(dropped, 0, "{dropped} inputs dropped by a loop that kept its deadlines");
+    }
     let mut reported = None;
     for (_, e) in file.messages::<bridge::log::proto::Event>("/events").expect("events") {
         if e.kind == "bus_report" {
@@ -270,8 +294,6 @@ fn floods_of_commands_and_texts_are_all_counted_and_the_loop_keeps_time() {
     }
     let reported = reported.expect("a bus_report event in the log");
     assert_eq!(n(&reported["requests_dropped"]), n(&b["requests_dropped"]), "{reported}");
-    // Deadlines: a loaded 2-core CI machine may miss a few; the script reports the exact count.
-    assert!(overruns * 20 <= steps, "{overruns} overruns in {steps} steps");
     // Memory: flat within 32 MB (the first seconds allocate the queues and the log buffers).
     assert!(rss_end <= rss_start + 32 * 1024, "RSS grew from {rss_start} kB to {rss_end} kB");
     if std::env::var_os("FLOOD_KEEP_LOG").is_some() {

@@ -54,9 +54,23 @@ fn a_full_disk_stops_the_run_cleanly_and_leaves_a_recoverable_log() {
     let text = String::from_utf8_lossy(&rec.stdout);
     assert!(rec.status.success(), "{text}{}", String::from_utf8_lossy(&rec.stderr));
     assert!(text.contains("the input was truncated"), "{text}");
+    // What is rescued: every copter's state on every step from the first to within two
+    // seconds of the stop (the chunk being written when the disk filled, 1 s of log, and the
+    // one being filled are lost), and nothing after the stop.
+    let file = bridge::log::LogFile::open(&fixed).expect("the recovered log opens");
+    let states = file.messages::<bridge::log::proto::CopterState>("/copters/state").expect("states");
+    let copters = 2; // the embedded lab
+    let ticks: std::collections::BTreeSet<u64> = states.iter().map(|(_, s)| s.tick).collect();
+    let (first, last) = (*ticks.first().expect("states rescued"), *ticks.last().unwrap());
+    assert_eq!(first, 1, "from the first step");
+    assert_eq!(ticks.len() as u64, last, "no step missing up to the last rescued");
+    assert_eq!(states.len() as u64, copters * last, "every copter on every step");
+    let (stop_s, rescued_s) = (steps as f64 * 0.05, last as f64 * 0.05);
+    assert!(rescued_s <= stop_s && rescued_s >= stop_s - 2.0, "{rescued_s} s rescued of a run stopped at {stop_s} s");
     let info = twinswarm(&["log", "info", fixed.to_str().unwrap()]);
     let info = String::from_utf8_lossy(&info.stdout);
-    assert!(info.contains("/copters/state"), "{info}");
+    assert!(info.contains(&format!(" to {rescued_s:.2} s simulated")), "{info}");
+    eprintln!("full disk: stopped at {stop_s:.2} s, {rescued_s:.2} s of state rescued ({} messages)", states.len());
     let _ = std::fs::remove_dir_all(&dir);
 }
 
