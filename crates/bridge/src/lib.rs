@@ -26,6 +26,7 @@ pub mod live;
 pub mod log;
 pub mod mixed;
 pub mod paparazzi;
+pub mod ros2;
 pub mod shard;
 pub mod sim;
 pub mod sync;

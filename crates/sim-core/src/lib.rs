@@ -44,5 +44,5 @@ pub use control::{Command, FlightMode, Inputs, Setpoint};
 pub use scene::{SceneError, SceneSpec, compile};
 pub use sensors::SensorReadings;
 pub use state::{CopterPose, CopterState, CrashCause, State};
-pub use step::{Event, StepReport, step, step_into};
+pub use step::{Event, StepReport, fresh_sonars, step, step_into};
 pub use world::{CopterKind, World};

@@ -1554,7 +1554,7 @@ fn sense(world: &World, state: &mut State, inputs: &Inputs, sonar_due: bool, par
 }
 
 /// Which sonars a sonar update at `tick` reads: all four, or the firmware's one in turn.
-fn fresh_sonars(spec: &sensors::SensorSpec, tick: u64, sonar_due: bool) -> [bool; 4] {
+pub fn fresh_sonars(spec: &sensors::SensorSpec, tick: u64, sonar_due: bool) -> [bool; 4] {
     match spec.sonar.schedule {
         _ if !sonar_due => [false; 4],
         SonarSchedule::Together => [true; 4],

@@ -148,6 +148,78 @@ impl RateLimiter {
     }
 }
 
+/// Where commands from the bus go (Zenoh's `…/cmd`, ROS 2's `cmd_vel` and `goal_pose`):
+/// checked against the world and the copter's claims, then queued for the step loop, or
+/// rejected, counted and logged.
+#[derive(Clone, Debug)]
+pub struct CommandSink {
+    world: Arc<Mutex<Arc<World>>>,
+    counters: Arc<NodeCounters>,
+    requests: SyncSender<Request>,
+    controllers: Arc<Mutex<BTreeMap<String, Vec<String>>>>,
+    limiter: Arc<RateLimiter>,
+}
+
+impl CommandSink {
+    /// The world commands are checked against now.
+    pub fn world(&self) -> Arc<World> {
+        crate::lock(&self.world).clone()
+    }
+
+    /// Submits a command for copter `name`, made by `make` from the current world (its error
+    /// is the rejection). `origin` is the input as the log keeps it.
+    pub fn submit(
+        &self,
+        name: &str,
+        make: impl FnOnce(&World) -> Result<CommandMsg, crate::wire::CommandError>,
+        origin: crate::sim::BusInput,
+    ) {
+        let (counters, requests, limiter) = (&self.counters, &self.requests, &self.limiter);
+        let world = self.world();
+        let result = match world.copter_id(name) {
+            None => Err(crate::wire::CommandError::UnknownCopter(name.to_owned())),
+            Some(_) => make(&world),
+        };
+        let key = origin.key.clone();
+        let controller = crate::lock(&self.controllers).get(name).and_then(|v| v.first().cloned());
+        if let (Ok(cmd), Some(owner)) = (&result, controller)
+            && cmd.client.as_deref() != Some(owner.as_str())
+        {
+            counters.commands_rejected.fetch_add(1, Ordering::Relaxed);
+            counters.commands_not_controller.fetch_add(1, Ordering::Relaxed);
+            let reason = match &cmd.client {
+                Some(c) => format!("copter {name:?} is controlled by client {owner:?}, not {c:?}"),
+                None => format!("copter {name:?} is controlled by client {owner:?}; this command names no client"),
+            };
+            limiter.warn(&format!("rejected command on {key}: {reason}"));
+            if requests.try_send(Request::Rejected { origin, reason }).is_err() {
+                counters.requests_dropped.fetch_add(1, Ordering::Relaxed);
+            }
+            return;
+        }
+        match result {
+            Ok(cmd) => match requests.try_send(Request::Command { copter: name.to_owned(), cmd, origin }) {
+                Ok(()) => {
+                    counters.commands_accepted.fetch_add(1, Ordering::Relaxed);
+                }
+                Err(_) => {
+                    counters.commands_rejected.fetch_add(1, Ordering::Relaxed);
+                    counters.requests_dropped.fetch_add(1, Ordering::Relaxed);
+                    limiter.warn("command dropped: the step loop's queue is full");
+                }
+            },
+            Err(e) => {
+                counters.commands_rejected.fetch_add(1, Ordering::Relaxed);
+                limiter.warn(&format!("rejected command on {key}: {e}"));
+                // For the log; if the queue is full, the counters still have it.
+                if requests.try_send(Request::Rejected { origin, reason: e.to_string() }).is_err() {
+                    counters.requests_dropped.fetch_add(1, Ordering::Relaxed);
+                }
+            }
+        }
+    }
+}
+
 /// The simulator's Zenoh node.
 pub struct Node {
     session: zenoh::Session,
@@ -167,6 +239,7 @@ pub struct Node {
     publishers: Vec<(zenoh::pubsub::Publisher<'static>, zenoh::pubsub::Publisher<'static>)>,
     clock_pub: zenoh::pubsub::Publisher<'static>,
     scene_json: Arc<Mutex<String>>,
+    commands: CommandSink,
 }
 
 impl std::fmt::Debug for Node {
@@ -214,58 +287,21 @@ impl Node {
         // Commands.
         let limiter = Arc::new(RateLimiter::new(Duration::from_secs(1)));
         let controllers: Arc<Mutex<BTreeMap<String, Vec<String>>>> = Arc::default();
+        let commands = CommandSink {
+            world: world_cell.clone(),
+            counters: counters.clone(),
+            requests: requests.clone(),
+            controllers: controllers.clone(),
+            limiter: limiter.clone(),
+        };
         let cmd_sub = {
-            let (counters, world_cell, requests, limiter, controllers) =
-                (counters.clone(), world_cell.clone(), requests.clone(), limiter.clone(), controllers.clone());
+            let commands = commands.clone();
             let prefix_len = prefix.len();
             session
                 .declare_subscriber(format!("{prefix}/copters/*/cmd"))
                 .callback(move |sample| {
                     let (name, payload, origin) = copter_sample(&sample, prefix_len, "/cmd");
-                    let key = origin.key.as_str();
-                    let world = crate::lock(&world_cell).clone();
-                    let result = match world.copter_id(&name) {
-                        None => Err(crate::wire::CommandError::UnknownCopter(name.clone())),
-                        Some(_) => CommandMsg::parse(&payload, &world),
-                    };
-                    let controller = crate::lock(&controllers).get(&name).and_then(|v| v.first().cloned());
-                    if let (Ok(cmd), Some(owner)) = (&result, controller)
-                        && cmd.client.as_deref() != Some(owner.as_str())
-                    {
-                        counters.commands_rejected.fetch_add(1, Ordering::Relaxed);
-                        counters.commands_not_controller.fetch_add(1, Ordering::Relaxed);
-                        let reason = match &cmd.client {
-                            Some(c) => format!("copter {name:?} is controlled by client {owner:?}, not {c:?}"),
-                            None => format!(
-                                "copter {name:?} is controlled by client {owner:?}; this command names no client"
-                            ),
-                        };
-                        limiter.warn(&format!("rejected command on {key}: {reason}"));
-                        if requests.try_send(Request::Rejected { origin, reason }).is_err() {
-                            counters.requests_dropped.fetch_add(1, Ordering::Relaxed);
-                        }
-                        return;
-                    }
-                    match result {
-                        Ok(cmd) => match requests.try_send(Request::Command { copter: name, cmd, origin }) {
-                            Ok(()) => {
-                                counters.commands_accepted.fetch_add(1, Ordering::Relaxed);
-                            }
-                            Err(_) => {
-                                counters.commands_rejected.fetch_add(1, Ordering::Relaxed);
-                                counters.requests_dropped.fetch_add(1, Ordering::Relaxed);
-                                limiter.warn("command dropped: the step loop's queue is full");
-                            }
-                        },
-                        Err(e) => {
-                            counters.commands_rejected.fetch_add(1, Ordering::Relaxed);
-                            limiter.warn(&format!("rejected command on {key}: {e}"));
-                            // For the log; if the queue is full, the counters still have it.
-                            if requests.try_send(Request::Rejected { origin, reason: e.to_string() }).is_err() {
-                                counters.requests_dropped.fetch_add(1, Ordering::Relaxed);
-                            }
-                        }
-                    }
+                    commands.submit(&name, |world| CommandMsg::parse(&payload, world), origin);
                 })
                 .await
                 .map_err(zerr)?
@@ -457,6 +493,7 @@ impl Node {
             publishers: Vec::new(),
             clock_pub,
             scene_json,
+            commands,
         };
         node.declare_copter_publishers(&world).await?;
         Ok(node)
@@ -470,6 +507,11 @@ impl Node {
     /// The session (for the Paparazzi side).
     pub fn session(&self) -> &zenoh::Session {
         &self.session
+    }
+
+    /// Where commands go (for the ROS 2 side).
+    pub fn commands(&self) -> CommandSink {
+        self.commands.clone()
     }
 
     async fn declare_copter_publishers(&mut self, world: &World) -> Result<(), NodeError> {

@@ -1,0 +1,658 @@
+//! The simulator as a ROS 2 node on its own Zenoh session, following rmw_zenoh's design for
+//! Jazzy (ros2/rmw_zenoh `docs/design.md` at 99a6a2b; liveliness and attachment formats of
+//! `rmw_zenoh_cpp` ≥ 0.2.4): the node `/twinswarm`, a publisher per topic, a subscriber per
+//! command topic, each with its liveliness token, so that `ros2 node list`, `ros2 topic
+//! list|echo`, rviz2 and ROS nodes with `RMW_IMPLEMENTATION=rmw_zenoh_cpp` see it.
+//!
+//! - Data: `<domain>/<topic without its leading />/<pkg>::msg::dds_::<Name>_/RIHS01_<hash>`,
+//!   CDR little-endian, with rmw_zenoh's 33-byte attachment (sequence number per publisher
+//!   from 1, wall-clock ns, a 16-byte GID).
+//! - Graph: `@ros2_lv/<domain>/<zid>/<node id>/<entity id>/<NN|MP|MS>/%/%/twinswarm[/<topic
+//!   with / as %>/<type>/<hash>/<qos>]`.
+//! - Cost: a topic nobody subscribes to is not encoded (a matching listener per publisher).
+//!
+//! Topics (per copter `<c>`, its name made a valid ROS name): `/<c>/pose`, `/<c>/odom`,
+//! `/<c>/imu`, `/<c>/sonar/{front,right,back,left}`, `/<c>/ir`, `/<c>/battery`; once:
+//! `/clock`, `/tf`, `/tf_static` and `/arena` (latched). In: `/<c>/cmd_vel`,
+//! `/<c>/goal_pose`. Frames: `world` (x, y on the floor, z up), `<c>/base_link` (x forward,
+//! y left, z up, REP 103), `<c>/sonar_<side>`, `<c>/ir`.
+
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::{Arc, Mutex};
+
+use sim_core::FlightMode;
+use sim_core::World;
+use zenoh::Wait;
+use zenoh_ext::{AdvancedPublisher, AdvancedPublisherBuilderExt, CacheConfig, MissDetectionConfig};
+
+use super::msgs::{self, Cube, Pose, RangeSensor, Stamp};
+use super::types::{dds_name, type_hash};
+use crate::sim::{BusInput, Frame};
+use crate::wire::{CommandError, CommandMsg, SensorsMsg, StateMsg};
+use crate::zenoh_net::node::{CommandSink, NodeError};
+
+/// The node's name.
+pub const NODE_NAME: &str = "twinswarm";
+
+/// QoS of sensor topics: best effort, volatile, keep last 5 (rmw_zenoh's key encoding).
+pub const QOS_SENSOR: &str = "2::,5:,:,:,,";
+/// QoS of `/tf`: reliable, volatile, keep last 100 (tf2's broadcaster).
+pub const QOS_TF: &str = "::,100:,:,:,,";
+/// QoS of `/clock`: best effort, keep last 1 (rclcpp's `ClockQoS`).
+pub const QOS_CLOCK: &str = "2::,1:,:,:,,";
+/// QoS of latched topics: reliable, transient local, keep last 1.
+pub const QOS_LATCHED: &str = ":1:,1:,:,:,,";
+/// QoS of the command subscriptions: reliable, volatile, keep last 10 (rclcpp's default).
+pub const QOS_COMMAND: &str = "::,10:,:,:,,";
+
+/// A `cmd_vel`'s vertical speed and yaw rate become a height and a heading this far ahead
+/// of the copter's own, s: the height and yaw controllers then fly about that rate.
+pub const RATE_LOOKAHEAD_S: f32 = 1.0;
+
+/// `--ros2` options.
+#[derive(Clone, Debug, Default)]
+pub struct Ros2Options {
+    /// `ROS_DOMAIN_ID`.
+    pub domain: u32,
+    /// Pose, odometry, IMU and tf at most this often per simulated second (`None`: every
+    /// control step).
+    pub max_rate_hz: Option<f64>,
+}
+
+fn zerr(e: impl std::fmt::Display) -> NodeError {
+    NodeError::Zenoh(e.to_string())
+}
+
+/// A copter's name as a ROS name segment: letters, digits and `_`, not starting with a digit.
+pub fn ros_name(copter: &str) -> String {
+    let mut s: String = copter.chars().map(|c| if c.is_ascii_alphanumeric() { c } else { '_' }).collect();
+    if s.is_empty() || s.starts_with(|c: char| c.is_ascii_digit()) {
+        s.insert_str(0, "c_");
+    }
+    s
+}
+
+/// The data key of `topic` (a fully qualified name) with type `ty` on `domain`.
+pub fn data_key(domain: u32, topic: &str, ty: &str) -> String {
+    let t = topic.strip_prefix('/').unwrap_or(topic);
+    format!("{domain}/{}/{}/{}", t.strip_suffix('/').unwrap_or(t), dds_name(ty), type_hash(ty))
+}
+
+/// rmw_zenoh's attachment: sequence number and wall-clock time (i64 LE each), then the GID
+/// with its length (zenoh-ext's serialisation of `(i64, i64, [u8; 16])`).
+pub fn attachment(seq: i64, gid: &[u8; 16]) -> Vec<u8> {
+    let mut a = Vec::with_capacity(33);
+    a.extend_from_slice(&seq.to_le_bytes());
+    a.extend_from_slice(&(crate::log::now_unix_ns() as i64).to_le_bytes());
+    a.push(16);
+    a.extend_from_slice(gid);
+    a
+}
+
+/// The GID in an attachment (this format or rmw_zenoh's earlier, keyed one).
+pub fn attachment_gid(a: &[u8]) -> Option<[u8; 16]> {
+    match a.len() {
+        33 if a[16] == 16 => a[17..].try_into().ok(),
+        77 => a[61..].try_into().ok(),
+        _ => None,
+    }
+}
+
+/// The liveliness keys of the node's entities.
+struct Graph {
+    session: zenoh::Session,
+    domain: u32,
+    zid: String,
+    next_id: u32,
+}
+
+impl Graph {
+    fn node_key(&self) -> String {
+        format!("@ros2_lv/{}/{}/0/0/NN/%/%/{NODE_NAME}", self.domain, self.zid)
+    }
+
+    /// The token key of a new publisher (`MP`) or subscription (`MS`).
+    fn entity_key(&mut self, kind: &str, topic: &str, ty: &str, qos: &str) -> String {
+        self.next_id += 1;
+        format!(
+            "@ros2_lv/{}/{}/0/{}/{kind}/%/%/{NODE_NAME}/{}/{}/{}/{qos}",
+            self.domain,
+            self.zid,
+            self.next_id,
+            topic.replace('/', "%"),
+            dds_name(ty),
+            type_hash(ty)
+        )
+    }
+
+    fn token(&self, key: &str) -> Result<zenoh::liveliness::LivelinessToken, NodeError> {
+        self.session.liveliness().declare_token(key.to_owned()).wait().map_err(zerr)
+    }
+}
+
+/// A GID: the first 16 bytes of the SHA-256 of the entity's token key (rmw_zenoh hashes the
+/// key too; receivers only compare GIDs).
+fn gid_of(key: &str) -> [u8; 16] {
+    use sha2::Digest;
+    let d = sha2::Sha256::digest(key.as_bytes());
+    let mut g = [0u8; 16];
+    g.copy_from_slice(&d[..16]);
+    g
+}
+
+enum Sender {
+    Plain {
+        publisher: zenoh::pubsub::Publisher<'static>,
+        matched: Arc<AtomicBool>,
+        _listener: zenoh::matching::MatchingListener<()>,
+    },
+    Latched(AdvancedPublisher<'static>),
+}
+
+/// One ROS publisher: its Zenoh publisher, token, GID and sequence number.
+struct RosPub {
+    sender: Sender,
+    _token: zenoh::liveliness::LivelinessToken,
+    gid: [u8; 16],
+    seq: i64,
+}
+
+impl RosPub {
+    fn declare(graph: &mut Graph, topic: &str, ty: &str, qos: &str) -> Result<Self, NodeError> {
+        let key = data_key(graph.domain, topic, ty);
+        let builder = graph.session.declare_publisher(key);
+        let sender = if qos == QOS_LATCHED {
+            let p = builder
+                .cache(CacheConfig::default().max_samples(1))
+                .sample_miss_detection(
+                    MissDetectionConfig::default().sporadic_heartbeat(std::time::Duration::from_millis(500)),
+                )
+                .publisher_detection()
+                .wait()
+                .map_err(zerr)?;
+            Sender::Latched(p)
+        } else {
+            let congestion =
+                if qos == QOS_TF { zenoh::qos::CongestionControl::Block } else { zenoh::qos::CongestionControl::Drop };
+            let p = builder.congestion_control(congestion).wait().map_err(zerr)?;
+            let matched = Arc::new(AtomicBool::new(false));
+            let flag = matched.clone();
+            let listener = p
+                .matching_listener()
+                .callback(move |s| flag.store(s.matching(), Ordering::Relaxed))
+                .wait()
+                .map_err(zerr)?;
+            Sender::Plain { publisher: p, matched, _listener: listener }
+        };
+        let token_key = graph.entity_key("MP", topic, ty, qos);
+        Ok(Self { sender, _token: graph.token(&token_key)?, gid: gid_of(&token_key), seq: 0 })
+    }
+
+    /// Whether anyone subscribes (a latched topic: always, for those who come later).
+    fn wanted(&self) -> bool {
+        match &self.sender {
+            Sender::Plain { matched, .. } => matched.load(Ordering::Relaxed),
+            Sender::Latched(_) => true,
+        }
+    }
+
+    fn put(&mut self, payload: Vec<u8>) -> Result<(), NodeError> {
+        self.seq += 1;
+        let att = attachment(self.seq, &self.gid);
+        match &self.sender {
+            Sender::Plain { publisher, .. } => publisher.put(payload).attachment(att).wait().map_err(zerr),
+            Sender::Latched(p) => p.put(payload).attachment(att).wait().map_err(zerr),
+        }
+    }
+
+    /// Encodes and sends, if anyone subscribes.
+    fn send(&mut self, encode: impl FnOnce() -> Vec<u8>) -> Result<bool, NodeError> {
+        if !self.wanted() {
+            return Ok(false);
+        }
+        self.put(encode())?;
+        Ok(true)
+    }
+}
+
+const SIDES: [&str; 4] = ["front", "right", "back", "left"];
+
+/// One copter's topics.
+struct CopterTopics {
+    /// Its ROS name.
+    name: String,
+    pose: RosPub,
+    odom: RosPub,
+    imu: RosPub,
+    sonar: [RosPub; 4],
+    ir: RosPub,
+    battery: RosPub,
+    /// Simulated time of its last battery message, s.
+    battery_at_s: Option<f64>,
+    _subs: [zenoh::pubsub::Subscriber<()>; 2],
+    _sub_tokens: [zenoh::liveliness::LivelinessToken; 2],
+}
+
+/// What the command callbacks need of a copter's latest state: height and yaw.
+type Latest = Arc<Mutex<Vec<(f32, f32)>>>;
+
+/// Counts of what the ROS side sent, for the run's summary.
+#[derive(Clone, Debug, Default, serde::Serialize)]
+pub struct Ros2Stats {
+    /// The domain.
+    pub domain: u32,
+    /// Publishers and subscriptions declared.
+    pub publishers: usize,
+    /// Subscriptions declared.
+    pub subscriptions: usize,
+    /// Messages sent (encoded for a subscriber).
+    pub sent: u64,
+}
+
+/// The simulator's ROS 2 node.
+pub struct Ros2Node {
+    graph: Graph,
+    opts: Ros2Options,
+    commands: CommandSink,
+    _node_token: zenoh::liveliness::LivelinessToken,
+    clock: RosPub,
+    tf: RosPub,
+    tf_static: RosPub,
+    arena: RosPub,
+    copters: Vec<CopterTopics>,
+    latest: Latest,
+    /// Simulated time before which pose, odometry, IMU and tf are not sent again.
+    next_due_s: f64,
+    stats: Ros2Stats,
+}
+
+impl std::fmt::Debug for Ros2Node {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("Ros2Node").field("domain", &self.graph.domain).finish_non_exhaustive()
+    }
+}
+
+impl Ros2Node {
+    /// Declares the node, its topics for every copter of `world`, and sends the latched ones.
+    pub fn open(
+        session: &zenoh::Session,
+        world: &World,
+        commands: CommandSink,
+        opts: Ros2Options,
+    ) -> Result<Self, NodeError> {
+        let mut graph =
+            Graph { session: session.clone(), domain: opts.domain, zid: session.zid().to_string(), next_id: 0 };
+        let node_token = graph.token(&graph.node_key())?;
+        let clock = RosPub::declare(&mut graph, "/clock", "rosgraph_msgs/msg/Clock", QOS_CLOCK)?;
+        let tf = RosPub::declare(&mut graph, "/tf", "tf2_msgs/msg/TFMessage", QOS_TF)?;
+        let tf_static = RosPub::declare(&mut graph, "/tf_static", "tf2_msgs/msg/TFMessage", QOS_LATCHED)?;
+        let arena = RosPub::declare(&mut graph, "/arena", "visualization_msgs/msg/MarkerArray", QOS_LATCHED)?;
+        let stats = Ros2Stats { domain: opts.domain, ..Ros2Stats::default() };
+        let mut node = Self {
+            graph,
+            opts,
+            commands,
+            _node_token: node_token,
+            clock,
+            tf,
+            tf_static,
+            arena,
+            copters: Vec::new(),
+            latest: Arc::default(),
+            next_due_s: 0.0,
+            stats,
+        };
+        node.add_copters(world)?;
+        node.arena.put(msgs::marker_array(Stamp::default(), "world", &arena_cubes(world)))?;
+        Ok(node)
+    }
+
+    /// What was sent so far.
+    pub fn stats(&self) -> Ros2Stats {
+        let mut s = self.stats.clone();
+        s.publishers = 4 + 9 * self.copters.len();
+        s.subscriptions = 2 * self.copters.len();
+        s
+    }
+
+    /// Declares the topics of copters added to `world` since, and sends `/tf_static` anew.
+    fn add_copters(&mut self, world: &World) -> Result<(), NodeError> {
+        for i in self.copters.len()..world.copters.len() {
+            let topics = self.copter_topics(i, &world.copters[i].name)?;
+            self.copters.push(topics);
+            crate::lock(&self.latest).push((0.0, 0.0));
+        }
+        let statics = static_transforms(world, &self.copters);
+        let entries = statics.iter().map(|(child, pose)| (child.as_str(), *pose));
+        self.tf_static.put(msgs::tf(Stamp::default(), "", entries))?;
+        Ok(())
+    }
+
+    fn copter_topics(&mut self, i: usize, copter: &str) -> Result<CopterTopics, NodeError> {
+        let name = ros_name(copter);
+        let g = &mut self.graph;
+        let t = |s: &str| format!("/{name}/{s}");
+        let range = "sensor_msgs/msg/Range";
+        let sonar = SIDES.map(|side| RosPub::declare(g, &t(&format!("sonar/{side}")), range, QOS_SENSOR));
+        let [s0, s1, s2, s3] = sonar;
+        let cmd_vel = self.subscribe(i, copter, &t("cmd_vel"), "geometry_msgs/msg/Twist", twist_command)?;
+        let goal = self.subscribe(i, copter, &t("goal_pose"), "geometry_msgs/msg/PoseStamped", goal_command)?;
+        let g = &mut self.graph;
+        Ok(CopterTopics {
+            pose: RosPub::declare(g, &t("pose"), "geometry_msgs/msg/PoseStamped", QOS_SENSOR)?,
+            odom: RosPub::declare(g, &t("odom"), "nav_msgs/msg/Odometry", QOS_SENSOR)?,
+            imu: RosPub::declare(g, &t("imu"), "sensor_msgs/msg/Imu", QOS_SENSOR)?,
+            sonar: [s0?, s1?, s2?, s3?],
+            ir: RosPub::declare(g, &t("ir"), range, QOS_SENSOR)?,
+            battery: RosPub::declare(g, &t("battery"), "sensor_msgs/msg/BatteryState", QOS_SENSOR)?,
+            battery_at_s: None,
+            _subs: [cmd_vel.0, goal.0],
+            _sub_tokens: [cmd_vel.1, goal.1],
+            name,
+        })
+    }
+
+    /// A subscription to `topic` whose messages `convert` turns into commands for copter
+    /// `copter` (id `i`), submitted like Zenoh's: the publisher's GID, in hex, is the client.
+    fn subscribe(
+        &mut self,
+        i: usize,
+        copter: &str,
+        topic: &str,
+        ty: &str,
+        convert: fn(&[u8], (f32, f32)) -> Result<(CommandMsg, String), String>,
+    ) -> Result<(zenoh::pubsub::Subscriber<()>, zenoh::liveliness::LivelinessToken), NodeError> {
+        let (commands, latest, copter) = (self.commands.clone(), self.latest.clone(), copter.to_owned());
+        let sub = self
+            .graph
+            .session
+            .declare_subscriber(data_key(self.graph.domain, topic, ty))
+            .callback(move |sample| {
+                let payload = sample.payload().to_bytes();
+                let client = sample.attachment().and_then(|a| attachment_gid(&a.to_bytes())).map(|g| hex(&g));
+                let now = crate::lock(&latest).get(i).copied().unwrap_or_default();
+                let converted = convert(&payload, now);
+                let text = match &converted {
+                    Ok((_, text)) => text.clone(),
+                    Err(_) => format!("CDR {}", hex(&payload[..payload.len().min(64)])),
+                };
+                let origin =
+                    BusInput { key: sample.key_expr().to_string(), text, received_unix_ns: crate::log::now_unix_ns() };
+                commands.submit(
+                    &copter,
+                    |world| {
+                        let (mut cmd, _) = converted.map_err(CommandError::Malformed)?;
+                        cmd.client = client;
+                        if let Some(h) = cmd.height.as_mut() {
+                            *h = h.clamp(0.0, world.arena.height_m);
+                        }
+                        cmd.validate(world)?;
+                        Ok(cmd)
+                    },
+                    origin,
+                );
+            })
+            .wait()
+            .map_err(zerr)?;
+        let key = self.graph.entity_key("MS", topic, ty, QOS_COMMAND);
+        Ok((sub, self.graph.token(&key)?))
+    }
+
+    /// Publishes what is due of one frame.
+    pub fn publish(&mut self, frame: &Frame) -> Result<(), NodeError> {
+        if frame.world.copters.len() > self.copters.len() {
+            self.add_copters(&frame.world)?;
+        }
+        let stamp = Stamp::from_secs(frame.time_s);
+        let mut sent = u64::from(self.clock.send(|| msgs::clock(stamp))?);
+        let due = frame.time_s + 1e-9 >= self.next_due_s;
+        if due && let Some(hz) = self.opts.max_rate_hz {
+            self.next_due_s = frame.time_s + 1.0 / hz;
+        }
+        {
+            let mut latest = crate::lock(&self.latest);
+            for (&i, s) in frame.ids.iter().zip(&frame.states) {
+                if let Some(l) = latest.get_mut(i as usize) {
+                    *l = (s.pos_m[2], s.attitude_rad[2]);
+                }
+            }
+        }
+        if due {
+            for (&i, s) in frame.ids.iter().zip(&frame.states) {
+                sent += self.copters[i as usize].send_state(stamp, s)?;
+            }
+            if self.tf.wanted() {
+                let children: Vec<(String, Pose)> = (frame.ids.iter().zip(&frame.states))
+                    .map(|(&i, s)| (format!("{}/base_link", self.copters[i as usize].name), pose_of(s)))
+                    .collect();
+                self.tf.put(msgs::tf(stamp, "world", children.iter().map(|(c, p)| (c.as_str(), *p))))?;
+                sent += 1;
+            }
+        }
+        if !frame.sensors.is_empty() {
+            let spec = &frame.world.sensors.spec;
+            let fresh = sim_core::fresh_sonars(spec, frame.tick.saturating_sub(1), true);
+            for ((&i, s), st) in frame.ids.iter().zip(&frame.sensors).zip(&frame.states) {
+                let fresh = if st.crashed { [false; 4] } else { fresh };
+                sent += self.copters[i as usize].send_sensors(stamp, &frame.world, s, fresh, due)?;
+            }
+        }
+        self.stats.sent += sent;
+        Ok(())
+    }
+}
+
+impl CopterTopics {
+    fn send_state(&mut self, stamp: Stamp, s: &StateMsg) -> Result<u64, NodeError> {
+        let pose = pose_of(s);
+        let frame = format!("{}/base_link", self.name);
+        let mut sent = u64::from(self.pose.send(|| msgs::pose_stamped(stamp, "world", &pose))?);
+        sent += u64::from(self.odom.send(|| {
+            let r = rotation(s.quat_xyzw);
+            let lin = r.transpose() * nalgebra::Vector3::from(s.vel_m_s.map(f64::from));
+            let ang = r.transpose() * nalgebra::Vector3::from(s.angvel_rad_s.map(f64::from));
+            msgs::odometry(stamp, "world", &frame, &pose, lin.into(), ang.into())
+        })?);
+        Ok(sent)
+    }
+
+    fn send_sensors(
+        &mut self,
+        stamp: Stamp,
+        world: &World,
+        s: &SensorsMsg,
+        fresh: [bool; 4],
+        due: bool,
+    ) -> Result<u64, NodeError> {
+        let spec = &world.sensors.spec;
+        let base = format!("{}/base_link", self.name);
+        let mut sent = 0;
+        if due {
+            let var = |sigma: f32| f64::from(sigma).powi(2);
+            let variances = [
+                var(spec.imu.attitude_noise_deg.to_radians()),
+                var(spec.imu.rate_noise_deg_s.to_radians()),
+                var(spec.imu.accel_noise_m_s2),
+            ];
+            let q = quat_of_rpy(s.attitude_rad);
+            let (gyro, accel) = (s.rate_body_rad_s.map(f64::from), s.accel_body_m_s2.map(f64::from));
+            sent += u64::from(self.imu.send(|| msgs::imu(stamp, &base, q, gyro, accel, variances))?);
+        }
+        let sonar = RangeSensor {
+            radiation_type: 0,
+            field_of_view: spec.sonar.opening_deg.to_radians(),
+            min_range: spec.sonar.min_range_m,
+            max_range: spec.sonar.max_range_m,
+        };
+        let readings = [s.sonar_m.front, s.sonar_m.right, s.sonar_m.back, s.sonar_m.left];
+        let sonar_var = spec.sonar.noise_sigma_m.powi(2);
+        for k in (0..4).filter(|&k| fresh[k]) {
+            let r = if readings[k] >= sonar.max_range { f32::INFINITY } else { readings[k] };
+            let frame = format!("{}/sonar_{}", self.name, SIDES[k]);
+            sent += u64::from(self.sonar[k].send(|| msgs::range(stamp, &frame, &sonar, r, sonar_var))?);
+        }
+        let ir = RangeSensor {
+            radiation_type: 1,
+            field_of_view: 0.05,
+            min_range: spec.ir.min_range_m,
+            max_range: spec.ir.max_range_m,
+        };
+        let frame = format!("{}/ir", self.name);
+        let ir_var = spec.ir.noise_sigma_m.powi(2);
+        sent += u64::from(self.ir.send(|| msgs::range(stamp, &frame, &ir, s.ir_m.unwrap_or(f32::INFINITY), ir_var))?);
+        let t = f64::from(stamp.sec) + f64::from(stamp.nanosec) * 1e-9;
+        if self.battery_at_s.is_none_or(|at| t >= at + 1.0) {
+            self.battery_at_s = Some(t);
+            sent += u64::from(self.battery.send(|| msgs::battery(stamp, &base, s.battery_v, s.battery_charge))?);
+        }
+        Ok(sent)
+    }
+}
+
+fn hex(bytes: &[u8]) -> String {
+    bytes.iter().map(|b| format!("{b:02x}")).collect()
+}
+
+fn rotation(q: [f32; 4]) -> nalgebra::Matrix3<f64> {
+    let q = nalgebra::UnitQuaternion::from_quaternion(nalgebra::Quaternion::new(
+        f64::from(q[3]),
+        f64::from(q[0]),
+        f64::from(q[1]),
+        f64::from(q[2]),
+    ));
+    q.to_rotation_matrix().into_inner()
+}
+
+fn quat_of_rpy(rpy: [f32; 3]) -> [f64; 4] {
+    let q = nalgebra::UnitQuaternion::from_euler_angles(f64::from(rpy[0]), f64::from(rpy[1]), f64::from(rpy[2]));
+    [q.i, q.j, q.k, q.w]
+}
+
+fn yaw_of(q: [f64; 4]) -> f64 {
+    let [x, y, z, w] = q;
+    (2.0 * (w * z + x * y)).atan2(1.0 - 2.0 * (y * y + z * z))
+}
+
+fn pose_of(s: &StateMsg) -> Pose {
+    Pose { pos: s.pos_m.map(f64::from), quat: s.quat_xyzw.map(f64::from) }
+}
+
+fn wrap_pi(a: f32) -> f32 {
+    (a + std::f32::consts::PI).rem_euclid(std::f32::consts::TAU) - std::f32::consts::PI
+}
+
+/// `cmd_vel` (forward, left and vertical speed, yaw rate) as a velocity-mode command; `now`
+/// is the copter's height and yaw.
+fn twist_command(cdr: &[u8], (z, yaw): (f32, f32)) -> Result<(CommandMsg, String), String> {
+    let (lin, ang) = msgs::decode_twist(cdr).map_err(|e| format!("cmd_vel: {e}"))?;
+    let cmd = CommandMsg {
+        mode: Some(FlightMode::Velocity),
+        velocity: Some([lin[0] as f32, lin[1] as f32]),
+        height: Some(z + lin[2] as f32 * RATE_LOOKAHEAD_S),
+        yaw: Some(wrap_pi(yaw + ang[2] as f32 * RATE_LOOKAHEAD_S)),
+        ..CommandMsg::default()
+    };
+    Ok((cmd, format!("Twist linear {lin:?} angular {ang:?}")))
+}
+
+/// `goal_pose` (in `world`) as a target-mode command.
+fn goal_command(cdr: &[u8], _: (f32, f32)) -> Result<(CommandMsg, String), String> {
+    let (frame, pose) = msgs::decode_pose_stamped(cdr).map_err(|e| format!("goal_pose: {e}"))?;
+    if !frame.is_empty() && frame != "world" {
+        return Err(format!("goal_pose: frame {frame:?} is not \"world\""));
+    }
+    let cmd = CommandMsg {
+        mode: Some(FlightMode::Target),
+        target: Some(pose.pos.map(|v| v as f32)),
+        yaw: Some(yaw_of(pose.quat) as f32),
+        ..CommandMsg::default()
+    };
+    Ok((cmd, format!("PoseStamped {:?} {:?}", pose.pos, pose.quat)))
+}
+
+/// Each copter's sensor frames on its body: the sonars facing their sides, the IR down.
+fn static_transforms(world: &World, copters: &[CopterTopics]) -> Vec<(String, Pose)> {
+    let d = f64::from(world.sensors.spec.sonar.mount_offset_m);
+    let mut out = Vec::new();
+    for c in copters {
+        for (k, side) in SIDES.iter().enumerate() {
+            let yaw = -(k as f64) * std::f64::consts::FRAC_PI_2;
+            let q = nalgebra::UnitQuaternion::from_euler_angles(0.0, 0.0, yaw);
+            let pose = Pose { pos: [d * yaw.cos(), d * yaw.sin(), 0.0], quat: [q.i, q.j, q.k, q.w] };
+            out.push((format!("{}/sonar_{side}", c.name), pose));
+        }
+        let down = nalgebra::UnitQuaternion::from_euler_angles(0.0, std::f64::consts::FRAC_PI_2, 0.0);
+        out.push((format!("{}/ir", c.name), Pose { pos: [0.0; 3], quat: [down.i, down.j, down.k, down.w] }));
+    }
+    // tf_static's transforms are relative to their parent: the body.
+    out.into_iter().map(|(child, pose)| (child, pose)).collect()
+}
+
+/// The arena as cubes: floor, walls (if any), boxes.
+fn arena_cubes(world: &World) -> Vec<Cube> {
+    let a = &world.arena;
+    let [sx, sy] = a.size_m.map(f64::from);
+    let (h, t) = (f64::from(a.height_m), f64::from(a.wall_thickness_m));
+    let level = Pose { pos: [0.0; 3], quat: [0.0, 0.0, 0.0, 1.0] };
+    let cube = |ns: &str, id: i32, pos: [f64; 3], size: [f64; 3], rgba: [f32; 4]| Cube {
+        ns: ns.into(),
+        id,
+        pose: Pose { pos, ..level },
+        size,
+        rgba,
+    };
+    let mut cubes = vec![cube("floor", 0, [0.0, 0.0, -t / 2.0], [sx, sy, t], [0.5, 0.5, 0.5, 1.0])];
+    if a.walls {
+        let wall = [0.7, 0.7, 0.8, 0.3];
+        cubes.push(cube("walls", 0, [(sx + t) / 2.0, 0.0, h / 2.0], [t, sy, h], wall));
+        cubes.push(cube("walls", 1, [-(sx + t) / 2.0, 0.0, h / 2.0], [t, sy, h], wall));
+        cubes.push(cube("walls", 2, [0.0, (sy + t) / 2.0, h / 2.0], [sx, t, h], wall));
+        cubes.push(cube("walls", 3, [0.0, -(sy + t) / 2.0, h / 2.0], [sx, t, h], wall));
+    }
+    for (k, b) in world.spec.boxes.iter().enumerate() {
+        let q = nalgebra::UnitQuaternion::from_euler_angles(0.0, 0.0, f64::from(b.yaw_deg).to_radians());
+        let size = b.size_m.map(f64::from);
+        let pos = [f64::from(b.pos_m[0]), f64::from(b.pos_m[1]), f64::from(b.z_m) + size[2] / 2.0];
+        let rgba = if b.virtual_only { [0.2, 0.6, 1.0, 0.5] } else { [0.8, 0.5, 0.2, 1.0] };
+        cubes.push(Cube { pose: Pose { pos, quat: [q.i, q.j, q.k, q.w] }, ..cube("boxes", k as i32, pos, size, rgba) });
+    }
+    cubes
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn keys_and_names_follow_rmw_zenoh() {
+        assert_eq!(ros_name("finken-1"), "finken_1");
+        assert_eq!(ros_name("7up"), "c_7up");
+        assert_eq!(
+            data_key(0, "/robot1/pose", "geometry_msgs/msg/PoseStamped"),
+            "0/robot1/pose/geometry_msgs::msg::dds_::PoseStamped_/\
+             RIHS01_10f3786d7d40fd2b54367835614bff85d4ad3b5dab62bf8bca0cc232d73b4cd8"
+        );
+        let gid: [u8; 16] = std::array::from_fn(|k| k as u8);
+        let a = attachment(1, &gid);
+        assert_eq!((a.len(), &a[..8], a[16]), (33, &1i64.to_le_bytes()[..], 16));
+        assert_eq!(attachment_gid(&a), Some(gid));
+        assert_eq!(attachment_gid(&a[..20]), None);
+    }
+
+    #[test]
+    fn commands_from_twist_and_goal_pose() {
+        let mut w = super::super::cdr::CdrWriter::new();
+        w.f64s(&[0.3, -0.1, 0.2, 0.0, 0.0, 0.5]);
+        let (cmd, _) = twist_command(&w.into_bytes(), (1.0, 3.0)).unwrap();
+        assert_eq!((cmd.mode, cmd.velocity, cmd.height), (Some(FlightMode::Velocity), Some([0.3, -0.1]), Some(1.2)));
+        assert!((cmd.yaw.unwrap() - (3.5 - std::f32::consts::TAU)).abs() < 1e-5, "{:?}", cmd.yaw);
+        let q = nalgebra::UnitQuaternion::from_euler_angles(0.0, 0.0, 0.7);
+        let pose = Pose { pos: [1.0, 0.5, 1.2], quat: [q.i, q.j, q.k, q.w] };
+        let (cmd, _) = goal_command(&msgs::pose_stamped(Stamp::default(), "world", &pose), (0.0, 0.0)).unwrap();
+        assert_eq!(cmd.target, Some([1.0, 0.5, 1.2]));
+        assert!((cmd.yaw.unwrap() - 0.7).abs() < 1e-6);
+        let err = goal_command(&msgs::pose_stamped(Stamp::default(), "map", &pose), (0.0, 0.0)).unwrap_err();
+        assert!(err.contains("\"map\""), "{err}");
+        assert!(twist_command(&[0, 1, 0, 0], (0.0, 0.0)).unwrap_err().contains("cmd_vel"));
+    }
+}
