@@ -19,6 +19,7 @@ use std::time::Instant;
 use sim_core::scene::CopterSpec;
 use sim_core::{CopterKind, Inputs, State, StepReport, World, step_into};
 
+use crate::checkpoint::Checkpointer;
 use crate::failsafe::{Failsafe, FailsafeEvent, FailsafeKind};
 use crate::log::{EventKind, LogError, LogEvent, Logger};
 use crate::mixed::{Outbox, PprzOut};
@@ -34,6 +35,8 @@ pub enum Halt {
     Shard(String),
     /// The recorder failed and the run was told to stop on log errors.
     Log,
+    /// A checkpoint could not be written (the run was asked for them).
+    Checkpoint(String),
 }
 
 /// What one step produced besides the new state.
@@ -69,6 +72,7 @@ struct Core {
     shard: Option<Arc<Mutex<ShardLink>>>,
     /// A shard: which copters it owned after the last step.
     owned: Vec<bool>,
+    checkpoints: Option<Checkpointer>,
     stats: LoopStats,
 }
 
@@ -94,6 +98,7 @@ impl<W: StepObserver> Flight<W> {
             outbox: opts.outbox.clone().map(Outbox::new),
             shard: opts.shard.clone(),
             owned: Vec::new(),
+            checkpoints: opts.checkpoint.clone().map(Checkpointer::new),
             stats: LoopStats::default(),
         };
         Self { core, recorder, watch }
@@ -171,7 +176,13 @@ impl<W: StepObserver> Flight<W> {
             return Err(Halt::Log);
         }
         let mut obs = Tee(&mut self.recorder, &mut self.watch);
-        self.core.step(&mut obs).map_err(Halt::Shard)
+        let stepped = self.core.step(&mut obs).map_err(Halt::Shard)?;
+        if self.core.checkpoints.as_ref().is_some_and(|c| c.due(self.core.state.tick)) {
+            // The log first: a run resumed from this checkpoint logs from the next step on.
+            self.recorder.sync();
+            self.core.checkpoint().map_err(Halt::Checkpoint)?;
+        }
+        Ok(stepped)
     }
 
     /// The frame of the last step, for publishing.
@@ -206,6 +217,11 @@ impl<W: StepObserver> Flight<W> {
     /// A shard stopped: why.
     pub fn shard_error(&mut self, why: String) {
         self.core.stats.shard_error = Some(why);
+    }
+
+    /// A checkpoint could not be written: why.
+    pub fn checkpoint_error(&mut self, why: String) {
+        self.core.stats.checkpoint_error = Some(why);
     }
 
     /// Lockstep: `client`, copter `id`'s controller, did not answer the current tick in time.
@@ -409,6 +425,22 @@ impl Core {
         Ok(Stepped { sensed, pprz_out })
     }
 
+    /// Writes a checkpoint of the state after the last step, with the neighbours' batches
+    /// already in for the next.
+    fn checkpoint(&mut self) -> Result<(), String> {
+        let Some(ckpt) = self.checkpoints.as_mut() else { return Ok(()) };
+        let mut link = self.shard.as_ref().map(|l| crate::lock(l));
+        let early = match link.as_mut() {
+            Some(l) => l.pending().map_err(|e| e.to_string())?,
+            None => Vec::new(),
+        };
+        let path = ckpt.write(&self.state, &self.inputs, &early).map_err(|e| e.to_string())?;
+        tracing::debug!("checkpoint {} written", path.display());
+        self.stats.checkpoints_written = ckpt.written;
+        self.stats.last_checkpoint = Some(path);
+        Ok(())
+    }
+
     /// A shard: stop on a broken invariant; count the copters taken over.
     fn check_shard(&mut self) -> Result<(), String> {
         let Some(view) = self.state.shard() else { return Ok(()) };
@@ -559,6 +591,16 @@ impl Recorder {
     /// Hands over the logger (to finish it) and the first error.
     pub fn into_parts(self) -> (Option<Logger>, Option<(u64, LogError)>) {
         (self.log, self.error)
+    }
+
+    /// Everything logged so far to disk (flushed and `fsync`ed), waited for. A failure is a
+    /// log error like any other (kept; the run stops if asked to).
+    pub fn sync(&mut self) {
+        if let Some(log) = &mut self.log
+            && let Err(e) = log.sync()
+        {
+            self.failed(self.tick, e);
+        }
     }
 
     fn halted(&self) -> bool {

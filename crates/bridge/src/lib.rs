@@ -13,12 +13,14 @@
 //!   back, over Zenoh, over Ivy, or both as a gateway.
 //! * [`sync`]: keeping twins where their real copters are (MEDUSA and tracking).
 //! * [`log`]: MCAP logs, their reader and recovery.
+//! * [`checkpoint`]: a run saved between two steps, bit for bit, and restored.
 //!
 //! **Architecture invariant:** the format modules never do I/O except reading the files they
 //! are asked to parse, and never panic on input. Only [`zenoh_net`] knows Zenoh; only
 //! [`paparazzi::ivy`] opens Ivy sockets; only [`sim`] runs the step loop, and it never blocks
 //! on publishing.
 
+pub mod checkpoint;
 pub mod failsafe;
 pub mod flight;
 pub mod link;

@@ -93,8 +93,9 @@ pub enum OnLost {
     #[default]
     Stop,
     /// Hold at the barrier until it is back (its token and its batch), up to the barrier
-    /// timeout: for a link that drops and returns. A shard process that died cannot return:
-    /// its state is gone (there are no checkpoints), and the hold ends at the timeout.
+    /// timeout: for a link that drops and returns. A shard process that died cannot return
+    /// (it is restarted from a checkpoint, with all the others: [`crate::checkpoint`]), and the
+    /// hold ends at the timeout.
     Hold,
 }
 
@@ -464,6 +465,24 @@ impl ShardLink {
         self.taken_tick = Some(tick);
         state.receive_ghosts(batches.into_iter().flat_map(|b| b.ghosts))?;
         Ok(())
+    }
+
+    /// The neighbours' batches that arrived for steps not yet taken (those still in the
+    /// inbox included), by tick and sender: what a checkpoint keeps of the link.
+    pub fn pending(&mut self) -> Result<Vec<&GhostBatch>, LinkError> {
+        while let Ok(msg) = self.inbox.try_recv() {
+            self.take(msg)?;
+        }
+        Ok(self.early.values().collect())
+    }
+
+    /// Takes back the batches a checkpoint kept ([`ShardLink::pending`]) for a state at
+    /// `tick`: those for `tick` and later. Neighbours send theirs again from `tick` on; a batch
+    /// is keyed by (tick, sender), so the same batch twice is one.
+    pub fn preload(&mut self, batches: Vec<GhostBatch>, tick: u64) {
+        for b in batches.into_iter().filter(|b| b.tick >= tick) {
+            self.early.insert((b.tick, b.from), b);
+        }
     }
 
     /// What the barrier has cost so far.

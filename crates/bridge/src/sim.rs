@@ -154,6 +154,8 @@ pub struct LoopOptions {
     pub shard: Option<Arc<std::sync::Mutex<crate::shard::ShardLink>>>,
     /// Hold each step for the claimed copters' controllers (needs a frame channel).
     pub lockstep: Option<LockstepOptions>,
+    /// Write a checkpoint every so many steps (see [`crate::checkpoint`]).
+    pub checkpoint: Option<crate::checkpoint::CheckpointOptions>,
 }
 
 /// `run --lockstep`: see `docs/lockstep.md`.
@@ -284,6 +286,12 @@ pub struct LoopStats {
     pub shard_error: Option<String>,
     /// A shard: copters it took over from another shard during the run.
     pub shard_taken_over: u64,
+    /// Checkpoints written, and the last one.
+    pub checkpoints_written: u64,
+    /// The last checkpoint written.
+    pub last_checkpoint: Option<std::path::PathBuf>,
+    /// Why a checkpoint could not be written (the run stopped there), if one could not.
+    pub checkpoint_error: Option<String>,
     /// Lockstep: answers, timeouts, refusals.
     pub lockstep: Option<LockstepStats>,
 }
@@ -409,8 +417,10 @@ pub fn run_loop<W: StepObserver>(
         let stepped = match flight.step() {
             Ok(s) => s,
             Err(halt) => {
-                if let Halt::Shard(e) = halt {
-                    flight.shard_error(e);
+                match halt {
+                    Halt::Shard(e) => flight.shard_error(e),
+                    Halt::Checkpoint(e) => flight.checkpoint_error(e),
+                    Halt::Log => {}
                 }
                 flight.stopped_early();
                 break;

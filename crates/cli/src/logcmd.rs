@@ -43,7 +43,9 @@ pub fn default_log_path(world: &World, epoch_ns: u64) -> PathBuf {
 pub const LOG_EPOCH_ENV: &str = "TWINSWARM_LOG_EPOCH_NS";
 
 /// Starts the log of a run, unless `no_log`. `scene_path`: the scene file (`None`: the
-/// embedded lab). `options`: rate and zstd level; `live` joins them.
+/// embedded lab). `options`: rate and zstd level; `live` joins them. The epoch: the
+/// launcher's ([`LOG_EPOCH_ENV`]), else `epoch_ns` (a resumed run's), else now.
+#[allow(clippy::too_many_arguments)]
 pub fn start_run_log(
     log: Option<&Path>,
     no_log: bool,
@@ -52,6 +54,7 @@ pub fn start_run_log(
     scene_path: Option<&Path>,
     scene_origin: &str,
     live: Option<Arc<bridge::live::LiveServer>>,
+    epoch_ns: Option<u64>,
 ) -> anyhow::Result<Option<Logger>> {
     if no_log {
         return match live {
@@ -63,7 +66,7 @@ pub fn start_run_log(
     // one time base and merge without shifting.
     let epoch_ns = match std::env::var(LOG_EPOCH_ENV) {
         Ok(v) => v.parse().map_err(|e| BadInput(anyhow::anyhow!("{LOG_EPOCH_ENV}={v:?}: not a time in ns: {e}")))?,
-        Err(_) => now_unix_ns(),
+        Err(_) => epoch_ns.unwrap_or_else(now_unix_ns),
     };
     let path = match log {
         Some(p) => p.to_owned(),

@@ -36,7 +36,7 @@ struct Cli {
 #[derive(Debug, Subcommand)]
 enum Command {
     /// Fly a scene (default: the embedded FINken lab) and print a summary.
-    Run(runcmd::RunArgs),
+    Run(Box<runcmd::RunArgs>),
     /// Start a Zenoh router and N local shard processes of one swarm (`run --shard K/N`),
     /// wait for them and merge their summaries. A launcher, not a scheduler.
     Cluster(ClusterArgs),
@@ -202,6 +202,21 @@ struct ClusterArgs {
     /// no logs.
     #[arg(long, value_name = "DIR")]
     log_dir: Option<PathBuf>,
+    /// Checkpoint every S simulated seconds (each shard, at the same ticks), and restart the
+    /// cluster when a shard process dies: all shards go on from the last checkpoint every
+    /// shard has (from the start if there is none), with the bits of an uninterrupted run.
+    /// After a restart R, shards log to DIR/shard-K-of-N.restart-R.mcap; the killed shards'
+    /// logs are recovered in place, and `log merge` of all of them has every step once.
+    #[arg(long, value_name = "S")]
+    checkpoint_every: Option<f64>,
+    /// Where the checkpoints go (default: LOG_DIR/checkpoints with `--log-dir`, else a
+    /// directory under the system's temporary directory).
+    #[arg(long, value_name = "DIR")]
+    checkpoint_dir: Option<PathBuf>,
+    /// With `--checkpoint-every`: restart the cluster at most this many times; a shard that
+    /// dies once more stops the run (a crash that comes back every time must not loop).
+    #[arg(long, value_name = "N", default_value_t = 3)]
+    max_restarts: u32,
     /// Print the merged summary as JSON on stdout.
     #[arg(long)]
     json: bool,
@@ -301,7 +316,7 @@ fn main() -> ExitCode {
         },
     };
     let result = match command {
-        Command::Run(args) => runcmd::run(args),
+        Command::Run(args) => runcmd::run(*args),
         Command::Copter(args) => standin::run(args),
         Command::Ivy(args) => ivycmd::run(args),
         Command::Check { scene } => check(&scene),
@@ -463,6 +478,13 @@ fn cluster_cmd(args: &ClusterArgs) -> anyhow::Result<()> {
     let (_, spec, _) = load_scene(args.scene.as_deref())?;
     sim_core::shard::Partition::new(&scene::compile(&spec).map_err(|e| BadInput(e.into()))?, args.shards)
         .map_err(|e| BadInput(e.into()))?;
+    if let Some(every) = args.checkpoint_every
+        && !(every.is_finite() && every > 0.0)
+    {
+        return Err(
+            BadInput(anyhow::anyhow!("--checkpoint-every must be a positive number of seconds, got {every}")).into()
+        );
+    }
     let stop = logcmd::install_stop_flag()?;
     let opts = shardcmd::ClusterRun {
         scene: args.scene.clone(),
@@ -474,6 +496,9 @@ fn cluster_cmd(args: &ClusterArgs) -> anyhow::Result<()> {
         realtime: args.realtime,
         log_dir: args.log_dir.clone(),
         no_bus: args.no_bus,
+        checkpoint_every_s: args.checkpoint_every,
+        checkpoint_dir: cluster_checkpoint_dir(args),
+        max_restarts: args.max_restarts,
     };
     let s = shardcmd::run_cluster(&opts, &stop)?;
     if args.json {
@@ -488,8 +513,23 @@ fn cluster_cmd(args: &ClusterArgs) -> anyhow::Result<()> {
         println!("shard {}: {:.2}x real time, {:.2} s wall", p.shard.shard, p.real_time_factor, p.wall_time_s);
         shardcmd::print_section(&p.shard);
     }
+    for r in &s.restarts {
+        println!(
+            "restarted after {:.1} s: shard {} died ({}); every shard went on from tick {}",
+            r.at_wall_s, r.shard, r.status, r.from_tick
+        );
+    }
     println!("digest of the swarm: {}", s.digest);
     Ok(())
+}
+
+/// `cluster --checkpoint-dir`, or its default; `--checkpoint-every` checked.
+fn cluster_checkpoint_dir(args: &ClusterArgs) -> PathBuf {
+    match (&args.checkpoint_dir, &args.log_dir) {
+        (Some(d), _) => d.clone(),
+        (None, Some(logs)) => logs.join("checkpoints"),
+        (None, None) => std::env::temp_dir().join(format!("twinswarm-checkpoints-{}", std::process::id())),
+    }
 }
 
 /// `router`: a Zenoh router until SIGINT or SIGTERM.

@@ -9,6 +9,7 @@ use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 use anyhow::Context;
+use bridge::checkpoint::{self, Checkpoint, CheckpointError, CheckpointOptions, RunKey};
 use bridge::failsafe::{ClientLostAction, FailsafeOptions};
 use bridge::flight::Recorder;
 use bridge::live::LiveServer;
@@ -35,6 +36,22 @@ pub(crate) struct RunArgs {
     /// restarting, a network partition), for at most `--barrier-timeout`.
     #[arg(long, value_name = "WHAT", default_value = "stop")]
     on_shard_lost: OnShardLost,
+    /// Write a checkpoint every S simulated seconds into `--checkpoint-dir`: at the tick
+    /// multiples of round(S / control dt), after the step, the same ticks in every shard; the
+    /// newest two per shard are kept. Needs `--checkpoint-dir`. Not with `--ivy`, `--pairing`
+    /// or twins (their state between steps is not saved).
+    #[arg(long, value_name = "S", requires = "checkpoint_dir")]
+    checkpoint_every: Option<f64>,
+    /// Where `--checkpoint-every` writes: DIR/shard-K-of-N-tick-T.ckpt (DIR/run-tick-T.ckpt
+    /// for one process), atomically (a temporary file, fsync, rename).
+    #[arg(long, value_name = "DIR")]
+    checkpoint_dir: Option<PathBuf>,
+    /// Go on from this checkpoint to the end of `--duration`, with the same bits as the
+    /// uninterrupted run. It must be of the same scene, seed and `--shard K/N` (else it is
+    /// refused, naming the file). The log, a new file, continues the checkpointed run's time
+    /// base (unless TWINSWARM_LOG_EPOCH_NS is set) from the step after the checkpoint.
+    #[arg(long, value_name = "FILE.ckpt")]
+    resume: Option<PathBuf>,
     /// The scene file (TOML); default: the embedded FINken lab.
     scene: Option<PathBuf>,
     /// Simulated duration, s (default: the scene's `sim.duration_s`).
@@ -190,12 +207,15 @@ pub(crate) fn run(args: RunArgs) -> anyhow::Result<()> {
     let pace = pace(&args, &world)?;
     let rt = tokio::runtime::Builder::new_multi_thread().worker_threads(2).enable_all().build()?;
     let live = start_live(&args, &rt)?;
-    let log = start_log(&args, &world, &origin, live.clone())?;
+    let resume = load_resume(&args, &world)?;
+    let epoch_ns = resume.as_ref().and_then(|c| c.log_epoch_ns);
+    let mut log = start_log(&args, &world, &origin, live.clone(), epoch_ns)?;
+    let durability = durability(&args, &world, resume, log.as_mut())?;
     let stop = logcmd::install_stop_flag()?;
     let recorder = Recorder::new(log, (args.on_log_error == OnLogError::Stop).then(|| stop.clone()));
     let watch = RunWatch::new(&world, progress_bar(&args, pace.ticks));
     let started = Instant::now();
-    let outcome = runner::run(&rt, world, &pace, &bus, recorder, watch, stop)?;
+    let outcome = runner::run(&rt, world, &pace, &bus, durability, recorder, watch, stop)?;
     let wall_s = started.elapsed().as_secs_f64();
     report_run(&args, &origin, outcome, live, wall_s)
 }
@@ -222,6 +242,7 @@ fn prepare_world(args: &RunArgs) -> anyhow::Result<(String, World, runner::Mixed
     if args.shard.is_some() {
         check_shardable(args, &spec)?;
     }
+    check_checkpointable(args, &spec)?;
     let mixed = crate::load_mixed(
         args.pairing.as_deref(),
         args.telemetry.as_deref(),
@@ -340,6 +361,7 @@ fn start_log(
     world: &World,
     origin: &str,
     live: Option<Arc<LiveServer>>,
+    epoch_ns: Option<u64>,
 ) -> anyhow::Result<Option<bridge::log::Logger>> {
     let every_ticks = match args.log_rate {
         None => 1,
@@ -359,7 +381,8 @@ fn start_log(
         unchanged_every_s: args.log_unchanged,
         ..Default::default()
     };
-    logcmd::start_run_log(args.log.as_deref(), args.no_log, options, world, args.scene.as_deref(), origin, live)
+    let scene = args.scene.as_deref();
+    logcmd::start_run_log(args.log.as_deref(), args.no_log, options, world, scene, origin, live, epoch_ns)
 }
 
 fn progress_bar(args: &RunArgs, ticks: u64) -> Option<indicatif::ProgressBar> {
@@ -440,11 +463,15 @@ fn report_run(
         json["lockstep"] = serde_json::to_value(&stats.lockstep)?;
         json["log_error"] = log_error.as_ref().map_or(serde_json::Value::Null, |e| format!("{e:#}").into());
         json["shard"] = serde_json::to_value(shard)?;
+        json["checkpoints"] = checkpoints_json(args, &stats);
         outln!("{}", serde_json::to_string_pretty(&json)?);
     } else {
         out!("{}", summary.to_text());
         if let Some(s) = &shard {
             shardcmd::print_section(s);
+        }
+        if let Some(last) = &stats.last_checkpoint {
+            outln!("  checkpoints: {} written, the last {}", stats.checkpoints_written, last.display());
         }
         outln!("  log: {}", log_stats.as_ref().map_or("off (--no-log)".into(), logcmd::describe));
         print_live(live_stats.as_ref());
@@ -457,6 +484,9 @@ fn report_run(
             );
         }
     }
+    if let Some(e) = &stats.checkpoint_error {
+        anyhow::bail!("stopped at control step {}: {e}", state.tick);
+    }
     if let Some(e) = &stats.shard_error {
         // The log and the summary hold everything up to here.
         anyhow::bail!("shard stopped at control step {}: {e}", state.tick);
@@ -465,6 +495,15 @@ fn report_run(
         Some(e) => Err(e),
         None => Ok(()),
     }
+}
+
+/// `--json`'s `checkpoints`: written, the last one, and the one this run went on from.
+fn checkpoints_json(args: &RunArgs, stats: &bridge::sim::LoopStats) -> serde_json::Value {
+    serde_json::json!({
+        "written": stats.checkpoints_written,
+        "last": stats.last_checkpoint.as_ref().map(|p| p.display().to_string()),
+        "resumed_from": args.resume.as_ref().map(|p| p.display().to_string()),
+    })
 }
 
 /// The live view's line of the text summary.
@@ -698,6 +737,66 @@ impl bridge::sim::StepObserver for RunWatch {
 
 /// Failsafe transitions the text summary lists one by one (the log has them all).
 const MAX_SUMMARY_EVENTS: usize = 8;
+
+/// `--resume`: the checkpoint, checked against this run (scene, seed, `--shard`).
+fn load_resume(args: &RunArgs, world: &World) -> anyhow::Result<Option<Checkpoint>> {
+    let Some(path) = &args.resume else { return Ok(None) };
+    let key = RunKey::of(world, args.shard);
+    let ckpt = checkpoint::load(path, &key).map_err(|e| match e {
+        CheckpointError::Io { .. } => anyhow::Error::new(e),
+        e => BadInput(e.into()).into(),
+    })?;
+    Ok(Some(ckpt))
+}
+
+/// `--checkpoint-every`; and a resumed run's first log event, which says where it went on from.
+fn durability(
+    args: &RunArgs,
+    world: &World,
+    resume: Option<Checkpoint>,
+    log: Option<&mut bridge::log::Logger>,
+) -> anyhow::Result<runner::Durability> {
+    let checkpoint = match (args.checkpoint_every, &args.checkpoint_dir) {
+        (Some(every_s), Some(dir)) => {
+            let every_ticks =
+                CheckpointOptions::every_ticks_for(every_s, world.params.control_dt_s).ok_or_else(|| {
+                    BadInput(anyhow::anyhow!("--checkpoint-every: {every_s} is not a positive number of seconds"))
+                })?;
+            let log_epoch_ns = log.as_ref().filter(|l| l.has_file()).map(|l| l.epoch_ns());
+            Some(CheckpointOptions { dir: dir.clone(), every_ticks, key: RunKey::of(world, args.shard), log_epoch_ns })
+        }
+        _ => None,
+    };
+    if let (Some(c), Some(path), Some(log)) = (&resume, &args.resume, log) {
+        log.log_event(bridge::log::LogEvent {
+            tick: c.tick,
+            kind: bridge::log::EventKind::Resumed,
+            copter: None,
+            detail: Some(serde_json::json!({ "checkpoint": path.display().to_string(), "tick": c.tick })),
+            message: format!("resumed from checkpoint {} at control step {}", path.display(), c.tick),
+        })?;
+    }
+    Ok(runner::Durability { resume, checkpoint })
+}
+
+/// Checkpoints save what a plain or sharded run carries between steps; twins, `--ivy` and
+/// `--pairing` carry more (synchronisation filters, telemetry timers).
+fn check_checkpointable(args: &RunArgs, spec: &SceneSpec) -> anyhow::Result<()> {
+    let flag = match (args.checkpoint_every.is_some(), args.resume.is_some()) {
+        (_, true) => "--resume",
+        (true, false) => "--checkpoint-every",
+        (false, false) => return Ok(()),
+    };
+    let twins = spec.copters.iter().any(|c| c.kind == sim_core::CopterKind::Real);
+    let unsaved = [(args.ivy.is_some(), "--ivy"), (args.pairing.is_some(), "--pairing"), (twins, "twins")];
+    match unsaved.iter().find(|(on, _)| *on) {
+        Some((_, what)) => {
+            Err(BadInput(anyhow::anyhow!("{flag}: not available with {what} (their state between steps is not saved)"))
+                .into())
+        }
+        None => Ok(()),
+    }
+}
 
 /// What a shard cannot do yet.
 fn check_shardable(args: &RunArgs, spec: &SceneSpec) -> anyhow::Result<()> {

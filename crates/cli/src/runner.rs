@@ -206,52 +206,77 @@ pub struct Pace {
     pub lockstep: Option<bridge::sim::LockstepOptions>,
 }
 
-/// Flies `world` for `pace.ticks` control steps, recording into `recorder`, with `watch`
-/// following every step.
+/// Where a run starts and what it saves: a checkpoint to go on from (`--resume`), and
+/// checkpoints to write (`--checkpoint-every`).
+#[derive(Debug, Default)]
+pub struct Durability {
+    pub resume: Option<bridge::checkpoint::Checkpoint>,
+    pub checkpoint: Option<bridge::checkpoint::CheckpointOptions>,
+}
+
+/// The first state, its inputs, a shard's neighbours and the batches a checkpoint kept:
+/// `world`'s initial state, or the checkpoint's (made the shard it was).
+fn start_state(
+    world: &World,
+    bus: &BusOptions,
+    resume: Option<bridge::checkpoint::Checkpoint>,
+) -> anyhow::Result<(sim_core::State, sim_core::Inputs, Vec<u16>, Vec<bridge::shard::GhostBatch>)> {
+    let (mut state, inputs, snapshot, early) = match resume {
+        Some(c) => (c.state, c.inputs, c.shard, c.early),
+        None => (world.initial_state(), world.initial_inputs(), None, Vec::new()),
+    };
+    let Some(o) = &bus.shard else { return Ok((state, inputs, Vec::new(), early)) };
+    let partition = Partition::new(world, o.shards).map_err(|e| BadInput(e.into()))?;
+    let neighbours = partition.neighbours(o.shard as u16);
+    match snapshot {
+        Some(snap) => state.restore_shard(partition, snap),
+        None => state.make_shard(partition, o.shard),
+    }
+    .map_err(|e| BadInput(e.into()))?;
+    if !neighbours.is_empty() && bus.connect.is_empty() && bus.listen.is_empty() && bus.zenoh_config.is_none() {
+        return Err(BadInput(anyhow::anyhow!(
+            "--shard {}/{}: a shard with neighbours needs --connect (a Zenoh router) or --listen",
+            o.shard,
+            o.shards
+        ))
+        .into());
+    }
+    Ok((state, inputs, neighbours, early))
+}
+
+/// Flies `world` for `pace.ticks` control steps (the rest of them, from a checkpoint),
+/// recording into `recorder`, with `watch` following every step.
+#[allow(clippy::too_many_arguments)]
 pub fn run<W: StepObserver + Send>(
     rt: &tokio::runtime::Runtime,
     world: World,
     pace: &Pace,
     bus: &BusOptions,
+    durability: Durability,
     recorder: Recorder,
     watch: W,
     stop: Arc<AtomicBool>,
 ) -> anyhow::Result<RunOutcome<W>> {
-    let mut state = world.initial_state();
-    let inputs = world.initial_inputs();
+    let (state, inputs, neighbours, early) = start_state(&world, bus, durability.resume)?;
     let mut opts = LoopOptions {
         realtime: pace.realtime,
-        ticks: pace.ticks,
+        ticks: pace.ticks.saturating_sub(state.tick),
         failsafe: bus.failsafe.clone(),
         lockstep: pace.lockstep.clone(),
+        checkpoint: durability.checkpoint,
         ..Default::default()
     };
     // Room for 8,192 inputs between two steps: 160,000 per second at 50 ms, five times the
     // flood test's 30,000 (scripts/flood.sh); beyond, inputs are dropped and counted.
     let (req_tx, req_rx) = std::sync::mpsc::sync_channel::<Request>(REQUEST_QUEUE);
     let prefix = bus.prefix.clone().unwrap_or_else(|| node::default_prefix(&world));
-    let neighbours = match &bus.shard {
-        None => Vec::new(),
-        Some(o) => {
-            let partition = Partition::new(&world, o.shards).map_err(|e| BadInput(e.into()))?;
-            let neighbours = partition.neighbours(o.shard as u16);
-            state.make_shard(partition, o.shard).map_err(|e| BadInput(e.into()))?;
-            if !neighbours.is_empty() && bus.connect.is_empty() && bus.listen.is_empty() && bus.zenoh_config.is_none() {
-                return Err(BadInput(anyhow::anyhow!(
-                    "--shard {}/{}: a shard with neighbours needs --connect (a Zenoh router) or --listen",
-                    o.shard,
-                    o.shards
-                ))
-                .into());
-            }
-            neighbours
-        }
-    };
+    let early = Mutex::new(Some(early));
     // The shard's link to its neighbours, on `session`; it waits until they are all up.
     let open_link = |session: zenoh::Session| -> anyhow::Result<Arc<Mutex<ShardLink>>> {
         let o = bus.shard.as_ref().expect("only for shards");
         let mut link =
             ShardLink::on(session, &prefix, o.shard as u16, neighbours.clone(), o.timeout)?.on_lost(o.on_lost);
+        link.preload(bridge::lock(&early).take().unwrap_or_default(), state.tick);
         link.wait_for_neighbours()?;
         tracing::info!("shard {}/{}: {} neighbour(s) up, stepping", o.shard, o.shards, neighbours.len());
         eprintln!("shard {}/{}: {} neighbour(s) up, stepping", o.shard, o.shards, neighbours.len());

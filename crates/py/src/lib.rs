@@ -130,7 +130,7 @@ impl Sim {
                     let e = flight.recorder.error().map(|(t, e)| format!("at control step {t}: {e}"));
                     return Err(format!("logging failed {}", e.unwrap_or_default()));
                 }
-                Err(Halt::Shard(e)) => return Err(e),
+                Err(Halt::Shard(e) | Halt::Checkpoint(e)) => return Err(e),
             }
         }
         Ok(())

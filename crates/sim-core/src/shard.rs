@@ -269,6 +269,21 @@ pub struct ShardView {
     pub(crate) related: Vec<bool>,
 }
 
+/// What a snapshot keeps of a [`ShardView`] (it is not part of a serialised [`State`]): the
+/// roles after the last step and the sleep flags of the last ghosts. The partition is not
+/// kept: it follows from the scene and the shard count.
+#[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub struct ShardSnapshot {
+    /// This shard.
+    pub me: ShardId,
+    /// The shard count.
+    pub shards: u16,
+    /// Every copter's role.
+    pub roles: Vec<Role>,
+    /// Whether Rapier had each ghost asleep at its owner.
+    pub asleep: Vec<bool>,
+}
+
 impl State {
     /// Makes this state one shard of a sharded run: it owns the copters whose start lies in
     /// its region; every other copter is a ghost for the first step (all shards know the
@@ -287,6 +302,29 @@ impl State {
         let n = self.copters.len();
         self.shard =
             Some(ShardView { me, partition, roles, asleep: vec![false; n], parent: Vec::new(), related: Vec::new() });
+        Ok(())
+    }
+
+    /// The shard view as a snapshot keeps it (`None` outside a sharded run).
+    pub fn shard_snapshot(&self) -> Option<ShardSnapshot> {
+        let v = self.shard.as_ref()?;
+        let shards = v.partition.shards() as u16;
+        Some(ShardSnapshot { me: v.me, shards, roles: v.roles.clone(), asleep: v.asleep.clone() })
+    }
+
+    /// Makes a restored state the shard it was: `partition` must be the split it was made
+    /// with (same scene, same count), and the snapshot of this state's copters.
+    pub fn restore_shard(&mut self, partition: Partition, snap: ShardSnapshot) -> Result<(), ShardError> {
+        let shards = partition.shards();
+        if usize::from(snap.shards) != shards || usize::from(snap.me) >= shards {
+            return Err(ShardError::Id { shard: usize::from(snap.me), shards });
+        }
+        let n = self.copters.len();
+        if snap.roles.len() != n || snap.asleep.len() != n {
+            return Err(ShardError::Unknown { copter: snap.roles.len().max(snap.asleep.len()), copters: n });
+        }
+        let ShardSnapshot { me, roles, asleep, .. } = snap;
+        self.shard = Some(ShardView { me, partition, roles, asleep, parent: Vec::new(), related: Vec::new() });
         Ok(())
     }
 

@@ -119,6 +119,9 @@ pub enum EventKind {
     BusReport,
     /// Lockstep: a controller did not answer a tick in time; its copter kept its last command.
     LockstepTimeout,
+    /// The run went on from a checkpoint (a restart after a lost process): this log begins
+    /// with the step after it.
+    Resumed,
 }
 
 impl EventKind {
@@ -126,7 +129,9 @@ impl EventKind {
     fn level(self) -> fg::log::Level {
         use fg::log::Level;
         match self {
-            EventKind::TookOff | EventKind::Spawned | EventKind::Paired | EventKind::BusReport => Level::Info,
+            EventKind::TookOff | EventKind::Spawned | EventKind::Paired | EventKind::BusReport | EventKind::Resumed => {
+                Level::Info
+            }
             EventKind::InputRejected
             | EventKind::StepOverrun
             | EventKind::Interrupted
@@ -147,6 +152,7 @@ impl EventKind {
             EventKind::InputRejected => "input_rejected",
             EventKind::StepOverrun => "step_overrun",
             EventKind::Interrupted => "interrupted",
+            EventKind::Resumed => "resumed",
             EventKind::Failsafe => "failsafe",
             EventKind::FrameDropped => "frame_dropped",
             EventKind::BusReport => "bus_report",

@@ -158,6 +158,8 @@ enum Job {
     /// Bus messages of one step, in arrival order.
     Bus(Vec<BusJob>),
     Flush,
+    /// Flush, `fsync`, and say so: everything logged before is on disk.
+    Sync(std::sync::mpsc::SyncSender<std::io::Result<()>>),
 }
 
 /// One bus message to log.
@@ -176,7 +178,7 @@ struct BusJob {
 const BUS_BATCH: usize = 1024;
 
 /// The file's MCAP writer: the `mcap` crate's, its errors as I/O errors.
-pub(super) struct McapOut(mcap::Writer<BufWriter<File>>);
+pub(super) struct McapOut(mcap::Writer<BufWriter<File>>, File);
 
 fn io_error(e: mcap::McapError) -> std::io::Error {
     match e {
@@ -189,6 +191,7 @@ impl McapOut {
     /// zstd chunks at one `zstd_level`, finished at `chunk_size` bytes or at each flush; every
     /// CRC; the compression on the writer thread itself (no zstd worker threads).
     fn create(file: File, zstd_level: u32, chunk_size: usize) -> std::io::Result<Self> {
+        let sync_handle = file.try_clone()?;
         let w = mcap::WriteOptions::new()
             .compression(Some(mcap::Compression::Zstd))
             .compression_level(zstd_level)
@@ -201,7 +204,7 @@ impl McapOut {
             .library(format!("twinswarm {}", env!("CARGO_PKG_VERSION")))
             .create(BufWriter::with_capacity(1 << 16, file))
             .map_err(io_error)?;
-        Ok(Self(w))
+        Ok(Self(w, sync_handle))
     }
 
     pub(super) fn add_schema(&mut self, name: &str, encoding: &str, data: &[u8]) -> std::io::Result<u16> {
@@ -233,6 +236,12 @@ impl McapOut {
     /// Finishes the open chunk and flushes the file: what was written is readable.
     fn flush(&mut self) -> std::io::Result<()> {
         self.0.flush().map_err(io_error)
+    }
+
+    /// [`McapOut::flush`], then `fsync`: what was written survives the machine.
+    fn sync(&mut self) -> std::io::Result<()> {
+        self.flush()?;
+        self.1.sync_data()
     }
 
     /// The summary section and the footer.
@@ -444,6 +453,15 @@ impl Logger {
                             state.stats.pprz_messages = state.pprz.written;
                         }
                         Job::Flush => state.flush().map_err(werr)?,
+                        Job::Sync(done) => {
+                            let r = state.out.as_mut().map_or(Ok(()), McapOut::sync);
+                            let failed = r.as_ref().err().map(|e| std::io::Error::new(e.kind(), e.to_string()));
+                            // The caller may be gone (its run ended); the error is returned below too.
+                            let _ = done.send(r);
+                            if let Some(e) = failed {
+                                return Err(werr(e));
+                            }
+                        }
                     }
                 }
                 if let Some(out) = &mut state.out {
@@ -591,6 +609,25 @@ impl Logger {
     /// Finishes the current chunk and flushes the file now.
     pub fn flush(&mut self) -> Result<(), LogError> {
         self.send(Job::Flush)
+    }
+
+    /// Writes everything logged so far to the file and `fsync`s it, and waits for that: a
+    /// checkpoint taken after this has its log on disk up to the same step.
+    pub fn sync(&mut self) -> Result<(), LogError> {
+        if !self.has_file {
+            return Ok(());
+        }
+        let (done, wait) = std::sync::mpsc::sync_channel(1);
+        self.send(Job::Sync(done))?;
+        match wait.recv() {
+            Ok(Ok(())) => Ok(()),
+            Ok(Err(source)) => Err(LogError::Write { path: self.path.clone(), source }),
+            // The writer stopped before it got there: its error says why.
+            Err(_) => {
+                self.jobs = None;
+                Err(self.join().err().unwrap_or(LogError::WriterGone { path: self.path.clone() }))
+            }
+        }
     }
 
     /// Hands the bus messages waiting for a batch to the writer.
