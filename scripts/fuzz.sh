@@ -32,11 +32,13 @@ fi
 rt_obj=/usr/lib/afl/afl-compiler-rt.o
 [ -f "$rt_obj" ] || { echo "error: $rt_obj missing (afl++ from Debian expected)" >&2; exit 1; }
 
-work=target/afl
+work="${FUZZ_WORK:-target/afl}"
 mkdir -p "$work/rt"
 ar rcs "$work/rt/libafl-llvm-rt.a" "$rt_obj"
 
-echo "==> building the instrumented harness (release, sancov, $work)"
+# The code fuzzed: the commit checked out when the harness is built.
+commit="$(git rev-parse --short HEAD)$(git diff --quiet HEAD -- crates scripts Cargo.lock || echo -dirty)"
+echo "==> building the instrumented harness (release, sancov, $work) at $commit"
 RUSTFLAGS="--cfg fuzzing -C debug-assertions -C overflow-checks \
   -C passes=sancov-module -C llvm-args=-sanitizer-coverage-level=3 \
   -C llvm-args=-sanitizer-coverage-trace-pc-guard -C llvm-args=-sanitizer-coverage-prune-blocks=0 \
@@ -60,7 +62,6 @@ seeds_of() {
 
 # The record: one row per campaign, appended to crates/fuzz/RESULTS.md.
 results=crates/fuzz/RESULTS.md
-commit="$(git rev-parse --short HEAD)$(git diff --quiet HEAD -- crates scripts Cargo.lock || echo -dirty)"
 record() {
   printf '| %s | %s | %s | %s | %s | %s | %s | %s | %s |\n' "$1" "$2" "$3" "$(( $2 / ($3 > 0 ? $3 : 1) ))" \
     "$4" "$5" "$6" "$commit" "$(date -u +%Y-%m-%d)" >> "$results"

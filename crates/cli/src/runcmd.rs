@@ -24,10 +24,23 @@ use crate::{report, shardcmd};
 #[derive(Debug, clap::Args)]
 pub(crate) struct RunArgs {
     /// Step only shard K of N of the swarm (a region of the arena), trading ghosts with the
-    /// other shards over Zenoh (`--connect` to their router). Logging, the client bus and the
-    /// live view are not sharded yet: a shard runs without them.
+    /// other shards over Zenoh (`--connect` to their router). Each shard logs its own copters
+    /// (`log merge` joins the shards' logs) and publishes them on the client bus.
     #[arg(long, value_name = "K/N", value_parser = shardcmd::parse_shard)]
     shard: Option<(usize, usize)>,
+    /// Also be the ROS 2 node `/twinswarm` on the Zenoh session, as rmw_zenoh (Jazzy) sees
+    /// nodes: per copter `/<c>/pose`, `odom`, `imu`, `sonar/<side>`, `ir`, `battery`, and
+    /// `/clock`, `/tf`, `/tf_static`, `/arena`; it takes `/<c>/cmd_vel` and `/<c>/goal_pose`
+    /// (docs/ros2.md).
+    #[arg(long)]
+    ros2: bool,
+    /// With `--ros2`: the ROS domain (`ROS_DOMAIN_ID`).
+    #[arg(long, value_name = "N", default_value_t = 0, requires = "ros2")]
+    ros_domain: u32,
+    /// With `--ros2`: send pose, odometry, IMU and tf at most HZ times per simulated second
+    /// (default: every control step).
+    #[arg(long, value_name = "HZ", requires = "ros2")]
+    ros2_rate: Option<f64>,
     /// With `--shard`: stop with an error when a neighbouring shard stays silent this long, s.
     #[arg(long, value_name = "S", default_value_t = 30.0)]
     barrier_timeout: f64,
@@ -284,7 +297,29 @@ fn bus_options(args: &RunArgs, mixed: runner::MixedOptions) -> anyhow::Result<ru
             Some(bridge::paparazzi::ivy::BusAddr::from_env_or(explicit).map_err(|e| BadInput(e.into()))?)
         }
     };
+    if args.ros2 && args.no_bus {
+        return Err(BadInput(anyhow::anyhow!(
+            "--ros2 needs the Zenoh bus: ROS 2 nodes reach it over Zenoh (drop --no-bus)"
+        ))
+        .into());
+    }
+    if let Some(hz) = args.ros2_rate
+        && !(hz.is_finite() && hz > 0.0)
+    {
+        return Err(BadInput(anyhow::anyhow!(
+            "--ros2-rate must be a positive number of messages per second, got {hz}"
+        ))
+        .into());
+    }
+    if args.ros_domain > 232 {
+        return Err(BadInput(anyhow::anyhow!(
+            "--ros-domain must be 0 to 232 (ROS 2's domain ids), got {}",
+            args.ros_domain
+        ))
+        .into());
+    }
     Ok(runner::BusOptions {
+        ros2: args.ros2.then(|| bridge::ros2::Ros2Options { domain: args.ros_domain, max_rate_hz: args.ros2_rate }),
         ivy,
         no_bus: args.no_bus,
         zenoh_config: args.zenoh_config.clone(),
@@ -549,6 +584,15 @@ fn print_bus(bus: Option<&runner::BusReport>, stats: &bridge::sim::LoopStats) {
         }
         _ => outln!("  bus: zenoh off (--no-bus)"),
     }
+    if let Some(r) = bus.and_then(|b| b.ros2.as_ref()) {
+        outln!(
+            "  ros 2: node /twinswarm on domain {}, {} publishers, {} subscriptions; {} messages sent to subscribers",
+            r.domain,
+            r.publishers,
+            r.subscriptions,
+            r.sent
+        );
+    }
     if let Some(i) = bus.and_then(|b| b.ivy.as_ref()) {
         outln!(
             "  ivy: {} as {}; {} peers joined, {} left, at the end: {}; {} texts sent ({} msgs to peers), {} received, {} delivered",
@@ -800,7 +844,7 @@ fn check_checkpointable(args: &RunArgs, spec: &SceneSpec) -> anyhow::Result<()> 
 
 /// What a shard cannot do yet.
 fn check_shardable(args: &RunArgs, spec: &SceneSpec) -> anyhow::Result<()> {
-    let unsharded = [(args.ivy.is_some(), "--ivy"), (args.pairing.is_some(), "--pairing")];
+    let unsharded = [(args.ivy.is_some(), "--ivy"), (args.pairing.is_some(), "--pairing"), (args.ros2, "--ros2")];
     if let Some((_, flag)) = unsharded.iter().find(|(on, _)| *on) {
         return Err(BadInput(anyhow::anyhow!("--shard: {flag} is not available for a shard yet")).into());
     }

@@ -45,6 +45,8 @@ pub struct BusOptions {
     pub failsafe: FailsafeOptions,
     /// Step only one shard of the swarm (see `sim_core::shard`).
     pub shard: Option<ShardOptions>,
+    /// Also be a ROS 2 node on the Zenoh session (see `bridge::ros2`).
+    pub ros2: Option<bridge::ros2::Ros2Options>,
 }
 
 /// `--shard K/N` and its barrier timeout.
@@ -117,6 +119,8 @@ pub struct BusReport {
     /// Paparazzi texts on Zenoh (`None` without Zenoh).
     pub zenoh_texts: Option<ZenohTexts>,
     pub ivy: Option<IvyReport>,
+    /// The ROS 2 node's figures (`None` without `--ros2`).
+    pub ros2: Option<bridge::ros2::Ros2Stats>,
 }
 
 /// Paparazzi texts on Zenoh: samples received, handler calls, texts on a subscribed key that no
@@ -311,6 +315,13 @@ pub fn run<W: StepObserver + Send>(
             )
         }
     };
+    let mut ros = match (&bus.ros2, &node) {
+        (Some(o), Some(n)) => Some(
+            bridge::ros2::Ros2Node::open(n.session(), &world_arc, n.commands(), o.clone())
+                .context("cannot start the ROS 2 node")?,
+        ),
+        _ => None,
+    };
     if !neighbours.is_empty() {
         let session = match &node {
             Some(n) => n.session().clone(),
@@ -357,12 +368,18 @@ pub fn run<W: StepObserver + Send>(
             while let Some(frame) = frame_rx.recv().await {
                 gateway.set_world(&frame.world);
                 gateway.send_ivy(&frame.pprz_out);
-                if let Some(node) = &mut node
-                    && let Err(e) = node.publish(&frame).await
-                {
-                    let n = node.counters.publish_failed.fetch_add(1, Ordering::Relaxed) + 1;
-                    if n.is_power_of_two() {
-                        tracing::warn!("{n} frames not fully published so far: {e}");
+                if let Some(node) = &mut node {
+                    let mut published = node.publish(&frame).await;
+                    if let Some(ros) = &mut ros
+                        && published.is_ok()
+                    {
+                        published = ros.publish(&frame);
+                    }
+                    if let Err(e) = published {
+                        let n = node.counters.publish_failed.fetch_add(1, Ordering::Relaxed) + 1;
+                        if n.is_power_of_two() {
+                            tracing::warn!("{n} frames not fully published so far: {e}");
+                        }
                     }
                 }
             }
@@ -395,7 +412,9 @@ pub fn run<W: StepObserver + Send>(
             }
         }),
         ivy: ivy.as_ref().zip(bus.ivy.as_ref()).map(|(a, addr)| IvyReport::of(a, &addr.to_string(), &gateway)),
+        ros2: ros.as_ref().map(|r| r.stats()),
     };
+    drop(ros);
     drop(gateway);
     if let Some(agent) = ivy {
         rt.block_on(agent.stop());

@@ -28,6 +28,7 @@ pub mod airframe;
 pub mod battery;
 pub mod control;
 pub mod estimate;
+pub mod finite;
 pub mod geometry;
 pub mod math;
 pub mod mixed;

@@ -104,6 +104,17 @@ pub enum ShardError {
         /// The tick of the exchange.
         tick: u64,
     },
+    /// A ghost whose state no copter can have (a number not finite, a pose or speed out of
+    /// reach): a defective or hostile neighbour.
+    #[error("the ghost of copter {copter} at tick {tick} is not a copter's state: {what}")]
+    BadGhost {
+        /// Copter id.
+        copter: usize,
+        /// The tick of the exchange.
+        tick: u64,
+        /// What is wrong.
+        what: String,
+    },
     /// A ghost with an id the scene does not have.
     #[error("a ghost names copter {copter}, but the scene has {copters} copters")]
     Unknown {
@@ -379,6 +390,9 @@ impl State {
             if id >= n {
                 return Err(ShardError::Unknown { copter: id, copters: n });
             }
+            if let Some(what) = ghost_defect(&g) {
+                return Err(ShardError::BadGhost { copter: id, tick, what });
+            }
             if view.roles[id] == Role::Owned {
                 return Err(ShardError::Duplicate { copter: id, tick });
             }
@@ -406,6 +420,47 @@ impl State {
     /// This shard's id and split, if it is one.
     pub fn shard(&self) -> Option<&ShardView> {
         self.shard.as_ref()
+    }
+}
+
+/// Farther from the origin than this, m, no copter of any arena is.
+const MAX_GHOST_DISTANCE_M: Real = 1.0e4;
+/// Faster than this, m/s, no copter flies.
+const MAX_GHOST_SPEED_M_S: Real = 1.0e3;
+/// Faster than this, rad/s, no copter spins.
+const MAX_GHOST_SPIN_RAD_S: Real = 1.0e4;
+
+/// What is wrong with a ghost's state, if anything: every number must be finite, the pose
+/// within reach, the rotation a unit quaternion, the speeds a copter's (the physics' contact
+/// search fails on anything else).
+fn ghost_defect(g: &Ghost) -> Option<String> {
+    let (motion, thrust) = match &g.state {
+        GhostState::Full(c) => {
+            if let Some(path) = crate::finite::first_non_finite(c.as_ref()) {
+                return Some(format!("{path} is not finite"));
+            }
+            (&c.motion, c.rotor_thrust_n)
+        }
+        GhostState::Seen(s) => {
+            if let Some(path) = crate::finite::first_non_finite(s) {
+                return Some(format!("{path} is not finite"));
+            }
+            (&s.motion, s.rotor_thrust_n)
+        }
+    };
+    let norm = motion.rot.length();
+    if motion.pos_m.length() > MAX_GHOST_DISTANCE_M {
+        Some(format!("position {:?} is over {MAX_GHOST_DISTANCE_M} m away", motion.pos_m))
+    } else if (norm - 1.0).abs() > 1e-3 {
+        Some(format!("rotation {:?} is not a unit quaternion (norm {norm})", motion.rot))
+    } else if motion.vel_m_s.length() > MAX_GHOST_SPEED_M_S {
+        Some(format!("velocity {:?} is over {MAX_GHOST_SPEED_M_S} m/s", motion.vel_m_s))
+    } else if motion.angvel_rad_s.length() > MAX_GHOST_SPIN_RAD_S {
+        Some(format!("angular velocity {:?} is over {MAX_GHOST_SPIN_RAD_S} rad/s", motion.angvel_rad_s))
+    } else if thrust.iter().any(|t| !(0.0..=1.0e3).contains(t)) {
+        Some(format!("rotor thrusts {thrust:?} are outside 0 to 1000 N"))
+    } else {
+        None
     }
 }
 
