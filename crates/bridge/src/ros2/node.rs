@@ -141,10 +141,11 @@ fn gid_of(key: &str) -> [u8; 16] {
 }
 
 enum Sender {
+    /// (Fields drop in order: the listener before its publisher.)
     Plain {
+        _listener: zenoh::matching::MatchingListener<()>,
         publisher: zenoh::pubsub::Publisher<'static>,
         matched: Arc<AtomicBool>,
-        _listener: zenoh::matching::MatchingListener<()>,
     },
     Latched(AdvancedPublisher<'static>),
 }
