@@ -37,7 +37,9 @@ mkdir -p "$work/rt"
 ar rcs "$work/rt/libafl-llvm-rt.a" "$rt_obj"
 
 # The code fuzzed: the commit checked out when the harness is built.
-commit="$(git rev-parse --short HEAD)$(git diff --quiet HEAD -- crates scripts Cargo.lock || echo -dirty)"
+# (What this script writes itself, the record, corpora and regressions, does not count as a change.)
+commit="$(git rev-parse --short HEAD)$(git diff --quiet HEAD -- crates scripts Cargo.lock ':!crates/fuzz/RESULTS.md' \
+  ':!crates/fuzz/corpus' ':!crates/fuzz/regressions' || echo -dirty)"
 echo "==> building the instrumented harness (release, sancov, $work) at $commit"
 RUSTFLAGS="--cfg fuzzing -C debug-assertions -C overflow-checks \
   -C passes=sancov-module -C llvm-args=-sanitizer-coverage-level=3 \
