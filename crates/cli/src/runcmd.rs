@@ -319,7 +319,7 @@ fn bus_options(args: &RunArgs, mixed: runner::MixedOptions) -> anyhow::Result<ru
         .into());
     }
     Ok(runner::BusOptions {
-        ros2: args.ros2.then(|| bridge::ros2::Ros2Options { domain: args.ros_domain, max_rate_hz: args.ros2_rate }),
+        ros2: args.ros2.then_some(bridge::ros2::Ros2Options { domain: args.ros_domain, max_rate_hz: args.ros2_rate }),
         ivy,
         no_bus: args.no_bus,
         zenoh_config: args.zenoh_config.clone(),

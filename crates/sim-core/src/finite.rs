@@ -51,7 +51,7 @@ macro_rules! fine {
     };
 }
 
-impl<'a> ser::Serializer for &'a mut Check {
+impl ser::Serializer for &mut Check {
     type Ok = ();
     type Error = NonFinite;
     type SerializeSeq = Self;

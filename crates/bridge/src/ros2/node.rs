@@ -222,6 +222,10 @@ const SIDES: [&str; 4] = ["front", "right", "back", "left"];
 struct CopterTopics {
     /// Its ROS name.
     name: String,
+    /// Its frames: the body, the sonars, the IR sensor.
+    base_frame: String,
+    sonar_frames: [String; 4],
+    ir_frame: String,
     pose: RosPub,
     odom: RosPub,
     imu: RosPub,
@@ -233,6 +237,10 @@ struct CopterTopics {
     _subs: [zenoh::pubsub::Subscriber<()>; 2],
     _sub_tokens: [zenoh::liveliness::LivelinessToken; 2],
 }
+
+/// A command topic's message (CDR) as a command, given the copter's height and yaw; with the
+/// message as text, for the log.
+type Convert = fn(&[u8], (f32, f32)) -> Result<(CommandMsg, String), String>;
 
 /// What the command callbacks need of a copter's latest state: height and yaw.
 type Latest = Arc<Mutex<Vec<(f32, f32)>>>;
@@ -349,6 +357,9 @@ impl Ros2Node {
             battery_at_s: None,
             _subs: [cmd_vel.0, goal.0],
             _sub_tokens: [cmd_vel.1, goal.1],
+            base_frame: format!("{name}/base_link"),
+            sonar_frames: SIDES.map(|side| format!("{name}/sonar_{side}")),
+            ir_frame: format!("{name}/ir"),
             name,
         })
     }
@@ -361,7 +372,7 @@ impl Ros2Node {
         copter: &str,
         topic: &str,
         ty: &str,
-        convert: fn(&[u8], (f32, f32)) -> Result<(CommandMsg, String), String>,
+        convert: Convert,
     ) -> Result<(zenoh::pubsub::Subscriber<()>, zenoh::liveliness::LivelinessToken), NodeError> {
         let (commands, latest, copter) = (self.commands.clone(), self.latest.clone(), copter.to_owned());
         let sub = self
@@ -423,10 +434,10 @@ impl Ros2Node {
                 sent += self.copters[i as usize].send_state(stamp, s)?;
             }
             if self.tf.wanted() {
-                let children: Vec<(String, Pose)> = (frame.ids.iter().zip(&frame.states))
-                    .map(|(&i, s)| (format!("{}/base_link", self.copters[i as usize].name), pose_of(s)))
-                    .collect();
-                self.tf.put(msgs::tf(stamp, "world", children.iter().map(|(c, p)| (c.as_str(), *p))))?;
+                let copters = &self.copters;
+                let children = (frame.ids.iter().zip(&frame.states))
+                    .map(|(&i, s)| (copters[i as usize].base_frame.as_str(), pose_of(s)));
+                self.tf.put(msgs::tf(stamp, "world", children))?;
                 sent += 1;
             }
         }
@@ -446,13 +457,13 @@ impl Ros2Node {
 impl CopterTopics {
     fn send_state(&mut self, stamp: Stamp, s: &StateMsg) -> Result<u64, NodeError> {
         let pose = pose_of(s);
-        let frame = format!("{}/base_link", self.name);
+        let frame = &self.base_frame;
         let mut sent = u64::from(self.pose.send(|| msgs::pose_stamped(stamp, "world", &pose))?);
         sent += u64::from(self.odom.send(|| {
             let r = rotation(s.quat_xyzw);
             let lin = r.transpose() * nalgebra::Vector3::from(s.vel_m_s.map(f64::from));
             let ang = r.transpose() * nalgebra::Vector3::from(s.angvel_rad_s.map(f64::from));
-            msgs::odometry(stamp, "world", &frame, &pose, lin.into(), ang.into())
+            msgs::odometry(stamp, "world", frame, &pose, lin.into(), ang.into())
         })?);
         Ok(sent)
     }
@@ -466,7 +477,7 @@ impl CopterTopics {
         due: bool,
     ) -> Result<u64, NodeError> {
         let spec = &world.sensors.spec;
-        let base = format!("{}/base_link", self.name);
+        let base = &self.base_frame;
         let mut sent = 0;
         if due {
             let var = |sigma: f32| f64::from(sigma).powi(2);
@@ -477,7 +488,7 @@ impl CopterTopics {
             ];
             let q = quat_of_rpy(s.attitude_rad);
             let (gyro, accel) = (s.rate_body_rad_s.map(f64::from), s.accel_body_m_s2.map(f64::from));
-            sent += u64::from(self.imu.send(|| msgs::imu(stamp, &base, q, gyro, accel, variances))?);
+            sent += u64::from(self.imu.send(|| msgs::imu(stamp, base, q, gyro, accel, variances))?);
         }
         let sonar = RangeSensor {
             radiation_type: 0,
@@ -489,8 +500,8 @@ impl CopterTopics {
         let sonar_var = spec.sonar.noise_sigma_m.powi(2);
         for k in (0..4).filter(|&k| fresh[k]) {
             let r = if readings[k] >= sonar.max_range { f32::INFINITY } else { readings[k] };
-            let frame = format!("{}/sonar_{}", self.name, SIDES[k]);
-            sent += u64::from(self.sonar[k].send(|| msgs::range(stamp, &frame, &sonar, r, sonar_var))?);
+            let frame = &self.sonar_frames[k];
+            sent += u64::from(self.sonar[k].send(|| msgs::range(stamp, frame, &sonar, r, sonar_var))?);
         }
         let ir = RangeSensor {
             radiation_type: 1,
@@ -498,13 +509,13 @@ impl CopterTopics {
             min_range: spec.ir.min_range_m,
             max_range: spec.ir.max_range_m,
         };
-        let frame = format!("{}/ir", self.name);
+        let frame = &self.ir_frame;
         let ir_var = spec.ir.noise_sigma_m.powi(2);
-        sent += u64::from(self.ir.send(|| msgs::range(stamp, &frame, &ir, s.ir_m.unwrap_or(f32::INFINITY), ir_var))?);
+        sent += u64::from(self.ir.send(|| msgs::range(stamp, frame, &ir, s.ir_m.unwrap_or(f32::INFINITY), ir_var))?);
         let t = f64::from(stamp.sec) + f64::from(stamp.nanosec) * 1e-9;
         if self.battery_at_s.is_none_or(|at| t >= at + 1.0) {
             self.battery_at_s = Some(t);
-            sent += u64::from(self.battery.send(|| msgs::battery(stamp, &base, s.battery_v, s.battery_charge))?);
+            sent += u64::from(self.battery.send(|| msgs::battery(stamp, base, s.battery_v, s.battery_charge))?);
         }
         Ok(sent)
     }
@@ -585,8 +596,7 @@ fn static_transforms(world: &World, copters: &[CopterTopics]) -> Vec<(String, Po
         let down = nalgebra::UnitQuaternion::from_euler_angles(0.0, std::f64::consts::FRAC_PI_2, 0.0);
         out.push((format!("{}/ir", c.name), Pose { pos: [0.0; 3], quat: [down.i, down.j, down.k, down.w] }));
     }
-    // tf_static's transforms are relative to their parent: the body.
-    out.into_iter().map(|(child, pose)| (child, pose)).collect()
+    out
 }
 
 /// The arena as cubes: floor, walls (if any), boxes.
