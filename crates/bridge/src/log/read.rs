@@ -386,6 +386,10 @@ impl LogFile {
         }
         let mut metadata = BTreeMap::new();
         for idx in &s.metadata_indexes {
+            // The crate adds offset and length unchecked (an overflow): check them first.
+            if idx.offset.checked_add(idx.length).is_none_or(|end| end > self.data.len() as u64) {
+                return Err(corrupt(McapError::BadIndex));
+            }
             let m = mcap::read::metadata(&self.data, idx).map_err(corrupt)?;
             metadata.insert(m.name, m.metadata);
         }
@@ -417,7 +421,9 @@ impl LogFile {
                     let len = usize::try_from(u64::from_le_bytes(h[1..9].try_into().ok()?)).ok()?;
                     (h[0] == 0x09).then(|| self.data.get(at + 9..(at + 9).checked_add(len)?)).flatten()
                 });
-                if !body.is_some_and(attachment_fits) {
+                // The crate adds offset and length unchecked too.
+                let in_file = idx.offset.checked_add(idx.length).is_some_and(|end| end <= self.data.len() as u64);
+                if !in_file || !body.is_some_and(attachment_fits) {
                     return Err(LogReadError::Damaged {
                         path: self.path.clone(),
                         offset: idx.offset,
