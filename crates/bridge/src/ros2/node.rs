@@ -98,12 +98,19 @@ pub fn attachment_gid(a: &[u8]) -> Option<[u8; 16]> {
     }
 }
 
-/// The liveliness keys of the node's entities.
+/// The liveliness keys of the node's entities, and their tokens.
 struct Graph {
     session: zenoh::Session,
     domain: u32,
     zid: String,
     next_id: u32,
+    /// Tokens declared so far (they undeclare when dropped).
+    tokens: Arc<Mutex<Vec<zenoh::liveliness::LivelinessToken>>>,
+    /// Keys waiting for [`Graph::declare_pending`].
+    pending: Vec<String>,
+    /// Threads declaring pending tokens, and their stop flag.
+    declarers: Vec<std::thread::JoinHandle<()>>,
+    stop: Arc<AtomicBool>,
 }
 
 impl Graph {
@@ -125,8 +132,48 @@ impl Graph {
         )
     }
 
-    fn token(&self, key: &str) -> Result<zenoh::liveliness::LivelinessToken, NodeError> {
-        self.session.liveliness().declare_token(key.to_owned()).wait().map_err(zerr)
+    /// Declares a token now.
+    fn token(&self, key: &str) -> Result<(), NodeError> {
+        let t = self.session.liveliness().declare_token(key.to_owned()).wait().map_err(zerr)?;
+        crate::lock(&self.tokens).push(t);
+        Ok(())
+    }
+
+    /// Queues a token for [`Graph::declare_pending`].
+    fn token_later(&mut self, key: &str) {
+        self.pending.push(key.to_owned());
+    }
+
+    /// Declares the queued tokens on a thread of their own: Zenoh's routing matches each new
+    /// key against every resource it knows, so declaring 11 tokens per copter costs time
+    /// quadratic in the swarm (tens of seconds of a core at 1,000 copters), which the run
+    /// need not wait for. The topics appear in the graph as they are declared.
+    fn declare_pending(&mut self) {
+        let keys = std::mem::take(&mut self.pending);
+        if keys.is_empty() {
+            return;
+        }
+        let (session, tokens, stop) = (self.session.clone(), self.tokens.clone(), self.stop.clone());
+        self.declarers.push(std::thread::spawn(move || {
+            for key in keys {
+                if stop.load(Ordering::Relaxed) {
+                    return;
+                }
+                match session.liveliness().declare_token(key.clone()).wait() {
+                    Ok(t) => crate::lock(&tokens).push(t),
+                    Err(e) => tracing::warn!("ROS 2 graph: cannot declare {key}: {e}"),
+                }
+            }
+        }));
+    }
+}
+
+impl Drop for Graph {
+    fn drop(&mut self) {
+        self.stop.store(true, Ordering::Relaxed);
+        for d in self.declarers.drain(..) {
+            let _ = d.join();
+        }
     }
 }
 
@@ -150,10 +197,10 @@ enum Sender {
     Latched(AdvancedPublisher<'static>),
 }
 
-/// One ROS publisher: its Zenoh publisher, token, GID and sequence number.
+/// One ROS publisher: its Zenoh publisher, GID and sequence number (its token is the
+/// graph's).
 struct RosPub {
     sender: Sender,
-    _token: zenoh::liveliness::LivelinessToken,
     gid: [u8; 16],
     seq: i64,
 }
@@ -186,7 +233,8 @@ impl RosPub {
             Sender::Plain { publisher: p, matched, _listener: listener }
         };
         let token_key = graph.entity_key("MP", topic, ty, qos);
-        Ok(Self { sender, _token: graph.token(&token_key)?, gid: gid_of(&token_key), seq: 0 })
+        graph.token_later(&token_key);
+        Ok(Self { sender, gid: gid_of(&token_key), seq: 0 })
     }
 
     /// Whether anyone subscribes (a latched topic: always, for those who come later).
@@ -234,16 +282,15 @@ struct CopterTopics {
     battery: RosPub,
     /// Simulated time of its last battery message, s.
     battery_at_s: Option<f64>,
-    _subs: [zenoh::pubsub::Subscriber<()>; 2],
-    _sub_tokens: [zenoh::liveliness::LivelinessToken; 2],
 }
 
 /// A command topic's message (CDR) as a command, given the copter's height and yaw; with the
 /// message as text, for the log.
 type Convert = fn(&[u8], (f32, f32)) -> Result<(CommandMsg, String), String>;
 
-/// What the command callbacks need of a copter's latest state: height and yaw.
-type Latest = Arc<Mutex<Vec<(f32, f32)>>>;
+/// What the command callbacks need of a copter: by ROS name, its id, scene name, and latest
+/// height and yaw.
+type Latest = Arc<Mutex<std::collections::HashMap<String, (usize, String, (f32, f32))>>>;
 
 /// Counts of what the ROS side sent, for the run's summary.
 #[derive(Clone, Debug, Default, serde::Serialize)]
@@ -263,13 +310,13 @@ pub struct Ros2Node {
     graph: Graph,
     opts: Ros2Options,
     commands: CommandSink,
-    _node_token: zenoh::liveliness::LivelinessToken,
     clock: RosPub,
     tf: RosPub,
     tf_static: RosPub,
     arena: RosPub,
     copters: Vec<CopterTopics>,
     latest: Latest,
+    _command_subs: Vec<zenoh::pubsub::Subscriber<()>>,
     /// Simulated time before which pose, odometry, IMU and tf are not sent again.
     next_due_s: f64,
     stats: Ros2Stats,
@@ -289,9 +336,17 @@ impl Ros2Node {
         commands: CommandSink,
         opts: Ros2Options,
     ) -> Result<Self, NodeError> {
-        let mut graph =
-            Graph { session: session.clone(), domain: opts.domain, zid: session.zid().to_string(), next_id: 0 };
-        let node_token = graph.token(&graph.node_key())?;
+        let mut graph = Graph {
+            session: session.clone(),
+            domain: opts.domain,
+            zid: session.zid().to_string(),
+            next_id: 0,
+            tokens: Arc::default(),
+            pending: Vec::new(),
+            declarers: Vec::new(),
+            stop: Arc::default(),
+        };
+        graph.token(&graph.node_key())?;
         let clock = RosPub::declare(&mut graph, "/clock", "rosgraph_msgs/msg/Clock", QOS_CLOCK)?;
         let tf = RosPub::declare(&mut graph, "/tf", "tf2_msgs/msg/TFMessage", QOS_TF)?;
         let tf_static = RosPub::declare(&mut graph, "/tf_static", "tf2_msgs/msg/TFMessage", QOS_LATCHED)?;
@@ -301,16 +356,20 @@ impl Ros2Node {
             graph,
             opts,
             commands,
-            _node_token: node_token,
             clock,
             tf,
             tf_static,
             arena,
             copters: Vec::new(),
             latest: Arc::default(),
+            _command_subs: Vec::new(),
             next_due_s: 0.0,
             stats,
         };
+        node._command_subs = vec![
+            node.subscribe("cmd_vel", "geometry_msgs/msg/Twist", twist_command)?,
+            node.subscribe("goal_pose", "geometry_msgs/msg/PoseStamped", goal_command)?,
+        ];
         node.add_copters(world)?;
         node.arena.put(msgs::marker_array(Stamp::default(), "world", &arena_cubes(world)))?;
         Ok(node)
@@ -327,26 +386,30 @@ impl Ros2Node {
     /// Declares the topics of copters added to `world` since, and sends `/tf_static` anew.
     fn add_copters(&mut self, world: &World) -> Result<(), NodeError> {
         for i in self.copters.len()..world.copters.len() {
-            let topics = self.copter_topics(i, &world.copters[i].name)?;
+            let name = &world.copters[i].name;
+            let topics = self.copter_topics(name)?;
+            crate::lock(&self.latest).insert(topics.name.clone(), (i, name.clone(), (0.0, 0.0)));
             self.copters.push(topics);
-            crate::lock(&self.latest).push((0.0, 0.0));
         }
+        self.graph.declare_pending();
         let statics = static_transforms(world, &self.copters);
         let entries = statics.iter().map(|(child, pose)| (child.as_str(), *pose));
         self.tf_static.put(msgs::tf(Stamp::default(), "", entries))?;
         Ok(())
     }
 
-    fn copter_topics(&mut self, i: usize, copter: &str) -> Result<CopterTopics, NodeError> {
+    fn copter_topics(&mut self, copter: &str) -> Result<CopterTopics, NodeError> {
         let name = ros_name(copter);
         let g = &mut self.graph;
         let t = |s: &str| format!("/{name}/{s}");
         let range = "sensor_msgs/msg/Range";
         let sonar = SIDES.map(|side| RosPub::declare(g, &t(&format!("sonar/{side}")), range, QOS_SENSOR));
         let [s0, s1, s2, s3] = sonar;
-        let cmd_vel = self.subscribe(i, copter, &t("cmd_vel"), "geometry_msgs/msg/Twist", twist_command)?;
-        let goal = self.subscribe(i, copter, &t("goal_pose"), "geometry_msgs/msg/PoseStamped", goal_command)?;
-        let g = &mut self.graph;
+        let cmd_vel = g.entity_key("MS", &t("cmd_vel"), "geometry_msgs/msg/Twist", QOS_COMMAND);
+        let goal = g.entity_key("MS", &t("goal_pose"), "geometry_msgs/msg/PoseStamped", QOS_COMMAND);
+        // In the graph; one Zenoh subscriber each serves every copter (`Ros2Node::subscribe`).
+        g.token_later(&cmd_vel);
+        g.token_later(&goal);
         Ok(CopterTopics {
             pose: RosPub::declare(g, &t("pose"), "geometry_msgs/msg/PoseStamped", QOS_SENSOR)?,
             odom: RosPub::declare(g, &t("odom"), "nav_msgs/msg/Odometry", QOS_SENSOR)?,
@@ -355,8 +418,6 @@ impl Ros2Node {
             ir: RosPub::declare(g, &t("ir"), range, QOS_SENSOR)?,
             battery: RosPub::declare(g, &t("battery"), "sensor_msgs/msg/BatteryState", QOS_SENSOR)?,
             battery_at_s: None,
-            _subs: [cmd_vel.0, goal.0],
-            _sub_tokens: [cmd_vel.1, goal.1],
             base_frame: format!("{name}/base_link"),
             sonar_frames: SIDES.map(|side| format!("{name}/sonar_{side}")),
             ir_frame: format!("{name}/ir"),
@@ -364,32 +425,35 @@ impl Ros2Node {
         })
     }
 
-    /// A subscription to `topic` whose messages `convert` turns into commands for copter
-    /// `copter` (id `i`), submitted like Zenoh's: the publisher's GID, in hex, is the client.
+    /// The subscription to every copter's `/<c>/<topic>`: one Zenoh subscriber whose key
+    /// names any copter (declaring one per copter costs Zenoh time quadratic in the count).
+    /// `convert` turns a message into a command, submitted like Zenoh's: the publisher's GID,
+    /// in hex, is the client.
     fn subscribe(
         &mut self,
-        i: usize,
-        copter: &str,
         topic: &str,
         ty: &str,
         convert: Convert,
-    ) -> Result<(zenoh::pubsub::Subscriber<()>, zenoh::liveliness::LivelinessToken), NodeError> {
-        let (commands, latest, copter) = (self.commands.clone(), self.latest.clone(), copter.to_owned());
-        let sub = self
-            .graph
+    ) -> Result<zenoh::pubsub::Subscriber<()>, NodeError> {
+        let (commands, latest) = (self.commands.clone(), self.latest.clone());
+        let key = data_key(self.graph.domain, &format!("/*/{topic}"), ty);
+        self.graph
             .session
-            .declare_subscriber(data_key(self.graph.domain, topic, ty))
+            .declare_subscriber(key)
             .callback(move |sample| {
+                let key = sample.key_expr().as_str();
+                let ros_name = key.split('/').nth(1).unwrap_or_default();
+                let found = crate::lock(&latest).get(ros_name).cloned();
+                // A name no copter has: submitted as it is, rejected as an unknown copter.
+                let (copter, now) = found.map_or((ros_name.to_owned(), (0.0, 0.0)), |(_, name, now)| (name, now));
                 let payload = sample.payload().to_bytes();
                 let client = sample.attachment().and_then(|a| attachment_gid(&a.to_bytes())).map(|g| hex(&g));
-                let now = crate::lock(&latest).get(i).copied().unwrap_or_default();
                 let converted = convert(&payload, now);
                 let text = match &converted {
                     Ok((_, text)) => text.clone(),
                     Err(_) => format!("CDR {}", hex(&payload[..payload.len().min(64)])),
                 };
-                let origin =
-                    BusInput { key: sample.key_expr().to_string(), text, received_unix_ns: crate::log::now_unix_ns() };
+                let origin = BusInput { key: key.to_owned(), text, received_unix_ns: crate::log::now_unix_ns() };
                 commands.submit(
                     &copter,
                     |world| {
@@ -405,9 +469,7 @@ impl Ros2Node {
                 );
             })
             .wait()
-            .map_err(zerr)?;
-        let key = self.graph.entity_key("MS", topic, ty, QOS_COMMAND);
-        Ok((sub, self.graph.token(&key)?))
+            .map_err(zerr)
     }
 
     /// Publishes what is due of one frame.
@@ -424,8 +486,8 @@ impl Ros2Node {
         {
             let mut latest = crate::lock(&self.latest);
             for (&i, s) in frame.ids.iter().zip(&frame.states) {
-                if let Some(l) = latest.get_mut(i as usize) {
-                    *l = (s.pos_m[2], s.attitude_rad[2]);
+                if let Some(l) = latest.get_mut(&self.copters[i as usize].name) {
+                    l.2 = (s.pos_m[2], s.attitude_rad[2]);
                 }
             }
         }
@@ -480,15 +542,17 @@ impl CopterTopics {
         let base = &self.base_frame;
         let mut sent = 0;
         if due {
-            let var = |sigma: f32| f64::from(sigma).powi(2);
-            let variances = [
-                var(spec.imu.attitude_noise_deg.to_radians()),
-                var(spec.imu.rate_noise_deg_s.to_radians()),
-                var(spec.imu.accel_noise_m_s2),
-            ];
-            let q = quat_of_rpy(s.attitude_rad);
-            let (gyro, accel) = (s.rate_body_rad_s.map(f64::from), s.accel_body_m_s2.map(f64::from));
-            sent += u64::from(self.imu.send(|| msgs::imu(stamp, base, q, gyro, accel, variances))?);
+            sent += u64::from(self.imu.send(|| {
+                let var = |sigma: f32| f64::from(sigma).powi(2);
+                let variances = [
+                    var(spec.imu.attitude_noise_deg.to_radians()),
+                    var(spec.imu.rate_noise_deg_s.to_radians()),
+                    var(spec.imu.accel_noise_m_s2),
+                ];
+                let q = quat_of_rpy(s.attitude_rad);
+                let (gyro, accel) = (s.rate_body_rad_s.map(f64::from), s.accel_body_m_s2.map(f64::from));
+                msgs::imu(stamp, base, q, gyro, accel, variances)
+            })?);
         }
         let sonar = RangeSensor {
             radiation_type: 0,
