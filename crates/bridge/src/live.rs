@@ -189,6 +189,22 @@ struct Shared {
     counters: Counters,
 }
 
+impl Shared {
+    /// A server with no channels and no clients yet.
+    fn new(name: &str, session_id: String) -> Self {
+        Self {
+            name: name.to_owned(),
+            session_id,
+            channels: Mutex::new(Vec::new()),
+            clients: Mutex::new(Vec::new()),
+            active: AtomicU32::new(0),
+            clock_ns: AtomicU64::new(0),
+            next_client: AtomicU64::new(1),
+            counters: Counters::default(),
+        }
+    }
+}
+
 /// A running live-view server. Dropping it stops accepting clients and closes them.
 #[derive(Debug)]
 pub struct LiveServer {
@@ -207,16 +223,7 @@ impl LiveServer {
             TcpListener::from_std(std_listener)?
         };
         let addr = listener.local_addr()?;
-        let shared = Arc::new(Shared {
-            name: name.to_owned(),
-            session_id: format!("{}", crate::log::now_unix_ns()),
-            channels: Mutex::new(Vec::new()),
-            clients: Mutex::new(Vec::new()),
-            active: AtomicU32::new(0),
-            clock_ns: AtomicU64::new(0),
-            next_client: AtomicU64::new(1),
-            counters: Counters::default(),
-        });
+        let shared = Arc::new(Shared::new(name, format!("{}", crate::log::now_unix_ns())));
         let accept = rt.spawn(accept_loop(listener, Arc::clone(&shared)));
         Ok(Self { shared, addr, accept })
     }
@@ -642,19 +649,6 @@ fn handle_text(shared: &Shared, id: u64, text: &str) -> Result<(), String> {
 pub mod fuzzing {
     use super::*;
 
-    fn shared() -> Shared {
-        Shared {
-            name: "fuzz".into(),
-            session_id: "0".into(),
-            channels: Mutex::new(Vec::new()),
-            clients: Mutex::new(Vec::new()),
-            active: AtomicU32::new(0),
-            clock_ns: AtomicU64::new(0),
-            next_client: AtomicU64::new(1),
-            counters: Counters::default(),
-        }
-    }
-
     /// Checks the subscription counts against the clients' subscription lists.
     fn check_counts(shared: &Shared) {
         let channels = lock(&shared.channels);
@@ -679,7 +673,7 @@ pub mod fuzzing {
     /// clients' lists throughout and fall to zero when the clients leave, and every text
     /// queued for a client must be JSON with an `op`.
     pub fn client_session<'a>(frames: impl IntoIterator<Item = Result<&'a str, &'a [u8]>>) {
-        let shared = shared();
+        let shared = Shared::new("fuzz", "0".into());
         let defs = [("/a", false), ("/b", false), ("/arena", true)];
         for (topic, latched) in defs {
             let mut def = LiveChannel::from_schema_bytes(topic, "json", "s", "jsonschema", b"{}");
