@@ -78,11 +78,17 @@ def data_key(topic, typ):
 
 
 class Samples:
-    """Every sample on some keys: (key, payload, attachment), in arrival order."""
+    """Every sample on some keys: (key, payload, attachment), in arrival order; with `topics`
+    ({topic: type}, keys in the same order), a ROS subscription: each also has its token in the
+    graph, as rmw_zenoh declares it (the simulator sends only what the graph asks for)."""
 
-    def __init__(self, session, keys):
+    def __init__(self, session, keys, topics=None):
         self.got = {k: [] for k in keys}
         self.subs = [session.declare_subscriber(k, self._on(k)) for k in keys]
+        zid = str(session.info.zid())
+        self.tokens = [session.liveliness().declare_token(entity_token(zid, "MS", t, ty, eid=k + 1, node="pytest_sub",
+                                                                      qos="2::,5:,:,:,,"))
+                       for k, (t, ty) in enumerate((topics or {}).items())]
 
     def _on(self, key):
         def cb(s):
@@ -130,10 +136,10 @@ def test_the_swarm_is_a_ros2_node_its_graph_and_messages_as_rmw_zenoh_and_rosbag
         topics = {"/finken1/pose": "geometry_msgs/msg/PoseStamped", "/finken1/imu": "sensor_msgs/msg/Imu",
                   "/clock": "rosgraph_msgs/msg/Clock", "/tf": "tf2_msgs/msg/TFMessage",
                   **{f"/finken1/sonar/{s}": "sensor_msgs/msg/Range" for s in ("front", "right", "back", "left")}}
-        ros = Samples(session, [data_key(t, ty) for t, ty in topics.items()])
+        ros = Samples(session, [data_key(t, ty) for t, ty in topics.items()], topics)
         state = Samples(session, ["ros2test/lab/copters/finken1/state", "ros2test/lab/copters/finken1/sensors"])
         time.sleep(3.0)
-        del ros.subs, state.subs
+        del ros.subs, ros.tokens, state.subs
     finally:
         session.close()
     summary = finish(proc)
@@ -217,10 +223,15 @@ def test_the_swarm_is_a_ros2_node_its_graph_and_messages_as_rmw_zenoh_and_rosbag
     assert tf_matched >= 5
 
 
-def publisher_token(zid, topic, typ, node="pytest_teleop"):
+def entity_token(zid, kind, topic, typ, eid=1, node="pytest_teleop", qos="::,10:,:,:,,"):
+    """The token of a publisher (MP) or subscription (MS) of node 0 of session `zid`."""
     dds = "{}::{}::dds_::{}_".format(*typ.split("/"))
-    return (f"@ros2_lv/0/{zid}/0/1/MP/%/%/{node}/{topic.replace('/', '%')}/{dds}/{TS.hash_rihs01(typ)}"
-            f"/::,10:,:,:,,")
+    return (f"@ros2_lv/0/{zid}/0/{eid}/{kind}/%/%/{node}/{topic.replace('/', '%')}/{dds}/{TS.hash_rihs01(typ)}"
+            f"/{qos}")
+
+
+def publisher_token(zid, topic, typ, node="pytest_teleop"):
+    return entity_token(zid, "MP", topic, typ, node=node)
 
 
 def test_a_twist_on_cmd_vel_flies_the_copter_where_it_says(twinswarm_bin, tmp_path):

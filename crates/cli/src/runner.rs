@@ -414,7 +414,9 @@ pub fn run<W: StepObserver + Send>(
         ivy: ivy.as_ref().zip(bus.ivy.as_ref()).map(|(a, addr)| IvyReport::of(a, &addr.to_string(), &gateway)),
         ros2: ros.as_ref().map(|r| r.stats()),
     };
-    drop(ros);
+    if let Some(r) = &mut ros {
+        r.stop_graph();
+    }
     drop(gateway);
     if let Some(agent) = ivy {
         rt.block_on(agent.stop());
@@ -422,6 +424,8 @@ pub fn run<W: StepObserver + Send>(
     if let Some(node) = node {
         rt.block_on(node.close()).context("closing the Zenoh session")?;
     }
+    // After the session: its tokens then go with it, not one by one.
+    drop(ros);
     let link = opts_link.map(|l| bridge::lock(&l).stats().clone());
     Ok(RunOutcome { end, bus: Some(report), link })
 }

@@ -9,7 +9,9 @@
 //!   from 1, wall-clock ns, a 16-byte GID).
 //! - Graph: `@ros2_lv/<domain>/<zid>/<node id>/<entity id>/<NN|MP|MS>/%/%/twinswarm[/<topic
 //!   with / as %>/<type>/<hash>/<qos>]`.
-//! - Cost: a topic nobody subscribes to is not encoded (a matching listener per publisher).
+//! - Cost: a topic no ROS subscription in the graph asks for is not encoded, and its Zenoh
+//!   publisher is declared only when one first does; the graph's tokens are declared on a
+//!   thread that runs on idle cores.
 //!
 //! Topics (per copter `<c>`, its name made a valid ROS name): `/<c>/pose`, `/<c>/odom`,
 //! `/<c>/imu`, `/<c>/sonar/{front,right,back,left}`, `/<c>/ir`, `/<c>/battery`; once:
@@ -17,7 +19,7 @@
 //! `/<c>/goal_pose`. Frames: `world` (x, y on the floor, z up), `<c>/base_link` (x forward,
 //! y left, z up, REP 103), `<c>/sonar_<side>`, `<c>/ir`.
 
-use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::atomic::{AtomicBool, AtomicU32, Ordering};
 use std::sync::{Arc, Mutex};
 
 use sim_core::FlightMode;
@@ -111,6 +113,8 @@ struct Graph {
     /// Threads declaring pending tokens, and their stop flag.
     declarers: Vec<std::thread::JoinHandle<()>>,
     stop: Arc<AtomicBool>,
+    /// The subscriptions in the graph, by topic.
+    demand: Demand,
 }
 
 impl Graph {
@@ -144,10 +148,11 @@ impl Graph {
         self.pending.push(key.to_owned());
     }
 
-    /// Declares the queued tokens on a thread of their own: Zenoh's routing matches each new
-    /// key against every resource it knows, so declaring 11 tokens per copter costs time
-    /// quadratic in the swarm (tens of seconds of a core at 1,000 copters), which the run
-    /// need not wait for. The topics appear in the graph as they are declared.
+    /// Declares the queued tokens on a thread of their own, which runs only on a core the
+    /// run leaves idle: Zenoh's routing matches each new key against its siblings, so
+    /// declaring 11 tokens per copter costs time quadratic in the swarm (6 s of a core at
+    /// 1,000 copters), which the run need not wait for. The topics appear in the graph as
+    /// they are declared.
     fn declare_pending(&mut self) {
         let keys = std::mem::take(&mut self.pending);
         if keys.is_empty() {
@@ -155,6 +160,7 @@ impl Graph {
         }
         let (session, tokens, stop) = (self.session.clone(), self.tokens.clone(), self.stop.clone());
         self.declarers.push(std::thread::spawn(move || {
+            idle_priority();
             for key in keys {
                 if stop.load(Ordering::Relaxed) {
                     return;
@@ -168,14 +174,36 @@ impl Graph {
     }
 }
 
-impl Drop for Graph {
-    fn drop(&mut self) {
+impl Graph {
+    /// Stops declaring tokens.
+    fn stop(&mut self) {
         self.stop.store(true, Ordering::Relaxed);
         for d in self.declarers.drain(..) {
             let _ = d.join();
         }
     }
 }
+
+impl Drop for Graph {
+    fn drop(&mut self) {
+        self.stop();
+    }
+}
+
+/// Puts the calling thread in Linux's `SCHED_IDLE` class: it runs when a core would
+/// otherwise idle.
+#[cfg(target_os = "linux")]
+#[allow(unsafe_code)]
+fn idle_priority() {
+    let param = libc::sched_param { sched_priority: 0 };
+    // SAFETY: `param` is a valid `sched_param` for the call's duration; pid 0 is this thread.
+    if unsafe { libc::sched_setscheduler(0, libc::SCHED_IDLE, &param) } != 0 {
+        tracing::debug!("ROS 2 graph: SCHED_IDLE refused: {}", std::io::Error::last_os_error());
+    }
+}
+
+#[cfg(not(target_os = "linux"))]
+fn idle_priority() {}
 
 /// A GID: the first 16 bytes of the SHA-256 of the entity's token key (rmw_zenoh hashes the
 /// key too; receivers only compare GIDs).
@@ -188,11 +216,15 @@ fn gid_of(key: &str) -> [u8; 16] {
 }
 
 enum Sender {
-    /// (Fields drop in order: the listener before its publisher.)
+    /// A Zenoh publisher declared the first time a ROS subscription to the topic is in the
+    /// graph (declaring 9 per copter up front costs Zenoh time quadratic in the swarm).
     Plain {
-        _listener: zenoh::matching::MatchingListener<()>,
-        publisher: zenoh::pubsub::Publisher<'static>,
-        matched: Arc<AtomicBool>,
+        session: zenoh::Session,
+        key: String,
+        congestion: zenoh::qos::CongestionControl,
+        publisher: Option<zenoh::pubsub::Publisher<'static>>,
+        /// ROS subscriptions to it in the graph.
+        demand: Arc<AtomicU32>,
     },
     Latched(AdvancedPublisher<'static>),
 }
@@ -208,9 +240,8 @@ struct RosPub {
 impl RosPub {
     fn declare(graph: &mut Graph, topic: &str, ty: &str, qos: &str) -> Result<Self, NodeError> {
         let key = data_key(graph.domain, topic, ty);
-        let builder = graph.session.declare_publisher(key);
         let sender = if qos == QOS_LATCHED {
-            let p = builder
+            let p = (graph.session.declare_publisher(key))
                 .cache(CacheConfig::default().max_samples(1))
                 .sample_miss_detection(
                     MissDetectionConfig::default().sporadic_heartbeat(std::time::Duration::from_millis(500)),
@@ -222,25 +253,19 @@ impl RosPub {
         } else {
             let congestion =
                 if qos == QOS_TF { zenoh::qos::CongestionControl::Block } else { zenoh::qos::CongestionControl::Drop };
-            let p = builder.congestion_control(congestion).wait().map_err(zerr)?;
-            let matched = Arc::new(AtomicBool::new(false));
-            let flag = matched.clone();
-            let listener = p
-                .matching_listener()
-                .callback(move |s| flag.store(s.matching(), Ordering::Relaxed))
-                .wait()
-                .map_err(zerr)?;
-            Sender::Plain { publisher: p, matched, _listener: listener }
+            let demand = graph.demand.of(topic, ty);
+            Sender::Plain { session: graph.session.clone(), key, congestion, publisher: None, demand }
         };
         let token_key = graph.entity_key("MP", topic, ty, qos);
         graph.token_later(&token_key);
         Ok(Self { sender, gid: gid_of(&token_key), seq: 0 })
     }
 
-    /// Whether anyone subscribes (a latched topic: always, for those who come later).
+    /// Whether a ROS subscription to it is in the graph (a latched topic: always, for those
+    /// who come later).
     fn wanted(&self) -> bool {
         match &self.sender {
-            Sender::Plain { matched, .. } => matched.load(Ordering::Relaxed),
+            Sender::Plain { demand, .. } => demand.load(Ordering::Relaxed) > 0,
             Sender::Latched(_) => true,
         }
     }
@@ -248,8 +273,16 @@ impl RosPub {
     fn put(&mut self, payload: Vec<u8>) -> Result<(), NodeError> {
         self.seq += 1;
         let att = attachment(self.seq, &self.gid);
-        match &self.sender {
-            Sender::Plain { publisher, .. } => publisher.put(payload).attachment(att).wait().map_err(zerr),
+        match &mut self.sender {
+            Sender::Plain { session, key, congestion, publisher, .. } => {
+                let p = match publisher {
+                    Some(p) => p,
+                    None => publisher.insert(
+                        session.declare_publisher(key.clone()).congestion_control(*congestion).wait().map_err(zerr)?,
+                    ),
+                };
+                p.put(payload).attachment(att).wait().map_err(zerr)
+            }
             Sender::Latched(p) => p.put(payload).attachment(att).wait().map_err(zerr),
         }
     }
@@ -261,6 +294,47 @@ impl RosPub {
         }
         self.put(encode())?;
         Ok(true)
+    }
+}
+
+/// Who subscribes to what, as the ROS graph says (rmw_zenoh's `count_subscribers` reads
+/// its graph cache the same way): the subscription tokens (`MS`) of every session, counted
+/// by topic, type and hash. A plain Zenoh subscriber that declares no token is not a ROS
+/// subscription and is not served.
+#[derive(Clone, Default)]
+struct Demand(Arc<Mutex<std::collections::HashMap<String, Arc<AtomicU32>>>>);
+
+impl Demand {
+    /// The count of subscriptions to `topic` of type `ty`.
+    fn of(&self, topic: &str, ty: &str) -> Arc<AtomicU32> {
+        let key = format!("{}/{}/{}", topic.replace('/', "%"), dds_name(ty), type_hash(ty));
+        crate::lock(&self.0).entry(key).or_default().clone()
+    }
+
+    /// A graph token came (`put`) or went.
+    fn on_token(&self, key: &str, put: bool) {
+        let parts: Vec<&str> = key.split('/').collect();
+        if parts.len() != 13 || parts[5] != "MS" {
+            return;
+        }
+        let count = crate::lock(&self.0).entry(parts[9..12].join("/")).or_default().clone();
+        if put {
+            count.fetch_add(1, Ordering::Relaxed);
+        } else {
+            let _ = count.fetch_update(Ordering::Relaxed, Ordering::Relaxed, |c| c.checked_sub(1));
+        }
+    }
+
+    /// Follows the graph of `domain` from now on, with the tokens already there.
+    fn follow(&self, session: &zenoh::Session, domain: u32) -> Result<zenoh::pubsub::Subscriber<()>, NodeError> {
+        let demand = self.clone();
+        session
+            .liveliness()
+            .declare_subscriber(format!("@ros2_lv/{domain}/**"))
+            .history(true)
+            .callback(move |s| demand.on_token(s.key_expr().as_str(), s.kind() == zenoh::sample::SampleKind::Put))
+            .wait()
+            .map_err(zerr)
     }
 }
 
@@ -317,6 +391,7 @@ pub struct Ros2Node {
     copters: Vec<CopterTopics>,
     latest: Latest,
     _command_subs: Vec<zenoh::pubsub::Subscriber<()>>,
+    _graph_sub: zenoh::pubsub::Subscriber<()>,
     /// Simulated time before which pose, odometry, IMU and tf are not sent again.
     next_due_s: f64,
     stats: Ros2Stats,
@@ -345,7 +420,9 @@ impl Ros2Node {
             pending: Vec::new(),
             declarers: Vec::new(),
             stop: Arc::default(),
+            demand: Demand::default(),
         };
+        let graph_sub = graph.demand.follow(session, opts.domain)?;
         graph.token(&graph.node_key())?;
         let clock = RosPub::declare(&mut graph, "/clock", "rosgraph_msgs/msg/Clock", QOS_CLOCK)?;
         let tf = RosPub::declare(&mut graph, "/tf", "tf2_msgs/msg/TFMessage", QOS_TF)?;
@@ -363,6 +440,7 @@ impl Ros2Node {
             copters: Vec::new(),
             latest: Arc::default(),
             _command_subs: Vec::new(),
+            _graph_sub: graph_sub,
             next_due_s: 0.0,
             stats,
         };
@@ -373,6 +451,13 @@ impl Ros2Node {
         node.add_copters(world)?;
         node.arena.put(msgs::marker_array(Stamp::default(), "world", &arena_cubes(world)))?;
         Ok(node)
+    }
+
+    /// Stops declaring the graph. Closing the session first, then dropping the node, takes
+    /// the graph's tokens away at once: undeclared one by one, each costs Zenoh time linear
+    /// in the count (a second at 1,000 copters).
+    pub fn stop_graph(&mut self) {
+        self.graph.stop();
     }
 
     /// What was sent so far.

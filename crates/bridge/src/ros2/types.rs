@@ -279,9 +279,18 @@ pub fn hashed_json(name: &str) -> String {
 
 /// The RIHS01 type hash of type `name` (`RIHS01_` and 64 lowercase hex digits).
 pub fn type_hash(name: &str) -> String {
+    // Memoised: the node names every topic's type hash in two keys, 9 topics per copter.
+    static KNOWN: std::sync::LazyLock<std::sync::Mutex<std::collections::HashMap<String, String>>> =
+        std::sync::LazyLock::new(Default::default);
+    let mut known = crate::lock(&KNOWN);
+    if let Some(h) = known.get(name) {
+        return h.clone();
+    }
     let digest = Sha256::digest(hashed_json(name).as_bytes());
     let hex: String = digest.iter().map(|b| format!("{b:02x}")).collect();
-    format!("RIHS01_{hex}")
+    let hash = format!("RIHS01_{hex}");
+    known.insert(name.to_owned(), hash.clone());
+    hash
 }
 
 #[cfg(test)]
