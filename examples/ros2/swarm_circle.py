@@ -8,18 +8,29 @@ zenoh-ros2-sdk`), so it runs without a ROS 2 install; an rclpy node with
     twinswarm run --ros2 --realtime --duration 60 &
     python examples/ros2/swarm_circle.py --seconds 20
 
+With `--lockstep` it drives a lockstep run instead (docs/ros2.md#claims-and-lockstep): it answers
+every `/clock` tick with each copter's Twist, and the simulator waits for the answers, so the
+circle is flown at the simulator's speed, the same bits whatever this script's latency. The run
+waits for its claims from tick 0, with the copters on the floor, so it climbs for 2 s first:
+
+    twinswarm run --ros2 --lockstep --wait-claims finken1,finken2 --duration 60 &
+    python examples/ros2/swarm_circle.py --lockstep --seconds 20
+
 Its Zenoh session stays on loopback, with multicast scouting off.
 """
 import argparse
 import json
 import os
+import queue
 import tempfile
 import time
 
 TWIST = "geometry_msgs/msg/Twist"
 VECTOR3 = "geometry_msgs/msg/Vector3"
 # Given explicitly: the SDK would otherwise fetch message definitions from GitHub.
-DEFINITIONS = {VECTOR3: "float64 x\nfloat64 y\nfloat64 z\n", TWIST: "Vector3 linear\nVector3 angular\n"}
+CLOCK, TIME = "rosgraph_msgs/msg/Clock", "builtin_interfaces/msg/Time"
+DEFINITIONS = {VECTOR3: "float64 x\nfloat64 y\nfloat64 z\n", TWIST: "Vector3 linear\nVector3 angular\n",
+               TIME: "int32 sec\nuint32 nanosec\n", CLOCK: "builtin_interfaces/Time clock\n"}
 
 
 def main():
@@ -29,6 +40,8 @@ def main():
     ap.add_argument("--seconds", type=float, default=20.0, help="how long to fly the circle")
     ap.add_argument("--speed", type=float, default=0.3, help="forward speed, m/s")
     ap.add_argument("--radius", type=float, default=0.8, help="circle radius, m")
+    ap.add_argument("--lockstep", action="store_true",
+                    help="answer every /clock tick (twinswarm run --lockstep); --seconds are simulated")
     args = ap.parse_args()
 
     config = tempfile.NamedTemporaryFile("w", suffix=".json5", delete=False)
@@ -38,11 +51,12 @@ def main():
     os.environ["ZENOH_SESSION_CONFIG_URI"] = config.name
 
     from rosbags.typesys import Stores, get_typestore, get_types_from_msg
-    from zenoh_ros2_sdk import ROS2Publisher, ZenohSession, get_topic_names_and_types
+    from zenoh_ros2_sdk import ROS2Publisher, ROS2Subscriber, ZenohSession, get_topic_names_and_types
 
-    twist_hash = get_typestore(Stores.ROS2_JAZZY).hash_rihs01(TWIST)
+    store = get_typestore(Stores.ROS2_JAZZY)
     session = ZenohSession.get_instance("127.0.0.1", args.port)
-    session.store.register(get_types_from_msg(DEFINITIONS[VECTOR3], VECTOR3))
+    for name in (VECTOR3, TIME):
+        session.store.register(get_types_from_msg(DEFINITIONS[name], name))
     Vector3 = session.store.types[VECTOR3]
 
     topics = get_topic_names_and_types(domain_id=args.domain, router_port=args.port, timeout=2.0)
@@ -51,16 +65,42 @@ def main():
         raise SystemExit(f"no /<copter>/cmd_vel on domain {args.domain} at 127.0.0.1:{args.port}: "
                          "is `twinswarm run --ros2` running?")
     print(f"{len(copters)} copters: {', '.join(copters)}")
+    ticks = queue.Queue()
+    if args.lockstep:
+        # Subscribed before the publishers claim the copters: the first /clock it must answer
+        # then reaches it.
+        clock = ROS2Subscriber(topic="/clock", msg_type=CLOCK, msg_definition=DEFINITIONS[CLOCK],
+                               callback=lambda m: ticks.put(m.clock.sec + m.clock.nanosec * 1e-9),
+                               node_name="swarm_circle", domain_id=args.domain, router_port=args.port,
+                               type_hash=store.hash_rihs01(CLOCK))
     pubs = {c: ROS2Publisher(topic=f"/{c}/cmd_vel", msg_type=TWIST, msg_definition=DEFINITIONS[TWIST],
                              node_name="swarm_circle", domain_id=args.domain, router_port=args.port,
-                             type_hash=twist_hash)
+                             type_hash=store.hash_rihs01(TWIST))
             for c in copters}
     yaw_rate = args.speed / args.radius
-    end = time.monotonic() + args.seconds
-    while time.monotonic() < end:
-        for p in pubs.values():
-            p.publish(linear=Vector3(x=args.speed, y=0.0, z=0.0), angular=Vector3(x=0.0, y=0.0, z=yaw_rate))
-        time.sleep(0.1)
+    circle = dict(linear=Vector3(x=args.speed, y=0.0, z=0.0), angular=Vector3(x=0.0, y=0.0, z=yaw_rate))
+    climb = dict(linear=Vector3(x=0.0, y=0.0, z=0.5), angular=Vector3(x=0.0, y=0.0, z=0.0))
+    if args.lockstep:
+        # One Twist per copter per tick: 2 s of climbing, then --seconds of circling, in
+        # simulated time from the first tick.
+        first = None
+        while True:
+            try:
+                t = ticks.get(timeout=10.0)
+            except queue.Empty:
+                raise SystemExit("no /clock for 10 s: is `twinswarm run --ros2 --lockstep` running?")
+            first = t if first is None else first
+            if t - first >= 2.0 + args.seconds:
+                break
+            for p in pubs.values():
+                p.publish(**(climb if t - first < 2.0 else circle))
+        del clock
+    else:
+        end = time.monotonic() + args.seconds
+        while time.monotonic() < end:
+            for p in pubs.values():
+                p.publish(**circle)
+            time.sleep(0.1)
     for p in pubs.values():
         p.publish(linear=Vector3(x=0.0, y=0.0, z=0.0), angular=Vector3(x=0.0, y=0.0, z=0.0))
     print("done: hovering")

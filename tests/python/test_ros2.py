@@ -14,6 +14,7 @@ import uuid
 
 import numpy as np
 import pytest
+import xxhash
 import zenoh
 from rosbags.typesys import Stores, get_typestore
 
@@ -145,12 +146,16 @@ def test_the_swarm_is_a_ros2_node_its_graph_and_messages_as_rmw_zenoh_and_rosbag
     summary = finish(proc)
     assert summary["bus"]["ros2"]["sent"] > 0
 
-    # Attachments: 33 bytes, sequence numbers increasing by one per publisher, a 16-byte GID.
+    # Attachments: 33 bytes, sequence numbers increasing by one per publisher, a 16-byte GID:
+    # rmw_zenoh_cpp's, the XXH3-128 of the publisher's token (low 64 bits first, little-endian).
+    token_of = {data_key(topic, typ): key for key, (kind, topic, typ, _, _) in zip(keys, tokens) if kind == "MP"}
     for key, samples in ros.got.items():
         assert len(samples) >= 2, f"few samples on {key}"
+        gid = xxhash.xxh3_128_digest(token_of[key].encode())[::-1]
         seqs = []
         for _, att in samples:
             assert att is not None and len(att) == 33 and att[16] == 16, key
+            assert att[17:] == gid, (key, att[17:].hex(), gid.hex())
             seq, ts_ns = struct.unpack_from("<qq", att)
             assert ts_ns > 1.6e18, "wall-clock ns"
             seqs.append(seq)

@@ -19,6 +19,8 @@
 //! `/<c>/goal_pose`. Frames: `world` (x, y on the floor, z up), `<c>/base_link` (x forward,
 //! y left, z up, REP 103), `<c>/sonar_<side>`, `<c>/ir`.
 
+use std::collections::HashMap;
+use std::sync::atomic::AtomicU64;
 use std::sync::atomic::{AtomicBool, AtomicU32, Ordering};
 use std::sync::{Arc, Mutex};
 
@@ -205,13 +207,13 @@ fn idle_priority() {
 #[cfg(not(target_os = "linux"))]
 fn idle_priority() {}
 
-/// A GID: the first 16 bytes of the SHA-256 of the entity's token key (rmw_zenoh hashes the
-/// key too; receivers only compare GIDs).
-fn gid_of(key: &str) -> [u8; 16] {
-    use sha2::Digest;
-    let d = sha2::Sha256::digest(key.as_bytes());
+/// An entity's GID as `rmw_zenoh_cpp` makes it: the XXH3-128 of its liveliness key, the low
+/// 64 bits first, each in the machine's (little-endian) byte order.
+pub fn gid_of(key: &str) -> [u8; 16] {
+    let h = xxhash_rust::xxh3::xxh3_128(key.as_bytes());
     let mut g = [0u8; 16];
-    g.copy_from_slice(&d[..16]);
+    g[..8].copy_from_slice(&(h as u64).to_le_bytes());
+    g[8..].copy_from_slice(&((h >> 64) as u64).to_le_bytes());
     g
 }
 
@@ -300,28 +302,38 @@ impl RosPub {
 /// Who subscribes to what, as the ROS graph says (rmw_zenoh's `count_subscribers` reads
 /// its graph cache the same way): the subscription tokens (`MS`) of every session, counted
 /// by topic, type and hash. A plain Zenoh subscriber that declares no token is not a ROS
-/// subscription and is not served.
-#[derive(Clone, Default)]
-struct Demand(Arc<Mutex<std::collections::HashMap<String, Arc<AtomicU32>>>>);
+/// subscription and is not served. The publishers of commands (`MP` tokens) go to
+/// [`RosClaims`].
+#[derive(Clone)]
+struct Demand {
+    counts: Arc<Mutex<HashMap<String, Arc<AtomicU32>>>>,
+    claims: Arc<RosClaims>,
+}
 
 impl Demand {
     /// The count of subscriptions to `topic` of type `ty`.
     fn of(&self, topic: &str, ty: &str) -> Arc<AtomicU32> {
         let key = format!("{}/{}/{}", topic.replace('/', "%"), dds_name(ty), type_hash(ty));
-        crate::lock(&self.0).entry(key).or_default().clone()
+        crate::lock(&self.counts).entry(key).or_default().clone()
     }
 
     /// A graph token came (`put`) or went.
     fn on_token(&self, key: &str, put: bool) {
         let parts: Vec<&str> = key.split('/').collect();
-        if parts.len() != 13 || parts[5] != "MS" {
+        if parts.len() != 13 {
             return;
         }
-        let count = crate::lock(&self.0).entry(parts[9..12].join("/")).or_default().clone();
-        if put {
-            count.fetch_add(1, Ordering::Relaxed);
-        } else {
-            let _ = count.fetch_update(Ordering::Relaxed, Ordering::Relaxed, |c| c.checked_sub(1));
+        match parts[5] {
+            "MS" => {
+                let count = crate::lock(&self.counts).entry(parts[9..12].join("/")).or_default().clone();
+                if put {
+                    count.fetch_add(1, Ordering::Relaxed);
+                } else {
+                    let _ = count.fetch_update(Ordering::Relaxed, Ordering::Relaxed, |c| c.checked_sub(1));
+                }
+            }
+            "MP" => self.claims.on_publisher(key, &parts, put),
+            _ => {}
         }
     }
 
@@ -336,6 +348,103 @@ impl Demand {
             .wait()
             .map_err(zerr)
     }
+}
+
+/// The ROS side's claims. A ROS node with a publisher on `/<c>/cmd_vel` or `/<c>/goal_pose`
+/// in the graph (its `MP` token) claims copter `c` the way a Zenoh client's liveliness token
+/// does: the copter takes commands from that node only, `--lockstep` holds each step for its
+/// answer, and `--on-client-lost` applies when the node's last such publisher leaves. The
+/// client's name is `ros2:<node>@<zid>/<node id>`.
+///
+/// A command's attachment carries its publisher's GID, which `rmw_zenoh_cpp` makes from the
+/// publisher's token ([`gid_of`]), so a command is its node's. A client that makes GIDs
+/// otherwise (zenoh-ros2-sdk draws them at random) is still known when one node alone
+/// publishes commands to the copter.
+struct RosClaims {
+    sink: CommandSink,
+    book: Mutex<ClaimBook>,
+}
+
+#[derive(Default)]
+struct ClaimBook {
+    /// Command publishers in the graph by GID: their copter (ROS name) and client.
+    publishers: HashMap<[u8; 16], (String, String)>,
+    /// By copter (ROS name): its clients, each with its count of command publishers.
+    clients: HashMap<String, std::collections::BTreeMap<String, u32>>,
+    /// Scene names of the copters known so far, by ROS name.
+    names: HashMap<String, String>,
+}
+
+impl RosClaims {
+    /// A publisher's token came (`put`) or went; `parts` is `key` split at `/`.
+    fn on_publisher(&self, key: &str, parts: &[&str], put: bool) {
+        if !(parts[9].ends_with("%cmd_vel") || parts[9].ends_with("%goal_pose")) {
+            return; // the simulator's own topics among them: 9 per copter
+        }
+        let topic: Vec<&str> = parts[9].split('%').collect();
+        let ["", copter, "cmd_vel" | "goal_pose"] = topic[..] else { return };
+        let client = ros_client(parts);
+        let gid = gid_of(key);
+        let filed = {
+            let mut book = crate::lock(&self.book);
+            let changed = if put {
+                let new = !book.publishers.contains_key(&gid);
+                if new {
+                    book.publishers.insert(gid, (copter.to_owned(), client.clone()));
+                    let n = book.clients.entry(copter.to_owned()).or_default().entry(client.clone()).or_default();
+                    *n += 1;
+                }
+                new && book.clients[copter][&client] == 1
+            } else if book.publishers.remove(&gid).is_some() {
+                let clients = book.clients.entry(copter.to_owned()).or_default();
+                let n = clients.entry(client.clone()).or_default();
+                *n = n.saturating_sub(1);
+                let gone = *n == 0;
+                if gone {
+                    clients.remove(&client);
+                }
+                gone
+            } else {
+                false
+            };
+            changed.then(|| book.names.get(copter).cloned()).flatten()
+        };
+        if let Some(name) = filed {
+            self.sink.claim(&name, &client, put);
+        }
+    }
+
+    /// Copter `name` (`ros_name` in ROS) is known: the claims on it so far are filed.
+    fn copter_added(&self, ros_name: &str, name: &str) {
+        let clients: Vec<String> = {
+            let mut book = crate::lock(&self.book);
+            book.names.insert(ros_name.to_owned(), name.to_owned());
+            book.clients.get(ros_name).map(|c| c.keys().cloned().collect()).unwrap_or_default()
+        };
+        for client in clients {
+            self.sink.claim(name, &client, true);
+        }
+    }
+
+    /// The client a command to `ros_name` with GID `gid` comes from: the node of the
+    /// publisher with that GID, or the one node that publishes commands to the copter.
+    fn client_of(&self, ros_name: &str, gid: &[u8; 16]) -> Option<String> {
+        let book = crate::lock(&self.book);
+        if let Some((copter, client)) = book.publishers.get(gid) {
+            return (copter == ros_name).then(|| client.clone());
+        }
+        match book.clients.get(ros_name).map(|c| c.keys().collect::<Vec<_>>()).as_deref() {
+            Some([only]) => Some((*only).clone()),
+            _ => None,
+        }
+    }
+}
+
+/// The client name of the node of an entity token split at `/`: `ros2:<node>@<zid>/<node id>`.
+fn ros_client(parts: &[&str]) -> String {
+    let ns = parts[7].replace('%', "/");
+    let node = if ns.ends_with('/') { format!("{ns}{}", parts[8]) } else { format!("{ns}/{}", parts[8]) };
+    format!("ros2:{node}@{}/{}", parts[2], parts[3])
 }
 
 const SIDES: [&str; 4] = ["front", "right", "back", "left"];
@@ -364,7 +473,7 @@ type Convert = fn(&[u8], (f32, f32)) -> Result<(CommandMsg, String), String>;
 
 /// What the command callbacks need of a copter: by ROS name, its id, scene name, and latest
 /// height and yaw.
-type Latest = Arc<Mutex<std::collections::HashMap<String, (usize, String, (f32, f32))>>>;
+type Latest = Arc<Mutex<HashMap<String, (usize, String, (f32, f32))>>>;
 
 /// Counts of what the ROS side sent, for the run's summary.
 #[derive(Clone, Debug, Default, serde::Serialize)]
@@ -390,6 +499,9 @@ pub struct Ros2Node {
     arena: RosPub,
     copters: Vec<CopterTopics>,
     latest: Latest,
+    claims: Arc<RosClaims>,
+    /// The tick of the last frame published: the tick a ROS command answers (`--lockstep`).
+    tick: Arc<AtomicU64>,
     _command_subs: Vec<zenoh::pubsub::Subscriber<()>>,
     _graph_sub: zenoh::pubsub::Subscriber<()>,
     /// Simulated time before which pose, odometry, IMU and tf are not sent again.
@@ -411,6 +523,7 @@ impl Ros2Node {
         commands: CommandSink,
         opts: Ros2Options,
     ) -> Result<Self, NodeError> {
+        let claims = Arc::new(RosClaims { sink: commands.clone(), book: Mutex::default() });
         let mut graph = Graph {
             session: session.clone(),
             domain: opts.domain,
@@ -420,7 +533,7 @@ impl Ros2Node {
             pending: Vec::new(),
             declarers: Vec::new(),
             stop: Arc::default(),
-            demand: Demand::default(),
+            demand: Demand { counts: Arc::default(), claims: claims.clone() },
         };
         let graph_sub = graph.demand.follow(session, opts.domain)?;
         graph.token(&graph.node_key())?;
@@ -438,7 +551,9 @@ impl Ros2Node {
             tf_static,
             arena,
             copters: Vec::new(),
-            latest: Arc::default(),
+            latest: Latest::default(),
+            claims,
+            tick: Arc::default(),
             _command_subs: Vec::new(),
             _graph_sub: graph_sub,
             next_due_s: 0.0,
@@ -474,6 +589,7 @@ impl Ros2Node {
             let name = &world.copters[i].name;
             let topics = self.copter_topics(name)?;
             crate::lock(&self.latest).insert(topics.name.clone(), (i, name.clone(), (0.0, 0.0)));
+            self.claims.copter_added(&topics.name, name);
             self.copters.push(topics);
         }
         self.graph.declare_pending();
@@ -512,8 +628,9 @@ impl Ros2Node {
 
     /// The subscription to every copter's `/<c>/<topic>`: one Zenoh subscriber whose key
     /// names any copter (declaring one per copter costs Zenoh time quadratic in the count).
-    /// `convert` turns a message into a command, submitted like Zenoh's: the publisher's GID,
-    /// in hex, is the client.
+    /// `convert` turns a message into a command, submitted like Zenoh's, from the client
+    /// [`RosClaims::client_of`] finds (else the GID in hex), answering the tick of the last
+    /// `/clock` sent.
     fn subscribe(
         &mut self,
         topic: &str,
@@ -521,18 +638,21 @@ impl Ros2Node {
         convert: Convert,
     ) -> Result<zenoh::pubsub::Subscriber<()>, NodeError> {
         let (commands, latest) = (self.commands.clone(), self.latest.clone());
+        let (claims, tick) = (self.claims.clone(), self.tick.clone());
         let key = data_key(self.graph.domain, &format!("/*/{topic}"), ty);
         self.graph
             .session
             .declare_subscriber(key)
             .callback(move |sample| {
+                let answers = tick.load(Ordering::Acquire);
                 let key = sample.key_expr().as_str();
                 let ros_name = key.split('/').nth(1).unwrap_or_default();
-                let found = crate::lock(&latest).get(ros_name).cloned();
+                let gid = sample.attachment().and_then(|a| attachment_gid(&a.to_bytes()));
+                let client = gid.map(|g| claims.client_of(ros_name, &g).unwrap_or_else(|| hex(&g)));
                 // A name no copter has: submitted as it is, rejected as an unknown copter.
+                let found = crate::lock(&latest).get(ros_name).cloned();
                 let (copter, now) = found.map_or((ros_name.to_owned(), (0.0, 0.0)), |(_, name, now)| (name, now));
                 let payload = sample.payload().to_bytes();
-                let client = sample.attachment().and_then(|a| attachment_gid(&a.to_bytes())).map(|g| hex(&g));
                 let converted = convert(&payload, now);
                 let text = match &converted {
                     Ok((_, text)) => text.clone(),
@@ -544,6 +664,7 @@ impl Ros2Node {
                     |world| {
                         let (mut cmd, _) = converted.map_err(CommandError::Malformed)?;
                         cmd.client = client;
+                        cmd.tick = Some(answers);
                         if let Some(h) = cmd.height.as_mut() {
                             *h = h.clamp(0.0, world.arena.height_m);
                         }
@@ -562,12 +683,7 @@ impl Ros2Node {
         if frame.world.copters.len() > self.copters.len() {
             self.add_copters(&frame.world)?;
         }
-        let stamp = Stamp::from_secs(frame.time_s);
-        let mut sent = u64::from(self.clock.send(|| msgs::clock(stamp))?);
-        let due = frame.time_s + 1e-9 >= self.next_due_s;
-        if due && let Some(hz) = self.opts.max_rate_hz {
-            self.next_due_s = frame.time_s + 1.0 / hz;
-        }
+        // What commands answering this frame need, before `/clock` tells of it.
         {
             let mut latest = crate::lock(&self.latest);
             for (&i, s) in frame.ids.iter().zip(&frame.states) {
@@ -575,6 +691,13 @@ impl Ros2Node {
                     l.2 = (s.pos_m[2], s.attitude_rad[2]);
                 }
             }
+        }
+        self.tick.store(frame.tick, Ordering::Release);
+        let stamp = Stamp::from_secs(frame.time_s);
+        let mut sent = u64::from(self.clock.send(|| msgs::clock(stamp))?);
+        let due = frame.time_s + 1e-9 >= self.next_due_s;
+        if due && let Some(hz) = self.opts.max_rate_hz {
+            self.next_due_s = frame.time_s + 1.0 / hz;
         }
         if due {
             for (&i, s) in frame.ids.iter().zip(&frame.states) {
@@ -797,6 +920,17 @@ mod tests {
         assert_eq!((a.len(), &a[..8], a[16]), (33, &1i64.to_le_bytes()[..], 16));
         assert_eq!(attachment_gid(&a), Some(gid));
         assert_eq!(attachment_gid(&a[..20]), None);
+    }
+
+    #[test]
+    fn gids_are_rmw_zenoh_cpps() {
+        // XXH3-128 of "": 99aa06d3014798d8 6001c324468d497f (xxHash's own test vector).
+        let want = [0x6001_c324_468d_497f_u64.to_le_bytes(), 0x99aa_06d3_0147_98d8_u64.to_le_bytes()].concat();
+        assert_eq!(gid_of("")[..], want[..]);
+        let parts: Vec<&str> = "@ros2_lv/0/1f2e/3/7/MP/%/%ns/pilot/%f1%cmd_vel/t/h/q".split('/').collect();
+        assert_eq!(ros_client(&parts), "ros2:/ns/pilot@1f2e/3");
+        let parts: Vec<&str> = "@ros2_lv/0/1f2e/0/7/MP/%/%/pilot/%f1%cmd_vel/t/h/q".split('/').collect();
+        assert_eq!(ros_client(&parts), "ros2:/pilot@1f2e/0");
     }
 
     #[test]

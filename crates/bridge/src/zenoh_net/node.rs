@@ -166,6 +166,12 @@ impl CommandSink {
         crate::lock(&self.world).clone()
     }
 
+    /// Files (`put`) or withdraws a claim of `client` on copter `name`, as a liveliness claim
+    /// on `…/alive/copters/<name>/<client>` does.
+    pub fn claim(&self, name: &str, client: &str, put: bool) {
+        claim(&self.controllers, &self.requests, &self.counters, name, client, put);
+    }
+
     /// Submits a command for copter `name`, made by `make` from the current world (its error
     /// is the rejection). `origin` is the input as the log keeps it.
     pub fn submit(
@@ -216,6 +222,43 @@ impl CommandSink {
                     counters.requests_dropped.fetch_add(1, Ordering::Relaxed);
                 }
             }
+        }
+    }
+}
+
+/// Files (`put`) or withdraws a claim of `client` on `copter`: the first claim of a copter is
+/// its controller, and a change of controller goes to the step loop.
+fn claim(
+    controllers: &Mutex<BTreeMap<String, Vec<String>>>,
+    requests: &SyncSender<Request>,
+    counters: &NodeCounters,
+    copter: &str,
+    client: &str,
+    put: bool,
+) {
+    let change = {
+        let mut map = crate::lock(controllers);
+        let queue = map.entry(copter.to_owned()).or_default();
+        let before = queue.first().cloned();
+        if put {
+            if !queue.iter().any(|c| c == client) {
+                queue.push(client.to_owned());
+            }
+        } else {
+            queue.retain(|c| c != client);
+        }
+        let after = queue.first().cloned();
+        (before != after).then(|| {
+            let lost = before.filter(|b| !queue.contains(b));
+            (after, lost)
+        })
+    };
+    if let Some((client, lost)) = change {
+        tracing::info!("copter {copter}: controller {client:?} (was {lost:?})");
+        let request = Request::Controller { copter: copter.to_owned(), client, lost };
+        if requests.try_send(request).is_err() {
+            counters.requests_dropped.fetch_add(1, Ordering::Relaxed);
+            tracing::warn!("controller change of {copter} dropped: the step loop's queue is full");
         }
     }
 }
@@ -359,31 +402,8 @@ impl Node {
                         }
                     }
                     // A claim: `<copter>/<client>`.
-                    let Some((copter, client)) = rest.split_once('/') else { return };
-                    let change = {
-                        let mut map = crate::lock(&controllers);
-                        let queue = map.entry(copter.to_owned()).or_default();
-                        let before = queue.first().cloned();
-                        if put {
-                            if !queue.iter().any(|c| c == client) {
-                                queue.push(client.to_owned());
-                            }
-                        } else {
-                            queue.retain(|c| c != client);
-                        }
-                        let after = queue.first().cloned();
-                        (before != after).then(|| {
-                            let lost = before.filter(|b| !queue.contains(b));
-                            (after, lost)
-                        })
-                    };
-                    if let Some((client, lost)) = change {
-                        tracing::info!("copter {copter}: controller {client:?} (was {lost:?})");
-                        let request = Request::Controller { copter: copter.to_owned(), client, lost };
-                        if requests.try_send(request).is_err() {
-                            counters.requests_dropped.fetch_add(1, Ordering::Relaxed);
-                            tracing::warn!("controller change of {copter} dropped: the step loop's queue is full");
-                        }
+                    if let Some((copter, client)) = rest.split_once('/') {
+                        claim(&controllers, &requests, &counters, copter, client, put);
                     }
                 })
                 .await
