@@ -10,6 +10,7 @@ by the simulator's code) and rides in each sample's attachment.
 import json
 import math
 import random
+import signal
 import struct
 import subprocess
 import threading
@@ -206,7 +207,7 @@ def test_a_ros_node_drives_the_lockstep_answering_clock_ticks(twinswarm_bin):
 def test_a_ros_publisher_claims_its_copter_and_others_are_refused(twinswarm_bin):
     endpoint = f"tcp/127.0.0.1:{free_tcp_port()}"
     proc = subprocess.Popen(
-        [str(twinswarm_bin), "run", "--ros2", "--realtime", "--duration", "6", "--json", "--no-log",
+        [str(twinswarm_bin), "run", "--ros2", "--realtime", "--duration", "120", "--json", "--no-log",
          "--listen", endpoint, "--prefix", "rosclaim/lab"], stdout=subprocess.PIPE, stderr=subprocess.PIPE)
     try:
         time.sleep(0.5)
@@ -225,6 +226,7 @@ def test_a_ros_publisher_claims_its_copter_and_others_are_refused(twinswarm_bin)
             time.sleep(0.05)
         time.sleep(0.5)
         other.close()
+        proc.send_signal(signal.SIGINT)  # ends the run after the current step, summary and all
         summary = finish(proc)
     finally:
         if proc.poll() is None:
