@@ -934,6 +934,51 @@ mod tests {
     }
 
     #[test]
+    fn a_nodes_command_publishers_claim_its_copters_and_name_its_commands() {
+        let world = Arc::new(sim_core::scene::load_default().1);
+        let (tx, rx) = std::sync::mpsc::sync_channel(64);
+        let claims = RosClaims { sink: CommandSink::detached(world, tx), book: Mutex::default() };
+        let token = |nid: u32, eid: u32, node: &str, topic: &str| {
+            format!("@ros2_lv/0/ab12/{nid}/{eid}/MP/%/%/{node}/%finken1%{topic}/t/h/q")
+        };
+        let on = |key: &str, put: bool| claims.on_publisher(key, &key.split('/').collect::<Vec<_>>(), put);
+        let controllers = || -> Vec<Option<String>> {
+            rx.try_iter()
+                .filter_map(|r| match r {
+                    crate::sim::Request::Controller { client, .. } => Some(client),
+                    _ => None,
+                })
+                .collect()
+        };
+        // Tokens before the copter is known (the graph's history): filed when it is.
+        let (vel, goal) = (token(1, 5, "pilot", "cmd_vel"), token(1, 6, "pilot", "goal_pose"));
+        on(&vel, true);
+        on(&token(1, 7, "pilot", "pose"), true);
+        assert!(controllers().is_empty());
+        claims.copter_added("finken1", "finken1");
+        let pilot = Some("ros2:/pilot@ab12/1".to_owned());
+        assert_eq!(controllers(), [pilot.clone()]);
+        // Its second command publisher is the same claim; a second node queues behind it.
+        on(&goal, true);
+        let other = token(2, 5, "other", "cmd_vel");
+        on(&other, true);
+        assert!(controllers().is_empty());
+        // Commands are known by their rmw_zenoh GIDs; another GID is nobody's with two nodes.
+        assert_eq!(claims.client_of("finken1", &gid_of(&goal)), pilot);
+        assert_eq!(claims.client_of("finken1", &gid_of(&other)).as_deref(), Some("ros2:/other@ab12/2"));
+        assert_eq!(claims.client_of("finken1", &[7; 16]), None);
+        assert_eq!(claims.client_of("finken2", &gid_of(&goal)), None);
+        // The pilot goes: the other node takes over, and is then the one node on finken1.
+        on(&vel, false);
+        assert!(controllers().is_empty(), "goal_pose still claims");
+        on(&goal, false);
+        assert_eq!(controllers(), [Some("ros2:/other@ab12/2".to_owned())]);
+        assert_eq!(claims.client_of("finken1", &[7; 16]).as_deref(), Some("ros2:/other@ab12/2"));
+        on(&other, false);
+        assert_eq!(controllers(), [None]);
+    }
+
+    #[test]
     fn commands_from_twist_and_goal_pose() {
         let mut w = super::super::cdr::CdrWriter::new();
         w.f64s(&[0.3, -0.1, 0.2, 0.0, 0.0, 0.5]);

@@ -166,6 +166,18 @@ impl CommandSink {
         crate::lock(&self.world).clone()
     }
 
+    /// A sink with no Zenoh session behind it, for tests of what submits to one.
+    #[cfg(test)]
+    pub(crate) fn detached(world: Arc<World>, requests: SyncSender<Request>) -> Self {
+        Self {
+            world: Arc::new(Mutex::new(world)),
+            counters: Arc::default(),
+            requests,
+            controllers: Arc::default(),
+            limiter: Arc::new(RateLimiter::new(Duration::from_secs(1))),
+        }
+    }
+
     /// Files (`put`) or withdraws a claim of `client` on copter `name`, as a liveliness claim
     /// on `…/alive/copters/<name>/<client>` does.
     pub fn claim(&self, name: &str, client: &str, put: bool) {
