@@ -16,7 +16,11 @@ Back to back, in one process run, on this machine:
    answering each state at once: control steps per second at N = 1, 10, 100;
 4. B = 8 worlds of 10 copters stepped by `step_many` on 2 threads (env-steps and copter-steps
    per second), the package's VectorEnv (8 one-copter worlds), and the pybullet peer stepping
-   the same 80 copters.
+   the same 80 copters;
+5. (`--only ros2-lockstep`, not by default) a ROS 2 controller node driving the lockstep:
+   `examples/ros2/swarm_circle.py --lockstep` (zenoh-ros2-sdk, one session, a `cmd_vel`
+   publisher per copter) answering each `/clock` tick for every copter of `run --ros2
+   --lockstep`: ticks per second at N = 1, 10, 100, as the example measures them.
 
 Prints one JSON object per measurement and a summary table (Markdown) at the end.
 """
@@ -178,6 +182,33 @@ def bench_lockstep(binary, rows, ns, seconds):
              rtf=round(steps_per_s * 0.05, 2), timeouts=sum(ls["timeouts"].values()), answers=ls["answers"])
 
 
+def bench_ros2_lockstep(binary, rows, ns, seconds):
+    for n in ns:
+        text = scene(binary, "hover", n)
+        with tempfile.NamedTemporaryFile("w", suffix=".toml", delete=False) as f:
+            f.write(text)
+        names = twinswarm.Sim(scene=text).names
+        port = free_port()
+        # The example climbs for 2 s, then circles for `seconds`; the run ends a second later.
+        proc = subprocess.Popen([binary, "run", f.name, "--ros2", "--lockstep", "--wait-claims", ",".join(names),
+                                 "--duration", str(seconds + 3.0), "--no-log", "--json",
+                                 "--listen", f"tcp/127.0.0.1:{port}", "--lockstep-timeout", "10"],
+                                stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        time.sleep(0.3)
+        example = os.path.join(ROOT, "examples", "ros2", "swarm_circle.py")
+        ctl = subprocess.run([sys.executable, example, "--lockstep", "--seconds", str(seconds), "--port", str(port),
+                              "--expect", str(n)],
+                             capture_output=True, text=True, timeout=600)
+        out, err = proc.communicate(timeout=600)
+        os.unlink(f.name)
+        assert ctl.returncode == 0 and proc.returncode == 0, (ctl.stderr[-2000:], err[-2000:])
+        line = next(l for l in ctl.stdout.splitlines() if l.startswith("lockstep:"))
+        ticks, wall = int(line.split()[1]), float(line.split()[5])
+        ls = json.loads(out)["lockstep"]
+        emit(rows, bench="ros2-lockstep", N=n, ticks=ticks, ticks_per_s=round(ticks / wall, 1),
+             rtf=round(ticks / wall * 0.05, 2), timeouts=sum(ls["timeouts"].values()), answers=ls["answers"])
+
+
 def bench_vector(binary, rows, steps):
     text = scene(binary, "hover", 10)
     sims = [twinswarm.Sim(scene=text, seed=s) for s in range(8)]
@@ -219,6 +250,8 @@ def main():
         bench_lockstep(a.binary, rows, [1, 10, 100], 10.0)
     if "vector" in a.only:
         bench_vector(a.binary, rows, 400)
+    if "ros2-lockstep" in a.only:
+        bench_ros2_lockstep(a.binary, rows, [1, 10, 100], 10.0)
     print(json.dumps({"load_after": open("/proc/loadavg").read().split()[:3]}), flush=True)
     print("\n| bench | N | figures |\n|---|---|---|")
     for r in rows:

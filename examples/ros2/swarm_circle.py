@@ -33,6 +33,24 @@ DEFINITIONS = {VECTOR3: "float64 x\nfloat64 y\nfloat64 z\n", TWIST: "Vector3 lin
                TIME: "int32 sec\nuint32 nanosec\n", CLOCK: "builtin_interfaces/Time clock\n"}
 
 
+def cmd_vel_topics(session, domain):
+    """The copters whose `/<copter>/cmd_vel` (a Twist) a node subscribes to, from the graph's
+    tokens. Queried here with a reply channel as large as the graph: the SDK's own listing
+    (`get_topic_names_and_types`) waits forever once the graph has more tokens than
+    eclipse-zenoh's default reply channel holds (a few hundred: 25 copters' worth)."""
+    import zenoh
+
+    replies = session.liveliness.get(f"@ros2_lv/{domain}/**", zenoh.handlers.FifoChannel(1 << 20), timeout=2.0)
+    copters = set()
+    for reply in replies:
+        parts = str(reply.ok.key_expr).split("/") if reply.ok else []
+        if len(parts) == 13 and parts[5] == "MS" and parts[10] == "geometry_msgs::msg::dds_::Twist_":
+            topic = parts[9].split("%")
+            if len(topic) == 3 and topic[2] == "cmd_vel":
+                copters.add(topic[1])
+    return sorted(copters)
+
+
 def main():
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--port", type=int, default=7447, help="the simulator's Zenoh port on 127.0.0.1")
@@ -40,6 +58,7 @@ def main():
     ap.add_argument("--seconds", type=float, default=20.0, help="how long to fly the circle")
     ap.add_argument("--speed", type=float, default=0.3, help="forward speed, m/s")
     ap.add_argument("--radius", type=float, default=0.8, help="circle radius, m")
+    ap.add_argument("--expect", type=int, default=1, help="wait until this many copters are in the graph")
     ap.add_argument("--lockstep", action="store_true",
                     help="answer every /clock tick (twinswarm run --lockstep); --seconds are simulated")
     args = ap.parse_args()
@@ -51,7 +70,7 @@ def main():
     os.environ["ZENOH_SESSION_CONFIG_URI"] = config.name
 
     from rosbags.typesys import Stores, get_typestore, get_types_from_msg
-    from zenoh_ros2_sdk import ROS2Publisher, ROS2Subscriber, ZenohSession, get_topic_names_and_types
+    from zenoh_ros2_sdk import ROS2Publisher, ROS2Subscriber, ZenohSession
 
     store = get_typestore(Stores.ROS2_JAZZY)
     session = ZenohSession.get_instance("127.0.0.1", args.port)
@@ -59,8 +78,14 @@ def main():
         session.store.register(get_types_from_msg(DEFINITIONS[name], name))
     Vector3 = session.store.types[VECTOR3]
 
-    topics = get_topic_names_and_types(domain_id=args.domain, router_port=args.port, timeout=2.0)
-    copters = sorted(t.split("/")[1] for t, types in topics if t.endswith("/cmd_vel") and TWIST in types)
+    # The simulator declares its graph on idle cores: with many copters, topics appear over seconds.
+    deadline = time.monotonic() + 60.0
+    while True:
+        copters = cmd_vel_topics(session, args.domain)
+        if len(copters) >= args.expect or time.monotonic() > deadline:
+            break
+    if len(copters) < args.expect:
+        raise SystemExit(f"{len(copters)} copters' cmd_vel in the graph after 60 s, not --expect {args.expect}")
     if not copters:
         raise SystemExit(f"no /<copter>/cmd_vel on domain {args.domain} at 127.0.0.1:{args.port}: "
                          "is `twinswarm run --ros2` running?")
@@ -83,17 +108,22 @@ def main():
     if args.lockstep:
         # One Twist per copter per tick: 2 s of climbing, then --seconds of circling, in
         # simulated time from the first tick.
-        first = None
+        first, answered = None, 0
         while True:
             try:
                 t = ticks.get(timeout=10.0)
             except queue.Empty:
                 raise SystemExit("no /clock for 10 s: is `twinswarm run --ros2 --lockstep` running?")
-            first = t if first is None else first
+            if first is None:
+                first, began = t, time.perf_counter()
             if t - first >= 2.0 + args.seconds:
                 break
             for p in pubs.values():
                 p.publish(**(climb if t - first < 2.0 else circle))
+            answered += 1
+        wall = time.perf_counter() - began
+        print(f"lockstep: {answered} ticks answered in {wall:.4f} s: {answered / wall:.0f} ticks/s, "
+              f"{(t - first) / wall:.1f}x real time")
         del clock
     else:
         end = time.monotonic() + args.seconds

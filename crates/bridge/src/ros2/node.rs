@@ -957,7 +957,7 @@ mod tests {
         assert!(controllers().is_empty());
         claims.copter_added("finken1", "finken1");
         let pilot = Some("ros2:/pilot@ab12/1".to_owned());
-        assert_eq!(controllers(), [pilot.clone()]);
+        assert_eq!(controllers(), std::slice::from_ref(&pilot));
         // Its second command publisher is the same claim; a second node queues behind it.
         on(&goal, true);
         let other = token(2, 5, "other", "cmd_vel");
