@@ -13,7 +13,7 @@ every `/clock` tick with each copter's Twist, and the simulator waits for the an
 circle is flown at the simulator's speed, the same bits whatever this script's latency. The run
 waits for its claims from tick 0, with the copters on the floor, so it climbs for 2 s first:
 
-    twinswarm run --ros2 --lockstep --wait-claims finken1,finken2 --duration 60 &
+    twinswarm run --ros2 --lockstep --wait-claims finken1,finken2 --duration 25 &
     python examples/ros2/swarm_circle.py --lockstep --seconds 20
 
 Its Zenoh session stays on loopback, with multicast scouting off.
