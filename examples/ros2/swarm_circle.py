@@ -14,7 +14,9 @@ circle is flown at the simulator's speed, the same bits whatever this script's l
 waits for its claims from tick 0, with the copters on the floor, so it climbs for 2 s first:
 
     twinswarm run --ros2 --lockstep --wait-claims finken1,finken2 --duration 25 &
-    python examples/ros2/swarm_circle.py --lockstep --seconds 20
+    python examples/ros2/swarm_circle.py --lockstep --expect 2 --seconds 20
+
+(`--expect 2`: wait until both copters are in the graph, since the run waits for both claims.)
 
 Its Zenoh session stays on loopback, with multicast scouting off.
 """

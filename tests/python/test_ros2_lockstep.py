@@ -107,7 +107,8 @@ class RosPilot:
 
 
 def fly_ros(pilot, last_tick, jitter_s, seed):
-    """Answers each `/clock` tick with every copter's Twist, after a random delay per copter."""
+    """Answers each `/clock` tick up to `last_tick` with every copter's Twist, after a random
+    delay per copter."""
     rng = random.Random(seed)
     seen = 0
     while True:
@@ -138,7 +139,8 @@ def ros_lockstep_run(twinswarm_bin, jitter_s, seed):
         time.sleep(0.5)
         pilot = RosPilot(endpoint, COPTERS)
         try:
-            fly_ros(pilot, round(DURATION_S / 0.05), jitter_s, seed)
+            # The run's last step answers tick steps - 1; the state after it needs no answer.
+            fly_ros(pilot, round(DURATION_S / 0.05) - 1, jitter_s, seed)
             summary = finish(proc)
         finally:
             pilot.close()
@@ -154,6 +156,15 @@ def wrap_pi(a):
     return (r + TAU32 if r < 0 else r) - PI32
 
 
+def recv(sub, timeout=30.0):
+    """The next sample, or a failure that says nothing came."""
+    end = time.monotonic() + timeout
+    while (sample := sub.try_recv()) is None:
+        assert time.monotonic() < end, "no state from the simulator"
+        time.sleep(0.0005)
+    return sample
+
+
 def zenoh_mirror_run(twinswarm_bin):
     """The same decisions as JSON commands over the Zenoh lockstep: what the simulator makes of
     a Twist (docs/ros2.md), done here in f32 from the state message's height and yaw."""
@@ -167,9 +178,9 @@ def zenoh_mirror_run(twinswarm_bin):
             subs = [session.declare_subscriber(f"{prefix}/copters/{c}/state") for c in COPTERS]
             pubs = [session.declare_publisher(f"{prefix}/copters/{c}/cmd") for c in COPTERS]
             tokens = [session.liveliness().declare_token(f"{prefix}/alive/copters/{c}/mirror") for c in COPTERS]
-            for tick in range(last_tick + 1):
+            for tick in range(last_tick):
                 for i, (sub, pub) in enumerate(zip(subs, pubs)):
-                    state = json.loads(sub.recv().payload.to_bytes())
+                    state = json.loads(recv(sub).payload.to_bytes())
                     assert state["tick"] == tick, (state["tick"], tick)
                     fwd, left, climb = decide(i, tick, state["pos_m"])
                     height = np.float32(state["pos_m"][2]) + np.float32(climb)
@@ -227,12 +238,17 @@ def test_a_ros_publisher_claims_its_copter_and_others_are_refused(twinswarm_bin)
         time.sleep(0.5)
         other.close()
         proc.send_signal(signal.SIGINT)  # ends the run after the current step, summary and all
-        summary = finish(proc)
+        out, err = proc.communicate(timeout=60)
     finally:
         if proc.poll() is None:
             proc.kill()
-    bus = summary["bus"]
+    assert proc.returncode == 0, err.decode()[-3000:]
+    bus = json.loads(out)["bus"]
     # The first node claimed finken1: the other's ten were refused; once the owner left, the
     # other's claim, queued behind it, took over and its five were taken.
     assert bus["commands_not_controller"] == 10, bus
     assert bus["commands_accepted"] == 15, bus
+    err = err.decode()
+    assert f'is controlled by client "{owner.client}", not "{other.client}"' in err, err[-3000:]
+    handover = [err.find(f'finken1: now controlled by "{c}"') for c in (owner.client, other.client)]
+    assert 0 <= handover[0] < handover[1], err[-3000:]

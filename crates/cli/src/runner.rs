@@ -369,11 +369,11 @@ pub fn run<W: StepObserver + Send>(
                 gateway.set_world(&frame.world);
                 gateway.send_ivy(&frame.pprz_out);
                 if let Some(node) = &mut node {
+                    // Each side publishes whatever the other's fate: a ROS controller under
+                    // lockstep waits for its `/clock`.
                     let mut published = node.publish(&frame).await;
-                    if let Some(ros) = &mut ros
-                        && published.is_ok()
-                    {
-                        published = ros.publish(&frame);
+                    if let Some(ros) = &mut ros {
+                        published = published.and(ros.publish(&frame));
                     }
                     if let Err(e) = published {
                         let n = node.counters.publish_failed.fetch_add(1, Ordering::Relaxed) + 1;

@@ -350,16 +350,16 @@ impl Demand {
     }
 }
 
-/// The ROS side's claims. A ROS node with a publisher on `/<c>/cmd_vel` or `/<c>/goal_pose`
-/// in the graph (its `MP` token) claims copter `c` the way a Zenoh client's liveliness token
-/// does: the copter takes commands from that node only, `--lockstep` holds each step for its
-/// answer, and `--on-client-lost` applies when the node's last such publisher leaves. The
-/// client's name is `ros2:<node>@<zid>/<node id>`.
+/// The ROS side's claims. A ROS node with a publisher on `/<c>/cmd_vel` (a `Twist`) or
+/// `/<c>/goal_pose` (a `PoseStamped`) in the graph (its `MP` token) claims copter `c` the way
+/// a Zenoh client's liveliness token does: the copter takes commands from that node only,
+/// `--lockstep` holds each step for its answer, and `--on-client-lost` applies when the
+/// node's last such publisher leaves. The client's name is `ros2:<node>@<zid>/<node id>`.
 ///
 /// A command's attachment carries its publisher's GID, which `rmw_zenoh_cpp` makes from the
 /// publisher's token ([`gid_of`]), so a command is its node's. A client that makes GIDs
-/// otherwise (zenoh-ros2-sdk draws them at random) is still known when one node alone
-/// publishes commands to the copter.
+/// otherwise (zenoh-ros2-sdk draws them at random) is known by a GID first seen while its
+/// node alone published commands to the copter, and keeps it while that claim lasts.
 struct RosClaims {
     sink: CommandSink,
     book: Mutex<ClaimBook>,
@@ -369,74 +369,86 @@ struct RosClaims {
 struct ClaimBook {
     /// Command publishers in the graph by GID: their copter (ROS name) and client.
     publishers: HashMap<[u8; 16], (String, String)>,
+    /// GIDs not made from a token, learned from commands: their copter and client.
+    learned: HashMap<[u8; 16], (String, String)>,
     /// By copter (ROS name): its clients, each with its count of command publishers.
     clients: HashMap<String, std::collections::BTreeMap<String, u32>>,
     /// Scene names of the copters known so far, by ROS name.
     names: HashMap<String, String>,
 }
 
+/// [`Ros2Node::tick`] before the first frame: a command then answers no tick (under
+/// `--lockstep`, a claimed copter refuses it).
+const NO_FRAME: u64 = u64::MAX;
+
+/// The command topics, with the type each must have to be one.
+const COMMAND_TOPICS: [(&str, &str); 2] =
+    [("cmd_vel", "geometry_msgs/msg/Twist"), ("goal_pose", "geometry_msgs/msg/PoseStamped")];
+
 impl RosClaims {
-    /// A publisher's token came (`put`) or went; `parts` is `key` split at `/`.
+    /// A publisher's token came (`put`) or went; `parts` is `key` split at `/`. Claims are
+    /// filed under the book's lock, so that they reach the sink in the book's order.
     fn on_publisher(&self, key: &str, parts: &[&str], put: bool) {
-        if !(parts[9].ends_with("%cmd_vel") || parts[9].ends_with("%goal_pose")) {
+        let Some((copter, _)) = parts[9].strip_prefix('%').and_then(|t| t.split_once('%')) else { return };
+        let topic = &parts[9][copter.len() + 2..];
+        let is_command =
+            |(t, ty): &(&str, &str)| *t == topic && parts[10] == dds_name(ty) && parts[11] == type_hash(ty);
+        if !COMMAND_TOPICS.iter().any(is_command) {
             return; // the simulator's own topics among them: 9 per copter
         }
-        let topic: Vec<&str> = parts[9].split('%').collect();
-        let ["", copter, "cmd_vel" | "goal_pose"] = topic[..] else { return };
         let client = ros_client(parts);
         let gid = gid_of(key);
-        let filed = {
-            let mut book = crate::lock(&self.book);
-            let changed = if put {
-                let new = !book.publishers.contains_key(&gid);
-                if new {
-                    book.publishers.insert(gid, (copter.to_owned(), client.clone()));
-                    let n = book.clients.entry(copter.to_owned()).or_default().entry(client.clone()).or_default();
-                    *n += 1;
-                }
-                new && book.clients[copter][&client] == 1
-            } else if book.publishers.remove(&gid).is_some() {
-                let clients = book.clients.entry(copter.to_owned()).or_default();
-                let n = clients.entry(client.clone()).or_default();
-                *n = n.saturating_sub(1);
-                let gone = *n == 0;
-                if gone {
-                    clients.remove(&client);
-                }
-                gone
-            } else {
-                false
-            };
-            changed.then(|| book.names.get(copter).cloned()).flatten()
+        let mut book = crate::lock(&self.book);
+        let book = &mut *book;
+        let changed = if put {
+            if book.publishers.insert(gid, (copter.to_owned(), client.clone())).is_some() {
+                return;
+            }
+            let n = book.clients.entry(copter.to_owned()).or_default().entry(client.clone()).or_default();
+            *n += 1;
+            *n == 1
+        } else {
+            if book.publishers.remove(&gid).is_none() {
+                return;
+            }
+            let clients = book.clients.entry(copter.to_owned()).or_default();
+            let n = clients.entry(client.clone()).or_default();
+            *n = n.saturating_sub(1);
+            let gone = *n == 0;
+            if gone {
+                clients.remove(&client);
+                book.learned.retain(|_, (c, k)| !(c == copter && *k == client));
+            }
+            gone
         };
-        if let Some(name) = filed {
-            self.sink.claim(&name, &client, put);
+        if let Some(name) = book.names.get(copter).filter(|_| changed) {
+            self.sink.claim(name, &client, put);
         }
     }
 
     /// Copter `name` (`ros_name` in ROS) is known: the claims on it so far are filed.
     fn copter_added(&self, ros_name: &str, name: &str) {
-        let clients: Vec<String> = {
-            let mut book = crate::lock(&self.book);
-            book.names.insert(ros_name.to_owned(), name.to_owned());
-            book.clients.get(ros_name).map(|c| c.keys().cloned().collect()).unwrap_or_default()
-        };
-        for client in clients {
-            self.sink.claim(name, &client, true);
+        let mut book = crate::lock(&self.book);
+        book.names.insert(ros_name.to_owned(), name.to_owned());
+        for client in book.clients.get(ros_name).into_iter().flat_map(|c| c.keys()) {
+            self.sink.claim(name, client, true);
         }
     }
 
     /// The client a command to `ros_name` with GID `gid` comes from: the node of the
-    /// publisher with that GID, or the one node that publishes commands to the copter.
+    /// publisher with that GID, the node it was learned for, or the one node that publishes
+    /// commands to the copter (learned then).
     fn client_of(&self, ros_name: &str, gid: &[u8; 16]) -> Option<String> {
-        let book = crate::lock(&self.book);
-        if let Some((copter, client)) = book.publishers.get(gid) {
+        let mut book = crate::lock(&self.book);
+        if let Some((copter, client)) = book.publishers.get(gid).or_else(|| book.learned.get(gid)) {
             return (copter == ros_name).then(|| client.clone());
         }
-        match book.clients.get(ros_name).map(|c| c.keys().collect::<Vec<_>>()).as_deref() {
-            Some([only]) => Some((*only).clone()),
-            _ => None,
-        }
+        let only = match book.clients.get(ros_name).map(|c| c.keys().collect::<Vec<_>>()).as_deref() {
+            Some([only]) => (*only).clone(),
+            _ => return None,
+        };
+        book.learned.insert(*gid, (ros_name.to_owned(), only.clone()));
+        Some(only)
     }
 }
 
@@ -500,7 +512,8 @@ pub struct Ros2Node {
     copters: Vec<CopterTopics>,
     latest: Latest,
     claims: Arc<RosClaims>,
-    /// The tick of the last frame published: the tick a ROS command answers (`--lockstep`).
+    /// The tick of the last frame published: the tick a ROS command answers (`--lockstep`);
+    /// [`NO_FRAME`] before the first.
     tick: Arc<AtomicU64>,
     _command_subs: Vec<zenoh::pubsub::Subscriber<()>>,
     _graph_sub: zenoh::pubsub::Subscriber<()>,
@@ -553,7 +566,7 @@ impl Ros2Node {
             copters: Vec::new(),
             latest: Latest::default(),
             claims,
-            tick: Arc::default(),
+            tick: Arc::new(AtomicU64::new(NO_FRAME)),
             _command_subs: Vec::new(),
             _graph_sub: graph_sub,
             next_due_s: 0.0,
@@ -644,7 +657,7 @@ impl Ros2Node {
             .session
             .declare_subscriber(key)
             .callback(move |sample| {
-                let answers = tick.load(Ordering::Acquire);
+                let answers = Some(tick.load(Ordering::Acquire)).filter(|&t| t != NO_FRAME);
                 let key = sample.key_expr().as_str();
                 let ros_name = key.split('/').nth(1).unwrap_or_default();
                 let gid = sample.attachment().and_then(|a| attachment_gid(&a.to_bytes()));
@@ -664,7 +677,7 @@ impl Ros2Node {
                     |world| {
                         let (mut cmd, _) = converted.map_err(CommandError::Malformed)?;
                         cmd.client = client;
-                        cmd.tick = Some(answers);
+                        cmd.tick = answers;
                         if let Some(h) = cmd.height.as_mut() {
                             *h = h.clamp(0.0, world.arena.height_m);
                         }
@@ -938,8 +951,9 @@ mod tests {
         let world = Arc::new(sim_core::scene::load_default().1);
         let (tx, rx) = std::sync::mpsc::sync_channel(64);
         let claims = RosClaims { sink: CommandSink::detached(world, tx), book: Mutex::default() };
-        let token = |nid: u32, eid: u32, node: &str, topic: &str| {
-            format!("@ros2_lv/0/ab12/{nid}/{eid}/MP/%/%/{node}/%finken1%{topic}/t/h/q")
+        let token = |nid: u32, eid: u32, node: &str, topic: &str, ty: &str| {
+            let (t, h) = (dds_name(ty), type_hash(ty));
+            format!("@ros2_lv/0/ab12/{nid}/{eid}/MP/%/%/{node}/%finken1%{topic}/{t}/{h}/::,10:,:,:,,")
         };
         let on = |key: &str, put: bool| claims.on_publisher(key, &key.split('/').collect::<Vec<_>>(), put);
         let controllers = || -> Vec<Option<String>> {
@@ -950,21 +964,29 @@ mod tests {
                 })
                 .collect()
         };
-        // Tokens before the copter is known (the graph's history): filed when it is.
-        let (vel, goal) = (token(1, 5, "pilot", "cmd_vel"), token(1, 6, "pilot", "goal_pose"));
+        let (twist, goal_ty) = ("geometry_msgs/msg/Twist", "geometry_msgs/msg/PoseStamped");
+        // Tokens before the copter is known (the graph's history): filed when it is. Neither
+        // a pose publisher nor a cmd_vel of another type is a claim.
+        let (vel, goal) = (token(1, 5, "pilot", "cmd_vel", twist), token(1, 6, "pilot", "goal_pose", goal_ty));
         on(&vel, true);
-        on(&token(1, 7, "pilot", "pose"), true);
+        on(&token(1, 7, "pilot", "pose", goal_ty), true);
+        on(&token(3, 5, "stamped", "cmd_vel", "geometry_msgs/msg/TwistStamped"), true);
         assert!(controllers().is_empty());
         claims.copter_added("finken1", "finken1");
         let pilot = Some("ros2:/pilot@ab12/1".to_owned());
         assert_eq!(controllers(), std::slice::from_ref(&pilot));
+        // A GID not made from a token, while the pilot alone publishes: learned as the pilot's.
+        assert_eq!(claims.client_of("finken1", &[9; 16]), pilot);
         // Its second command publisher is the same claim; a second node queues behind it.
         on(&goal, true);
-        let other = token(2, 5, "other", "cmd_vel");
+        on(&vel, true); // a duplicate put
+        let other = token(2, 5, "other", "cmd_vel", twist);
         on(&other, true);
         assert!(controllers().is_empty());
-        // Commands are known by their rmw_zenoh GIDs; another GID is nobody's with two nodes.
+        // Commands are known by their rmw_zenoh GIDs or learned ones; a new GID is nobody's
+        // with two nodes on the copter.
         assert_eq!(claims.client_of("finken1", &gid_of(&goal)), pilot);
+        assert_eq!(claims.client_of("finken1", &[9; 16]), pilot);
         assert_eq!(claims.client_of("finken1", &gid_of(&other)).as_deref(), Some("ros2:/other@ab12/2"));
         assert_eq!(claims.client_of("finken1", &[7; 16]), None);
         assert_eq!(claims.client_of("finken2", &gid_of(&goal)), None);
@@ -973,7 +995,7 @@ mod tests {
         assert!(controllers().is_empty(), "goal_pose still claims");
         on(&goal, false);
         assert_eq!(controllers(), [Some("ros2:/other@ab12/2".to_owned())]);
-        assert_eq!(claims.client_of("finken1", &[7; 16]).as_deref(), Some("ros2:/other@ab12/2"));
+        assert_eq!(claims.client_of("finken1", &[9; 16]).as_deref(), Some("ros2:/other@ab12/2"));
         on(&other, false);
         assert_eq!(controllers(), [None]);
     }
