@@ -389,8 +389,7 @@ impl RosClaims {
     /// A publisher's token came (`put`) or went; `parts` is `key` split at `/`. Claims are
     /// filed under the book's lock, so that they reach the sink in the book's order.
     fn on_publisher(&self, key: &str, parts: &[&str], put: bool) {
-        let Some((copter, _)) = parts[9].strip_prefix('%').and_then(|t| t.split_once('%')) else { return };
-        let topic = &parts[9][copter.len() + 2..];
+        let Some((copter, topic)) = parts[9].strip_prefix('%').and_then(|t| t.split_once('%')) else { return };
         let is_command =
             |(t, ty): &(&str, &str)| *t == topic && parts[10] == dds_name(ty) && parts[11] == type_hash(ty);
         if !COMMAND_TOPICS.iter().any(is_command) {

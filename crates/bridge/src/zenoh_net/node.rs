@@ -178,10 +178,35 @@ impl CommandSink {
         }
     }
 
-    /// Files (`put`) or withdraws a claim of `client` on copter `name`, as a liveliness claim
-    /// on `…/alive/copters/<name>/<client>` does.
-    pub fn claim(&self, name: &str, client: &str, put: bool) {
-        claim(&self.controllers, &self.requests, &self.counters, name, client, put);
+    /// Files (`put`) or withdraws a claim of `client` on copter `copter`, as a liveliness
+    /// claim on `…/alive/copters/<copter>/<client>` does: the first claim of a copter is its
+    /// controller, and a change of controller goes to the step loop.
+    pub fn claim(&self, copter: &str, client: &str, put: bool) {
+        let change = {
+            let mut map = crate::lock(&self.controllers);
+            let queue = map.entry(copter.to_owned()).or_default();
+            let before = queue.first().cloned();
+            if put {
+                if !queue.iter().any(|c| c == client) {
+                    queue.push(client.to_owned());
+                }
+            } else {
+                queue.retain(|c| c != client);
+            }
+            let after = queue.first().cloned();
+            (before != after).then(|| {
+                let lost = before.filter(|b| !queue.contains(b));
+                (after, lost)
+            })
+        };
+        if let Some((client, lost)) = change {
+            tracing::info!("copter {copter}: controller {client:?} (was {lost:?})");
+            let request = Request::Controller { copter: copter.to_owned(), client, lost };
+            if self.requests.try_send(request).is_err() {
+                self.counters.requests_dropped.fetch_add(1, Ordering::Relaxed);
+                tracing::warn!("controller change of {copter} dropped: the step loop's queue is full");
+            }
+        }
     }
 
     /// Submits a command for copter `name`, made by `make` from the current world (its error
@@ -234,43 +259,6 @@ impl CommandSink {
                     counters.requests_dropped.fetch_add(1, Ordering::Relaxed);
                 }
             }
-        }
-    }
-}
-
-/// Files (`put`) or withdraws a claim of `client` on `copter`: the first claim of a copter is
-/// its controller, and a change of controller goes to the step loop.
-fn claim(
-    controllers: &Mutex<BTreeMap<String, Vec<String>>>,
-    requests: &SyncSender<Request>,
-    counters: &NodeCounters,
-    copter: &str,
-    client: &str,
-    put: bool,
-) {
-    let change = {
-        let mut map = crate::lock(controllers);
-        let queue = map.entry(copter.to_owned()).or_default();
-        let before = queue.first().cloned();
-        if put {
-            if !queue.iter().any(|c| c == client) {
-                queue.push(client.to_owned());
-            }
-        } else {
-            queue.retain(|c| c != client);
-        }
-        let after = queue.first().cloned();
-        (before != after).then(|| {
-            let lost = before.filter(|b| !queue.contains(b));
-            (after, lost)
-        })
-    };
-    if let Some((client, lost)) = change {
-        tracing::info!("copter {copter}: controller {client:?} (was {lost:?})");
-        let request = Request::Controller { copter: copter.to_owned(), client, lost };
-        if requests.try_send(request).is_err() {
-            counters.requests_dropped.fetch_add(1, Ordering::Relaxed);
-            tracing::warn!("controller change of {copter} dropped: the step loop's queue is full");
         }
     }
 }
@@ -391,8 +379,7 @@ impl Node {
         let token = session.liveliness().declare_token(format!("{prefix}/alive/sim")).await.map_err(zerr)?;
         let clients = Arc::new(Mutex::new(BTreeSet::new()));
         let alive_sub = {
-            let (clients, counters, controllers, requests) =
-                (clients.clone(), counters.clone(), controllers.clone(), requests.clone());
+            let (clients, counters, commands) = (clients.clone(), counters.clone(), commands.clone());
             let base = format!("{prefix}/alive/copters/");
             session
                 .liveliness()
@@ -415,7 +402,7 @@ impl Node {
                     }
                     // A claim: `<copter>/<client>`.
                     if let Some((copter, client)) = rest.split_once('/') {
-                        claim(&controllers, &requests, &counters, copter, client, put);
+                        commands.claim(copter, client, put);
                     }
                 })
                 .await
