@@ -69,6 +69,7 @@ fn main() {
             messages: messages.clone(),
             plan: TelemetryPlan::project_default(),
             virtual_sonar_period_s: 0.0,
+            uplinks: Default::default(),
         }),
         sync: Some(bridge::sync::SyncOptions::default()),
         ..LoopOptions::default()

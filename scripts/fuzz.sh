@@ -5,7 +5,7 @@
 #
 # Default: 1,000,000 executions for each target of crates/fuzz (scene, messages_xml, conf_xml,
 # pairing_xml, telemetry_xml, ivy_text, ivy_wire, zenoh_json, mcap, plot, log, log_merge,
-# foxglove_client, ghost_batch), one after the other on one core. Prints one line per target
+# foxglove_client, ghost_batch, pprz_log), one after the other on one core. Prints one line per target
 # (executions, corpus size, crashes, hangs), writes it to target/afl/report.tsv, and appends
 # it, with the commit fuzzed and the date, to the record in crates/fuzz/RESULTS.md.
 #
@@ -21,7 +21,7 @@ cd "$(dirname "$0")/.."
 execs="${1:-1000000}"
 shift || true
 all=(scene messages_xml conf_xml pairing_xml telemetry_xml ivy_text ivy_wire zenoh_json mcap plot log log_merge
-  foxglove_client ghost_batch)
+  foxglove_client ghost_batch pprz_log)
 targets=("$@")
 [ "${#targets[@]}" -gt 0 ] || targets=("${all[@]}")
 

@@ -33,6 +33,19 @@ cargo test --workspace --all-targets --locked
 say "cargo test --doc"
 cargo test --workspace --doc --locked
 
+say "Paparazzi ground segment (link, server) for tests/python/test_paparazzi_ground.py"
+# Built from ../shared/paparazzi into target/paparazzi: apt packages on a new machine (~80 s),
+# then ~35 s of building; build.sh keeps a finished build (target/paparazzi/.built holds the
+# source tarball's hash) and then returns at once. Without ../shared/paparazzi those tests skip
+# loudly (a line in $TWINSWARM_SKIP_LOG), or fail under CI=true.
+if [ -f ../shared/paparazzi/build.sh ]; then
+  pprz_start=$(date +%s)
+  bash ../shared/paparazzi/build.sh target/paparazzi
+  echo "paparazzi: ready in $(( $(date +%s) - pprz_start )) s"
+else
+  echo "../shared/paparazzi/build.sh not found: the Paparazzi ground-segment tests will skip (fail under CI=true)"
+fi
+
 say "python: independent clients and peers (tests/python: eclipse-zenoh, mcap, ivy-python)"
 if [ ! -x .venv/bin/python ]; then
   python3 -m venv .venv
@@ -63,4 +76,4 @@ if [ "$skipped" -gt 0 ]; then
   skip_note=" ($skipped shared-data tests skipped: $(cut -f2 "$TWINSWARM_SKIP_LOG" | sort -u | paste -sd, -) absent)"
 fi
 echo
-echo "all checks passed: fmt, clippy, cargo tests, doc tests, python tests (Zenoh client, MCAP reader, replay, Ivy peers, the Python package, PettingZoo and Gymnasium conformance, lockstep)$skip_note"
+echo "all checks passed: fmt, clippy, cargo tests, doc tests, python tests (Zenoh client, MCAP reader, replay, Ivy peers, Paparazzi's link and server, the Python package, PettingZoo and Gymnasium conformance, lockstep)$skip_note"

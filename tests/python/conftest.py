@@ -77,24 +77,79 @@ def shared_data_or_skip(*parts: str) -> pathlib.Path:
     path = shared_data_dir().joinpath(*parts)
     if path.is_dir():
         return path
+    skip_for_absent_shared(path, "shared data", "TWINSWARM_SHARED_DATA")
+
+
+def skip_for_absent_shared(path: pathlib.Path, what: str, env_var: str):
+    """For a test that needs `path` of ../shared (`what` names it; `env_var` is the variable
+    that can point elsewhere), which is absent: under CI=true the test fails, naming the path;
+    otherwise it is skipped loudly (listed at the end of the session) and recorded as a line
+    `test<TAB>path` in the file named by $TWINSWARM_SKIP_LOG, which scripts/test.sh counts."""
     test = os.environ.get("PYTEST_CURRENT_TEST", "?").rsplit(" (", 1)[0]
-    how = "from TWINSWARM_SHARED_DATA" if "TWINSWARM_SHARED_DATA" in os.environ else "TWINSWARM_SHARED_DATA unset"
+    how = f"from {env_var}" if env_var in os.environ else f"{env_var} unset"
     if under_ci():
-        pytest.fail(f"shared data not found at {path} ({how}); CI=true, so this is a failure, not a skip "
-                    "(provide the directory or point TWINSWARM_SHARED_DATA at it)", pytrace=False)
-    _SHARED_DATA_SKIPS.append((test, path))
+        pytest.fail(f"{what} not found at {path} ({how}); CI=true, so this is a failure, not a skip "
+                    f"(provide the directory or point {env_var} at it)", pytrace=False)
+    _SHARED_DATA_SKIPS.append((test, path, what))
     log = os.environ.get("TWINSWARM_SKIP_LOG")
     if log:
         with open(log, "a", encoding="utf-8") as f:
             f.write(f"{test}\t{path}\n")
-    pytest.skip(f"shared data not found at {path} ({how})")
+    pytest.skip(f"{what} not found at {path} ({how})")
 
 
 def pytest_terminal_summary(terminalreporter):
     if _SHARED_DATA_SKIPS:
         terminalreporter.section("shared data absent", sep="=", yellow=True, bold=True)
-        for test, path in _SHARED_DATA_SKIPS:
-            terminalreporter.write_line(f"SKIPPED {test}: shared data not found at {path}", yellow=True)
+        for test, path, what in _SHARED_DATA_SKIPS:
+            terminalreporter.write_line(f"SKIPPED {test}: {what} not found at {path}", yellow=True)
+
+
+
+# ---- the real Paparazzi ground segment (pprz_ground.py) ----
+
+@pytest.fixture
+def paparazzi_ground(tmp_path):
+    """A factory for the real Paparazzi `link` and `server` (built from ../shared/paparazzi;
+    a loud skip, or a failure under CI=true, without it):
+
+        g = paparazzi_ground(messages_xml=None, aircraft=None, link=True, server=True,
+                             server_log=False)
+
+    starts them on a private loopback Ivy bus (g.bus, 127.255.255.255:<free port>) with a
+    private PAPARAZZI_HOME (g.home) whose var/messages.xml is `messages_xml` (default: the
+    build's pprzlink v1.0 one) and whose conf.xml has `aircraft` (pprz_ground.Aircraft; default
+    Virtual_201/202 as 201/202, registrable), and returns a pprz_ground.GroundSegment once both
+    have joined the bus: g.agent (an ivy-python agent on the bus: bind, received, send via
+    g.send), g.link_port (link's UDP port, where aircraft frames go), g.uplink_port and
+    g.uplink (the UDP socket on 127.0.0.1 where link sends frames for aircraft; see
+    g.send_downlink, g.keep_alive, g.recv_uplink), g.log('link'|'server'). Stopped at teardown;
+    their output is printed then (shown for a failing test)."""
+    import pprz_ground
+
+    started = []
+
+    def start(messages_xml=None, **kwargs):
+        g = pprz_ground.start_ground_segment(tmp_path / f"ground{len(started)}", messages_xml, **kwargs)
+        started.append(g)
+        return g
+
+    yield start
+    for g in started:
+        g.stop()
+        for which in g.logs:
+            print(f"---- {which} ({g.bus}) ----\n{g.log(which)[-4000:]}")
+
+
+@pytest.fixture(scope="session")
+def lab_messages_xml(tmp_path_factory):
+    """A FINken lab's messages.xml for today's Paparazzi: pprzlink v1.0 with the FINken
+    telemetry and SONAR_UPLINK (datalink 153) merged in (pprz_ground.lab_messages_xml), from
+    ../shared/data/paparazzi_finken."""
+    import pprz_ground
+
+    finken = shared_data_or_skip("paparazzi_finken")
+    return pprz_ground.lab_messages_xml(tmp_path_factory.mktemp("lab_messages"), finken)
 
 
 # ---- reading logs ----

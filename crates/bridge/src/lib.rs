@@ -11,6 +11,8 @@
 //!   against absolute deadlines.
 //! * [`mixed`]: mixed reality: real telemetry to twins, virtual sonar and virtual telemetry
 //!   back, over Zenoh, over Ivy, or both as a gateway.
+//! * [`realflight`]: a real flight's Paparazzi log as series in the simulator's frame, its
+//!   flights, the arena its sonars describe and where each flight began.
 //! * [`sync`]: keeping twins where their real copters are (MEDUSA and tracking).
 //! * [`log`]: MCAP logs, their reader and recovery.
 //! * [`checkpoint`]: a run saved between two steps, bit for bit, and restored.
@@ -28,6 +30,7 @@ pub mod live;
 pub mod log;
 pub mod mixed;
 pub mod paparazzi;
+pub mod realflight;
 pub mod ros2;
 pub mod shard;
 pub mod sim;

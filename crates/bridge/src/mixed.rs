@@ -33,7 +33,7 @@ use sim_core::{CopterKind, FlightMode, SceneSpec, State, World};
 
 use crate::AcId;
 use crate::paparazzi::conf::AircraftKind;
-use crate::paparazzi::convert::{TelemetrySource, telemetry_text, twin_command, virtual_sonar_text};
+use crate::paparazzi::convert::{TelemetrySource, Uplink, telemetry_text, twin_command, uplink_text};
 use crate::paparazzi::ivy::IvyAgent;
 use crate::paparazzi::messages::MessageSet;
 use crate::paparazzi::pairing::{ResolvedPairing, Route, UnknownAircraftStats};
@@ -152,8 +152,59 @@ pub struct OutboxOptions {
     pub messages: Arc<MessageSet>,
     /// What virtual copters send.
     pub plan: TelemetryPlan,
-    /// Period of `VIRTUAL_SONAR` per twin, s; 0: at every sonar update.
+    /// Period of the virtual-sonar uplink per twin, s; 0: at every sonar update.
     pub virtual_sonar_period_s: f64,
+    /// Per aircraft, the uplink its firmware understands, where it is not the one `messages`
+    /// defines ([`Uplink::defined_by`]).
+    pub uplinks: BTreeMap<AcId, Uplink>,
+}
+
+impl OutboxOptions {
+    /// The uplink aircraft `ac_id`'s twin sends: its own setting, else the one `messages`
+    /// defines. An uplink `messages` does not define is never sent (it could not be encoded,
+    /// and Paparazzi's `link` would drop it).
+    pub fn uplink_for(&self, ac_id: AcId) -> Uplink {
+        let defined = |u: Uplink| u.message().is_some_and(|m| self.messages.by_class_and_name("datalink", m).is_some());
+        match self.uplinks.get(&ac_id) {
+            Some(&u) if u == Uplink::None || defined(u) => u,
+            Some(_) => Uplink::None,
+            None => Uplink::defined_by(&self.messages),
+        }
+    }
+
+    /// One line per twin of `world` for the start of a run: the uplink it gets, or that it gets
+    /// none and why.
+    pub fn uplink_lines(&self, world: &World) -> Vec<String> {
+        world
+            .copters
+            .iter()
+            .filter(|c| c.kind == CopterKind::Real)
+            .filter_map(|c| {
+                let ac = c.ac_id?;
+                Some(match (self.uplink_for(ac), self.uplinks.get(&ac)) {
+                    (Uplink::None, Some(Uplink::None)) => {
+                        format!("{} (aircraft {ac}): no virtual-sonar uplink (set so)", c.name)
+                    }
+                    (Uplink::None, Some(u)) => format!(
+                        "{} (aircraft {ac}): no virtual-sonar uplink: {} is not a datalink message of {}",
+                        c.name,
+                        u.message().unwrap_or("-"),
+                        self.messages.source
+                    ),
+                    (Uplink::None, None) => format!(
+                        "{} (aircraft {ac}): no virtual-sonar uplink: {} defines neither SONAR_UPLINK nor VIRTUAL_SONAR",
+                        c.name, self.messages.source
+                    ),
+                    (u, _) => format!(
+                        "{} (aircraft {ac}): virtual sonar as {} from `{}`",
+                        c.name,
+                        u.message().unwrap_or("-"),
+                        u.sender()
+                    ),
+                })
+            })
+            .collect()
+    }
 }
 
 /// A Paparazzi text to publish.
@@ -253,10 +304,13 @@ impl Outbox {
                         self.virtual_sonar.prepare(world, state);
                         prepared = true;
                     }
+                    let uplink = self.opts.uplink_for(ac_id);
+                    let Some(name) = uplink.message() else { continue };
                     let readings = self.virtual_sonar.readings(world, state, i);
-                    match virtual_sonar_text(&self.opts.messages, ac_id, readings) {
-                        Ok(text) => out.push(PprzOut { key: self.key("ground_dl", "VIRTUAL_SONAR"), text }),
-                        Err(e) => self.fail("VIRTUAL_SONAR", &e.to_string()),
+                    match uplink_text(&self.opts.messages, uplink, ac_id, readings) {
+                        Ok(Some(text)) => out.push(PprzOut { key: self.key(uplink.sender(), name), text }),
+                        Ok(None) => {}
+                        Err(e) => self.fail(name, &e.to_string()),
                     }
                 }
                 CopterKind::Virtual => {
@@ -459,6 +513,8 @@ pub struct GatewayStats {
     /// Texts logged but not used, by reason (an aircraft that is not ours, one of our virtual
     /// aircraft sent by someone else, a sender that is not an aircraft).
     pub ignored: BTreeMap<&'static str, u64>,
+    /// Per aircraft: which messages drove which quantity of its twin, and how often.
+    pub sources: BTreeMap<AcId, BTreeMap<Quantity, BTreeMap<String, u64>>>,
 }
 
 /// Turns telemetry texts into loop requests: decoding, routing by aircraft, primary and
@@ -468,8 +524,12 @@ pub struct GatewayStats {
 pub struct Interpreter {
     router: Router,
     stats: GatewayStats,
-    /// Per aircraft: when the primary attitude, height and sonar sources were last heard.
-    last_primary: BTreeMap<AcId, [Option<Instant>; 3]>,
+    /// When each aircraft last sent each bound message.
+    last_heard: BTreeMap<(AcId, &'static str), Instant>,
+    /// Per aircraft: its heading in the arena minus its own heading, rad.
+    heading_offset: BTreeMap<AcId, f32>,
+    /// Per aircraft: the roll and pitch its AHRS reads level (standing on the floor), rad.
+    level: BTreeMap<AcId, [f32; 2]>,
     /// Twin spawns the loop's queue could not take, sent again with the aircraft's next text.
     pending_spawn: BTreeMap<AcId, Box<CopterSpec>>,
     world: Arc<World>,
@@ -502,8 +562,78 @@ pub enum GatewayError {
 }
 
 /// The telemetry the gateway binds, with the regex it binds it with.
-pub const BOUND_TELEMETRY: [&str; 6] =
-    ["FINKEN_ACTUATORS_SET_POINT", "FINKEN_IR_ADC", "FINKEN_SENSOR_MODEL", "ATTITUDE", "ROTORCRAFT_FP", "SONAR_ARRAY"];
+pub const BOUND_TELEMETRY: [&str; 7] = [
+    "FINKEN_ACTUATORS_SET_POINT",
+    "FINKEN_IR_ADC",
+    "FINKEN_SENSOR_MODEL",
+    "ATTITUDE",
+    "AHRS_EULER_INT",
+    "ROTORCRAFT_FP",
+    "SONAR_ARRAY",
+];
+
+/// What a twin takes from its real copter's telemetry, each from one source at a time.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, PartialOrd, Ord, Hash, serde::Serialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Quantity {
+    /// Roll, pitch and yaw targets.
+    Attitude,
+    /// The height to hold.
+    Height,
+    /// The throttle (used only while no height is held).
+    Throttle,
+    /// The real copter's own sonar readings (for synchronisation).
+    Sonar,
+}
+
+impl Quantity {
+    const ALL: [Quantity; 3] = [Quantity::Attitude, Quantity::Height, Quantity::Throttle];
+
+    /// Its name in reports.
+    pub fn name(self) -> &'static str {
+        match self {
+            Quantity::Attitude => "attitude",
+            Quantity::Height => "height",
+            Quantity::Throttle => "throttle",
+            Quantity::Sonar => "sonar",
+        }
+    }
+
+    /// The messages that can give this quantity, best first: a message drives it only while
+    /// every better one has been silent for [`FALLBACK_AFTER_S`]. A twin so follows whichever
+    /// subset its aircraft's telemetry mode sends.
+    pub fn ranking(self, attitude: TwinAttitude) -> &'static [&'static str] {
+        match (self, attitude) {
+            (Quantity::Attitude, TwinAttitude::Setpoint) => {
+                &["FINKEN_ACTUATORS_SET_POINT", "ATTITUDE", "AHRS_EULER_INT", "FINKEN_SENSOR_MODEL", "ROTORCRAFT_FP"]
+            }
+            (Quantity::Attitude, TwinAttitude::Measured) => {
+                &["ATTITUDE", "AHRS_EULER_INT", "FINKEN_SENSOR_MODEL", "FINKEN_ACTUATORS_SET_POINT", "ROTORCRAFT_FP"]
+            }
+            (Quantity::Height, _) => &["FINKEN_IR_ADC", "FINKEN_SENSOR_MODEL", "ROTORCRAFT_FP"],
+            (Quantity::Throttle, _) => &["FINKEN_ACTUATORS_SET_POINT", "ROTORCRAFT_FP"],
+            (Quantity::Sonar, _) => &["SONAR_ARRAY", "FINKEN_SENSOR_MODEL"],
+        }
+    }
+
+    fn carried_by(self, c: &CommandMsg) -> bool {
+        match self {
+            Quantity::Attitude => c.roll.is_some() || c.pitch.is_some() || c.yaw.is_some(),
+            Quantity::Height => c.height.is_some(),
+            Quantity::Throttle => c.throttle.is_some(),
+            Quantity::Sonar => false,
+        }
+    }
+
+    fn clear(self, c: &mut CommandMsg) {
+        match self {
+            Quantity::Attitude => (c.roll, c.pitch, c.yaw) = (None, None, None),
+            Quantity::Height => c.height = None,
+            Quantity::Throttle => c.throttle = None,
+            Quantity::Sonar => {}
+        }
+    }
+}
 
 /// Where Paparazzi texts travel: Zenoh (`<prefix>/pprz/<sender>/<NAME>`), a real Ivy bus, or
 /// both, in which case the gateway also bridges every text between them.
@@ -679,11 +809,28 @@ impl Interpreter {
         Self {
             router: Router::new(&world, pairing),
             stats: GatewayStats::default(),
-            last_primary: BTreeMap::new(),
+            last_heard: BTreeMap::new(),
+            heading_offset: BTreeMap::new(),
+            level: BTreeMap::new(),
             pending_spawn: BTreeMap::new(),
             world,
             attitude,
         }
+    }
+
+    /// Aircraft `ac_id`'s heading in the arena minus the heading it reports, rad: added to
+    /// every yaw its telemetry gives (a real copter's magnetometer north need not be the
+    /// arena's +x).
+    pub fn set_heading_offset(&mut self, ac_id: AcId, offset_rad: f32) {
+        self.heading_offset.insert(ac_id, offset_rad);
+    }
+
+    /// The roll and pitch aircraft `ac_id`'s AHRS reads when it stands level, rad: taken off
+    /// every measured attitude it sends. A FINken's body frame sits a few degrees off its
+    /// IMU's (the 2015 copter read 5° nose up on the floor); followed as it comes, that offset
+    /// flies the twin into a wall within seconds.
+    pub fn set_level(&mut self, ac_id: AcId, roll_pitch_rad: [f32; 2]) {
+        self.level.insert(ac_id, roll_pitch_rad);
     }
 
     /// The world after a spawn (for command validation).
@@ -716,6 +863,7 @@ impl Interpreter {
             spawned: sh.stats.spawned.clone(),
             unknown_dropped: sh.router.unknown.dropped_by_ac_id.clone(),
             own_virtual_dropped: sh.router.own_virtual_dropped,
+            sources: sh.stats.sources.clone(),
         }
     }
 
@@ -760,63 +908,53 @@ impl Interpreter {
             Decision::OwnVirtual => return sh.ignore(origin, "sent as one of our virtual aircraft"),
             Decision::Unknown => return sh.ignore(origin, "aircraft not paired"),
         };
-        // Primary and fallback sources.
-        let last = sh.last_primary.entry(ac_id).or_default();
-        let silent = |t: Option<Instant>| t.is_none_or(|t| (received - t).as_secs_f64() > FALLBACK_AFTER_S);
+        let heard = received;
         let mut cmd = twin_command(msg);
-        let mut observed = None;
-        let mut sonar = None;
-        let mut yaw = None;
-        let (primary_attitude, fallback_attitude) = match sh.attitude {
-            TwinAttitude::Setpoint => ("FINKEN_ACTUATORS_SET_POINT", "ATTITUDE"),
-            TwinAttitude::Measured => ("ATTITUDE", "FINKEN_ACTUATORS_SET_POINT"),
-        };
-        match name.as_str() {
-            n if n == primary_attitude => {
-                last[0] = Some(received);
-                if n == "ATTITUDE"
-                    && let Some(c) = &cmd
-                {
-                    observed = Some([c.roll.unwrap_or(0.0), c.pitch.unwrap_or(0.0), c.yaw.unwrap_or(0.0)]);
-                    yaw = c.yaw;
+        let mut drove = Vec::new();
+        if let Some(c) = cmd.as_mut() {
+            for q in Quantity::ALL {
+                if !q.carried_by(c) {
+                    continue;
+                }
+                let ranking = q.ranking(sh.attitude);
+                let rank = ranking.iter().position(|n| *n == name).unwrap_or(ranking.len());
+                let higher_speaks = ranking[..rank].iter().any(|n| {
+                    sh.last_heard.get(&(ac_id, *n)).is_some_and(|t| (heard - *t).as_secs_f64() <= FALLBACK_AFTER_S)
+                });
+                if higher_speaks || rank == ranking.len() {
+                    q.clear(c);
+                } else {
+                    drove.push(q);
                 }
             }
-            n if n == fallback_attitude => {
-                if n == "ATTITUDE"
-                    && let Some(c) = &cmd
-                {
-                    observed = Some([c.roll.unwrap_or(0.0), c.pitch.unwrap_or(0.0), c.yaw.unwrap_or(0.0)]);
-                    yaw = c.yaw;
-                }
-                if !silent(last[0])
-                    && let Some(c) = cmd.as_mut()
-                {
-                    (c.roll, c.pitch, c.yaw) = (None, None, None);
-                }
-            }
-            "FINKEN_IR_ADC" => last[1] = Some(received),
-            "FINKEN_SENSOR_MODEL" => {
-                last[1] = Some(received);
-                yaw = crate::paparazzi::convert::real_yaw(msg);
-                if silent(last[2]) {
-                    sonar = crate::paparazzi::convert::real_sonar(msg);
-                }
-            }
-            "SONAR_ARRAY" => {
-                last[2] = Some(received);
-                sonar = crate::paparazzi::convert::real_sonar(msg);
-            }
-            "ROTORCRAFT_FP" => {
-                if let Some(c) = cmd.as_mut() {
-                    if !silent(last[0]) {
-                        (c.roll, c.pitch, c.yaw) = (None, None, None);
-                    }
-                    if !silent(last[1]) {
-                        c.height = None;
-                    }
-                }
-            }
-            _ => {}
+        }
+        if let Some(k) = BOUND_TELEMETRY.iter().find(|n| **n == name) {
+            sh.last_heard.insert((ac_id, k), heard);
+        }
+        let offset = sh.heading_offset.get(&ac_id).copied().unwrap_or(0.0);
+        let turn = |y: f32| sim_core::math::wrap_angle_rad(y + offset);
+        let measured = matches!(name.as_str(), "ATTITUDE" | "AHRS_EULER_INT" | "FINKEN_SENSOR_MODEL" | "ROTORCRAFT_FP");
+        let [level_roll, level_pitch] = sh.level.get(&ac_id).copied().filter(|_| measured).unwrap_or([0.0, 0.0]);
+        let observed = twin_command(msg)
+            .filter(|_| measured && name != "ROTORCRAFT_FP")
+            .and_then(|c| Some([c.roll? - level_roll, c.pitch? - level_pitch, c.yaw.map_or(0.0, turn)]));
+        let yaw = crate::paparazzi::convert::real_yaw(msg).map(turn);
+        let mut sonar = crate::paparazzi::convert::real_sonar(msg);
+        if sonar.is_some() {
+            let ranking = Quantity::Sonar.ranking(sh.attitude);
+            let rank = ranking.iter().position(|n| *n == name).unwrap_or(ranking.len());
+            let higher_speaks = ranking[..rank].iter().any(|n| {
+                sh.last_heard.get(&(ac_id, *n)).is_some_and(|t| (heard - *t).as_secs_f64() <= FALLBACK_AFTER_S)
+            });
+            if higher_speaks { sonar = None } else { drove.push(Quantity::Sonar) }
+        }
+        if let Some(c) = cmd.as_mut() {
+            c.yaw = c.yaw.map(turn);
+            c.roll = c.roll.map(|r| r - level_roll);
+            c.pitch = c.pitch.map(|p| p - level_pitch);
+        }
+        for q in drove {
+            *sh.stats.sources.entry(ac_id).or_default().entry(q).or_default().entry(name.clone()).or_default() += 1;
         }
         let cmd = cmd.filter(|c| *c != CommandMsg::default());
         if let Some(c) = &cmd
@@ -897,6 +1035,30 @@ pub struct GatewayReport {
     pub own_virtual_dropped: u64,
     /// Texts logged but not used, by reason.
     pub ignored: BTreeMap<String, u64>,
+    /// Per aircraft: which messages drove which quantity of its twin, and how often.
+    pub sources: BTreeMap<AcId, BTreeMap<Quantity, BTreeMap<String, u64>>>,
+}
+
+impl GatewayReport {
+    /// One line per aircraft: `attitude ← AHRS_EULER_INT, height ← FINKEN_SENSOR_MODEL, …`
+    /// (each quantity's sources, most used first).
+    pub fn source_lines(&self) -> Vec<(AcId, String)> {
+        self.sources
+            .iter()
+            .map(|(ac, by_q)| {
+                let parts: Vec<String> = by_q
+                    .iter()
+                    .map(|(q, msgs)| {
+                        let mut m: Vec<(&String, &u64)> = msgs.iter().collect();
+                        m.sort_by(|a, b| b.1.cmp(a.1).then(a.0.cmp(b.0)));
+                        let names: Vec<&str> = m.iter().map(|(n, _)| n.as_str()).collect();
+                        format!("{} ← {}", q.name(), names.join(", "))
+                    })
+                    .collect();
+                (*ac, parts.join("; "))
+            })
+            .collect()
+    }
 }
 
 #[cfg(test)]
@@ -950,6 +1112,7 @@ mod tests {
             messages: messages.clone(),
             plan: TelemetryPlan::project_default(),
             virtual_sonar_period_s: 0.0,
+            uplinks: Default::default(),
         });
         let mut out = Vec::new();
         for _ in 0..3 {

@@ -39,11 +39,10 @@ fn every_shared_messages_file_parses() {
     for f in &files {
         let set = MessageSet::from_file(f).unwrap_or_else(|e| panic!("{e}"));
         assert!(set.len() > 100, "{}: only {} messages", f.display(), set.len());
-        let expected_format = if f.ends_with("paparazzi_finken/FINken_conf_messages.xml") {
-            DefinitionFormat::Legacy
-        } else {
-            DefinitionFormat::PprzlinkV1
-        };
+        // The FINken fork's conf/messages.xml and its mixed-reality branch's predate pprzlink.
+        let legacy = ["paparazzi_finken/FINken_conf_messages.xml", "paparazzi_finken/mixed_reality_conf_messages.xml"];
+        let expected_format =
+            if legacy.iter().any(|l| f.ends_with(l)) { DefinitionFormat::Legacy } else { DefinitionFormat::PprzlinkV1 };
         assert_eq!(set.format, expected_format, "{}", f.display());
     }
 }
@@ -235,7 +234,9 @@ fn every_shared_telemetry_file_parses() {
         .into_iter()
         .filter(|p| std::fs::read_to_string(p).is_ok_and(|t| t.contains("<telemetry>")))
         .collect();
-    assert_eq!(files.len(), 4, "{files:?}");
+    // The four of paparazzi_finken/ and the telemetry files the real flights flew with
+    // (finken_flights/airframe_*).
+    assert_eq!(files.len(), 6, "{files:?}");
     for f in files {
         let t = Telemetry::from_file(&f).unwrap_or_else(|e| panic!("{e}"));
         assert!(t.process("Main").is_some(), "{}", f.display());

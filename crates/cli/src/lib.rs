@@ -24,6 +24,7 @@ macro_rules! outln {
 pub mod logcmd;
 pub mod plot;
 pub mod replay;
+pub mod replay_pprz;
 
 /// A Zenoh configuration file (JSON5), with `--listen` and `--connect` endpoints, when given,
 /// in place of its own.

@@ -214,7 +214,51 @@ pub fn summarise(path: &Path) -> anyhow::Result<String> {
     Ok(out)
 }
 
-/// `twinswarm log recover BROKEN FIXED`.
+/// `twinswarm log import`: a Paparazzi log as an MCAP log.
+pub fn import(file: &Path, out: Option<&Path>, ac_id: Option<u8>) -> anyhow::Result<()> {
+    let log = bridge::paparazzi::flightlog::FlightLog::open(file).map_err(|e| BadInput(e.into()))?;
+    let ac_id = match ac_id {
+        Some(a) => a,
+        None => log
+            .senders()
+            .into_iter()
+            .max_by_key(|(_, n)| *n)
+            .map(|(a, _)| a)
+            .ok_or_else(|| BadInput(anyhow::anyhow!("{}: no aircraft sent anything readable", file.display())))?,
+    };
+    let default_out;
+    let out = match out {
+        Some(o) => o,
+        None => {
+            default_out = std::path::PathBuf::from(file.with_extension("mcap").file_name().unwrap_or_default());
+            &default_out
+        }
+    };
+    let command_line = std::env::args().collect::<Vec<_>>().join(" ");
+    let s = bridge::log::import_flight(&log, ac_id, out, &command_line)?;
+    outln!(
+        "{}: {} lines ({} unreadable{}), aircraft {ac_id}: {} flights",
+        file.display(),
+        log.lines,
+        log.errors.total(),
+        if log.errors.total() > 0 { format!(": {:?}", log.errors.by_cause) } else { String::new() },
+        s.flights.len()
+    );
+    for (k, f) in s.flights.iter().enumerate() {
+        outln!("  flight {}: log {:.1}-{:.1} s ({:.1} s)", k + 1, f.start_s, f.end_s, f.duration_s());
+    }
+    outln!(
+        "wrote {}: {} Paparazzi messages, {} states, {} sensor messages; arena {:.2} × {:.2} m (from the sonars)",
+        out.display(),
+        s.pprz_messages,
+        s.states,
+        s.sensors,
+        s.arena_size_m[0],
+        s.arena_size_m[1]
+    );
+    Ok(())
+}
+
 /// `twinswarm log merge -o OUT IN…`.
 pub fn merge(inputs: &[std::path::PathBuf], out: &Path) -> anyhow::Result<()> {
     if inputs.iter().any(|i| i == out) {
@@ -239,6 +283,7 @@ pub fn merge(inputs: &[std::path::PathBuf], out: &Path) -> anyhow::Result<()> {
     Ok(())
 }
 
+/// `twinswarm log recover BROKEN FIXED`.
 pub fn recover(broken: &Path, fixed: &Path) -> anyhow::Result<()> {
     if broken == fixed {
         return Err(BadInput(anyhow::anyhow!("log recover: the output must differ from the input")).into());

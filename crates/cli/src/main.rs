@@ -13,11 +13,13 @@ mod runner;
 mod shardcmd;
 mod standin;
 mod synceval;
+mod validate;
 
 use twinswarm::{BadInput, logcmd, plot, replay};
 
 use std::path::PathBuf;
 use std::process::ExitCode;
+use std::sync::Arc;
 
 use anyhow::Context;
 use clap::{Parser, Subcommand};
@@ -77,6 +79,10 @@ enum Command {
     /// Republish a run log's bus traffic (clock, states, sensors, /bus) onto Zenoh with its
     /// original timing.
     Replay(replay::ReplayArgs),
+    /// Hold a real flight's Paparazzi log (NAME.data + NAME.log) against Twinswarm: the twin
+    /// driven by the log's telemetry, with and without the sync correction, scored against the
+    /// real sonars, AHRS and IR, per flight (and V-REP's twin beside it with `--vrep`).
+    Validate(validate::ValidateArgs),
     /// Plot a run log: position heat-map, pitch and roll, sonars and y position (PNG).
     Plot {
         /// The MCAP log.
@@ -169,6 +175,19 @@ enum LogCommand {
         #[arg(required = true, num_args = 1..)]
         inputs: Vec<PathBuf>,
     },
+    /// Write a real flight's Paparazzi log (NAME.data with NAME.log beside it) as an MCAP log:
+    /// its messages on /pprz/… at their recorded times, its sonars, IR and attitude as a
+    /// copter's, for Foxglove, `plot` and `log info`.
+    Import {
+        /// The Paparazzi log (`.data` or `.log`).
+        file: PathBuf,
+        /// The MCAP log to write (default: NAME.mcap beside the working directory).
+        #[arg(long, short, value_name = "OUT.mcap")]
+        out: Option<PathBuf>,
+        /// The aircraft that is the copter (default: the one that sent the most).
+        #[arg(long, value_name = "AC_ID")]
+        ac_id: Option<u8>,
+    },
 }
 
 #[derive(Debug, clap::Args)]
@@ -240,6 +259,30 @@ pub(crate) fn parse_sync(sources: &str, tracking_lag_s: f64) -> anyhow::Result<O
         }
     }
     Ok((o.medusa || o.tracking).then_some(o))
+}
+
+pub(crate) fn parse_uplink(s: &str) -> Result<(u8, bridge::paparazzi::convert::Uplink), String> {
+    let (ac, kind) = s.split_once('=').ok_or_else(|| format!("expected AC_ID=KIND, got `{s}`"))?;
+    let ac: u8 = ac.trim().parse().map_err(|_| format!("`{ac}` is not an aircraft id 0..255"))?;
+    Ok((ac, bridge::paparazzi::convert::Uplink::parse(kind.trim())?))
+}
+
+/// A lab's messages.xml, the definitions a Paparazzi server log (`.log`) carries, or the
+/// embedded ones.
+pub(crate) fn load_messages(
+    path: Option<&std::path::Path>,
+) -> anyhow::Result<Arc<bridge::paparazzi::messages::MessageSet>> {
+    use bridge::paparazzi::flightlog::LogConfig;
+    let Some(p) = path else { return Ok(Arc::new(bridge::paparazzi::convert::project_messages())) };
+    let bytes = std::fs::read(p).map_err(|e| BadInput(anyhow::anyhow!("cannot read {}: {e}", p.display())))?;
+    let text = String::from_utf8_lossy(&bytes);
+    let source = p.display().to_string();
+    let set = if text.contains("<configuration") {
+        LogConfig::parse(&text, &source).map(|c| c.messages)
+    } else {
+        bridge::paparazzi::messages::MessageSet::parse(&text, &source)
+    };
+    Ok(Arc::new(set.map_err(|e| BadInput(e.into()))?))
 }
 
 pub(crate) fn parse_twin_attitude(s: &str) -> Result<bridge::mixed::TwinAttitude, String> {
@@ -328,7 +371,9 @@ fn main() -> ExitCode {
         Command::Log(LogCommand::Info { file }) => logcmd::info(&file),
         Command::Log(LogCommand::Recover { broken, fixed }) => logcmd::recover(&broken, &fixed),
         Command::Log(LogCommand::Merge { out, inputs }) => logcmd::merge(&inputs, &out),
+        Command::Log(LogCommand::Import { file, out, ac_id }) => logcmd::import(&file, out.as_deref(), ac_id),
         Command::Replay(args) => replay::run(args),
+        Command::Validate(args) => validate::run(args),
         Command::Plot { file, heatmap, attitude, sonar, copter } => plot::plot(
             &file,
             &plot::PlotRequest {

@@ -704,3 +704,77 @@ mod tests {
         let _ = std::fs::remove_dir_all(&dir);
     }
 }
+
+/// One panel of [`draw_panels`]: a titled chart of lines over a shared x axis.
+#[derive(Clone, Debug, Default)]
+pub struct Panel {
+    /// Caption.
+    pub title: String,
+    /// The y axis' description.
+    pub y_desc: String,
+    /// The lines, in legend order.
+    pub lines: Vec<Line>,
+}
+
+/// One line of a [`Panel`].
+#[derive(Clone, Debug, Default)]
+pub struct Line {
+    /// Legend label.
+    pub label: String,
+    /// Points (x, y); non-finite y values break nothing and are skipped.
+    pub points: Vec<(f64, f64)>,
+}
+
+/// Draws `panels` stacked, one line colour per line index, into a PNG (e.g. the real copter's
+/// attitude against its twins', `twinswarm validate --plots`).
+pub fn draw_panels(out: &Path, x_desc: &str, panels: &[Panel]) -> anyhow::Result<()> {
+    register_font()?;
+    let height = 320 * panels.len().max(1) as u32;
+    draw_png(out, (1400, height), |root| {
+        root.fill(&WHITE)?;
+        let areas = root.split_evenly((panels.len().max(1), 1));
+        for (area, panel) in areas.iter().zip(panels) {
+            draw_panel(area, x_desc, panel)?;
+        }
+        Ok(())
+    })
+}
+
+fn draw_panel(area: &Area<'_>, x_desc: &str, panel: &Panel) -> DrawResult {
+    let pts = || panel.lines.iter().flat_map(|l| l.points.iter()).filter(|p| p.1.is_finite());
+    let (x0, x1) = pts().fold((f64::MAX, f64::MIN), |(a, b), p| (a.min(p.0), b.max(p.0)));
+    let x = if x0 < x1 { x0..x1 } else { 0.0..1.0 };
+    let y = value_range(pts().map(|p| p.1), 2.0);
+    let mut chart = ChartBuilder::on(area)
+        .caption(&panel.title, (FONT, 20))
+        .margin(12)
+        .x_label_area_size(45)
+        .y_label_area_size(60)
+        .build_cartesian_2d(x, y)?;
+    chart
+        .configure_mesh()
+        .x_desc(x_desc)
+        .y_desc(&panel.y_desc)
+        .label_style((FONT, 14))
+        .axis_desc_style((FONT, 16))
+        .light_line_style(RGBColor(235, 235, 235))
+        .draw()?;
+    for (n, line) in panel.lines.iter().enumerate() {
+        let color = PALETTE[n % PALETTE.len()];
+        let width = if n == 0 { 3 } else { 1 };
+        let style = if n == 0 { lighter(color).stroke_width(width) } else { color.stroke_width(width) };
+        let series = line.points.iter().copied().filter(|p| p.1.is_finite());
+        chart
+            .draw_series(LineSeries::new(series, style))?
+            .label(&line.label)
+            .legend(move |(x, y)| PathElement::new(vec![(x, y), (x + 20, y)], style));
+    }
+    chart
+        .configure_series_labels()
+        .label_font((FONT, 14))
+        .background_style(WHITE.mix(0.85))
+        .border_style(RGBColor(180, 180, 180))
+        .position(SeriesLabelPosition::UpperRight)
+        .draw()?;
+    Ok(())
+}

@@ -1,5 +1,6 @@
 //! `twinswarm replay FILE`: republishes a run log's bus traffic onto Zenoh with its original
-//! timing, so ground tools can watch a flight again.
+//! timing, so ground tools can watch a flight again. A Paparazzi log (`NAME.data`) goes to
+//! [`crate::replay_pprz`] instead.
 //!
 //! What goes out, under the prefix (default: a `prefix` entry of the log's `twinswarm` metadata,
 //! else `--prefix` from the recorded command line, else `twinswarm/<world>`; `--prefix`
@@ -73,9 +74,26 @@ pub struct ReplayArgs {
     /// With `--wait-for-subscriber`, waits for a live subscription too.
     #[arg(long, value_name = "ADDR", num_args = 0..=1, default_missing_value = bridge::live::DEFAULT_ADDR)]
     pub foxglove: Option<String>,
-    /// Do not republish on Zenoh (with `--foxglove`: the live view only).
-    #[arg(long, requires = "foxglove")]
+    /// Do not republish on Zenoh (with `--foxglove`: the live view only; a Paparazzi log:
+    /// on Ivy only).
+    #[arg(long)]
     pub no_bus: bool,
+    /// A Paparazzi log: also play it onto a Paparazzi Ivy bus (BUS as in Paparazzi; default
+    /// `--ivy-bus`, else `IVYBUS`, else 127.255.255.255:2010).
+    #[arg(long, value_name = "BUS", num_args = 0..=1, default_missing_value = "")]
+    pub ivy: Option<String>,
+    /// The Ivy bus address for `--ivy`.
+    #[arg(long, value_name = "ADDR:PORT")]
+    pub ivy_bus: Option<String>,
+    /// A Paparazzi log: start at this log time, s.
+    #[arg(long, value_name = "S", allow_negative_numbers = true)]
+    pub from: Option<f64>,
+    /// A Paparazzi log: stop after this log time, s.
+    #[arg(long, value_name = "S", allow_negative_numbers = true)]
+    pub to: Option<f64>,
+    /// A Paparazzi log: only this aircraft's messages.
+    #[arg(long, value_name = "AC_ID")]
+    pub ac_id: Option<u8>,
 }
 
 /// The live state message of a logged `twinswarm.CopterState` (either encoding).
@@ -148,7 +166,7 @@ fn recorded_prefix(meta: Option<&std::collections::BTreeMap<String, String>>) ->
 }
 
 /// Sleeps until `deadline`; false if `stop` is set meanwhile.
-fn wait_until(stop: &AtomicBool, deadline: Instant) -> bool {
+pub(crate) fn wait_until(stop: &AtomicBool, deadline: Instant) -> bool {
     loop {
         if stop.load(Ordering::Relaxed) {
             return false;
@@ -500,7 +518,16 @@ pub fn replay_in_memory(path: &Path, limit: usize) -> anyhow::Result<Vec<(String
 
 /// `twinswarm replay FILE`.
 pub fn run(args: ReplayArgs) -> anyhow::Result<()> {
+    if bridge::paparazzi::flightlog::is_flight_log(&args.file) {
+        return crate::replay_pprz::run(&args);
+    }
     let bad = bad_input;
+    if args.no_bus && args.foxglove.is_none() {
+        return Err(bad("--no-bus needs --foxglove for a run log (nothing would be replayed)".into()));
+    }
+    if args.ivy.is_some() || args.from.is_some() || args.to.is_some() || args.ac_id.is_some() {
+        return Err(bad("--ivy, --from, --to and --ac-id replay Paparazzi logs (NAME.data)".into()));
+    }
     if !args.speed.is_finite() || args.speed <= 0.0 {
         return Err(bad(format!("--speed must be a positive finite number, got {}", args.speed)));
     }

@@ -143,8 +143,19 @@ pub(crate) struct RunArgs {
     /// update of its twin).
     #[arg(long, value_name = "S", default_value_t = 0.0)]
     virtual_sonar_period: f64,
+    /// A lab's Paparazzi messages.xml, or a Paparazzi server log (NAME.log) whose definitions
+    /// to use (default: the embedded assets/paparazzi/messages.xml):
+    /// it decodes real copters' telemetry, encodes virtual copters' and chooses each twin's
+    /// virtual-sonar uplink (SONAR_UPLINK or VIRTUAL_SONAR, whichever its datalink class has).
+    #[arg(long, value_name = "FILE.xml")]
+    messages: Option<PathBuf>,
+    /// The virtual-sonar uplink of one aircraft, AC_ID=sonar_uplink|virtual_sonar|none
+    /// (repeatable; default: the one the messages.xml defines).
+    #[arg(long, value_name = "AC_ID=KIND", value_parser = crate::parse_uplink)]
+    uplink: Vec<(u8, bridge::paparazzi::convert::Uplink)>,
     /// Which telemetry sets twins' attitude targets: `setpoint` (FINKEN_ACTUATORS_SET_POINT,
-    /// what the real copter asks for) or `measured` (ATTITUDE, what it does).
+    /// what the real copter asks for) or `measured` (ATTITUDE, AHRS_EULER_INT, what it does).
+    /// Either way a twin falls back, source by source, on what its aircraft sends.
     #[arg(long, value_name = "SOURCE", default_value = "setpoint", value_parser = crate::parse_twin_attitude)]
     twin_attitude: bridge::mixed::TwinAttitude,
     /// How twins are kept where their real copters are: `medusa` (the real copter's sonars and
@@ -263,6 +274,8 @@ fn prepare_world(args: &RunArgs) -> anyhow::Result<(String, World, runner::Mixed
         args.virtual_sonar_period,
     )?;
     let mixed = runner::MixedOptions {
+        messages: crate::load_messages(args.messages.as_deref())?,
+        uplinks: args.uplink.iter().copied().collect(),
         twin_attitude: args.twin_attitude,
         sync: crate::parse_sync(&args.sync, args.tracking_lag)?,
         ..mixed
@@ -632,6 +645,9 @@ fn print_bus(bus: Option<&runner::BusReport>, stats: &bridge::sim::LoopStats) {
             );
         }
         let t = &b.telemetry;
+        for (ac, line) in t.source_lines() {
+            outln!("    aircraft {ac} drove its twin: {line}");
+        }
         if !t.unknown_dropped.is_empty()
             || t.own_virtual_dropped > 0
             || t.decode_errors > 0

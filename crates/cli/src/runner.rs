@@ -68,6 +68,10 @@ pub struct MixedOptions {
     pub plan: TelemetryPlan,
     /// `VIRTUAL_SONAR` period per twin, s; 0: at every sonar update.
     pub virtual_sonar_period_s: f64,
+    /// The message definitions of the lab's Paparazzi.
+    pub messages: Arc<bridge::paparazzi::messages::MessageSet>,
+    /// Per aircraft, a virtual-sonar uplink other than the one `messages` defines.
+    pub uplinks: std::collections::BTreeMap<u8, bridge::paparazzi::convert::Uplink>,
     /// Which telemetry sets twins' attitude targets.
     pub twin_attitude: TwinAttitude,
     /// How twins are kept where their real copters are (`None`: not at all).
@@ -80,6 +84,8 @@ impl Default for MixedOptions {
             pairing: None,
             plan: TelemetryPlan::project_default(),
             virtual_sonar_period_s: 0.0,
+            messages: Arc::new(bridge::paparazzi::convert::project_messages()),
+            uplinks: Default::default(),
             twin_attitude: TwinAttitude::default(),
             sync: Some(SyncOptions::default()),
         }
@@ -337,7 +343,7 @@ pub fn run<W: StepObserver + Send>(
             Some(Arc::new(rt.block_on(IvyAgent::start(o)).context("cannot join the Ivy bus")?))
         }
     };
-    let messages = Arc::new(bridge::paparazzi::convert::project_messages());
+    let messages = bus.mixed.messages.clone();
     let links = PprzLinks { zenoh: node.as_ref().map(|n| (n.session().clone(), prefix.clone())), ivy: ivy.clone() };
     let gateway = rt
         .block_on(Gateway::start(
@@ -350,12 +356,18 @@ pub fn run<W: StepObserver + Send>(
         ))
         .context("cannot bind the Paparazzi telemetry")?;
     opts.sync = bus.mixed.sync.clone();
-    opts.outbox = Some(OutboxOptions {
+    let outbox = OutboxOptions {
         prefix: prefix.clone(),
         messages,
         plan: bus.mixed.plan.clone(),
         virtual_sonar_period_s: bus.mixed.virtual_sonar_period_s,
-    });
+        uplinks: bus.mixed.uplinks.clone(),
+    };
+    // Stderr, like the other start-up notes: stdout is the summary (and `--json`).
+    for line in outbox.uplink_lines(&world_arc) {
+        eprintln!("twin {line}");
+    }
+    opts.outbox = Some(outbox);
     let (frame_tx, mut frame_rx) = tokio::sync::mpsc::channel(256);
     let opts_link = opts.shard.clone();
     let flight = Flight::new(world, state, inputs, &opts, recorder, watch);

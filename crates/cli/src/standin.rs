@@ -8,7 +8,8 @@
 //!   plan (default: the embedded `Main/mixed` mode, 22 ms for what drives a twin), timed by
 //!   the paper's measured link ([`bridge::link`]; `--jitter-ms`: every slot, a uniform delay)
 //!   and dropped with a loss probability;
-//! - receives `VIRTUAL_SONAR` for its `ac_id` and fuses it as `min(real, virtual)` into its
+//! - receives `SONAR_UPLINK` (the 2015 FINken firmware's) or `VIRTUAL_SONAR`, whichever its
+//!   `--messages` defines, for its `ac_id` and fuses it as `min(real, virtual)` into its
 //!   own Wall-Avoid; a virtual reading older than [`VIRTUAL_STALE_S`] is ignored.
 //!
 //! With `--no-bus` it flies alone, as fast as it can (a control run).
@@ -22,7 +23,7 @@ use std::time::{Duration, Instant};
 use anyhow::Context;
 use bridge::link::{LinkClock, LinkTiming};
 use bridge::mixed::TelemetryPlan;
-use bridge::paparazzi::convert::{TELEMETRY_MESSAGES, TelemetrySource, telemetry_text, virtual_sonar_readings};
+use bridge::paparazzi::convert::{TELEMETRY_MESSAGES, TelemetrySource, telemetry_text, uplink_readings};
 use bridge::wire::{SensorsMsg, StateMsg, sensors_msg, state_msg};
 use sim_core::rng::Rng32;
 use sim_core::scene::{self, CommandSpec, CopterSpec, StartSpec};
@@ -58,6 +59,11 @@ pub struct CopterArgs {
     /// Height to hold, m.
     #[arg(long, value_name = "M", default_value_t = 0.8)]
     height: f32,
+    /// The firmware's messages.xml (default: the embedded assets/paparazzi/messages.xml): its
+    /// telemetry goes out in these layouts, and it takes whichever of SONAR_UPLINK and
+    /// VIRTUAL_SONAR it defines.
+    #[arg(long, value_name = "FILE.xml")]
+    messages: Option<PathBuf>,
     /// Velocity to fly when no obstacle is near, body frame `FORWARD,LEFT`, m/s.
     #[arg(long, value_name = "FWD,LEFT", allow_hyphen_values = true)]
     velocity: Option<String>,
@@ -232,7 +238,7 @@ pub fn run(args: CopterArgs) -> anyhow::Result<()> {
     let done = Arc::new(AtomicBool::new(false));
     let mut senders = Vec::new();
     if let Some((rt, link)) = &bus {
-        let messages = Arc::new(bridge::paparazzi::convert::project_messages());
+        let messages = crate::load_messages(args.messages.as_deref())?;
         for (k, (name, period)) in plan.periods.iter().enumerate() {
             if !TELEMETRY_MESSAGES.contains(&name.as_str()) {
                 tracing::warn!("the stand-in cannot send {name} (not modelled)");
@@ -416,7 +422,7 @@ impl Link {
     }
 }
 
-/// `VIRTUAL_SONAR` texts this process could not decode (one stand-in per process; the
+/// Virtual-sonar texts (`SONAR_UPLINK`, `VIRTUAL_SONAR`) this process could not decode (one stand-in per process; the
 /// handlers run in Zenoh's and the Ivy agent's callbacks).
 static REJECTED: AtomicU64 = AtomicU64::new(0);
 
@@ -428,7 +434,7 @@ fn on_virtual_sonar(
     virt: &Mutex<Option<VirtualReading>>,
     received: &AtomicU64,
 ) {
-    let Some((to, readings)) = messages.decode(text).ok().and_then(|msg| virtual_sonar_readings(&msg)) else {
+    let Some((to, readings)) = messages.decode(text).ok().and_then(|msg| uplink_readings(&msg)) else {
         REJECTED.fetch_add(1, Ordering::Relaxed);
         return;
     };
@@ -447,7 +453,7 @@ fn open_link(
     received: &Arc<AtomicU64>,
 ) -> anyhow::Result<(tokio::runtime::Runtime, Link)> {
     let rt = tokio::runtime::Builder::new_multi_thread().worker_threads(2).enable_all().build()?;
-    let messages = Arc::new(bridge::paparazzi::convert::project_messages());
+    let messages = crate::load_messages(args.messages.as_deref())?;
     let (virt, received, ac_id) = (virt.clone(), received.clone(), args.ac_id);
     if let Some(b) = &args.ivy {
         let explicit = if b.is_empty() { args.ivy_bus.as_deref() } else { Some(b.as_str()) };
@@ -457,11 +463,15 @@ fn open_link(
         // Exactly what Paparazzi's link binds for a datalink message it forwards
         // (link.ml: `^([^ ]*) +(NAME( .*|$))`), so the stand-in receives what a real
         // aircraft would.
-        agent.bind_raw(r"^([^ ]*) +(VIRTUAL_SONAR( .*|$))", move |g| {
-            if let [sender, msg, ..] = g {
-                on_virtual_sonar(&messages, &format!("{sender} {msg}"), ac_id, &virt, &received);
-            }
-        })?;
+        // Both uplinks: the original firmware's SONAR_UPLINK and this project's VIRTUAL_SONAR.
+        for name in ["SONAR_UPLINK", "VIRTUAL_SONAR"] {
+            let (messages, virt, received) = (messages.clone(), virt.clone(), received.clone());
+            agent.bind_raw(&format!(r"^([^ ]*) +({name}( .*|$))"), move |g| {
+                if let [sender, msg, ..] = g {
+                    on_virtual_sonar(&messages, &format!("{sender} {msg}"), ac_id, &virt, &received);
+                }
+            })?;
+        }
         return Ok((rt, Link::Ivy(Arc::new(agent))));
     }
     let config = match &args.zenoh_config {
@@ -485,8 +495,11 @@ fn open_link(
         .map_err(|e| anyhow::anyhow!("{e}"))
         .context("cannot open the Zenoh session")?;
     let bus = bridge::zenoh_net::pprz_bus::ZenohBus::new(session.clone(), prefix.clone());
-    rt.block_on(bus.bind(&format!(r"^ground_dl VIRTUAL_SONAR {ac_id} "), move |d, _| {
-        on_virtual_sonar(&messages, d.text, ac_id, &virt, &received);
-    }))?;
+    for name in ["SONAR_UPLINK", "VIRTUAL_SONAR"] {
+        let (messages, virt, received) = (messages.clone(), virt.clone(), received.clone());
+        rt.block_on(bus.bind(&format!(r"^\S+ {name} {ac_id} "), move |d, _| {
+            on_virtual_sonar(&messages, d.text, ac_id, &virt, &received);
+        }))?;
+    }
     Ok((rt, Link::Zenoh { session, prefix, _bus: Arc::new(bus) }))
 }

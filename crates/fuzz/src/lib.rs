@@ -43,6 +43,7 @@ pub const TARGETS: &[Target] = &[
     ("log_merge", log_merge),
     ("foxglove_client", foxglove_client),
     ("ghost_batch", ghost_batch),
+    ("pprz_log", pprz_log),
 ];
 
 /// The target called `name`.
@@ -79,6 +80,36 @@ pub fn messages_xml(data: &[u8]) {
     for def in set.iter() {
         let zeros = vec!["0"; def.fields.len().min(256)].join(" ");
         let _ = set.decode(&format!("1 {} {zeros}", def.name));
+    }
+}
+
+/// Separates a Paparazzi log's `.log` from its `.data` in a `pprz_log` input.
+pub const PPRZ_LOG_SEPARATOR: &[u8] = b"\n%%DATA%%\n";
+
+/// A Paparazzi server log: the `.log` text, [`PPRZ_LOG_SEPARATOR`], the `.data` bytes; read,
+/// then every aircraft's series, flights, arena and flight starts derived.
+pub fn pprz_log(data: &[u8]) {
+    use bridge::paparazzi::flightlog::{FlightLog, LogConfig};
+    use bridge::realflight::{Series, derive_arena, flights, start_pose};
+    let (log, rest) = match data.windows(PPRZ_LOG_SEPARATOR.len()).position(|w| w == PPRZ_LOG_SEPARATOR) {
+        Some(i) => (&data[..i], &data[i + PPRZ_LOG_SEPARATOR.len()..]),
+        None => (data, &[][..]),
+    };
+    let Some(text) = text(log) else { return };
+    let Ok(config) = LogConfig::parse(text, "fuzz/flight.log") else { return };
+    let log = FlightLog::from_parts(config, rest, "fuzz/flight.data");
+    for r in &log.records {
+        let _ = log.text(r);
+        let _ = log.message(r);
+    }
+    for ac in log.senders().into_keys() {
+        let series = Series::of(&log, ac);
+        let fl = flights(&series);
+        if let Some(arena) = derive_arena(&series, &fl, 0.05) {
+            for f in &fl {
+                let _ = start_pose(&series, f, &arena);
+            }
+        }
     }
 }
 

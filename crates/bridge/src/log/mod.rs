@@ -29,6 +29,10 @@
 //! overrides), and a metadata record `twinswarm` holds version, seed, command line, scene
 //! origin, world name, copters and the time convention.
 //!
+//! `twinswarm log import` writes a real flight's Paparazzi log in the same form ([`import_flight`]):
+//! its messages on `/pprz/…` at their recorded times, its sonars, IR and attitude on
+//! `/copters/sensors` and `/copters/state`.
+//!
 //! # Time
 //!
 //! `log_time = epoch_ns + tick × control_dt_ns`, where the epoch is the wall-clock UTC time at
@@ -52,6 +56,7 @@
 
 mod capture;
 mod encode;
+mod import;
 mod pprz;
 pub mod proto;
 mod read;
@@ -60,6 +65,7 @@ mod writer;
 
 pub use capture::{CopterSample, StepFrame};
 pub use encode::{Encoder, EventKind, LogEvent, SCENE_COPTERS_PERIOD_S, Sink, Topic, schema_data};
+pub use import::{ImportStats, import_flight};
 pub use read::{ChannelDef, ChannelInfo, LogFile, LogInfo, LogReadError, MergeReport, RecoverReport, merge, recover};
 pub use time::{format_utc_basic, format_utc_iso, now_unix_ns, thread_cpu_ns};
 pub use writer::{LogError, LogMeta, LogOptions, LogStats, Logger};

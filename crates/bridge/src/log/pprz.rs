@@ -32,13 +32,12 @@ pub(super) struct PprzChannels {
 
 impl PprzChannels {
     pub(super) fn new() -> Self {
-        Self {
-            messages: crate::paparazzi::convert::project_messages(),
-            schemas: None,
-            pairs: BTreeMap::new(),
-            written: 0,
-            undecodable: 0,
-        }
+        Self::with_messages(crate::paparazzi::convert::project_messages())
+    }
+
+    /// Channels that decode with `messages` (a real flight's own definitions).
+    pub(super) fn with_messages(messages: MessageSet) -> Self {
+        Self { messages, schemas: None, pairs: BTreeMap::new(), written: 0, undecodable: 0 }
     }
 
     /// Logs `text` if `key` is a Paparazzi key (`…/pprz/<sender>/<NAME>`); other keys are

@@ -190,7 +190,7 @@ fn io_error(e: mcap::McapError) -> std::io::Error {
 impl McapOut {
     /// zstd chunks at one `zstd_level`, finished at `chunk_size` bytes or at each flush; every
     /// CRC; the compression on the writer thread itself (no zstd worker threads).
-    fn create(file: File, zstd_level: u32, chunk_size: usize) -> std::io::Result<Self> {
+    pub(super) fn create(file: File, zstd_level: u32, chunk_size: usize) -> std::io::Result<Self> {
         let sync_handle = file.try_clone()?;
         let w = mcap::WriteOptions::new()
             .compression(Some(mcap::Compression::Zstd))
@@ -229,7 +229,7 @@ impl McapOut {
         self.0.attach(a).map_err(io_error)
     }
 
-    fn write_metadata(&mut self, m: &Metadata) -> std::io::Result<()> {
+    pub(super) fn write_metadata(&mut self, m: &Metadata) -> std::io::Result<()> {
         self.0.write_metadata(m).map_err(io_error)
     }
 
@@ -245,7 +245,7 @@ impl McapOut {
     }
 
     /// The summary section and the footer.
-    fn finish(&mut self) -> std::io::Result<()> {
+    pub(super) fn finish(&mut self) -> std::io::Result<()> {
         self.0.finish().map(drop).map_err(io_error)
     }
 }

@@ -9,7 +9,7 @@
 
 use sim_core::Setpoint;
 
-use crate::paparazzi::codec::{CodecError, Message, Sender};
+use crate::paparazzi::codec::{CodecError, Message, Sender, encode};
 use crate::paparazzi::messages::{BaseType, FieldDef, MessageSet};
 use crate::paparazzi::value::Value;
 use crate::wire::{CommandMsg, SensorsMsg, StateMsg};
@@ -47,14 +47,16 @@ pub fn real_sonar(msg: &Message<'_>) -> Option<[f32; 4]> {
 }
 
 /// A real copter's yaw estimate in the simulator's frame (counter-clockwise from +x), rad,
-/// from `ATTITUDE.psi` or `FINKEN_SENSOR_MODEL.pos_yaw` (both NED, clockwise).
+/// from `ATTITUDE.psi`, `FINKEN_SENSOR_MODEL.pos_yaw` or `AHRS_EULER_INT.body_psi` (NED,
+/// clockwise).
 pub fn real_yaw(msg: &Message<'_>) -> Option<f32> {
-    let field = match msg.def.name.as_str() {
-        "ATTITUDE" => "psi",
-        "FINKEN_SENSOR_MODEL" => "pos_yaw",
-        _ => return None,
-    };
-    f(msg, field).map(|p| wrap(-p))
+    match msg.def.name.as_str() {
+        "ATTITUDE" => f(msg, "psi"),
+        "FINKEN_SENSOR_MODEL" => f(msg, "pos_yaw"),
+        "AHRS_EULER_INT" => display_value(msg, "body_psi").map(f32::to_radians),
+        _ => None,
+    }
+    .map(|p| wrap(-p))
 }
 
 /// Sonar value meaning "no virtual obstacle in range" in `VIRTUAL_SONAR`.
@@ -67,40 +69,54 @@ fn f(msg: &Message<'_>, field: &str) -> Option<f32> {
 /// What a real copter's telemetry message says about how to drive its twin, if anything.
 ///
 /// - `FINKEN_ACTUATORS_SET_POINT` (deg, %): attitude targets and throttle;
-/// - `FINKEN_SENSOR_MODEL` `pos_z` (m) and `FINKEN_IR_ADC` `ir_distance` (cm): the height to hold;
-/// - `ATTITUDE` (rad) and `ROTORCRAFT_FP` (fixed point, scaled by the definitions'
-///   `alt_unit_coef`), as fallback: attitude targets, and for `ROTORCRAFT_FP` the height.
+/// - `FINKEN_SENSOR_MODEL`: `pos_z` (m, the IR height) the height to hold; where the lab's
+///   definition has them (the 2015 fork's), `pos_roll`, `pos_pitch`, `pos_yaw` (rad, the AHRS);
+/// - `FINKEN_IR_ADC` `ir_distance` (cm): the height to hold;
+/// - `ATTITUDE` (rad) and `AHRS_EULER_INT` (`body_phi`, `body_theta`, `body_psi`, fixed point
+///   scaled by the definitions' `alt_unit_coef`, deg): the measured attitude;
+/// - `ROTORCRAFT_FP` (fixed point): attitude, the height (`up`) and the throttle (`thrust` out
+///   of Paparazzi's `MAX_PPRZ`, 9600).
+///
+/// Which of them drives the twin when several speak is the gateway's choice
+/// ([`crate::mixed::Interpreter`]).
 pub fn twin_command(msg: &Message<'_>) -> Option<CommandMsg> {
-    match msg.def.name.as_str() {
-        "FINKEN_ACTUATORS_SET_POINT" => Some(CommandMsg {
+    let rad_ned = |roll: Option<f32>, pitch: Option<f32>, yaw: Option<f32>| CommandMsg {
+        roll,
+        pitch: pitch.map(|t| -t),
+        yaw: yaw.map(|p| wrap(-p)),
+        ..CommandMsg::default()
+    };
+    let deg = |field: &str| display_value(msg, field).map(f32::to_radians);
+    let cmd = match msg.def.name.as_str() {
+        "FINKEN_ACTUATORS_SET_POINT" => CommandMsg {
             pitch: f(msg, "pitch").map(|d| -d.to_radians()),
             roll: f(msg, "roll").map(f32::to_radians),
             yaw: f(msg, "yaw").map(|d| crate::paparazzi::convert::wrap(-d.to_radians())),
             throttle: f(msg, "thrust").map(|p| (p / 100.0).clamp(0.0, 1.0)),
             ..CommandMsg::default()
-        }),
-        "FINKEN_SENSOR_MODEL" => {
-            f(msg, "pos_z").filter(|z| *z > 0.0).map(|z| CommandMsg { height: Some(z), ..Default::default() })
-        }
-        "FINKEN_IR_ADC" => f(msg, "ir_distance")
-            .filter(|cm| *cm > 0.0)
-            .map(|cm| CommandMsg { height: Some(cm / 100.0), ..Default::default() }),
-        "ATTITUDE" => Some(CommandMsg {
-            pitch: f(msg, "theta").map(|t| -t),
-            roll: f(msg, "phi"),
-            yaw: f(msg, "psi").map(|p| wrap(-p)),
+        },
+        "FINKEN_SENSOR_MODEL" => CommandMsg {
+            height: f(msg, "pos_z").filter(|z| *z > 0.0),
+            ..rad_ned(f(msg, "pos_roll"), f(msg, "pos_pitch"), f(msg, "pos_yaw"))
+        },
+        "FINKEN_IR_ADC" => CommandMsg {
+            height: f(msg, "ir_distance").filter(|cm| *cm > 0.0).map(|cm| cm / 100.0),
             ..CommandMsg::default()
-        }),
-        "ROTORCRAFT_FP" => Some(CommandMsg {
-            pitch: display_value(msg, "theta").map(|d| -d.to_radians()),
-            roll: display_value(msg, "phi").map(f32::to_radians),
-            yaw: display_value(msg, "psi").map(|d| wrap(-d.to_radians())),
+        },
+        "ATTITUDE" => rad_ned(f(msg, "phi"), f(msg, "theta"), f(msg, "psi")),
+        "AHRS_EULER_INT" => rad_ned(deg("body_phi"), deg("body_theta"), deg("body_psi")),
+        "ROTORCRAFT_FP" => CommandMsg {
             height: display_value(msg, "up").filter(|z| *z > 0.0),
-            ..CommandMsg::default()
-        }),
-        _ => None,
-    }
+            throttle: f(msg, "thrust").map(|t| (t / MAX_PPRZ).clamp(0.0, 1.0)),
+            ..rad_ned(deg("phi"), deg("theta"), deg("psi"))
+        },
+        _ => return None,
+    };
+    (cmd != CommandMsg::default()).then_some(cmd)
 }
+
+/// Paparazzi's full-scale command (`MAX_PPRZ`): `ROTORCRAFT_FP.thrust` counts in it.
+pub const MAX_PPRZ: f32 = 9600.0;
 
 fn wrap(a: f32) -> f32 {
     sim_core::math::wrap_angle_rad(a)
@@ -110,12 +126,118 @@ fn cm(m: f32) -> u16 {
     if !m.is_finite() || m < 0.0 { NO_OBSTACLE_CM } else { (m * 100.0).floor().min(65_534.0) as u16 }
 }
 
+/// How a twin's virtual sonar readings reach its real aircraft: the datalink message its
+/// firmware understands, which its `messages.xml` defines (Paparazzi's `link` forwards only
+/// those, and drops the rest silently).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Uplink {
+    /// `SONAR_UPLINK` (datalink id 153 in the FINken mixed-reality fork, 2015): `ac_id`,
+    /// `unused` (255), `front`, `left`, `back`, `right` in cm, sent as the original Java bridge
+    /// did, `dl SONAR_UPLINK <ac_id> 255 <front> <left> <back> <right>`.
+    SonarUplink,
+    /// `VIRTUAL_SONAR` (this project's `messages.xml`): `ac_id`, `front_cm`, `right_cm`,
+    /// `back_cm`, `left_cm`, from `ground_dl`.
+    VirtualSonar,
+    /// Nothing: the aircraft's `messages.xml` defines neither.
+    None,
+}
+
+impl Uplink {
+    /// The uplink a `messages.xml` defines: `SONAR_UPLINK` if its datalink class has it, else
+    /// `VIRTUAL_SONAR`, else none.
+    pub fn defined_by(messages: &MessageSet) -> Uplink {
+        let has = |name: &str| messages.by_class_and_name("datalink", name).is_some();
+        if has("SONAR_UPLINK") {
+            Uplink::SonarUplink
+        } else if has("VIRTUAL_SONAR") {
+            Uplink::VirtualSonar
+        } else {
+            Uplink::None
+        }
+    }
+
+    /// Parses `sonar_uplink`, `virtual_sonar` or `none`.
+    pub fn parse(s: &str) -> Result<Uplink, String> {
+        match s {
+            "sonar_uplink" | "SONAR_UPLINK" => Ok(Uplink::SonarUplink),
+            "virtual_sonar" | "VIRTUAL_SONAR" => Ok(Uplink::VirtualSonar),
+            "none" => Ok(Uplink::None),
+            _ => Err(format!("expected `sonar_uplink`, `virtual_sonar` or `none`, got `{s}`")),
+        }
+    }
+
+    /// The message name, if any.
+    pub fn message(self) -> Option<&'static str> {
+        match self {
+            Uplink::SonarUplink => Some("SONAR_UPLINK"),
+            Uplink::VirtualSonar => Some("VIRTUAL_SONAR"),
+            Uplink::None => None,
+        }
+    }
+
+    /// The Ivy sender it goes out as.
+    pub fn sender(self) -> &'static str {
+        match self {
+            Uplink::SonarUplink => "dl",
+            _ => "ground_dl",
+        }
+    }
+}
+
+/// `SONAR_UPLINK`'s "no virtual obstacle", cm: the MB1232's longest reading, so that the
+/// firmware's `min(real, virtual)` keeps the real one whatever integer type it stores.
+pub const SONAR_UPLINK_NONE_CM: u16 = 765;
+
+/// The uplink text for a real aircraft: virtual readings (front, right, back, left), m;
+/// `INFINITY` for "nothing virtual in range". `Ok(None)` for [`Uplink::None`].
+pub fn uplink_text(
+    messages: &MessageSet,
+    uplink: Uplink,
+    ac_id: u8,
+    readings_m: [f32; 4],
+) -> Result<Option<String>, CodecError> {
+    match uplink {
+        Uplink::None => Ok(None),
+        Uplink::VirtualSonar => virtual_sonar_text(messages, ac_id, readings_m).map(Some),
+        Uplink::SonarUplink => {
+            let [front, right, back, left] = readings_m.map(|m| cm(m).min(SONAR_UPLINK_NONE_CM));
+            let values = [ac_id, 255].map(Value::U8).into_iter().chain([front, left, back, right].map(Value::U16));
+            let def = messages
+                .by_class_and_name("datalink", "SONAR_UPLINK")
+                .ok_or_else(|| CodecError::UnknownMessage { name: "SONAR_UPLINK".to_owned() })?;
+            encode(&Sender::Agent("dl".to_owned()), def, &values.collect::<Vec<_>>()).map(Some)
+        }
+    }
+}
+
 /// `VIRTUAL_SONAR` for a real aircraft: virtual readings (front, right, back, left), m;
 /// `INFINITY` for "nothing virtual in range".
 pub fn virtual_sonar_text(messages: &MessageSet, ac_id: u8, readings_m: [f32; 4]) -> Result<String, CodecError> {
     let mut values = vec![Value::U8(ac_id)];
     values.extend(readings_m.iter().map(|&m| Value::U16(cm(m))));
-    messages.encode(&Sender::ground_dl(), "VIRTUAL_SONAR", &values)
+    let def = messages
+        .by_class_and_name("datalink", "VIRTUAL_SONAR")
+        .or_else(|| messages.by_name("VIRTUAL_SONAR"))
+        .ok_or_else(|| CodecError::UnknownMessage { name: "VIRTUAL_SONAR".to_owned() })?;
+    crate::paparazzi::codec::encode(&Sender::ground_dl(), def, &values)
+}
+
+/// Reads a `SONAR_UPLINK` or `VIRTUAL_SONAR` message back into metres (front, right, back,
+/// left; `INFINITY` for no obstacle).
+pub fn uplink_readings(msg: &Message<'_>) -> Option<(u8, [f32; 4])> {
+    if msg.def.name != "SONAR_UPLINK" {
+        return virtual_sonar_readings(msg);
+    }
+    let ac = msg.get("ac_id").and_then(Value::as_f64)? as u8;
+    let mut out = [f32::INFINITY; 4];
+    for (i, name) in ["front", "right", "back", "left"].iter().enumerate() {
+        let v = msg.get(name).and_then(Value::as_f64)?;
+        if v < f64::from(SONAR_UPLINK_NONE_CM) {
+            out[i] = v as f32 / 100.0;
+        }
+    }
+    Some((ac, out))
 }
 
 /// Reads a `VIRTUAL_SONAR` message back into metres (`INFINITY` for no obstacle).

@@ -323,6 +323,12 @@ impl MessageSet {
     pub fn parse(text: &str, source: &str) -> Result<MessageSet, XmlError> {
         let doc = Doc::parse(text, source)?;
         let root = doc.expect_root("protocol")?;
+        MessageSet::from_element(&doc, root, source)
+    }
+
+    /// The definitions under a `<protocol>` element of a parsed document (a `messages.xml`, or
+    /// the copy a Paparazzi `server` log embeds).
+    pub(crate) fn from_element(doc: &Doc, root: &Element, source: &str) -> Result<MessageSet, XmlError> {
         let mut classes = Vec::new();
         let mut class_lines: BTreeMap<String, u32> = BTreeMap::new();
         let mut class_id_lines: BTreeMap<u8, u32> = BTreeMap::new();
@@ -355,7 +361,7 @@ impl MessageSet {
                 }
                 None => None,
             };
-            let messages = parse_class(&doc, class_el, &name, id)?;
+            let messages = parse_class(doc, class_el, &name, id)?;
             classes.push(MessageClass { name, id, messages });
         }
         if classes.is_empty() {

@@ -7,6 +7,8 @@
 //!   [`value::Value`]s; JSON via serde.
 //! * [`conf`]: Paparazzi `conf.xml` (aircraft list; `Virtual*` naming rule).
 //! * [`telemetry`]: telemetry files (message periods per mode).
+//! * [`flightlog`]: Paparazzi `server` logs (`.log` + `.data`), read with the definitions they
+//!   carry.
 //! * [`pairing`]: our pairing file (twins, virtual copters, spawn policy).
 //! * [`xml`]: the shared XML reader and its error type with file/line/column.
 //! * [`bus`]: an Ivy-style regex bus (`bind`, `bind_from`, `unbind`, `dispatch`),
@@ -26,6 +28,7 @@ pub mod bus;
 pub mod codec;
 pub mod conf;
 pub mod convert;
+pub mod flightlog;
 pub mod ivy;
 pub mod messages;
 pub mod narrow;

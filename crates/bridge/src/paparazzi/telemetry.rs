@@ -115,6 +115,12 @@ impl Telemetry {
     pub fn parse(text: &str, source: &str) -> Result<Telemetry, XmlError> {
         let doc = Doc::parse(text, source)?;
         let root = doc.expect_root("telemetry")?;
+        Telemetry::from_element(&doc, root, source)
+    }
+
+    /// The processes under a `<telemetry>` element of a parsed document (a telemetry file, or
+    /// an aircraft's copy in a Paparazzi `server` log).
+    pub(crate) fn from_element(doc: &Doc, root: &Element, source: &str) -> Result<Telemetry, XmlError> {
         let mut processes: Vec<Process> = Vec::new();
         for p in &root.children {
             if p.name != "process" {
@@ -130,7 +136,7 @@ impl Telemetry {
                 if m.name != "mode" {
                     return Err(doc.unexpected(p, m));
                 }
-                let mode = parse_mode(&doc, m)?;
+                let mode = parse_mode(doc, m)?;
                 if modes.iter().any(|x| x.name == mode.name) {
                     return Err(doc.invalid(m.offset, format!("duplicate mode `{}` in process `{name}`", mode.name)));
                 }

@@ -157,7 +157,7 @@ impl XmlError {
 }
 
 /// Reads a whole file to a string, mapping the error to [`XmlError::Io`].
-pub(crate) fn read_file(path: &Path) -> Result<String, XmlError> {
+pub fn read_file(path: &Path) -> Result<String, XmlError> {
     std::fs::read_to_string(path).map_err(|source| XmlError::Io { path: path.display().to_string(), source })
 }
 
@@ -343,9 +343,11 @@ impl Doc {
 
     // ---- helpers used by the format modules ----
 
-    /// The value of attribute `name`, if present.
+    /// The value of attribute `name`, if present. Names match without regard to ASCII case,
+    /// as in Paparazzi's own reader: `server` writes the definitions it logs with upper-case
+    /// attribute names (`NAME`, `TYPE`, `ALT_UNIT_COEF`).
     pub fn attr<'e>(&self, el: &'e Element, name: &str) -> Option<&'e Attr> {
-        el.attrs.iter().find(|a| a.name == name)
+        el.attrs.iter().find(|a| a.name.eq_ignore_ascii_case(name))
     }
 
     /// The value of a required attribute.

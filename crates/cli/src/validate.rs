@@ -1,0 +1,718 @@
+//! `twinswarm validate FLIGHT.data`: a real flight's Paparazzi log against Twinswarm, offline,
+//! deterministic, at full speed.
+//!
+//! Per flight of the log (the copter airborne, [`bridge::realflight::flights`]):
+//! 1. the arena comes from the log's sonars ([`bridge::realflight::derive_arena`]) or
+//!    `--scene`, and the twin starts where the first airborne second of sonar readings puts
+//!    it, square to the walls;
+//! 2. the twin is driven by the log's own telemetry, each message at its recorded time, through
+//!    the gateway's [`Interpreter`] and the step loop a live run uses, with the sync
+//!    correction on (MEDUSA on the real sonars, as a lab runs it) and off (the flight model
+//!    predicting from the telemetry alone);
+//! 3. its trace is held against what the real copter measured ([`score`]): attitude, the
+//!    distances its sonars would read against the real sonars, height against the IR, time
+//!    in the arena, the first time it strays.
+//!
+//! With `--vrep`, V-REP's own output for its twin of the flight is scored the same way.
+
+use std::path::PathBuf;
+use std::sync::Arc;
+use std::sync::atomic::AtomicBool;
+use std::sync::mpsc::SyncSender;
+use std::time::{Duration, Instant};
+
+use anyhow::Context;
+use bridge::mixed::{Interpreter, TwinAttitude};
+use bridge::paparazzi::flightlog::{FlightLog, LineErrors};
+use bridge::paparazzi::messages::MessageSet;
+use bridge::realflight::{ArenaEstimate, Flight, REAL_SONAR_MAX_M, Series, StartPose};
+use bridge::sim::{BusInput, LoopOptions, Request, StepObserver};
+use serde::Serialize;
+use sim_core::math::{Quat, Vec3, quat_from_euler};
+use sim_core::sensors::{SonarScene, sonar_cones};
+use sim_core::{Inputs, State, StepReport, World};
+
+use crate::BadInput;
+
+mod vrep;
+
+/// Simulated time before take-off: the twin sits on the floor and hears the telemetry, s.
+const LEAD_S: f64 = 2.0;
+/// Metrics start this long after take-off (the climb), s.
+const SETTLE_S: f64 = 1.0;
+/// The window of the stray test's running mean, s.
+const STRAY_WINDOW_S: f64 = 1.0;
+
+/// `twinswarm validate` arguments.
+#[derive(Debug, clap::Args)]
+pub struct ValidateArgs {
+    /// A Paparazzi server log: NAME.data with NAME.log beside it.
+    pub file: PathBuf,
+    /// The aircraft (default: the one that sent the most).
+    #[arg(long, value_name = "AC_ID")]
+    pub ac_id: Option<u8>,
+    /// Only these flights, numbered from 1 in log order (repeatable).
+    #[arg(long, value_name = "K")]
+    pub flight: Vec<usize>,
+    /// Only flights overlapping this log-time window, `T0,T1` in s.
+    #[arg(long, value_name = "T0,T1")]
+    pub window: Option<String>,
+    /// The arena (and its boxes) from a scene file instead of the one the sonars describe.
+    #[arg(long, value_name = "SCENE.toml")]
+    pub scene: Option<PathBuf>,
+    /// V-REP's position output for its twin of this log (`simulationPosition….log`; the
+    /// orientation file of the same stamp is read beside it), scored beside Twinswarm's.
+    #[arg(long, value_name = "FILE")]
+    pub vrep: Option<PathBuf>,
+    /// Log time of V-REP's time 0, s (default: found by matching V-REP's attitude to the
+    /// AHRS).
+    #[arg(long, value_name = "S")]
+    pub vrep_start: Option<f64>,
+    /// A twin has strayed when the running 1 s mean of its sonar disagreement (the median of the
+    /// four directions, so that one sonar on an object the arena lacks does not count) exceeds
+    /// this, m.
+    #[arg(long, value_name = "M", default_value_t = 0.5)]
+    pub stray_m: f64,
+    /// The sync correction's gain: the fraction of the error corrected per second.
+    #[arg(long, value_name = "PER_S", default_value_t = bridge::sync::SyncOptions::default().gain_per_s)]
+    pub sync_gain: f64,
+    /// The sync correction's largest speed, m/s.
+    #[arg(long, value_name = "M_S", default_value_t = bridge::sync::SyncOptions::default().max_speed_m_s)]
+    pub sync_max_speed: f64,
+    /// Which telemetry sets the twin's attitude targets (`measured`: the AHRS, what the copter
+    /// did; `setpoint`: what it asked for, where the log has it).
+    #[arg(long, value_name = "SOURCE", default_value = "measured", value_parser = crate::parse_twin_attitude)]
+    pub twin_attitude: TwinAttitude,
+    /// Write the pitch and roll overlays and the sonar comparison of each flight here (PNG).
+    #[arg(long, value_name = "DIR")]
+    pub plots: Option<PathBuf>,
+    /// Print the report as JSON.
+    #[arg(long)]
+    pub json: bool,
+}
+
+/// Percentiles of a disagreement, cm.
+#[derive(Clone, Copy, Debug, Default, Serialize)]
+pub struct Spread {
+    /// Samples.
+    pub n: usize,
+    /// Median.
+    pub median: f64,
+    /// 95th percentile.
+    pub p95: f64,
+}
+
+impl Spread {
+    fn of(v: &[f64]) -> Spread {
+        let mut s: Vec<f64> = v.iter().copied().filter(|x| x.is_finite()).collect();
+        s.sort_by(f64::total_cmp);
+        let q = |p: f64| if s.is_empty() { f64::NAN } else { s[((s.len() - 1) as f64 * p).round() as usize] };
+        Spread { n: s.len(), median: q(0.5), p95: q(0.95) }
+    }
+}
+
+/// How a twin (ours or V-REP's) held against the real copter over one flight.
+#[derive(Clone, Debug, Default, Serialize)]
+pub struct Metrics {
+    /// Sonar disagreement |twin − real| per direction (front, right, back, left), cm.
+    pub sonar_cm: [Spread; 4],
+    /// Over all four directions, cm.
+    pub sonar_all_cm: Spread,
+    /// Attitude RMS against the AHRS (roll, pitch), deg.
+    pub attitude_rms_deg: [f64; 2],
+    /// Height against the IR: mean (twin − IR) and RMS, cm.
+    pub height_bias_cm: f64,
+    /// RMS, cm.
+    pub height_rms_cm: f64,
+    /// Share of the flight with the twin's centre inside the arena.
+    pub inside_share: f64,
+    /// First time outside the arena, s after take-off.
+    pub first_outside_s: Option<f64>,
+    /// First time the running 1 s mean of the sonar disagreement (the median of the four
+    /// directions) exceeded `--stray-m`, s after take-off.
+    pub strayed_s: Option<f64>,
+    /// How long it stayed consistent: until it strayed, or the whole span scored, s.
+    pub consistent_s: f64,
+    /// The share of the span scored with the running disagreement within `--stray-m` (a twin
+    /// that strays and comes back counts again once it is back).
+    pub consistent_share: f64,
+    /// The span scored, s.
+    pub scored_s: f64,
+}
+
+/// One flight's result.
+#[derive(Clone, Debug, Serialize)]
+pub struct FlightReport {
+    /// Number in log order, from 1.
+    pub index: usize,
+    /// The flight.
+    pub flight: Flight,
+    /// Where the twin started.
+    pub start: StartPose,
+    /// Which messages drove the twin (`quantity ← messages`).
+    pub sources: String,
+    /// The twin with the sync correction (MEDUSA on the real sonars).
+    pub synced: Metrics,
+    /// The twin predicting from the telemetry alone.
+    pub unsynced: Metrics,
+    /// Crashes of the twin, if any (synced, unsynced).
+    pub crashes: [Option<String>; 2],
+    /// V-REP's twin over the span its output covers, if given and overlapping.
+    pub vrep: Option<vrep::VrepScore>,
+    /// The series the plots draw.
+    #[serde(skip)]
+    pub curves: Curves,
+}
+
+/// A labelled series of (t, roll, pitch), deg.
+pub type AttitudeCurve = (String, Vec<(f64, f32, f32)>);
+/// A labelled series of (t, [front, right, back, left]), m.
+pub type SonarCurve = (String, Vec<(f64, [f32; 4])>);
+
+/// Time series for the plots: the real copter's, then each twin's.
+#[derive(Clone, Debug, Default)]
+pub struct Curves {
+    /// Attitude: the real copter's AHRS first.
+    pub attitude: Vec<AttitudeCurve>,
+    /// Sonars: the real copter's first.
+    pub sonar: Vec<SonarCurve>,
+}
+
+/// The whole report.
+#[derive(Clone, Debug, Serialize)]
+pub struct ValidateReport {
+    /// The `.data` file.
+    pub log: String,
+    /// The aircraft.
+    pub ac_id: u8,
+    /// Its name in the log.
+    pub aircraft: String,
+    /// The telemetry mode that explains what it sent.
+    pub telemetry_mode: Option<String>,
+    /// Lines of the `.data`, and those that could not be read.
+    pub lines: u64,
+    /// Unreadable lines.
+    pub line_errors: LineErrors,
+    /// The arena.
+    pub arena: ArenaEstimate,
+    /// Where the arena came from.
+    pub arena_from: String,
+    /// Per flight.
+    pub flights: Vec<FlightReport>,
+    /// Wall time, s.
+    pub wall_s: f64,
+}
+
+/// Runs `twinswarm validate`.
+pub fn run(args: ValidateArgs) -> anyhow::Result<()> {
+    let started = Instant::now();
+    let log = FlightLog::open(&args.file).map_err(|e| BadInput(e.into()))?;
+    let ac_id =
+        match args.ac_id {
+            Some(a) => a,
+            None => log.senders().into_iter().max_by_key(|(_, n)| *n).map(|(a, _)| a).ok_or_else(|| {
+                BadInput(anyhow::anyhow!("{}: no aircraft sent anything readable", args.file.display()))
+            })?,
+        };
+    let series = Arc::new(Series::of(&log, ac_id));
+    let all = bridge::realflight::flights(&series);
+    anyhow::ensure!(!all.is_empty(), BadInput(anyhow::anyhow!("aircraft {ac_id}: no flight in the log")));
+    let window = args.window.as_deref().map(parse_window).transpose()?;
+    let chosen: Vec<(usize, Flight)> = all
+        .iter()
+        .enumerate()
+        .map(|(i, f)| (i + 1, *f))
+        .filter(|(k, _)| args.flight.is_empty() || args.flight.contains(k))
+        .filter(|(_, f)| window.is_none_or(|[a, b]| f.end_s >= a && f.start_s <= b))
+        .collect();
+    anyhow::ensure!(!chosen.is_empty(), BadInput(anyhow::anyhow!("no flight of aircraft {ac_id} matches")));
+    let base = base_world(&args, &series, &all)?;
+    let vrep = match &args.vrep {
+        Some(p) => Some(vrep::VrepTwin::open(p, &series, args.vrep_start)?),
+        None => None,
+    };
+    let messages = Arc::new(log.config.messages.clone());
+    let texts: Vec<(f64, String)> = log.from_aircraft(ac_id).map(|r| (r.time_s, log.text(r).to_owned())).collect();
+    let mut flights = Vec::new();
+    for (index, flight) in chosen {
+        let report = validate_flight(&args, &base, &series, &messages, &texts, index, flight, ac_id, vrep.as_ref())?;
+        flights.push(report);
+    }
+    let aircraft = log.config.aircraft(ac_id);
+    let seen: Vec<&str> = texts
+        .iter()
+        .filter_map(|(_, t)| t.split(' ').nth(1))
+        .collect::<std::collections::BTreeSet<_>>()
+        .into_iter()
+        .collect();
+    let report = ValidateReport {
+        log: args.file.display().to_string(),
+        ac_id,
+        aircraft: aircraft.map(|a| a.name.clone()).unwrap_or_default(),
+        telemetry_mode: aircraft.and_then(|a| a.mode_sending(&seen)).map(str::to_owned),
+        lines: log.lines,
+        line_errors: log.errors.clone(),
+        arena: base.arena.clone(),
+        arena_from: base.arena_from.clone(),
+        flights,
+        wall_s: started.elapsed().as_secs_f64(),
+    };
+    if let Some(dir) = &args.plots {
+        for f in &report.flights {
+            plots::draw(dir, f)?;
+        }
+    }
+    if args.json {
+        outln!("{}", serde_json::to_string_pretty(&report)?);
+    } else {
+        outln!("{}", report.to_text(args.stray_m));
+    }
+    Ok(())
+}
+
+fn parse_window(s: &str) -> anyhow::Result<[f64; 2]> {
+    let bad = || BadInput(anyhow::anyhow!("--window: expected T0,T1 in seconds with T0 < T1, got `{s}`"));
+    let (a, b) = s.split_once(',').ok_or_else(bad)?;
+    let (a, b): (f64, f64) = (a.trim().parse().map_err(|_| bad())?, b.trim().parse().map_err(|_| bad())?);
+    if a.is_finite() && b.is_finite() && a < b { Ok([a, b]) } else { Err(bad().into()) }
+}
+
+/// The arena, as a scene without copters, and where it came from.
+struct Base {
+    spec: sim_core::SceneSpec,
+    arena: ArenaEstimate,
+    arena_from: String,
+}
+
+fn base_world(args: &ValidateArgs, series: &Series, flights: &[Flight]) -> anyhow::Result<Base> {
+    let offset = sim_core::sensors::SonarSpec::default().mount_offset_m;
+    let derived = bridge::realflight::derive_arena(series, flights, offset)
+        .ok_or_else(|| BadInput(anyhow::anyhow!("the log's sonars never read all four walls in flight")))?;
+    let (mut spec, arena, from) = match &args.scene {
+        Some(path) => {
+            let (_, spec, _) = crate::load_scene(Some(path))?;
+            let mut arena = derived.clone();
+            arena.size_m = spec.arena.size_m;
+            (spec, arena, format!("scene {}", path.display()))
+        }
+        None => {
+            let toml = format!(
+                "name = \"lab-from-log\"\n[arena]\nsize_m = [{:.2}, {:.2}]\nheight_m = 2.5\n",
+                derived.size_m[0], derived.size_m[1]
+            );
+            let spec = sim_core::SceneSpec::from_toml("<derived arena>", &toml)?;
+            let how = format!(
+                "the log's sonars: front+back and left+right most often read {:.2} m and {:.2} m \
+                 ({} airborne samples, {:.0} % within 10 cm of those), plus 2 × {:.2} m mount offset",
+                derived.sum_modes_m[0],
+                derived.sum_modes_m[1],
+                derived.samples,
+                derived.share_square * 100.0,
+                offset
+            );
+            (spec, derived, how)
+        }
+    };
+    // The real sonars see walls, not the floor, and the log's readings are gated at 3 m.
+    spec.sensors.sonar.floor_echo = false;
+    spec.copters.clear();
+    Ok(Base { spec, arena, arena_from: from })
+}
+
+/// A twin's pose at one log time (ours every control step, V-REP's every 50 ms).
+#[derive(Clone, Copy, Debug)]
+pub struct TracePoint {
+    /// Log time, s.
+    pub t_s: f64,
+    /// Position, m, arena frame.
+    pub pos_m: Vec3,
+    /// Attitude (roll, pitch, yaw), rad, simulator frame.
+    pub rpy_rad: [f32; 3],
+}
+
+#[allow(clippy::too_many_arguments)]
+fn validate_flight(
+    args: &ValidateArgs,
+    base: &Base,
+    series: &Arc<Series>,
+    messages: &Arc<MessageSet>,
+    texts: &[(f64, String)],
+    index: usize,
+    flight: Flight,
+    ac_id: u8,
+    vrep: Option<&vrep::VrepTwin>,
+) -> anyhow::Result<FlightReport> {
+    let start = bridge::realflight::start_pose(series, &flight, &base.arena).ok_or_else(|| {
+        BadInput(anyhow::anyhow!("flight {index}: no sonar reading of all four walls in its first 1.5 s"))
+    })?;
+    let world = twin_world(base, &start, ac_id, flight.duration_s() + LEAD_S)?;
+    let t0 = flight.start_s - LEAD_S;
+    let mut runs = Vec::new();
+    let synced = bridge::sync::SyncOptions {
+        tracking: false,
+        gain_per_s: args.sync_gain,
+        max_speed_m_s: args.sync_max_speed,
+        ..Default::default()
+    };
+    for sync in [Some(synced), None] {
+        runs.push(fly_twin(&world, series, messages, texts, t0, &start, ac_id, args.twin_attitude, sync)?);
+    }
+    let scorer = Scorer::new(&world, series, flight, start.level_rad, args.stray_m);
+    let [synced, unsynced] = [&runs[0], &runs[1]].map(|r| scorer.score(&r.trace));
+    let vrep_trace = vrep.map(|v| v.trace_in(&flight)).filter(|t| !t.is_empty());
+    let vrep = vrep.and_then(|v| v.score(&scorer));
+    let mut traces =
+        vec![("Twinswarm twin, sync on", &runs[0].trace[..]), ("Twinswarm twin, sync off", &runs[1].trace[..])];
+    if let Some(t) = &vrep_trace {
+        traces.push(("V-REP twin", &t[..]));
+    }
+    let curves = scorer.curves(&traces);
+    Ok(FlightReport {
+        index,
+        flight,
+        start,
+        sources: runs[0].sources.clone(),
+        synced,
+        unsynced,
+        crashes: [runs[0].crash.clone(), runs[1].crash.clone()],
+        vrep,
+        curves,
+    })
+}
+
+/// The arena with the twin at the flight's start, on the floor.
+fn twin_world(base: &Base, start: &StartPose, ac_id: u8, duration_s: f64) -> anyhow::Result<World> {
+    let mut spec = base.spec.clone();
+    spec.sim.duration_s = duration_s;
+    let pose = bridge::paparazzi::pairing::Pose {
+        x_m: f64::from(start.pos_m[0]),
+        y_m: f64::from(start.pos_m[1]),
+        z_m: 0.0,
+        yaw_rad: f64::from(start.yaw_rad),
+    };
+    spec.copters.push(bridge::mixed::paired_copter("twin", sim_core::CopterKind::Real, ac_id, &pose));
+    sim_core::scene::compile(&spec).context("the twin's world")
+}
+
+/// What one flown twin left.
+struct Flown {
+    trace: Vec<TracePoint>,
+    sources: String,
+    crash: Option<String>,
+}
+
+/// Plays the log's texts into the step loop at their recorded times and records the twin.
+struct Player {
+    texts: Vec<(f64, String)>,
+    next: usize,
+    t0: f64,
+    messages: Arc<MessageSet>,
+    interpreter: Interpreter,
+    requests: SyncSender<Request>,
+    base: Instant,
+    trace: Vec<TracePoint>,
+    queue_full: u64,
+}
+
+impl StepObserver for Player {
+    fn after_step(&mut self, world: &World, state: &State, _inputs: &Inputs, _report: &StepReport) {
+        let t = self.t0 + state.time_s(world);
+        let p = state.pose(0);
+        self.trace.push(TracePoint { t_s: t, pos_m: p.pos_m, rpy_rad: p.rpy_rad });
+        while let Some((tr, text)) = self.texts.get(self.next).filter(|(tr, _)| *tr <= t) {
+            let since = (tr - self.t0).max(0.0);
+            let origin = BusInput {
+                key: format!("validate/pprz/{}", text.split(' ').take(2).collect::<Vec<_>>().join("/")),
+                text: text.clone(),
+                received_unix_ns: (since * 1e9) as u64,
+            };
+            let r = self.interpreter.interpret(&self.messages, origin, self.base + Duration::from_secs_f64(since));
+            if self.requests.try_send(r).is_err() {
+                self.queue_full += 1;
+            }
+            self.next += 1;
+        }
+    }
+}
+
+#[allow(clippy::too_many_arguments)]
+fn fly_twin(
+    world: &World,
+    _series: &Series,
+    messages: &Arc<MessageSet>,
+    texts: &[(f64, String)],
+    t0: f64,
+    start: &StartPose,
+    ac_id: u8,
+    attitude: TwinAttitude,
+    sync: Option<bridge::sync::SyncOptions>,
+) -> anyhow::Result<Flown> {
+    let (tx, rx) = std::sync::mpsc::sync_channel::<Request>(8192);
+    let end = t0 + world.params.duration_s;
+    let mut interpreter = Interpreter::new(Arc::new(world.clone()), None, attitude);
+    interpreter.set_heading_offset(ac_id, start.heading_offset_rad);
+    interpreter.set_level(ac_id, start.level_rad);
+    let first = texts.partition_point(|(t, _)| *t < t0);
+    let player = Player {
+        texts: texts[first..].iter().take_while(|(t, _)| *t <= end).cloned().collect(),
+        next: 0,
+        t0,
+        messages: messages.clone(),
+        interpreter,
+        requests: tx,
+        base: Instant::now(),
+        trace: Vec::new(),
+        queue_full: 0,
+    };
+    let opts = LoopOptions { realtime: false, ticks: world.default_ticks(), sync, ..Default::default() };
+    let stop = AtomicBool::new(false);
+    let (world2, state, _stats, player) = bridge::sim::run_watched(
+        world.clone(),
+        world.initial_state(),
+        world.initial_inputs(),
+        rx,
+        None,
+        player,
+        &stop,
+        &opts,
+    );
+    anyhow::ensure!(player.queue_full == 0, "{} telemetry inputs did not fit the loop's queue", player.queue_full);
+    let report = player.interpreter.report();
+    let sources = report.source_lines().into_iter().map(|(_, l)| l).collect::<Vec<_>>().join("; ");
+    let crash = state.copters[0].crash.map(|c| format!("{c:?}"));
+    let _ = world2;
+    Ok(Flown { trace: player.trace, sources, crash })
+}
+
+/// Holds a twin's trace against the real copter's measurements over one flight.
+pub struct Scorer<'a> {
+    world: &'a World,
+    sonar: SonarScene,
+    series: &'a Series,
+    flight: Flight,
+    /// The AHRS's roll and pitch standing level, rad: taken off the real attitude.
+    level: [f32; 2],
+    stray_m: f64,
+}
+
+impl<'a> Scorer<'a> {
+    fn new(world: &'a World, series: &'a Series, flight: Flight, level: [f32; 2], stray_m: f64) -> Self {
+        let mut sonar = SonarScene::default();
+        sim_core::step::fill_sonar_scene(world, &[], &mut sonar);
+        Scorer { world, sonar, series, flight, level, stray_m }
+    }
+
+    /// The real copter's roll and pitch at `t_s`, level taken off, rad.
+    fn real_attitude(&self, t_s: f64) -> Option<[f32; 2]> {
+        let r = self.series.attitude_at(t_s)?.rpy_rad?;
+        Some([r[0] - self.level[0], r[1] - self.level[1]])
+    }
+
+    /// What the twin's sonars would read at a pose (noise-free, gated as the real ones), m.
+    fn twin_sonar(&self, p: &TracePoint) -> [f32; 4] {
+        let rot: Quat = quat_from_euler(p.rpy_rad[0], p.rpy_rad[1], p.rpy_rad[2]);
+        let range = self.world.sensors.spec.sonar.max_range_m;
+        sonar_cones(&self.world.sensors, p.pos_m, rot)
+            .map(|cone| self.sonar.cone_distance(&cone, usize::MAX, range).min(REAL_SONAR_MAX_M))
+    }
+
+    /// Scores a trace over `[take-off + SETTLE_S, landing]` (and only where the trace is).
+    pub fn score(&self, trace: &[TracePoint]) -> Metrics {
+        let (from, to) = (self.flight.start_s + SETTLE_S, self.flight.end_s);
+        let span: Vec<&TracePoint> = trace.iter().filter(|p| p.t_s >= from && p.t_s <= to).collect();
+        let (Some(first), Some(last)) = (span.first(), span.last()) else { return Metrics::default() };
+        let mut m = Metrics { scored_s: last.t_s - first.t_s, ..Metrics::default() };
+        let [hx, hy] = self.world.arena.size_m.map(|v| v / 2.0);
+        let (mut att, mut h, mut inside) = ([Vec::new(), Vec::new()], Vec::new(), 0usize);
+        for p in &span {
+            if p.pos_m.x.abs() <= hx && p.pos_m.y.abs() <= hy {
+                inside += 1;
+            } else if m.first_outside_s.is_none() {
+                m.first_outside_s = Some(p.t_s - self.flight.start_s);
+            }
+            if let Some(r) = self.real_attitude(p.t_s) {
+                for k in 0..2 {
+                    att[k].push(f64::from(p.rpy_rad[k] - r[k]).to_degrees());
+                }
+            }
+            if let Some(z) = self.series.sensors_at(p.t_s).and_then(|s| s.ir_m) {
+                h.push(f64::from(p.pos_m.z - z) * 100.0);
+            }
+        }
+        m.inside_share = inside as f64 / span.len() as f64;
+        m.attitude_rms_deg = att.map(|v| rms(&v));
+        m.height_bias_cm = h.iter().sum::<f64>() / h.len().max(1) as f64;
+        m.height_rms_cm = rms(&h);
+        self.score_sonar(trace, first.t_s, last.t_s, &mut m);
+        m
+    }
+
+    fn score_sonar(&self, trace: &[TracePoint], from: f64, to: f64, m: &mut Metrics) {
+        let mut per = [Vec::new(), Vec::new(), Vec::new(), Vec::new()];
+        let mut all = Vec::new();
+        let mut window: std::collections::VecDeque<(f64, f64)> = Default::default();
+        let mut sum = 0.0;
+        let (mut judged, mut within) = (0usize, 0usize);
+        for s in self.series.sensors.iter().filter(|s| s.t_s >= from && s.t_s <= to) {
+            let (Some(real), Some(p)) = (s.sonar_m, latest_point(trace, s.t_s)) else { continue };
+            let twin = self.twin_sonar(p);
+            let mut step = Vec::with_capacity(4);
+            for k in 0..4 {
+                let r = real[k].min(REAL_SONAR_MAX_M);
+                let d = f64::from((twin[k] - r).abs()) * 100.0;
+                per[k].push(d);
+                step.push(d);
+            }
+            // The middle two of the four: one sonar on an object the arena lacks (a person, a
+            // chair) is not the twin straying.
+            let mut sorted = step.clone();
+            sorted.sort_by(f64::total_cmp);
+            let mean = (sorted[1] + sorted[2]) / 2.0;
+            all.extend(step);
+            window.push_back((s.t_s, mean));
+            sum += mean;
+            while window.front().is_some_and(|(t, _)| s.t_s - t > STRAY_WINDOW_S) {
+                sum -= window.pop_front().map_or(0.0, |(_, v)| v);
+            }
+            let running = sum / window.len() as f64;
+            if s.t_s - from >= STRAY_WINDOW_S {
+                judged += 1;
+                within += usize::from(running <= self.stray_m * 100.0);
+                if m.strayed_s.is_none() && running > self.stray_m * 100.0 {
+                    m.strayed_s = Some(s.t_s - self.flight.start_s);
+                }
+            }
+        }
+        m.sonar_cm = [0, 1, 2, 3].map(|k| Spread::of(&per[k]));
+        m.sonar_all_cm = Spread::of(&all);
+        m.consistent_s = m.strayed_s.map_or(m.scored_s, |s| s - (from - self.flight.start_s));
+        m.consistent_share = within as f64 / judged.max(1) as f64;
+    }
+}
+
+impl Scorer<'_> {
+    /// The plots' series over the flight: the real copter's, then each trace's.
+    fn curves(&self, traces: &[(&str, &[TracePoint])]) -> Curves {
+        let f = self.flight;
+        let within = |t: f64| t >= f.start_s - 1.0 && t <= f.end_s + 1.0;
+        let deg = |r: f32| r.to_degrees();
+        let mut c = Curves::default();
+        let real_att = self.series.attitude.iter().filter(|s| within(s.t_s));
+        c.attitude.push((
+            "real copter (AHRS, level taken off)".into(),
+            real_att.filter_map(|s| self.real_attitude(s.t_s).map(|r| (s.t_s, deg(r[0]), deg(r[1])))).collect(),
+        ));
+        let sensed: Vec<_> = self.series.sensors.iter().filter(|s| within(s.t_s) && s.sonar_m.is_some()).collect();
+        c.sonar.push((
+            "real copter".into(),
+            sensed.iter().filter_map(|s| s.sonar_m.map(|r| (s.t_s, r.map(|v| v.min(REAL_SONAR_MAX_M))))).collect(),
+        ));
+        for (label, trace) in traces {
+            let att = trace.iter().filter(|p| within(p.t_s)).map(|p| (p.t_s, deg(p.rpy_rad[0]), deg(p.rpy_rad[1])));
+            c.attitude.push(((*label).into(), att.collect()));
+            let sonar = sensed.iter().filter_map(|s| latest_point(trace, s.t_s).map(|p| (s.t_s, self.twin_sonar(p))));
+            c.sonar.push(((*label).into(), sonar.collect()));
+        }
+        c
+    }
+}
+
+fn latest_point(trace: &[TracePoint], t_s: f64) -> Option<&TracePoint> {
+    let n = trace.partition_point(|p| p.t_s <= t_s);
+    n.checked_sub(1).map(|i| &trace[i])
+}
+
+fn rms(v: &[f64]) -> f64 {
+    if v.is_empty() { f64::NAN } else { (v.iter().map(|x| x * x).sum::<f64>() / v.len() as f64).sqrt() }
+}
+
+impl ValidateReport {
+    /// The terminal report: one block per flight, Twinswarm's twin synced and unsynced and
+    /// V-REP's beside them.
+    pub fn to_text(&self, stray_m: f64) -> String {
+        let mut s = format!(
+            "twinswarm validate: {} (aircraft {} {}, telemetry mode {})\n",
+            self.log,
+            self.ac_id,
+            self.aircraft,
+            self.telemetry_mode.as_deref().unwrap_or("?")
+        );
+        s += &format!(
+            "  {} lines, {} unreadable{}\n",
+            self.lines,
+            self.line_errors.total(),
+            if self.line_errors.by_cause.is_empty() {
+                String::new()
+            } else {
+                format!(" {:?}", self.line_errors.by_cause)
+            }
+        );
+        s +=
+            &format!("  arena {:.2} × {:.2} m, from {}\n", self.arena.size_m[0], self.arena.size_m[1], self.arena_from);
+        for f in &self.flights {
+            s += &f.to_text(stray_m);
+        }
+        s += &format!(
+            "  (sonar: |twin − real| in cm, median/p95 front right back left | all; attitude: RMS against the AHRS; \
+             strayed: running {STRAY_WINDOW_S:.0} s mean of the median sonar disagreement above {:.0} cm; {:.2} s wall)\n",
+            stray_m * 100.0,
+            self.wall_s
+        );
+        s
+    }
+}
+
+impl FlightReport {
+    fn to_text(&self, _stray_m: f64) -> String {
+        let f = &self.flight;
+        let mut s = format!(
+            "  flight {}: log {:.1}-{:.1} s ({:.1} s), start ({:.2}, {:.2}) m, yaw {:.0}°\n    driven by: {}\n",
+            self.index,
+            f.start_s,
+            f.end_s,
+            f.duration_s(),
+            self.start.pos_m[0],
+            self.start.pos_m[1],
+            self.start.yaw_rad.to_degrees(),
+            self.sources
+        );
+        s += "    twin                      sonar F      R      B      L    | all       roll  pitch   height   inside  strayed@  consistent\n";
+        let mut rows = vec![("twinswarm, sync on", &self.synced), ("twinswarm, sync off", &self.unsynced)];
+        if let Some(v) = &self.vrep {
+            rows.push(("v-rep (its own output)", &v.metrics));
+        }
+        for (label, m) in rows {
+            let d = |x: &Spread| format!("{:.0}/{:.0}", x.median, x.p95);
+            s += &format!(
+                "    {:<24} {:>7} {:>6} {:>6} {:>6} | {:>8} {:>5.1}° {:>5.1}° {:>5.1} cm {:>6.0} % {:>8} {:>6.1} s ({:.0} %)\n",
+                label,
+                d(&m.sonar_cm[0]),
+                d(&m.sonar_cm[1]),
+                d(&m.sonar_cm[2]),
+                d(&m.sonar_cm[3]),
+                d(&m.sonar_all_cm),
+                m.attitude_rms_deg[0],
+                m.attitude_rms_deg[1],
+                m.height_rms_cm,
+                m.inside_share * 100.0,
+                m.strayed_s.map_or("-".into(), |t| format!("{t:.1} s")),
+                m.consistent_s,
+                m.consistent_share * 100.0
+            );
+        }
+        if let Some(v) = &self.vrep {
+            s += &format!(
+                "    (v-rep: log {:.1}-{:.1} s; t_log = {:.2} s + {:.4} × its time, {})\n",
+                v.from_s, v.to_s, v.start_s, v.rate, v.start_from
+            );
+        }
+        for (label, c) in ["sync on", "sync off"].iter().zip(&self.crashes) {
+            if let Some(c) = c {
+                s += &format!("    twin ({label}) crashed: {c}\n");
+            }
+        }
+        s
+    }
+}
+
+mod plots;
