@@ -13,6 +13,16 @@
 //! one skip gives a 44 ms gap and two give 66 ms (q² ≈ 3 % of gaps); a delivered message is
 //! late by a uniform 0–6 ms, so consecutive gaps range from 16 to 28 ms. The paper gives no
 //! histogram; the 6 ms and the 2 ms per copter are chosen to match its words, not fitted.
+//!
+//! **A saturated link** is what a real log shows when the telemetry mode asks more than the
+//! modem carries. The 16 Dec 2015 flight's `vrep` mode asked 4,875 B/s of a 38,400-baud modem
+//! (3,840 B/s, 127 %); `FINKEN_SENSOR_MODEL`, configured every 22 ms, arrived with a median
+//! gap of 28 ms, mean 35, p95 63, p99 91, 14 % over 50 ms (`scripts/real_flights.py`,
+//! docs/real-flights.md). [`LinkTiming::Saturated`] stretches the slots by the load (the link
+//! sends no faster than it can), keeps the paper's skips, and spreads each message over a
+//! 12 ms window (the modem's queue): fitted to that histogram by least squares over slot,
+//! spread and skip, it gives 29 / 34 / 62 / 89 ms and 16 % over 50 ms
+//! (`cargo test -p bridge --lib link -- --nocapture`).
 
 use serde::Serialize;
 use sim_core::rng::Rng32;
@@ -25,6 +35,11 @@ pub const MEASURED_MEAN_GAP_S: f64 = 0.027;
 pub const MEASURED_GAP_PER_COPTER_S: f64 = 0.002;
 /// A delivered message is late by up to this, uniformly, s.
 pub const MEASURED_JITTER_S: f64 = 0.006;
+/// On a saturated link, a delivered message is late by up to this, uniformly, s (fitted to the
+/// 16 Dec 2015 flight).
+pub const SATURATED_JITTER_S: f64 = 0.012;
+/// The 16 Dec 2015 flight's load: its telemetry mode's bytes per second over its modem's.
+pub const FLIGHT_2015_LOAD: f64 = 4875.0 / 3840.0;
 
 /// How a telemetry link times messages.
 #[derive(Clone, Copy, Debug, PartialEq, Serialize)]
@@ -40,6 +55,14 @@ pub enum LinkTiming {
         /// Copters on the channel (at least 1).
         copters: u32,
     },
+    /// The measured link asked `load` times what it carries (> 1): slots `load` times further
+    /// apart, the paper's skips, [`SATURATED_JITTER_S`].
+    Saturated {
+        /// Copters on the channel (at least 1).
+        copters: u32,
+        /// The telemetry mode's bytes per second over the modem's.
+        load: f64,
+    },
 }
 
 impl LinkTiming {
@@ -52,11 +75,28 @@ impl LinkTiming {
         }
     }
 
+    /// The measured link, saturated when `load` (bytes asked over bytes carried) exceeds 1.
+    pub fn measured_with_load(copters: u32, load: f64) -> Self {
+        if load.is_finite() && load > 1.0 {
+            LinkTiming::Saturated { copters, load }
+        } else {
+            LinkTiming::Measured { copters }
+        }
+    }
+
+    /// How much further apart than configured the slots are.
+    pub fn stretch(self) -> f64 {
+        match self {
+            LinkTiming::Saturated { load, .. } => load.max(1.0),
+            _ => 1.0,
+        }
+    }
+
     /// The probability that a slot is skipped.
     pub fn skip_probability(self) -> f64 {
         match self {
             LinkTiming::Uniform { .. } => 0.0,
-            LinkTiming::Measured { copters } => {
+            LinkTiming::Measured { copters } | LinkTiming::Saturated { copters, .. } => {
                 let gap = MEASURED_MEAN_GAP_S + MEASURED_GAP_PER_COPTER_S * f64::from(copters.max(1) - 1);
                 1.0 - MEASURED_PERIOD_S / gap
             }
@@ -67,6 +107,7 @@ impl LinkTiming {
         match self {
             LinkTiming::Uniform { jitter_s } => jitter_s,
             LinkTiming::Measured { .. } => MEASURED_JITTER_S,
+            LinkTiming::Saturated { .. } => SATURATED_JITTER_S,
         }
     }
 }
@@ -84,6 +125,7 @@ pub struct LinkClock {
 impl LinkClock {
     /// A message every `period_s` on a link timed by `timing`, drawing from `rng`.
     pub fn new(period_s: f64, timing: LinkTiming, rng: Rng32) -> Self {
+        let period_s = period_s * timing.stretch();
         Self { period_s, slot: 0, skip: timing.skip_probability(), jitter_s: timing.jitter_s(), rng }
     }
 
@@ -122,6 +164,32 @@ mod tests {
         let two = gaps(LinkTiming::Measured { copters: 2 }, 100_000);
         let mean2 = two.iter().sum::<f64>() / two.len() as f64;
         assert!(mean2 > mean + 0.001, "slower with two copters: {mean2} vs {mean}");
+    }
+
+    fn percentile(v: &[f64], p: f64) -> f64 {
+        let mut s = v.to_vec();
+        s.sort_by(f64::total_cmp);
+        s[((s.len() - 1) as f64 * p).round() as usize]
+    }
+
+    #[test]
+    fn the_saturated_link_has_the_2015_flights_gaps() {
+        // Real (scripts/real_flights.py on 15_12_16__13_55_00): median 28, mean 35.0, p95 63,
+        // p99 91 ms, 14.3 % over 50 ms.
+        let g = gaps(LinkTiming::Saturated { copters: 1, load: FLIGHT_2015_LOAD }, 100_000);
+        let ms = |x: f64| x * 1e3;
+        let mean = ms(g.iter().sum::<f64>() / g.len() as f64);
+        let over_50 = g.iter().filter(|&&x| x > 0.050).count() as f64 / g.len() as f64;
+        let [p50, p95, p99] = [0.5, 0.95, 0.99].map(|p| ms(percentile(&g, p)));
+        println!(
+            "saturated link, load {FLIGHT_2015_LOAD:.2}: median {p50:.1} ms, mean {mean:.1}, p95 {p95:.1}, p99 {p99:.1}, over 50 ms {:.1} %",
+            over_50 * 100.0
+        );
+        assert!((26.0..32.0).contains(&p50) && (32.0..38.0).contains(&mean), "{p50} {mean}");
+        assert!((58.0..68.0).contains(&p95) && (84.0..98.0).contains(&p99), "{p95} {p99}");
+        assert!((0.11..0.18).contains(&over_50), "{over_50}");
+        // Not saturated: the paper's link.
+        assert_eq!(LinkTiming::measured_with_load(1, 0.9), LinkTiming::Measured { copters: 1 });
     }
 
     #[test]

@@ -102,6 +102,10 @@ pub struct LocalizeArgs {
     /// every message on time, up to this late, ms.
     #[arg(long, value_name = "MS")]
     pub jitter_ms: Option<f64>,
+    /// `--sync-eval`: the measured link saturated, the telemetry asking LOAD times what the
+    /// modem carries (1.27: the 16 Dec 2015 flight's); at most 1 is the paper's link.
+    #[arg(long, value_name = "LOAD", default_value_t = 1.0)]
+    pub link_load: f64,
     /// `--sync-eval`: probability that a telemetry message is lost.
     #[arg(long, value_name = "P", default_value_t = 0.05)]
     pub loss: f64,
@@ -261,7 +265,13 @@ fn run_sync_eval(args: &LocalizeArgs) -> anyhow::Result<()> {
         return Err(bad("--loss must be in [0, 1] and --jitter-ms >= 0".into()));
     }
     let choice = if args.world == WorldChoice::Both { WorldChoice::Empty } else { args.world };
-    let timing = bridge::link::LinkTiming::from_args(args.jitter_ms, u32::from(args.copters));
+    if !args.link_load.is_finite() || !(0.0..=10.0).contains(&args.link_load) {
+        return Err(bad(format!("--link-load must be in [0, 10], got {}", args.link_load)));
+    }
+    let timing = match args.jitter_ms {
+        Some(_) => bridge::link::LinkTiming::from_args(args.jitter_ms, u32::from(args.copters)),
+        None => bridge::link::LinkTiming::measured_with_load(u32::from(args.copters), args.link_load),
+    };
     let link = Link { timing, loss: args.loss };
     let medusa_only = SyncOptions { tracking: false, ..SyncOptions::default() };
     let variant = |label: &str, sync: Option<SyncOptions>, attitude| Variant {

@@ -73,6 +73,11 @@ pub struct CopterArgs {
     /// The measured link: copters sharing the radio channel (each slows it a little).
     #[arg(long, value_name = "N", default_value_t = 1, value_parser = clap::value_parser!(u32).range(1..=16))]
     link_copters: u32,
+    /// The measured link, saturated: the telemetry mode asks LOAD times what the modem carries
+    /// (e.g. 1.27, the 2015 `vrep` mode on 38,400 baud: docs/real-flights.md). At most 1: the
+    /// paper's link.
+    #[arg(long, value_name = "LOAD", default_value_t = 1.0)]
+    link_load: f64,
     /// Probability that a telemetry message is lost, 0..1.
     #[arg(long, value_name = "P", default_value_t = 0.0)]
     loss: f64,
@@ -182,6 +187,9 @@ fn reality(args: &CopterArgs) -> anyhow::Result<(World, TelemetryPlan)> {
         }
     };
     let velocity = args.velocity.as_deref().map(|v| parse_pair::<2>(v, "--velocity")).transpose()?;
+    if !args.link_load.is_finite() || !(0.0..=10.0).contains(&args.link_load) {
+        return Err(BadInput(anyhow::anyhow!("--link-load must be in [0, 10], got {}", args.link_load)).into());
+    }
     if !(0.0..=1.0).contains(&args.loss) || args.jitter_ms.is_some_and(|j| !j.is_finite() || j < 0.0) {
         return Err(BadInput(anyhow::anyhow!("--loss must be in [0, 1] and --jitter-ms >= 0")).into());
     }
@@ -249,7 +257,10 @@ pub fn run(args: CopterArgs) -> anyhow::Result<()> {
             let (name, period) = (name.clone(), Duration::from_secs_f64(*period));
             let (ac_id, loss) = (args.ac_id, args.loss as f32);
             let mut rng = Rng32::new(world.params.seed, 0x7e1e_0000 + k as u64);
-            let timing = LinkTiming::from_args(args.jitter_ms, args.link_copters);
+            let timing = match args.jitter_ms {
+                Some(_) => LinkTiming::from_args(args.jitter_ms, args.link_copters),
+                None => LinkTiming::measured_with_load(args.link_copters, args.link_load),
+            };
             let mut clock =
                 LinkClock::new(period.as_secs_f64(), timing, Rng32::new(world.params.seed, 0x7e1f_0000 + k as u64));
             senders.push(rt.spawn(async move {
