@@ -44,6 +44,9 @@ SCENES = {
 }
 
 
+EXTRA = ""
+
+
 def scene_toml(name, size, start, duration):
     return f"""name = "{name}"
 [sim]
@@ -59,7 +62,7 @@ ac_id = 5
 start = {{ pos_m = [{start[0]}, {start[1]}], yaw_deg = 0.0 }}
 mode = "wall_avoid"
 command = {{ height_m = 0.6 }}
-"""
+""" + EXTRA
 
 
 def fly(binary, name, tmp):
@@ -110,8 +113,13 @@ def sonar_noise(sensors):
         r = moving_median_residual(fresh)
         r = r[np.abs(r) < 0.2]
         d = np.diff(fresh)
+        # As the firmware logs them: the mean of the last 5 readings.
+        logged = np.convolve(fresh, np.ones(5) / 5, mode="valid") if len(fresh) >= 5 else np.array([])
+        rl = moving_median_residual(logged)
+        rl = rl[np.abs(rl) < 0.2]
         out.append({"residual_cm": round(float(np.std(r)) * 100, 2) if len(r) else None,
                     "diff_cm": round(float(np.std(d)) / np.sqrt(2) * 100, 2) if len(d) else None,
+                    "logged_residual_cm": round(float(np.std(rl)) * 100, 2) if len(rl) else None,
                     "readings": len(fresh)})
     return out
 
@@ -149,7 +157,10 @@ def main():
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--bin", type=pathlib.Path)
     ap.add_argument("--json", type=pathlib.Path)
+    ap.add_argument("--scene-extra", default="", help="TOML tables added to every scene (to try a setting)")
     args = ap.parse_args()
+    global EXTRA
+    EXTRA = args.scene_extra.replace("\\n", "\n")
     binary = args.bin or next((p for p in [ROOT / "target/release/twinswarm", ROOT / "target/debug/twinswarm"]
                                if p.exists()), None)
     if binary is None or not binary.exists():

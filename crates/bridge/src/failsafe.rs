@@ -4,7 +4,10 @@
 //!
 //! - **A twin** follows its real copter's telemetry. PX4's data-link-loss failsafe is the
 //!   model (`COM_DL_LOSS_T`, then `NAV_DLL_ACT`): after [`FailsafeOptions::hold_after_s`] of
-//!   silence the twin levels out and holds its height (it would otherwise fly on with the
+//!   silence, or [`HOLD_PERIODS`] of its aircraft's own telemetry period if that is longer (the
+//!   median gap of its last [`GAP_WINDOW`] inputs: an NPS rotorcraft's default telemetry drives
+//!   a twin every 250 ms, with gaps of 560 ms at p99, and must not trip a 0.5 s failsafe), the
+//!   twin levels out and holds its height (it would otherwise fly on with the
 //!   last attitude it was given); after [`FailsafeOptions::land_after_s`] it descends at
 //!   [`FailsafeOptions::descent_m_s`]; once down it stops steering (level, Wall-Avoid off),
 //!   and once it has rested on the floor for [`SETTLE_S`] its motors stop. When telemetry comes back, at any point, it follows again.
@@ -23,6 +26,31 @@ use std::time::Instant;
 
 use sim_core::control::{Command, FlightMode};
 use sim_core::{Inputs, State, World};
+
+/// A twin holds after this many of its aircraft's telemetry periods of silence, if that is
+/// longer than [`FailsafeOptions::hold_after_s`].
+pub const HOLD_PERIODS: f64 = 4.0;
+/// How many recent gaps between a twin's inputs make its telemetry period (their median).
+pub const GAP_WINDOW: usize = 32;
+
+/// The recent gaps between a twin's telemetry inputs, s, and their median.
+#[derive(Clone, Debug, Default)]
+struct Period {
+    gaps: std::collections::VecDeque<f64>,
+    median_s: f64,
+}
+
+impl Period {
+    fn record(&mut self, gap_s: f64) {
+        if self.gaps.len() == GAP_WINDOW {
+            self.gaps.pop_front();
+        }
+        self.gaps.push_back(gap_s);
+        let mut v: Vec<f64> = self.gaps.iter().copied().collect();
+        v.sort_by(f64::total_cmp);
+        self.median_s = v[v.len() / 2];
+    }
+}
 
 /// A copter resting this long on the floor while landing stops its motors, s.
 pub const SETTLE_S: f64 = 0.5;
@@ -208,6 +236,8 @@ pub struct Failsafe {
     opts: FailsafeOptions,
     /// Twins: when their last telemetry input applied.
     last_input: BTreeMap<usize, Instant>,
+    /// Twins: their telemetry period as it arrives.
+    periods: BTreeMap<usize, Period>,
     guards: BTreeMap<usize, Guard>,
     /// Transitions so far, by [`FailsafeKind::name`].
     pub counts: BTreeMap<&'static str, u64>,
@@ -232,8 +262,20 @@ impl Failsafe {
     /// with no input yet has no failsafe), and a failsafe it was under ends (the command from
     /// before it restored) before the input applies.
     pub fn telemetry(&mut self, id: usize, now: Instant, inputs: &mut Inputs, events: &mut Vec<FailsafeEvent>) {
-        let silent_s = self.last_input.insert(id, now).map_or(0.0, |t| now.duration_since(t).as_secs_f64());
+        let last = self.last_input.insert(id, now);
+        let silent_s = last.map_or(0.0, |t| now.duration_since(t).as_secs_f64());
+        // A gap that ended a failsafe is an outage, not the aircraft's period.
+        if last.is_some() && !self.guards.contains_key(&id) {
+            self.periods.entry(id).or_default().record(silent_s);
+        }
         self.resume(id, silent_s, inputs, events);
+    }
+
+    /// How long twin `id` may be silent before it holds, s: [`FailsafeOptions::hold_after_s`],
+    /// or [`HOLD_PERIODS`] of its telemetry period if longer.
+    pub fn hold_after_s(&self, id: usize) -> f64 {
+        let period = self.periods.get(&id).map_or(0.0, |p| p.median_s);
+        self.opts.hold_after_s.max(HOLD_PERIODS * period)
     }
 
     /// A command from a client (after a lost controller, a new one takes over): ends a
@@ -264,6 +306,7 @@ impl Failsafe {
         self.push(events, id, FailsafeKind::ClientLost { client: client.to_owned(), action });
         // It is no longer a driven copter: only a new command ends this.
         self.last_input.remove(&id);
+        self.periods.remove(&id);
         match action {
             ClientLostAction::Scene => inputs.commands[id] = world.copters[id].initial_command.clone(),
             ClientLostAction::Hover => take_over(&mut self.guards, state, id, inputs, Phase::Holding),
@@ -286,10 +329,11 @@ impl Failsafe {
     ) {
         let dt = world.params.control_dt_s as f32;
         // Disjoint fields: no copy of the silent twins on this per-step path.
-        let Self { opts, last_input, guards, counts } = self;
+        let Self { opts, last_input, periods, guards, counts } = self;
         for (&id, &t) in last_input.iter() {
             let silent_s = now.saturating_duration_since(t).as_secs_f64();
-            if silent_s <= opts.hold_after_s || id >= inputs.commands.len() {
+            let period = periods.get(&id).map_or(0.0, |p| p.median_s);
+            if silent_s <= opts.hold_after_s.max(HOLD_PERIODS * period) || id >= inputs.commands.len() {
                 continue;
             }
             if !guards.contains_key(&id) {
@@ -434,6 +478,33 @@ mod tests {
                 assert_eq!(inputs.commands[0], commanded);
             }
         }
+    }
+
+    #[test]
+    fn the_hold_time_follows_the_aircrafts_own_telemetry_period() {
+        let (_, world) = sim_core::scene::load_default();
+        let state = world.initial_state();
+        let mut inputs = world.initial_inputs();
+        let mut fs = Failsafe::new(FailsafeOptions::default());
+        let t0 = Instant::now();
+        let ms = |m: u64| t0 + Duration::from_millis(m);
+        let mut ev = Vec::new();
+        // An NPS rotorcraft's default telemetry: ROTORCRAFT_FP every 250 ms.
+        for k in 0..20 {
+            fs.telemetry(0, ms(250 * k), &mut inputs, &mut ev);
+        }
+        assert!((fs.hold_after_s(0) - 1.0).abs() < 1e-9, "{}", fs.hold_after_s(0));
+        // A 560 ms gap (its p99) is not a lost link.
+        fs.after_step(&world, &state, &mut inputs, ms(250 * 19 + 560), &mut ev);
+        assert!(ev.is_empty(), "{ev:?}");
+        fs.after_step(&world, &state, &mut inputs, ms(250 * 19 + 1100), &mut ev);
+        assert!(matches!(ev[0].kind, FailsafeKind::Hold { .. }), "{ev:?}");
+        // A FINken's 22 ms telemetry keeps the 0.5 s floor.
+        let mut fast = Failsafe::new(FailsafeOptions::default());
+        for k in 0..40 {
+            fast.telemetry(1, ms(22 * k), &mut inputs, &mut ev);
+        }
+        assert_eq!(fast.hold_after_s(1), 0.5);
     }
 
     #[test]

@@ -56,6 +56,11 @@ pub struct SyncOptions {
     pub tracking_sigma_m: f64,
     /// Floor of MEDUSA's standard deviation, m.
     pub medusa_sigma_floor_m: f64,
+    /// How far a real copter's sonar readings stray from the arena as modelled, m: MEDUSA's
+    /// sensor noise. Not the simulated sonars' noise: a real lab's readings also carry its
+    /// people, chairs and foil walls (the 2015 logs: jumps of 20 cm and more on up to 5 % of
+    /// them), which a tighter model would trust.
+    pub medusa_sonar_sigma_m: f64,
     /// Fraction of the error corrected per second.
     pub gain_per_s: f64,
     /// Largest correction speed, m/s.
@@ -84,6 +89,7 @@ impl Default for SyncOptions {
             tracking_lag_s: 0.2,
             tracking_sigma_m: 0.01,
             medusa_sigma_floor_m: 0.03,
+            medusa_sonar_sigma_m: 0.05,
             // A 0.2 s time constant: about four MEDUSA estimates (docs/mixed-reality.md).
             gain_per_s: 5.0,
             max_speed_m_s: 0.3,
@@ -174,6 +180,11 @@ impl std::fmt::Debug for TwinSync {
 /// MEDUSA over `world`'s real geometry: the arena and the boxes that are not `virtual_only`
 /// and reach [`MIN_BOX_TOP_M`]; the FINken's four sonars with the scene's noise, cone and cap.
 pub fn medusa_for(world: &World, angles_rad: &[f64]) -> Result<Medusa, MedusaError> {
+    medusa_with_sigma(world, angles_rad, f64::from(world.sensors.spec.sonar.noise_sigma_m))
+}
+
+/// [`medusa_for`] with the sonars' noise `sigma_m` in MEDUSA's sensor model.
+pub fn medusa_with_sigma(world: &World, angles_rad: &[f64], sigma_m: f64) -> Result<Medusa, MedusaError> {
     let sonar = &world.sensors.spec.sonar;
     let sensors = angles_rad
         .iter()
@@ -187,7 +198,7 @@ pub fn medusa_for(world: &World, angles_rad: &[f64]) -> Result<Medusa, MedusaErr
     let (w, h) = (f64::from(world.arena.size_m[0]), f64::from(world.arena.size_m[1]));
     let mworld = medusa::World::new(Arena::new(w, h)?, real_boxes(world))?;
     let model = SensorModel {
-        noise_sigma_m: f64::from(sonar.noise_sigma_m).max(0.01),
+        noise_sigma_m: sigma_m.max(0.01),
         cone_half_angle_rad: f64::from(world.sensors.sonar_half_angle_rad),
         ..SensorModel::default()
     };
@@ -235,7 +246,7 @@ fn xy(p: sim_core::math::Vec3) -> Vector2<f64> {
 impl TwinSync {
     /// Synchronisation for the twins of `world` (more are added as they spawn).
     pub fn new(world: &World, opts: SyncOptions) -> Result<Self, MedusaError> {
-        let medusa = medusa_for(world, &SONAR_ANGLES_RAD)?;
+        let medusa = medusa_with_sigma(world, &SONAR_ANGLES_RAD, opts.medusa_sonar_sigma_m)?;
         Ok(Self { opts, medusa, twins: BTreeMap::new() })
     }
 

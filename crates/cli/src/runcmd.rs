@@ -166,7 +166,8 @@ pub(crate) struct RunArgs {
     /// Lag of the tracking poses, s.
     #[arg(long, value_name = "S", default_value_t = 0.2)]
     tracking_lag: f64,
-    /// A twin whose telemetry stays silent this long levels out and holds its height, s.
+    /// A twin whose telemetry stays silent this long levels out and holds its height, s (or four
+    /// of its aircraft's own telemetry periods, as they arrive, if that is longer).
     #[arg(long, value_name = "S", default_value_t = FailsafeOptions::default().hold_after_s)]
     link_hold: f64,
     /// A twin whose telemetry stays silent this long descends and lands, s.

@@ -80,8 +80,9 @@ fn the_twin_stays_within_bounds_while_tracking_drops_out() {
     println!("{r}");
     let during = cm(r, "error_in_dropout_cm", "max");
     assert!(r["sync"]["tracking_updates"].as_u64().unwrap() > 1000, "{r}");
-    // 21 cm with the 5/s pull (34 cm at 2/s): MEDUSA alone carries the twin for two minutes.
-    assert!(during < 30.0, "max {during} cm during the dropout");
+    // 34 cm with the 5/s pull and the real FINken's 1.5° AHRS noise (21 cm with the 0.5° of
+    // before, docs/accuracy.md): MEDUSA alone carries the twin for two minutes.
+    assert!(during < 40.0, "max {during} cm during the dropout");
     assert!(cm(r, "error_cm", "median") < 10.0, "{r}");
     assert_eq!(r["steps_outside_arena"], 0, "{r}");
 }

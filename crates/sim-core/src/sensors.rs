@@ -78,7 +78,7 @@ impl Default for SonarSpec {
             min_range_m: 0.20,
             max_range_m: 7.65,
             cap_m: 7.65,
-            noise_sigma_m: 0.05,
+            noise_sigma_m: 0.02,
             quantum_m: 0.01,
             mount_offset_m: 0.05,
             period_steps: 1,
@@ -131,7 +131,7 @@ pub struct ImuSpec {
 impl Default for ImuSpec {
     fn default() -> Self {
         Self {
-            attitude_noise_deg: 0.5,
+            attitude_noise_deg: 1.5,
             yaw_noise_deg: 2.0,
             yaw_bias_walk_deg_per_sqrt_s: 0.5,
             // Paparazzi's AHRS_MAG_OMEGA 0.04 rad/s, ζ 0.9: 1 / (ζ ω) = 27.8 s.

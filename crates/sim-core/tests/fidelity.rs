@@ -502,9 +502,10 @@ fn the_attitude_loop_reads_an_ahrs_with_noise_bias_and_lag() {
     let est = ahrs_error_rms_deg(false);
     let ideal = ahrs_error_rms_deg(true);
     println!("AHRS roll/pitch error rms while hovering: {est:.2}° (ideal estimation: {ideal:.4}°)");
-    // 0.5° white noise, a 0.25° wandering bias and a 5 ms lag; the ideal reading differs from
-    // the pose only by the one physics step between them.
-    assert!((0.3..1.5).contains(&est), "{est}");
+    // 1.5° white noise (the real FINken's logged attitude in hover, docs/accuracy.md), a
+    // 0.25° wandering bias and a 5 ms lag; the ideal reading differs from the pose only by the
+    // one physics step between them.
+    assert!((1.0..2.2).contains(&est), "{est}");
     assert!(ideal < 0.25 * est, "{ideal}");
 }
 

@@ -39,7 +39,7 @@ fn one_copter_flies_wall_avoid_for_9_minutes_without_touching_anything() {
     let mut worst: Real = Real::MAX;
     for seed in [2016, 1, 2, 3] {
         let world = lab_one_copter(seed, "");
-        assert_eq!(world.sensors.spec.sonar.noise_sigma_m, 0.05);
+        assert_eq!(world.sensors.spec.sonar.noise_sigma_m, 0.02);
         assert!(world.sensors.spec.noise);
         let radius = world.airframes[0].radius_m;
         let (sx, sy) = (world.arena.size_m[0], world.arena.size_m[1]);
