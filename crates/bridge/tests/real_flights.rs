@@ -6,7 +6,6 @@
 
 mod common;
 
-use std::path::{Path, PathBuf};
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
@@ -19,27 +18,10 @@ use bridge::sim::{BusInput, Request};
 
 const LINKED: &str = "finken_flights/report_2015-12-16/15_12_16__13_55_00.data";
 
-fn data_files(dir: &Path) -> Vec<PathBuf> {
-    let mut out = Vec::new();
-    let mut stack = vec![dir.to_path_buf()];
-    while let Some(d) = stack.pop() {
-        for e in std::fs::read_dir(&d).into_iter().flatten().flatten() {
-            let p = e.path();
-            if p.is_dir() {
-                stack.push(p);
-            } else if p.extension().is_some_and(|x| x == "data") {
-                out.push(p);
-            }
-        }
-    }
-    out.sort();
-    out
-}
-
 #[test]
 fn every_shared_flight_log_reads_with_its_own_definitions() {
     let dir = shared_or_skip!();
-    let files = data_files(&dir.join("finken_flights"));
+    let files = common::files_with_extension(&dir.join("finken_flights"), "data");
     assert!(files.len() >= 9, "expected the SOURCES.md logs, found {files:?}");
     let mut read = 0;
     for f in &files {

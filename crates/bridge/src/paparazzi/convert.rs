@@ -229,15 +229,7 @@ pub fn uplink_readings(msg: &Message<'_>) -> Option<(u8, [f32; 4])> {
     if msg.def.name != "SONAR_UPLINK" {
         return virtual_sonar_readings(msg);
     }
-    let ac = msg.get("ac_id").and_then(Value::as_f64)? as u8;
-    let mut out = [f32::INFINITY; 4];
-    for (i, name) in ["front", "right", "back", "left"].iter().enumerate() {
-        let v = msg.get(name).and_then(Value::as_f64)?;
-        if v < f64::from(SONAR_UPLINK_NONE_CM) {
-            out[i] = v as f32 / 100.0;
-        }
-    }
-    Some((ac, out))
+    readings_m(msg, ["front", "right", "back", "left"], SONAR_UPLINK_NONE_CM)
 }
 
 /// Reads a `VIRTUAL_SONAR` message back into metres (`INFINITY` for no obstacle).
@@ -245,12 +237,17 @@ pub fn virtual_sonar_readings(msg: &Message<'_>) -> Option<(u8, [f32; 4])> {
     if msg.def.name != "VIRTUAL_SONAR" {
         return None;
     }
+    readings_m(msg, ["front_cm", "right_cm", "back_cm", "left_cm"], NO_OBSTACLE_CM)
+}
+
+/// `ac_id` and the four fields `names` (cm) in metres, `INFINITY` from `none_cm` up.
+fn readings_m(msg: &Message<'_>, names: [&str; 4], none_cm: u16) -> Option<(u8, [f32; 4])> {
     let ac = msg.get("ac_id").and_then(Value::as_f64)? as u8;
     let mut out = [f32::INFINITY; 4];
-    for (i, name) in ["front_cm", "right_cm", "back_cm", "left_cm"].iter().enumerate() {
+    for (o, name) in out.iter_mut().zip(names) {
         let v = msg.get(name).and_then(Value::as_f64)?;
-        if v < f64::from(NO_OBSTACLE_CM) {
-            out[i] = v as f32 / 100.0;
+        if v < f64::from(none_cm) {
+            *o = v as f32 / 100.0;
         }
     }
     Some((ac, out))

@@ -106,6 +106,11 @@ pub fn asset(rel: &str) -> PathBuf {
 
 /// All `.xml` files below `dir`, sorted.
 pub fn xml_files(dir: &Path) -> Vec<PathBuf> {
+    files_with_extension(dir, "xml")
+}
+
+/// All files below `dir` whose extension is `ext`, sorted.
+pub fn files_with_extension(dir: &Path, ext: &str) -> Vec<PathBuf> {
     let mut out = Vec::new();
     let mut stack = vec![dir.to_path_buf()];
     while let Some(d) = stack.pop() {
@@ -116,7 +121,7 @@ pub fn xml_files(dir: &Path) -> Vec<PathBuf> {
             let p = e.path();
             if p.is_dir() {
                 stack.push(p);
-            } else if p.extension().is_some_and(|x| x == "xml") {
+            } else if p.extension().is_some_and(|x| x == ext) {
                 out.push(p);
             }
         }
