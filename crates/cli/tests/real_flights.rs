@@ -104,3 +104,36 @@ fn a_data_file_without_its_log_is_a_clear_error() {
     let err = String::from_utf8_lossy(&out.stderr);
     assert!(err.contains("15_12_01__17_48_45.log"), "{err}");
 }
+
+/// A small FINken log of the project's own (`tests/fixtures/finken_small.*`: 8 s, aircraft 5,
+/// the 2015 fork's layout), with one torn line: read, imported and validated without the
+/// shared data.
+#[test]
+fn a_small_log_of_our_own_with_a_torn_line_imports_and_validates() {
+    let fixture = |ext: &str| {
+        let p = format!("{}/../../tests/fixtures/finken_small.{ext}", env!("CARGO_MANIFEST_DIR"));
+        std::fs::read(&p).unwrap_or_else(|e| panic!("{p}: {e}"))
+    };
+    let tmp = std::env::temp_dir().join(format!("twinswarm-own-log-{}", std::process::id()));
+    std::fs::create_dir_all(&tmp).expect("tmp");
+    std::fs::write(tmp.join("own.log"), fixture("log")).expect("log");
+    let mut data = fixture("data");
+    data.extend_from_slice(b"9.9 5 FINKEN_SENSOR_MODEL 180 13\n");
+    std::fs::write(tmp.join("own.data"), &data).expect("data");
+    let out = twinswarm(&["log", "import", "own.data", "-o", "own.mcap"], &tmp);
+    let text = String::from_utf8_lossy(&out.stdout);
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    assert!(text.contains("(1 unreadable") && text.contains("undecodable fields"), "{text}");
+    let r = json_of(&twinswarm(&["validate", "own.data", "--json"], &tmp));
+    assert_eq!(r["line_errors"]["by_message"]["FINKEN_SENSOR_MODEL"], 1, "{r}");
+    assert_eq!(r["line_errors"]["first"][0][0], 81, "{r}");
+    assert_eq!(r["flights"].as_array().map(Vec::len), Some(1), "{r}");
+    // Bad arguments name what is wrong, exit 2.
+    let bad = twinswarm(&["validate", "own.data", "--window", "5,3"], &tmp);
+    assert_eq!(bad.status.code(), Some(2));
+    assert!(String::from_utf8_lossy(&bad.stderr).contains("--window"), "{}", String::from_utf8_lossy(&bad.stderr));
+    let bad = twinswarm(&["replay", "own.data", "--foxglove"], &tmp);
+    assert_eq!(bad.status.code(), Some(2));
+    assert!(String::from_utf8_lossy(&bad.stderr).contains("log import"), "{}", String::from_utf8_lossy(&bad.stderr));
+    let _ = std::fs::remove_dir_all(&tmp);
+}
