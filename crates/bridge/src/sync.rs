@@ -61,6 +61,10 @@ pub struct SyncOptions {
     /// people, chairs and foil walls (the 2015 logs: jumps of 20 cm and more on up to 5 % of
     /// them), which a tighter model would trust.
     pub medusa_sonar_sigma_m: f64,
+    /// The share of a real copter's sonar readings MEDUSA takes for outliers: 5 %, the upper
+    /// end of the 2015 logs' jumps (docs/real-flights.md §6; `twinswarm validate` on the
+    /// 16 Dec flight: 83-100 % of each flight consistent at MEDUSA's own 2 %, 95-100 % at 5 %).
+    pub medusa_outlier_probability: f64,
     /// Fraction of the error corrected per second.
     pub gain_per_s: f64,
     /// Largest correction speed, m/s.
@@ -90,6 +94,7 @@ impl Default for SyncOptions {
             tracking_sigma_m: 0.01,
             medusa_sigma_floor_m: 0.03,
             medusa_sonar_sigma_m: 0.05,
+            medusa_outlier_probability: 0.05,
             // A 0.2 s time constant: about four MEDUSA estimates (docs/mixed-reality.md).
             gain_per_s: 5.0,
             max_speed_m_s: 0.3,
@@ -185,6 +190,16 @@ pub fn medusa_for(world: &World, angles_rad: &[f64]) -> Result<Medusa, MedusaErr
 
 /// [`medusa_for`] with the sonars' noise `sigma_m` in MEDUSA's sensor model.
 pub fn medusa_with_sigma(world: &World, angles_rad: &[f64], sigma_m: f64) -> Result<Medusa, MedusaError> {
+    medusa_with_model(world, angles_rad, sigma_m, SensorModel::default().outlier_probability)
+}
+
+/// [`medusa_with_sigma`] with the share `outliers` of readings MEDUSA takes for outliers.
+pub fn medusa_with_model(
+    world: &World,
+    angles_rad: &[f64],
+    sigma_m: f64,
+    outliers: f64,
+) -> Result<Medusa, MedusaError> {
     let sonar = &world.sensors.spec.sonar;
     let sensors = angles_rad
         .iter()
@@ -200,7 +215,7 @@ pub fn medusa_with_sigma(world: &World, angles_rad: &[f64], sigma_m: f64) -> Res
     let model = SensorModel {
         noise_sigma_m: sigma_m.max(0.01),
         cone_half_angle_rad: f64::from(world.sensors.sonar_half_angle_rad),
-        ..SensorModel::default()
+        outlier_probability: outliers,
     };
     Medusa::new(mworld, layout, model)
 }
@@ -246,7 +261,8 @@ fn xy(p: sim_core::math::Vec3) -> Vector2<f64> {
 impl TwinSync {
     /// Synchronisation for the twins of `world` (more are added as they spawn).
     pub fn new(world: &World, opts: SyncOptions) -> Result<Self, MedusaError> {
-        let medusa = medusa_with_sigma(world, &SONAR_ANGLES_RAD, opts.medusa_sonar_sigma_m)?;
+        let medusa =
+            medusa_with_model(world, &SONAR_ANGLES_RAD, opts.medusa_sonar_sigma_m, opts.medusa_outlier_probability)?;
         Ok(Self { opts, medusa, twins: BTreeMap::new() })
     }
 
