@@ -883,6 +883,16 @@ impl Interpreter {
         sh.interpret_message(&msg, origin, received)
     }
 
+    /// Whether message `name` from `ac_id` may not give quantity `q` now: it is no source of
+    /// it, or a better source spoke within [`FALLBACK_AFTER_S`] of `heard`.
+    fn outranked(&self, ac_id: AcId, name: &str, q: Quantity, heard: Instant) -> bool {
+        let ranking = q.ranking(self.attitude);
+        let Some(rank) = ranking.iter().position(|n| *n == name) else { return true };
+        ranking[..rank]
+            .iter()
+            .any(|n| self.last_heard.get(&(ac_id, *n)).is_some_and(|t| (heard - *t).as_secs_f64() <= FALLBACK_AFTER_S))
+    }
+
     fn ignore(&mut self, origin: BusInput, reason: &'static str) -> Request {
         *self.stats.ignored.entry(reason).or_default() += 1;
         Request::Ignored { origin, reason }
@@ -909,24 +919,24 @@ impl Interpreter {
             Decision::Unknown => return sh.ignore(origin, "aircraft not paired"),
         };
         let heard = received;
-        let mut cmd = twin_command(msg);
+        let full = twin_command(msg);
+        let mut cmd = full.clone();
         let mut drove = Vec::new();
         if let Some(c) = cmd.as_mut() {
             for q in Quantity::ALL {
                 if !q.carried_by(c) {
                     continue;
                 }
-                let ranking = q.ranking(sh.attitude);
-                let rank = ranking.iter().position(|n| *n == name).unwrap_or(ranking.len());
-                let higher_speaks = ranking[..rank].iter().any(|n| {
-                    sh.last_heard.get(&(ac_id, *n)).is_some_and(|t| (heard - *t).as_secs_f64() <= FALLBACK_AFTER_S)
-                });
-                if higher_speaks || rank == ranking.len() {
+                if sh.outranked(ac_id, &name, q, heard) {
                     q.clear(c);
                 } else {
                     drove.push(q);
                 }
             }
+        }
+        let mut sonar = crate::paparazzi::convert::real_sonar(msg);
+        if sonar.is_some() {
+            if sh.outranked(ac_id, &name, Quantity::Sonar, heard) { sonar = None } else { drove.push(Quantity::Sonar) }
         }
         if let Some(k) = BOUND_TELEMETRY.iter().find(|n| **n == name) {
             sh.last_heard.insert((ac_id, k), heard);
@@ -935,19 +945,10 @@ impl Interpreter {
         let turn = |y: f32| sim_core::math::wrap_angle_rad(y + offset);
         let measured = matches!(name.as_str(), "ATTITUDE" | "AHRS_EULER_INT" | "FINKEN_SENSOR_MODEL" | "ROTORCRAFT_FP");
         let [level_roll, level_pitch] = sh.level.get(&ac_id).copied().filter(|_| measured).unwrap_or([0.0, 0.0]);
-        let observed = twin_command(msg)
+        let observed = full
             .filter(|_| measured && name != "ROTORCRAFT_FP")
             .and_then(|c| Some([c.roll? - level_roll, c.pitch? - level_pitch, c.yaw.map_or(0.0, turn)]));
         let yaw = crate::paparazzi::convert::real_yaw(msg).map(turn);
-        let mut sonar = crate::paparazzi::convert::real_sonar(msg);
-        if sonar.is_some() {
-            let ranking = Quantity::Sonar.ranking(sh.attitude);
-            let rank = ranking.iter().position(|n| *n == name).unwrap_or(ranking.len());
-            let higher_speaks = ranking[..rank].iter().any(|n| {
-                sh.last_heard.get(&(ac_id, *n)).is_some_and(|t| (heard - *t).as_secs_f64() <= FALLBACK_AFTER_S)
-            });
-            if higher_speaks { sonar = None } else { drove.push(Quantity::Sonar) }
-        }
         if let Some(c) = cmd.as_mut() {
             c.yaw = c.yaw.map(turn);
             c.roll = c.roll.map(|r| r - level_roll);
