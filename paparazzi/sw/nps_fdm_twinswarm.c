@@ -1,0 +1,475 @@
+/*
+ * Twinswarm flight model for Paparazzi NPS.
+ *
+ * This file is part of Twinswarm's Paparazzi bindings; like the Paparazzi code it is
+ * built into, it is GPL (v2 or later).
+ *
+ * NPS's flight dynamics are computed by a Twinswarm world (or any server speaking the
+ * protocol below) over one TCP connection on loopback, in lockstep: every NPS step sends
+ * the motor commands and blocks until the world answers with the copter's state after
+ * that step. Nothing here reads the wall clock; run NPS with a huge --time_factor (see
+ * paparazzi/README.md) so that its main loop does not pace itself either, and the world
+ * sets the pace.
+ *
+ * Address: env TWINSWARM_FDM="host:port" (default 127.0.0.1:7460).
+ * Env TWINSWARM_FDM_CONNECT_TIMEOUT_S (default 30): how long to retry connecting.
+ * Env TWINSWARM_FDM_VERBOSE=1: print every 1000th exchanged state.
+ *
+ * Protocol v1, little-endian, fixed-size records, no padding:
+ *   hello, NPS -> world, once:  "TWFD" (4 bytes), u32 version = 1, u32 ac_id, f64 dt      (20 B)
+ *   step,  NPS -> world:        u32 0x54575331, u64 step, u8 launch, u8 n = 4,
+ *                               f64 commands[n] (motor_mixing.commands / MAX_PPRZ:
+ *                               0..1 with motors on, -1 with motors stopped)           (46 B)
+ *   state, world -> NPS:        u32 0x54575332, u64 step (echo), f64 t_s,
+ *                               pos_ned[3], vel_ned[3], accel_ned[3] (kinematic, no g),
+ *                               quat_ned_to_body[4] (w,x,y,z), body_rates[3] (p,q,r),
+ *                               body_accel[3] (specific force, as an accelerometer reads),
+ *                               agl_m, sonar_m[4] (front,right,back,left; NaN none),
+ *                               ir_m (NaN none), u8 crashed                            (221 B)
+ * Step 0 is sent from nps_fdm_init() with zero commands and launch 0, so that NpsFdm is
+ * filled before NPS's sensors initialise (as nps_fdm_pybullet does with a first step);
+ * every later call of nps_fdm_run_step() sends step 1, 2, ...
+ * The world closing the connection ends NPS (exit status 0).
+ *
+ * Frames: the world's NED arena frame (origin at the arena centre on the floor, x north,
+ * y east, z down) is NPS's LTP frame, placed at the flight plan's origin (NAV_LAT0,
+ * NAV_LON0, ground at NAV_ALT0 above MSL), the origin the INS takes from the flight plan.
+ */
+
+#include "nps_fdm.h"
+#include "nps_fdm_twinswarm.h"
+
+#include <stdlib.h>
+#include <stdio.h>
+#include <string.h>
+#include <errno.h>
+#include <math.h>
+#include <unistd.h>
+#include <time.h>
+#include <sys/types.h>
+#include <sys/socket.h>
+#include <netinet/in.h>
+#include <netinet/tcp.h>
+#include <arpa/inet.h>
+#include <netdb.h>
+
+#include "math/pprz_geodetic.h"
+#include "math/pprz_geodetic_double.h"
+#include "math/pprz_algebra.h"
+#include "math/pprz_algebra_double.h"
+#include "math/pprz_isa.h"
+
+#include "generated/airframe.h"
+#include "generated/flight_plan.h"
+
+#define TWFD_VERSION 1u
+#define TWFD_MAGIC_STEP 0x54575331u   /* "TWS1" */
+#define TWFD_MAGIC_STATE 0x54575332u  /* "TWS2" */
+#define TWFD_N_MOTORS 4
+#define TWFD_HELLO_LEN 20
+#define TWFD_STEP_LEN (4 + 8 + 1 + 1 + 8 * TWFD_N_MOTORS)
+#define TWFD_STATE_NF 26
+#define TWFD_STATE_LEN (4 + 8 + 8 * TWFD_STATE_NF + 1)
+
+#ifndef AC_ID
+#define AC_ID 0
+#endif
+
+#ifndef TWINSWARM_FDM_DEFAULT
+#define TWINSWARM_FDM_DEFAULT "127.0.0.1:7460"
+#endif
+
+#ifndef TWINSWARM_FDM_TEMPERATURE
+#define TWINSWARM_FDM_TEMPERATURE 20.0 /* indoor lab, deg C */
+#endif
+
+// NpsFdm structure
+struct NpsFdm fdm;
+
+float twinswarm_sonar_m[4] = {NAN, NAN, NAN, NAN};
+float twinswarm_ir_m = NAN;
+uint8_t twinswarm_crashed = 0;
+double twinswarm_time_s = 0.;
+uint64_t twinswarm_step = 0;
+
+static struct LtpDef_d ltpdef;
+static struct DoubleQuat ecef_to_ltp_quat;
+static double ground_hmsl;       ///< height of the arena floor above MSL, m
+static double temperature_c = TWINSWARM_FDM_TEMPERATURE;
+static int sock = -1;
+static uint64_t next_step = 0;
+static bool verbose = false;
+static struct DoubleRates last_rates;
+static bool have_last_rates = false;
+
+/* little-endian encoding, independent of the host's byte order */
+static void put_u32(uint8_t *b, uint32_t v) { for (int i = 0; i < 4; i++) { b[i] = (uint8_t)(v >> (8 * i)); } }
+static void put_u64(uint8_t *b, uint64_t v) { for (int i = 0; i < 8; i++) { b[i] = (uint8_t)(v >> (8 * i)); } }
+static void put_f64(uint8_t *b, double d) { uint64_t v; memcpy(&v, &d, 8); put_u64(b, v); }
+static uint32_t get_u32(const uint8_t *b) { uint32_t v = 0; for (int i = 3; i >= 0; i--) { v = (v << 8) | b[i]; } return v; }
+static uint64_t get_u64(const uint8_t *b) { uint64_t v = 0; for (int i = 7; i >= 0; i--) { v = (v << 8) | b[i]; } return v; }
+static double get_f64(const uint8_t *b) { uint64_t v = get_u64(b); double d; memcpy(&d, &v, 8); return d; }
+
+static void write_all(const uint8_t *buf, size_t len)
+{
+  while (len > 0) {
+    ssize_t n = send(sock, buf, len, MSG_NOSIGNAL);
+    if (n < 0) {
+      if (errno == EINTR) { continue; }
+      fprintf(stderr, "[twinswarm fdm] send failed: %s; the world is gone, stopping NPS\n", strerror(errno));
+      exit(0);
+    }
+    buf += n;
+    len -= (size_t)n;
+  }
+}
+
+static void read_all(uint8_t *buf, size_t len)
+{
+  while (len > 0) {
+    ssize_t n = recv(sock, buf, len, 0);
+    if (n == 0) {
+      printf("[twinswarm fdm] the world closed the connection after step %llu; stopping NPS\n",
+             (unsigned long long)twinswarm_step);
+      fflush(stdout);
+      exit(0);
+    }
+    if (n < 0) {
+      if (errno == EINTR) { continue; }
+      if (errno == ECONNRESET) {
+        printf("[twinswarm fdm] the world reset the connection after step %llu; stopping NPS\n",
+               (unsigned long long)twinswarm_step);
+        fflush(stdout);
+        exit(0);
+      }
+      fprintf(stderr, "[twinswarm fdm] recv failed: %s; stopping NPS\n", strerror(errno));
+      exit(1);
+    }
+    buf += n;
+    len -= (size_t)n;
+  }
+}
+
+static void connect_world(double dt)
+{
+  const char *env = getenv("TWINSWARM_FDM");
+  char addr[256];
+  snprintf(addr, sizeof(addr), "%s", (env && *env) ? env : TWINSWARM_FDM_DEFAULT);
+  char *colon = strrchr(addr, ':');
+  if (!colon) {
+    fprintf(stderr, "[twinswarm fdm] TWINSWARM_FDM must be host:port, got '%s'\n", addr);
+    exit(1);
+  }
+  *colon = '\0';
+  const char *host = addr, *port = colon + 1;
+  if (host[0] == '[') { /* [::1]:7460 */
+    host++;
+    char *rb = strchr(addr, ']');
+    if (rb) { *rb = '\0'; }
+  }
+
+  double timeout_s = 30.;
+  const char *to = getenv("TWINSWARM_FDM_CONNECT_TIMEOUT_S");
+  if (to && *to) { timeout_s = atof(to); }
+  const char *vb = getenv("TWINSWARM_FDM_VERBOSE");
+  verbose = vb && *vb && strcmp(vb, "0") != 0;
+
+  /* retrying a refused connect: the one place where waiting is timed (start-up only) */
+  struct timespec t0, now;
+  clock_gettime(CLOCK_MONOTONIC, &t0);
+  bool said = false;
+  while (true) {
+    struct addrinfo hints, *res = NULL;
+    memset(&hints, 0, sizeof(hints));
+    hints.ai_family = AF_UNSPEC;
+    hints.ai_socktype = SOCK_STREAM;
+    int rc = getaddrinfo(host, port, &hints, &res);
+    if (rc != 0) {
+      fprintf(stderr, "[twinswarm fdm] cannot resolve %s:%s: %s\n", host, port, gai_strerror(rc));
+      exit(1);
+    }
+    for (struct addrinfo *ai = res; ai; ai = ai->ai_next) {
+      int s = socket(ai->ai_family, ai->ai_socktype, ai->ai_protocol);
+      if (s < 0) { continue; }
+      if (connect(s, ai->ai_addr, ai->ai_addrlen) == 0) {
+        sock = s;
+        break;
+      }
+      close(s);
+    }
+    freeaddrinfo(res);
+    if (sock >= 0) { break; }
+    clock_gettime(CLOCK_MONOTONIC, &now);
+    double waited = (now.tv_sec - t0.tv_sec) + 1e-9 * (now.tv_nsec - t0.tv_nsec);
+    if (waited > timeout_s) {
+      fprintf(stderr, "[twinswarm fdm] no world at %s:%s after %.0f s, giving up\n", host, port, timeout_s);
+      exit(1);
+    }
+    if (!said) {
+      printf("[twinswarm fdm] waiting for the world at %s:%s ...\n", host, port);
+      said = true;
+    }
+    struct timespec pause = {0, 50 * 1000 * 1000};
+    nanosleep(&pause, NULL);
+  }
+  int one = 1;
+  setsockopt(sock, IPPROTO_TCP, TCP_NODELAY, &one, sizeof(one));
+
+  uint8_t hello[TWFD_HELLO_LEN];
+  memcpy(hello, "TWFD", 4);
+  put_u32(hello + 4, TWFD_VERSION);
+  put_u32(hello + 8, (uint32_t)AC_ID);
+  put_f64(hello + 12, dt);
+  write_all(hello, sizeof(hello));
+  printf("[twinswarm fdm] connected to the world at %s:%s (protocol v%u, ac_id %d, dt %.6f s)\n",
+         host, port, TWFD_VERSION, (int)AC_ID, dt);
+  fflush(stdout);
+}
+
+/* quaternion of a rotation matrix (Shepperd), the double counterpart of float_quat_of_rmat */
+static void quat_of_rmat_d(struct DoubleQuat *q, struct DoubleRMat *r)
+{
+  const double tr = RMAT_TRACE(*r);
+  if (tr > 0) {
+    const double two_qi = sqrt(1. + tr);
+    const double four_qi = 2. * two_qi;
+    q->qi = 0.5 * two_qi;
+    q->qx = (RMAT_ELMT(*r, 1, 2) - RMAT_ELMT(*r, 2, 1)) / four_qi;
+    q->qy = (RMAT_ELMT(*r, 2, 0) - RMAT_ELMT(*r, 0, 2)) / four_qi;
+    q->qz = (RMAT_ELMT(*r, 0, 1) - RMAT_ELMT(*r, 1, 0)) / four_qi;
+  } else if (RMAT_ELMT(*r, 0, 0) > RMAT_ELMT(*r, 1, 1) && RMAT_ELMT(*r, 0, 0) > RMAT_ELMT(*r, 2, 2)) {
+    const double two_qx = sqrt(RMAT_ELMT(*r, 0, 0) - RMAT_ELMT(*r, 1, 1) - RMAT_ELMT(*r, 2, 2) + 1);
+    const double four_qx = 2. * two_qx;
+    q->qi = (RMAT_ELMT(*r, 1, 2) - RMAT_ELMT(*r, 2, 1)) / four_qx;
+    q->qx = 0.5 * two_qx;
+    q->qy = (RMAT_ELMT(*r, 0, 1) + RMAT_ELMT(*r, 1, 0)) / four_qx;
+    q->qz = (RMAT_ELMT(*r, 2, 0) + RMAT_ELMT(*r, 0, 2)) / four_qx;
+  } else if (RMAT_ELMT(*r, 1, 1) > RMAT_ELMT(*r, 2, 2)) {
+    const double two_qy = sqrt(RMAT_ELMT(*r, 1, 1) - RMAT_ELMT(*r, 0, 0) - RMAT_ELMT(*r, 2, 2) + 1);
+    const double four_qy = 2. * two_qy;
+    q->qi = (RMAT_ELMT(*r, 2, 0) - RMAT_ELMT(*r, 0, 2)) / four_qy;
+    q->qx = (RMAT_ELMT(*r, 0, 1) + RMAT_ELMT(*r, 1, 0)) / four_qy;
+    q->qy = 0.5 * two_qy;
+    q->qz = (RMAT_ELMT(*r, 1, 2) + RMAT_ELMT(*r, 2, 1)) / four_qy;
+  } else {
+    const double two_qz = sqrt(RMAT_ELMT(*r, 2, 2) - RMAT_ELMT(*r, 0, 0) - RMAT_ELMT(*r, 1, 1) + 1);
+    const double four_qz = 2. * two_qz;
+    q->qi = (RMAT_ELMT(*r, 0, 1) - RMAT_ELMT(*r, 1, 0)) / four_qz;
+    q->qx = (RMAT_ELMT(*r, 2, 0) + RMAT_ELMT(*r, 0, 2)) / four_qz;
+    q->qy = (RMAT_ELMT(*r, 1, 2) + RMAT_ELMT(*r, 2, 1)) / four_qz;
+    q->qz = 0.5 * two_qz;
+  }
+}
+
+static void init_ltp(void)
+{
+  /* the INS's origin (modules/ins/ins.c): NAV_ALT0 = ground above MSL, NAV_MSL0 = geoid height */
+  struct LlaCoor_d lla0;
+  lla0.lat = RadOfDeg((double)NAV_LAT0 / 1e7);
+  lla0.lon = RadOfDeg((double)NAV_LON0 / 1e7);
+  lla0.alt = ((double)NAV_ALT0 + (double)NAV_MSL0) / 1000.;
+  ltp_def_from_lla_d(&ltpdef, &lla0);
+  ground_hmsl = (double)NAV_ALT0 / 1000.;
+  ltpdef.hmsl = ground_hmsl;
+  quat_of_rmat_d(&ecef_to_ltp_quat, &ltpdef.ltp_of_ecef);
+
+  fdm.ecef_pos = ltpdef.ecef;
+  fdm.lla_pos = ltpdef.lla;
+
+  fdm.ltp_g.x = 0.;
+  fdm.ltp_g.y = 0.;
+  fdm.ltp_g.z = 9.81;
+
+#ifdef AHRS_H_X
+  fdm.ltp_h.x = AHRS_H_X;
+  fdm.ltp_h.y = AHRS_H_Y;
+  fdm.ltp_h.z = AHRS_H_Z;
+  PRINT_CONFIG_MSG("Using magnetic field as defined in airframe file.")
+#else
+  fdm.ltp_h.x = 0.4912;
+  fdm.ltp_h.y = 0.1225;
+  fdm.ltp_h.z = 0.8624;
+#endif
+}
+
+/* send one step's commands, receive the state after it, fill NpsFdm */
+static void exchange(bool launch, double *commands, int commands_nb)
+{
+  uint8_t out[TWFD_STEP_LEN];
+  put_u32(out, TWFD_MAGIC_STEP);
+  put_u64(out + 4, next_step);
+  out[12] = launch ? 1 : 0;
+  out[13] = TWFD_N_MOTORS;
+  for (int i = 0; i < TWFD_N_MOTORS; i++) {
+    put_f64(out + 14 + 8 * i, (commands && i < commands_nb) ? commands[i] : 0.);
+  }
+  write_all(out, sizeof(out));
+
+  uint8_t in[TWFD_STATE_LEN];
+  read_all(in, sizeof(in));
+  uint32_t magic = get_u32(in);
+  uint64_t step = get_u64(in + 4);
+  if (magic != TWFD_MAGIC_STATE || step != next_step) {
+    fprintf(stderr, "[twinswarm fdm] bad state record: magic 0x%08x (want 0x%08x), step %llu (want %llu)\n",
+            magic, TWFD_MAGIC_STATE, (unsigned long long)step, (unsigned long long)next_step);
+    exit(1);
+  }
+  double f[TWFD_STATE_NF];
+  for (int i = 0; i < TWFD_STATE_NF; i++) {
+    f[i] = get_f64(in + 12 + 8 * i);
+  }
+  uint8_t crashed = in[12 + 8 * TWFD_STATE_NF];
+  twinswarm_step = next_step;
+  next_step++;
+
+  const double *t_s = f, *pos = f + 1, *vel = f + 4, *acc = f + 7, *quat = f + 10, *rates = f + 14,
+                *body_acc = f + 17, *agl = f + 20, *sonar = f + 21, *ir = f + 25;
+
+  twinswarm_time_s = *t_s;
+  for (int i = 0; i < 4; i++) {
+    twinswarm_sonar_m[i] = (float)sonar[i];
+  }
+  twinswarm_ir_m = (float)*ir;
+  if (crashed && !twinswarm_crashed) {
+    printf("[twinswarm fdm] the world reports a crash at t = %.3f s (step %llu)\n", *t_s,
+           (unsigned long long)twinswarm_step);
+    fflush(stdout);
+  }
+  twinswarm_crashed = crashed;
+
+  fdm.time = *t_s;
+  fdm.curr_dt = fdm.init_dt;
+
+  /* position: LTP (NED) = the world's arena frame */
+  struct NedCoor_d ned_pos = {pos[0], pos[1], pos[2]};
+  fdm.ltpprz_pos = ned_pos;
+  ecef_of_ned_point_d(&fdm.ecef_pos, &ltpdef, &ned_pos);
+  lla_of_ecef_d(&fdm.lla_pos, &fdm.ecef_pos);
+  fdm.lla_pos_pprz = fdm.lla_pos;
+  fdm.lla_pos_geod = fdm.lla_pos;
+  fdm.lla_pos_geoc = fdm.lla_pos;
+  fdm.hmsl = ground_hmsl - ned_pos.z;
+  fdm.agl = *agl;
+  fdm.on_ground = fdm.agl < 0.01;
+
+  /* attitude */
+  struct DoubleQuat q = {quat[0], quat[1], quat[2], quat[3]};
+  double qn = sqrt(q.qi * q.qi + q.qx * q.qx + q.qy * q.qy + q.qz * q.qz);
+  if (qn > 1e-9) {
+    q.qi /= qn; q.qx /= qn; q.qy /= qn; q.qz /= qn;
+  } else {
+    q.qi = 1.; q.qx = 0.; q.qy = 0.; q.qz = 0.;
+  }
+  fdm.ltp_to_body_quat = q;
+  double_eulers_of_quat(&fdm.ltp_to_body_eulers, &fdm.ltp_to_body_quat);
+  fdm.ltpprz_to_body_quat = fdm.ltp_to_body_quat;
+  fdm.ltpprz_to_body_eulers = fdm.ltp_to_body_eulers;
+  double_quat_comp(&fdm.ecef_to_body_quat, &ecef_to_ltp_quat, &fdm.ltp_to_body_quat);
+
+  /* velocities, wrt the (non-rotating, here) earth */
+  struct NedCoor_d ned_vel = {vel[0], vel[1], vel[2]};
+  fdm.ltp_ecef_vel = ned_vel;
+  fdm.ltpprz_ecef_vel = ned_vel;
+  ecef_of_ned_vect_d(&fdm.ecef_ecef_vel, &ltpdef, &ned_vel);
+  struct DoubleVect3 v_ltp = {vel[0], vel[1], vel[2]};
+  double_quat_vmult(&fdm.body_ecef_vel, &fdm.ltp_to_body_quat, &v_ltp);
+
+  /* accelerations: kinematic (without gravity) ... */
+  struct NedCoor_d ned_acc = {acc[0], acc[1], acc[2]};
+  fdm.ltp_ecef_accel = ned_acc;
+  fdm.ltpprz_ecef_accel = ned_acc;
+  ecef_of_ned_vect_d(&fdm.ecef_ecef_accel, &ltpdef, &ned_acc);
+  struct DoubleVect3 a_ltp = {acc[0], acc[1], acc[2]};
+  double_quat_vmult(&fdm.body_ecef_accel, &fdm.ltp_to_body_quat, &a_ltp);
+  fdm.body_inertial_accel = fdm.body_ecef_accel; /* earth rotation neglected, as in the world */
+  /* ... and as an accelerometer reads it (specific force, incl. the reaction to gravity) */
+  fdm.body_accel.x = body_acc[0];
+  fdm.body_accel.y = body_acc[1];
+  fdm.body_accel.z = body_acc[2];
+
+  /* body rates; angular acceleration by finite difference */
+  struct DoubleRates r = {rates[0], rates[1], rates[2]};
+  if (have_last_rates && fdm.init_dt > 0) {
+    fdm.body_ecef_rotaccel.p = (r.p - last_rates.p) / fdm.init_dt;
+    fdm.body_ecef_rotaccel.q = (r.q - last_rates.q) / fdm.init_dt;
+    fdm.body_ecef_rotaccel.r = (r.r - last_rates.r) / fdm.init_dt;
+  } else {
+    fdm.body_ecef_rotaccel.p = fdm.body_ecef_rotaccel.q = fdm.body_ecef_rotaccel.r = 0.;
+  }
+  last_rates = r;
+  have_last_rates = true;
+  fdm.body_ecef_rotvel = r;
+  fdm.body_inertial_rotvel = r;
+  fdm.body_inertial_rotaccel = fdm.body_ecef_rotaccel;
+
+  /* air: indoor, ISA pressure at the copter's height, still air unless NPS sets wind */
+  struct DoubleVect3 air = {vel[0] - fdm.wind.x, vel[1] - fdm.wind.y, vel[2] - fdm.wind.z};
+  fdm.airspeed = sqrt(air.x * air.x + air.y * air.y + air.z * air.z);
+  fdm.pressure = pprz_isa_pressure_of_altitude((float)fdm.hmsl);
+  fdm.pressure_sl = PPRZ_ISA_SEA_LEVEL_PRESSURE;
+  fdm.dynamic_pressure = 0.5 * PPRZ_ISA_AIR_DENSITY * fdm.airspeed * fdm.airspeed;
+  fdm.total_pressure = fdm.pressure + fdm.dynamic_pressure;
+  fdm.temperature = temperature_c;
+  fdm.aoa = 0.;
+  fdm.sideslip = 0.;
+
+  if (verbose && (twinswarm_step % 1000 == 0)) {
+    printf("[twinswarm fdm] step %llu t %.3f pos %.3f %.3f %.3f cmd %.3f %.3f %.3f %.3f\n",
+           (unsigned long long)twinswarm_step, *t_s, pos[0], pos[1], pos[2],
+           commands ? commands[0] : 0., commands ? commands[1] : 0.,
+           commands ? commands[2] : 0., commands ? commands[3] : 0.);
+  }
+}
+
+void nps_fdm_init(double dt)
+{
+  memset(&fdm, 0, sizeof(fdm));
+  fdm.init_dt = dt;
+  fdm.curr_dt = dt;
+  fdm.time = 0.;
+  fdm.on_ground = TRUE;
+  fdm.nan_count = 0;
+  fdm.pressure = -1;
+  fdm.pressure_sl = PPRZ_ISA_SEA_LEVEL_PRESSURE;
+  fdm.total_pressure = -1;
+  fdm.dynamic_pressure = -1;
+  fdm.temperature = -1;
+  fdm.num_engines = TWFD_N_MOTORS;
+
+  init_ltp();
+  connect_world(dt);
+
+  /* step 0: fill every field before the sensors initialise */
+  double zero[TWFD_N_MOTORS] = {0., 0., 0., 0.};
+  exchange(false, zero, TWFD_N_MOTORS);
+}
+
+void nps_fdm_run_step(bool launch, double *commands, int commands_nb)
+{
+  exchange(launch, commands, commands_nb);
+}
+
+void nps_fdm_set_wind(double speed, double dir)
+{
+  /* dir: direction the wind comes from, rad from north, as for the other FDMs */
+  fdm.wind.x = -speed * cos(dir);
+  fdm.wind.y = -speed * sin(dir);
+  fdm.wind.z = 0.;
+}
+
+void nps_fdm_set_wind_ned(double wind_north, double wind_east, double wind_down)
+{
+  fdm.wind.x = wind_north;
+  fdm.wind.y = wind_east;
+  fdm.wind.z = wind_down;
+}
+
+void nps_fdm_set_turbulence(double wind_speed __attribute__((unused)),
+                            int turbulence_severity __attribute__((unused)))
+{
+}
+
+void nps_fdm_set_temperature(double temp, double h __attribute__((unused)))
+{
+  temperature_c = temp;
+}
