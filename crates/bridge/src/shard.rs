@@ -221,6 +221,10 @@ pub struct ShardLink {
     ghosts: Vec<Ghost>,
     /// This step's batch for each neighbour, kept to send again.
     sent: Vec<Vec<u8>>,
+    /// The previous step's batches. A neighbour may still wait for one: this shard took
+    /// its batch for that step and moved on, while this shard's own was lost on the way (a
+    /// router restart between the two). Neighbours are never more than one step apart.
+    sent_before: Vec<Vec<u8>>,
     stats: LinkStats,
 }
 
@@ -286,6 +290,7 @@ impl ShardLink {
             on_lost: OnLost::Stop,
             ghosts: Vec::new(),
             sent: Vec::new(),
+            sent_before: Vec::new(),
             stats: LinkStats::default(),
         })
     }
@@ -386,7 +391,9 @@ impl ShardLink {
     pub fn exchange(&mut self, state: &mut State) -> Result<(), LinkError> {
         let tick = state.tick;
         let t0 = Instant::now();
+        std::mem::swap(&mut self.sent, &mut self.sent_before);
         self.sent.resize_with(self.neighbours.len(), Vec::new);
+        self.sent_before.resize_with(self.neighbours.len(), Vec::new);
         for (k, (&t, publisher)) in self.neighbours.iter().zip(&self.publishers).enumerate() {
             self.ghosts.clear();
             state.ghosts_for(t, &mut self.ghosts);
@@ -435,8 +442,10 @@ impl ShardLink {
             }
             if last_send.elapsed() >= RESEND {
                 for (k, publisher) in self.publishers.iter().enumerate() {
-                    publisher.put(self.sent[k].as_slice()).wait().map_err(zerr)?;
-                    self.stats.resent += 1;
+                    for bytes in [&self.sent_before[k], &self.sent[k]].into_iter().filter(|b| !b.is_empty()) {
+                        publisher.put(bytes.as_slice()).wait().map_err(zerr)?;
+                        self.stats.resent += 1;
+                    }
                 }
                 last_send = Instant::now();
             }
