@@ -70,6 +70,7 @@ struct Core {
     sync: Option<TwinSync>,
     outbox: Option<Outbox>,
     shard: Option<Arc<Mutex<ShardLink>>>,
+    autopilots: Option<Arc<Mutex<crate::autopilot::Autopilots>>>,
     /// A shard: which copters it owned after the last step.
     owned: Vec<bool>,
     checkpoints: Option<Checkpointer>,
@@ -97,6 +98,7 @@ impl<W: StepObserver> Flight<W> {
             sync,
             outbox: opts.outbox.clone().map(Outbox::new),
             shard: opts.shard.clone(),
+            autopilots: opts.autopilots.clone(),
             owned: Vec::new(),
             checkpoints: opts.checkpoint.clone().map(Checkpointer::new),
             stats: LoopStats::default(),
@@ -254,6 +256,11 @@ impl<W: StepObserver> Flight<W> {
             }
         }
         c.stats.failsafe = c.failsafe.counts.clone();
+        if let Some(a) = &c.autopilots {
+            let a = crate::lock(a);
+            c.stats.autopilots = a.stats();
+            c.stats.autopilot_wait_s = a.wait_s();
+        }
         if let Some(sync) = &c.sync {
             c.stats.sync = sync.stats().into_iter().map(|(id, s)| (c.world.copters[id].name.clone(), s)).collect();
         }
@@ -393,7 +400,15 @@ impl Core {
         if let Some(link) = &self.shard {
             crate::lock(link).exchange(&mut self.state).map_err(|e| e.to_string())?;
         }
+        let mut autopilots = self.autopilots.as_ref().map(|a| crate::lock(a));
+        if let Some(a) = autopilots.as_mut() {
+            a.commands(&self.world, &self.state, &mut self.inputs);
+        }
         step_into(&self.world, &mut self.state, &self.inputs, &mut self.report);
+        if let Some(a) = autopilots.as_mut() {
+            a.answer(&self.world, &self.state);
+        }
+        drop(autopilots);
         obs.after_step(&self.world, &self.state, &self.inputs, &self.report);
         self.check_shard()?;
         self.stats.steps += 1;

@@ -16,12 +16,14 @@
 //! * [`sync`]: keeping twins where their real copters are (MEDUSA and tracking).
 //! * [`log`]: MCAP logs, their reader and recovery.
 //! * [`checkpoint`]: a run saved between two steps, bit for bit, and restored.
+//! * [`autopilot`]: copters flown by outside autopilots (Paparazzi NPS), in lockstep over TCP.
 //!
 //! **Architecture invariant:** the format modules never do I/O except reading the files they
 //! are asked to parse, and never panic on input. Only [`zenoh_net`] knows Zenoh; only
 //! [`paparazzi::ivy`] opens Ivy sockets; only [`sim`] runs the step loop, and it never blocks
 //! on publishing.
 
+pub mod autopilot;
 pub mod checkpoint;
 pub mod failsafe;
 pub mod flight;

@@ -126,6 +126,7 @@ pub fn apply_pairing(spec: &mut SceneSpec, pairing: &ResolvedPairing) -> Result<
 pub fn paired_copter(name: &str, kind: CopterKind, ac_id: AcId, pose: &crate::paparazzi::pairing::Pose) -> CopterSpec {
     let (mode, command) = match kind {
         CopterKind::Real => (FlightMode::Manual, CommandSpec::default()),
+        CopterKind::Autopilot => (FlightMode::Rotors, CommandSpec::default()),
         CopterKind::Virtual => (FlightMode::WallAvoid, CommandSpec { height_m: 0.8, ..CommandSpec::default() }),
     };
     CopterSpec {
@@ -172,13 +173,13 @@ impl OutboxOptions {
         }
     }
 
-    /// One line per twin of `world` for the start of a run: the uplink it gets, or that it gets
-    /// none and why.
+    /// One line per twin (or copter flown by an outside autopilot) of `world` for the start of
+    /// a run: the uplink it gets, or that it gets none and why.
     pub fn uplink_lines(&self, world: &World) -> Vec<String> {
         world
             .copters
             .iter()
-            .filter(|c| c.kind == CopterKind::Real)
+            .filter(|c| c.kind.is_real_layer())
             .filter_map(|c| {
                 let ac = c.ac_id?;
                 Some(match (self.uplink_for(ac), self.uplinks.get(&ac)) {
@@ -270,7 +271,7 @@ impl Outbox {
         while self.due.len() < n {
             let i = self.due.len();
             let slots = match world.copters[i].kind {
-                CopterKind::Real => 1,
+                CopterKind::Real | CopterKind::Autopilot => 1,
                 CopterKind::Virtual => self.opts.plan.periods.len(),
             };
             self.due.push(vec![t; slots]);
@@ -292,7 +293,9 @@ impl Outbox {
             let def = &world.copters[i];
             let Some(ac_id) = def.ac_id else { continue };
             match def.kind {
-                CopterKind::Real => {
+                // A real copter and one flown by an outside autopilot get the virtual sonar;
+                // the latter's telemetry is its autopilot's own.
+                CopterKind::Real | CopterKind::Autopilot => {
                     if !sonar_updated {
                         continue;
                     }
@@ -359,6 +362,9 @@ pub enum Decision {
     SpawnTwin(Box<CopterSpec>),
     /// Drop: one of our own virtual aircraft (someone else is sending as it).
     OwnVirtual,
+    /// Drop: the telemetry of an aircraft whose autopilot flies one of our copters (its motion
+    /// is the simulation's; the telemetry is for the ground station).
+    Autopilot,
     /// Drop: not ours and not to be spawned.
     Unknown,
 }
@@ -392,6 +398,7 @@ impl Router {
                 self.own_virtual_dropped += 1;
                 return Decision::OwnVirtual;
             }
+            Some((_, CopterKind::Autopilot)) => return Decision::Autopilot,
             None => {}
         }
         let route = self.pairing.as_ref().map_or(Route::Ignore, |p| p.route(ac_id));
@@ -916,6 +923,7 @@ impl Interpreter {
                 (spec.name.clone(), Some(spec))
             }
             Decision::OwnVirtual => return sh.ignore(origin, "sent as one of our virtual aircraft"),
+            Decision::Autopilot => return sh.ignore(origin, "its autopilot flies it in the simulation"),
             Decision::Unknown => return sh.ignore(origin, "aircraft not paired"),
         };
         let heard = received;

@@ -156,6 +156,9 @@ pub struct LoopOptions {
     pub lockstep: Option<LockstepOptions>,
     /// Write a checkpoint every so many steps (see [`crate::checkpoint`]).
     pub checkpoint: Option<crate::checkpoint::CheckpointOptions>,
+    /// Outside autopilots flying copters of kind `autopilot` (see [`crate::autopilot`]): every
+    /// step first takes their motor commands and answers them after.
+    pub autopilots: Option<Arc<std::sync::Mutex<crate::autopilot::Autopilots>>>,
 }
 
 /// `run --lockstep`: see `docs/lockstep.md`.
@@ -294,6 +297,10 @@ pub struct LoopStats {
     pub checkpoint_error: Option<String>,
     /// Lockstep: answers, timeouts, refusals.
     pub lockstep: Option<LockstepStats>,
+    /// Outside autopilots, in copter order.
+    pub autopilots: Vec<crate::autopilot::AutopilotStats>,
+    /// Wall time the steps waited for the outside autopilots, s.
+    pub autopilot_wait_s: f64,
 }
 
 /// Observes every step from inside the loop (e.g. a logger). Runs on the loop's thread: keep

@@ -234,6 +234,7 @@ pub fn kind_str(kind: CopterKind) -> &'static str {
     match kind {
         CopterKind::Virtual => "virtual",
         CopterKind::Real => "twin",
+        CopterKind::Autopilot => "autopilot",
     }
 }
 

@@ -91,6 +91,14 @@ pub(crate) struct RunArgs {
     /// is reproducible from its start.
     #[arg(long, value_name = "COPTER,...", value_delimiter = ',')]
     wait_claims: Vec<String>,
+    /// Where copters of kind `autopilot` wait for their outside autopilots (Paparazzi NPS
+    /// with Twinswarm's flight model, `TWINSWARM_FDM`; docs/paparazzi.md). Each step then
+    /// waits for every autopilot's motor commands, and nothing waits on the wall clock.
+    #[arg(long, value_name = "ADDR:PORT", default_value = bridge::autopilot::DEFAULT_LISTEN)]
+    autopilot_listen: std::net::SocketAddr,
+    /// How long the first step waits for every autopilot to connect, s.
+    #[arg(long, value_name = "S", default_value_t = 60.0)]
+    autopilot_timeout: f64,
     /// Worker threads of a step (default: the scene's `sim.threads`); results are the same
     /// bits for any count.
     #[arg(long, value_name = "N")]
@@ -387,7 +395,25 @@ fn pace(args: &RunArgs, world: &World) -> anyhow::Result<Pace> {
             Some(LockstepOptions { timeout: Duration::from_secs_f64(t), wait_claims: args.wait_claims.clone() })
         }
     };
-    Ok(Pace { ticks: world.default_ticks(), realtime: args.realtime, lockstep })
+    let autopilots = world.copters.iter().any(|c| c.kind == sim_core::CopterKind::Autopilot);
+    let autopilots = match autopilots {
+        false => None,
+        true if args.shard.is_some() => {
+            return Err(bad("--shard: scenes with autopilot copters need one process for now".into()));
+        }
+        true => {
+            let t = args.autopilot_timeout;
+            if !(t.is_finite() && t > 0.0 && t <= 3600.0) {
+                return Err(bad(format!("--autopilot-timeout must be in (0, 3600] s, got {t}")));
+            }
+            Some(bridge::autopilot::AutopilotOptions {
+                listen: args.autopilot_listen,
+                connect_timeout: Duration::from_secs_f64(t),
+                ..Default::default()
+            })
+        }
+    };
+    Ok(Pace { ticks: world.default_ticks(), realtime: args.realtime, lockstep, autopilots })
 }
 
 /// `--foxglove`: the live view's server.
@@ -510,6 +536,8 @@ fn report_run(
         json["failsafe"] = serde_json::to_value(&stats.failsafe)?;
         json["inputs"] = inputs_json(&stats);
         json["lockstep"] = serde_json::to_value(&stats.lockstep)?;
+        json["autopilots"] = serde_json::to_value(&stats.autopilots)?;
+        json["autopilot_wait_s"] = stats.autopilot_wait_s.into();
         json["log_error"] = log_error.as_ref().map_or(serde_json::Value::Null, |e| format!("{e:#}").into());
         json["shard"] = serde_json::to_value(shard)?;
         json["checkpoints"] = checkpoints_json(args, &stats);
@@ -729,6 +757,7 @@ fn print_inputs(stats: &bridge::sim::LoopStats, failsafe_events: &[(u64, String)
             outln!("    … {} more in the log (/events)", total - failsafe_events.len() as u64);
         }
     }
+    print_autopilots(stats);
     if let Some(l) = &stats.lockstep {
         let timeouts: u64 = l.timeouts.values().sum();
         outln!(
@@ -741,6 +770,32 @@ fn print_inputs(stats: &bridge::sim::LoopStats, failsafe_events: &[(u64, String)
             l.refused,
             l.wait_s
         );
+    }
+}
+
+/// The outside autopilots in a few lines, whatever their number: how many flew, their steps,
+/// the time waited for them, and the first few that left early.
+fn print_autopilots(stats: &bridge::sim::LoopStats) {
+    let aps = &stats.autopilots;
+    if aps.is_empty() {
+        return;
+    }
+    let steps = aps.iter().map(|a| a.steps);
+    let (lo, hi) = (steps.clone().min().unwrap_or(0), steps.max().unwrap_or(0));
+    let left: Vec<_> = aps.iter().filter_map(|a| a.left.as_ref().map(|l| (a, l))).collect();
+    outln!(
+        "  autopilots: {} flew ({} to {} steps each), {} left early; {:.2} s waited for their commands",
+        aps.len(),
+        lo,
+        hi,
+        left.len(),
+        stats.autopilot_wait_s
+    );
+    for (a, (tick, why)) in left.iter().take(5) {
+        outln!("    aircraft {} ({}) left at step {tick}: {why}", a.ac_id, a.copter);
+    }
+    if left.len() > 5 {
+        outln!("    … {} more in --json", left.len() - 5);
     }
 }
 

@@ -214,6 +214,8 @@ pub struct Pace {
     pub realtime: bool,
     /// Hold each step for the claimed copters' controllers.
     pub lockstep: Option<bridge::sim::LockstepOptions>,
+    /// Wait for the outside autopilots of the `autopilot` copters, and step with them.
+    pub autopilots: Option<bridge::autopilot::AutopilotOptions>,
 }
 
 /// Where a run starts and what it saves: a checkpoint to go on from (`--resume`), and
@@ -276,6 +278,13 @@ pub fn run<W: StepObserver + Send>(
         checkpoint: durability.checkpoint,
         ..Default::default()
     };
+    if let Some(o) = &pace.autopilots {
+        let n = world.copters.iter().filter(|c| c.kind == sim_core::CopterKind::Autopilot).count();
+        eprintln!("waiting for {n} autopilot(s) on {} (at most {:.0} s)", o.listen, o.connect_timeout.as_secs_f64());
+        let aps = bridge::autopilot::Autopilots::accept(&world, o)?;
+        eprintln!("{} autopilot(s) connected, stepping", aps.len());
+        opts.autopilots = Some(Arc::new(Mutex::new(aps)));
+    }
     // Room for 8,192 inputs between two steps: 160,000 per second at 50 ms, five times the
     // flood test's 30,000 (scripts/flood.sh); beyond, inputs are dropped and counted.
     let (req_tx, req_rx) = std::sync::mpsc::sync_channel::<Request>(REQUEST_QUEUE);

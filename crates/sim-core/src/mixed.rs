@@ -109,4 +109,39 @@ start = { pos_m = [0.0, 1.0], z_m = 0.5 }
         let other = vs.readings(&world, &state, 1);
         assert!(other[1].is_infinite(), "the twin is not a virtual object: {other:?}");
     }
+
+    #[test]
+    fn an_autopilot_copter_senses_the_real_layer_and_is_seen_by_virtual_copters() {
+        // The twin of SCENE flown by an outside autopilot instead: physics moves it, and its own
+        // sonars see what a real copter there would.
+        let scene = SCENE.replace("kind = \"real\"", "kind = \"autopilot\"");
+        let spec: crate::SceneSpec = toml::from_str(&scene).unwrap();
+        let world = crate::compile(&spec).unwrap();
+        assert_eq!(world.copters[0].initial_command.mode, crate::FlightMode::Rotors);
+        let mut state = world.initial_state();
+        let mut inputs = world.initial_inputs();
+        inputs.commands[0].rotors = Some([0.5; 4]);
+        // The firmware reads one sonar per update: four updates read them all.
+        for _ in 0..4 * world.sensors.spec.sonar.period_steps {
+            crate::step(&world, &mut state, &inputs);
+        }
+        let [front, right, back, left] = state.copters[0].sensors.sonar_truth_m;
+        let hx = world.arena.size_m[0] / 2.0;
+        // Front: not the virtual-only box at 0.8 m but the wall behind it.
+        assert!(front > 1.5 && front <= hx, "front {front}");
+        // Back: the real table, 0.8 m away.
+        assert!(back < 1.0, "back {back}");
+        // Left: not the virtual copter 1 m away, the wall 1.5 m away.
+        assert!(left > 1.2, "left {left}");
+        assert!(right > 1.2, "right {right}");
+        // The virtual copter sees the autopilot's copter: it is as real to it as a twin.
+        let seen = state.copters[1].sensors.sonar_truth_m[1];
+        assert!(seen < 1.0, "the virtual copter's right sonar {seen}");
+        // Virtual things reach it through the uplink, as they reach a real copter.
+        let start = world.initial_state();
+        let mut vs = VirtualSonar::default();
+        vs.prepare(&world, &start);
+        let [vf, _, _, vl] = vs.readings(&world, &start, 0);
+        assert!(vf < 1.0 && vl < 1.0, "virtual sonar {vf} {vl}");
+    }
 }

@@ -139,7 +139,8 @@ pub struct BoxSpec {
 pub struct CopterSpec {
     /// Unique name.
     pub name: String,
-    /// `virtual` (simulated only) or `real` (a virtual twin driven by a real copter).
+    /// `virtual` (simulated only), `real` (a virtual twin driven by a real copter) or
+    /// `autopilot` (flown by an outside autopilot, e.g. Paparazzi NPS; needs `ac_id`).
     #[serde(default)]
     pub kind: CopterKind,
     /// Paparazzi aircraft id, if it has one.
@@ -661,7 +662,15 @@ impl CopterCompiler<'_> {
                 ));
             }
         }
-        let command = compile_command(&p.clone().key("command"), c.mode, &c.command, c.start.yaw_deg.to_radians())?;
+        if c.kind == CopterKind::Autopilot && c.ac_id.is_none() {
+            return Err(SceneError::invalid(
+                p.clone().key("ac_id"),
+                format!("copter {:?} is flown by an outside autopilot, which finds it by `ac_id`: set one", c.name),
+            ));
+        }
+        // An outside autopilot commands the rotors; until its first command they are off.
+        let mode = if c.kind == CopterKind::Autopilot { FlightMode::Rotors } else { c.mode };
+        let command = compile_command(&p.clone().key("command"), mode, &c.command, c.start.yaw_deg.to_radians())?;
         Ok(CopterDef {
             name: c.name.clone(),
             kind: c.kind,

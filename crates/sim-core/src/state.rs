@@ -399,6 +399,11 @@ pub(crate) struct Scratch {
     /// into Rapier's step and whose motion comes out of it. Room for every copter.
     pub(crate) in_rapier: Vec<u32>,
     pub(crate) sonar_scene: SonarScene,
+    /// What the sonars of a real-layer copter flying on physics (an outside autopilot's) see:
+    /// no virtual copters, no `virtual_only` boxes. Filled only when such a copter exists.
+    pub(crate) real_scene: SonarScene,
+    /// The ids the real scene indexes, ascending.
+    pub(crate) real_ids: Vec<u32>,
     /// Every copter's sonar cones and ping timing, for cross-talk.
     pub(crate) pingers: Vec<Pinger>,
     /// The positions of the copters that ping (flyers), and their grid: wrecks are silent, so

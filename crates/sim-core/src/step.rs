@@ -731,10 +731,10 @@ fn airflow(world: &World, state: &mut State, parallel: bool, roles: Roles<'_>) -
         if !roles.present(i) {
             return;
         }
-        let twin = world.copters[i].kind == CopterKind::Real;
+        let real_layer = world.copters[i].kind.is_real_layer();
         let af = &world.airframes[world.copters[i].airframe];
         lane.ground_m = match spec.ground_effect {
-            true => af.rotor_pos_in_body_m.map(|arm| ground_below(world, lane.pos_m + lane.rot * arm, twin)),
+            true => af.rotor_pos_in_body_m.map(|arm| ground_below(world, lane.pos_m + lane.rot * arm, real_layer)),
             false => [0.0; 4],
         };
         lane.downwash_force_n = Vec3::ZERO;
@@ -842,13 +842,14 @@ fn airflow(world: &World, state: &mut State, parallel: bool, roles: Roles<'_>) -
 /// Wake speeds below this are not applied, m/s (their force is under 4 mN per rotor).
 const MIN_WAKE_SPEED_M_S: Real = 0.05;
 
-/// Height of the surface below a point: the floor, or the top of a box under it. Twins skip
-/// boxes that exist only in the simulation (their real copters fly over nothing there).
-fn ground_below(world: &World, p: Vec3, twin: bool) -> Real {
+/// Height of the surface below a point: the floor, or the top of a box under it. Real-layer
+/// copters skip boxes that exist only in the simulation (a real copter flies over nothing
+/// there).
+fn ground_below(world: &World, p: Vec3, real_layer: bool) -> Real {
     let mut ground = 0.0;
     for b in &world.boxes {
         let top = b.center_m.z + b.half_extents_m.z;
-        if top <= ground || top > p.z || p.z - top > 1.0 || (twin && b.virtual_only) {
+        if top <= ground || top > p.z || p.z - top > 1.0 || (real_layer && b.virtual_only) {
             continue;
         }
         let local = Quat::from_rotation_z(-b.yaw_rad) * (p - b.center_m);
@@ -1287,6 +1288,31 @@ fn fill_sonar_scene_of(
     }
 }
 
+/// The real layer's sonar scene (see [`CopterKind::Autopilot`]): the full scene without the
+/// `virtual_only` boxes, indexing only the real-layer copters among those `present`.
+fn fill_real_scene(
+    world: &World,
+    copters: &[CopterState],
+    present: Option<&[u32]>,
+    ids: &mut Vec<u32>,
+    scene: &mut SonarScene,
+) {
+    fill_sonar_scene_of(world, copters, None, false, scene);
+    scene.boxes.clear();
+    scene.boxes.extend(world.boxes.iter().filter(|b| !b.virtual_only).map(|b| OrientedBox {
+        center: b.center_m,
+        rotation: crate::math::Quat::from_rotation_z(b.yaw_rad),
+        half: b.half_extents_m,
+    }));
+    ids.clear();
+    let real = |i: u32| world.copters[i as usize].kind.is_real_layer();
+    match present {
+        Some(p) => ids.extend(p.iter().copied().filter(|&i| real(i))),
+        None => ids.extend((0..copters.len() as u32).filter(|&i| real(i))),
+    }
+    scene.index_some_copters(ids, grid_cell_m(world, copters.len()));
+}
+
 /// A copter grid's cell size for `n` items: about one item per cell, so sparse swarms visit
 /// fewer empty cells (any cell size gives the same readings).
 fn grid_cell_m(world: &World, n: usize) -> Real {
@@ -1325,7 +1351,11 @@ fn sense(world: &World, state: &mut State, inputs: &Inputs, sonar_due: bool, par
     let scratch = &mut state.scratch;
     let present = roles.0.map(|_| &scratch.present[..]);
     fill_sonar_scene_of(world, &state.copters, present, parallel, &mut scratch.sonar_scene);
-    let scene = &scratch.sonar_scene;
+    let autopilots = world.copters.iter().any(|c| c.kind == CopterKind::Autopilot);
+    if autopilots {
+        fill_real_scene(world, &state.copters, present, &mut scratch.real_ids, &mut scratch.real_scene);
+    }
+    let (scene, real_scene) = (&scratch.sonar_scene, &scratch.real_scene);
 
     let noise = spec.noise;
     let fresh = fresh_sonars(spec, tick, sonar_due);
@@ -1342,6 +1372,7 @@ fn sense(world: &World, state: &mut State, inputs: &Inputs, sonar_due: bool, par
         }
         let (pos, rot, vel, angvel) = (lane.pos_m, lane.rot, lane.vel_m_s, lane.angvel_rad_s);
         let r = &mut c.sensors;
+        let scene = if autopilots && world.copters[i].kind == CopterKind::Autopilot { real_scene } else { scene };
         if sonar_due {
             let cones = sonar_cones(params, pos, rot);
             r.sonar_tick = tick;

@@ -20,6 +20,20 @@ pub enum CopterKind {
     Virtual,
     /// The virtual twin of a real copter, driven by its telemetry.
     Real,
+    /// Flown by an autopilot outside the simulation (Paparazzi's, compiled for its simulator
+    /// NPS) that commands its four rotors every step; Twinswarm's physics answers. It belongs to
+    /// the real layer, as a real copter does: its own sonars and IR see the arena, the ordinary
+    /// boxes, twins and other such copters, while virtual copters and `virtual_only` boxes reach
+    /// it only through the virtual-sonar uplink (see [`crate::mixed`]).
+    Autopilot,
+}
+
+impl CopterKind {
+    /// Whether the copter is in the real layer (a twin, or flown by an outside autopilot): its
+    /// sensors do not see what exists only in the simulation.
+    pub fn is_real_layer(self) -> bool {
+        self != CopterKind::Virtual
+    }
 }
 
 /// Stepping parameters.

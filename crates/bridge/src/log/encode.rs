@@ -249,6 +249,7 @@ fn kind_str(kind: CopterKind) -> &'static str {
     match kind {
         CopterKind::Real => "real",
         CopterKind::Virtual => "virtual",
+        CopterKind::Autopilot => "autopilot",
     }
 }
 
@@ -783,6 +784,7 @@ fn flying_color(info: &CopterInfo) -> Option<fg::Color> {
     rgba(match info.kind {
         CopterKind::Real => [0.1, 0.6, 0.2, 1.0],
         CopterKind::Virtual => [0.15, 0.35, 0.8, 1.0],
+        CopterKind::Autopilot => [0.9, 0.5, 0.1, 1.0],
     })
 }
 

@@ -1,0 +1,638 @@
+//! Copters flown by outside autopilots: Paparazzi's rotorcraft autopilot compiled for its
+//! simulator NPS, with this project's flight-model backend (`paparazzi/sw/nps_fdm_twinswarm.c`),
+//! one process per aircraft, in lockstep with the world over TCP.
+//!
+//! Each NPS step (1 ms at the airframe's `PERIODIC_FREQUENCY` 500) is one control step of the
+//! world: the scene's `control_dt_s` must equal the autopilot's step, so that every autopilot
+//! step sees the physics' answer to its own motor commands, with nothing held or extrapolated.
+//! Per step, [`Autopilots::commands`] reads every aircraft's motor commands (blocking: the world
+//! waits for the slowest autopilot) and [`Autopilots::answer`] sends every aircraft its copter's
+//! state after the step. Nothing waits on the wall clock.
+//!
+//! # Protocol v1 (little-endian, fixed records, no padding; NPS connects and speaks first)
+//!
+//! | record | direction | layout | size |
+//! |---|---|---|---|
+//! | hello | NPS → world, once | `"TWFD"`, u32 version 1, u32 ac_id, f64 dt (s) | 20 |
+//! | step | NPS → world, every step | u32 `0x54575331`, u64 step, u8 launch, u8 n = 4, f64 commands\[4\] | 46 |
+//! | state | world → NPS, answer to a step | u32 `0x54575332`, u64 step, f64 t (s), pos\[3\], vel\[3\], accel\[3\] (NED), quat ned→body (w, x, y, z), body rates\[3\] (FRD), specific force\[3\] (FRD), agl, sonar\[4\] (front, right, back, left), ir (m; NaN: nothing in range), u8 crashed | 221 |
+//!
+//! Commands are Paparazzi's motor-mixing outputs over `MAX_PPRZ` in the airframe's motor order
+//! (0 front right, 1 back right, 2 back left, 3 front left); −1 means stopped. They become the
+//! copter's [`FlightMode::Rotors`] commands, fractions of each rotor's maximum thrust (Paparazzi
+//! assumes thrust roughly linear in its command, hover at 0.5, which the FINken's thrust ratio
+//! 2 gives). Frames: the world's x is north, so NED = (x, −y, −z) and body FRD = FLU with y and
+//! z negated.
+
+use std::io::{Read, Write};
+use std::net::{SocketAddr, TcpListener, TcpStream};
+use std::time::{Duration, Instant};
+
+use serde::Serialize;
+use sim_core::math::{GRAVITY_M_S2, Vec3};
+use sim_core::{CopterKind, FlightMode, Inputs, State, World};
+
+/// Where the world listens by default (`nps_fdm_twinswarm.c`'s default `TWINSWARM_FDM`).
+pub const DEFAULT_LISTEN: &str = "127.0.0.1:7460";
+/// The protocol version this side speaks.
+pub const VERSION: u32 = 1;
+const HELLO_LEN: usize = 20;
+const STEP_LEN: usize = 46;
+const STATE_LEN: usize = 221;
+const STEP_MAGIC: u32 = 0x5457_5331;
+const STATE_MAGIC: u32 = 0x5457_5332;
+
+/// A record that is not what protocol v1 says.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum ProtocolError {
+    /// The hello does not start with `TWFD`.
+    #[error("not a Twinswarm flight-model client (hello starts with {0:02x?}, not \"TWFD\")")]
+    NotHello([u8; 4]),
+    /// Another protocol version.
+    #[error("protocol version {0}, this Twinswarm speaks {VERSION}")]
+    Version(u32),
+    /// An aircraft id that does not fit Paparazzi's `uint8`.
+    #[error("ac_id {0} is not a Paparazzi aircraft id (0-255)")]
+    AcId(u32),
+    /// A step of no possible length.
+    #[error("step length {0} s is not a positive finite number")]
+    Dt(f64),
+    /// A step record with the wrong magic.
+    #[error("step record magic {0:#010x}, expected {STEP_MAGIC:#010x}")]
+    StepMagic(u32),
+    /// Not four motors.
+    #[error("{0} motor commands, the FINken has 4")]
+    Motors(u8),
+    /// A step out of order.
+    #[error("step {got}, expected {expected}")]
+    StepNumber {
+        /// Received.
+        got: u64,
+        /// The world's tick.
+        expected: u64,
+    },
+    /// A command that is not a number.
+    #[error("motor {motor} command is {value}, not a finite number")]
+    Command {
+        /// Motor index (Paparazzi's order).
+        motor: usize,
+        /// The value.
+        value: f64,
+    },
+}
+
+/// A client's hello.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Hello {
+    /// The aircraft id compiled into the autopilot.
+    pub ac_id: u8,
+    /// The autopilot's step, s.
+    pub dt_s: f64,
+}
+
+/// Decodes a hello record.
+pub fn decode_hello(b: &[u8; HELLO_LEN]) -> Result<Hello, ProtocolError> {
+    let magic: [u8; 4] = b[0..4].try_into().expect("4 bytes");
+    if &magic != b"TWFD" {
+        return Err(ProtocolError::NotHello(magic));
+    }
+    let version = u32_at(b, 4);
+    if version != VERSION {
+        return Err(ProtocolError::Version(version));
+    }
+    let ac_id = u32_at(b, 8);
+    let ac_id = u8::try_from(ac_id).map_err(|_| ProtocolError::AcId(ac_id))?;
+    let dt_s = f64_at(b, 12);
+    if !(dt_s.is_finite() && dt_s > 0.0) {
+        return Err(ProtocolError::Dt(dt_s));
+    }
+    Ok(Hello { ac_id, dt_s })
+}
+
+/// One step's motor commands.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct StepRecord {
+    /// The autopilot's step number (0 from its initialisation).
+    pub step: u64,
+    /// Commands in Paparazzi's motor order, −1 (stopped) to 1.
+    pub commands: [f64; 4],
+}
+
+/// Decodes a step record.
+pub fn decode_step(b: &[u8; STEP_LEN]) -> Result<StepRecord, ProtocolError> {
+    let magic = u32_at(b, 0);
+    if magic != STEP_MAGIC {
+        return Err(ProtocolError::StepMagic(magic));
+    }
+    if b[13] != 4 {
+        return Err(ProtocolError::Motors(b[13]));
+    }
+    let commands: [f64; 4] = std::array::from_fn(|k| f64_at(b, 14 + 8 * k));
+    if let Some((motor, &value)) = commands.iter().enumerate().find(|(_, v)| !v.is_finite()) {
+        return Err(ProtocolError::Command { motor, value });
+    }
+    Ok(StepRecord { step: u64::from_le_bytes(b[4..12].try_into().expect("8 bytes")), commands })
+}
+
+/// Paparazzi's motor commands as the copter's rotor commands: motor 0 front right, 1 back
+/// right, 2 back left, 3 front left → Twinswarm's front left, front right, back right, back
+/// left; stopped (−1) and anything below 0 is 0.
+pub fn rotor_commands(commands: [f64; 4]) -> [f32; 4] {
+    [commands[3], commands[0], commands[1], commands[2]].map(|c| c.clamp(0.0, 1.0) as f32)
+}
+
+/// The state one autopilot is told after a step, in its frames (NED, FRD).
+#[derive(Debug, Clone, Copy, PartialEq, Default)]
+pub struct FdmState {
+    /// The step answered.
+    pub step: u64,
+    /// World time after the step, s.
+    pub t_s: f64,
+    /// Position, m, NED from the arena centre on the floor.
+    pub pos_ned: [f64; 3],
+    /// Velocity, m/s, NED.
+    pub vel_ned: [f64; 3],
+    /// Acceleration, m/s², NED, without gravity.
+    pub accel_ned: [f64; 3],
+    /// Paparazzi's `ltp_to_body` quaternion, (w, x, y, z).
+    pub quat_ned_to_body: [f64; 4],
+    /// Body rates (p, q, r), rad/s, FRD.
+    pub rates_frd: [f64; 3],
+    /// Specific force, m/s², FRD: (0, 0, −9.81) at rest.
+    pub specific_force_frd: [f64; 3],
+    /// Height above what is below, m.
+    pub agl_m: f64,
+    /// Physical sonar readings (front, right, back, left), m; NaN: no echo.
+    pub sonar_m: [f64; 4],
+    /// IR height, m; NaN: nothing in range.
+    pub ir_m: f64,
+    /// Whether the copter crashed.
+    pub crashed: bool,
+}
+
+/// Encodes a state record.
+pub fn encode_state(s: &FdmState) -> [u8; STATE_LEN] {
+    let mut b = [0u8; STATE_LEN];
+    b[0..4].copy_from_slice(&STATE_MAGIC.to_le_bytes());
+    b[4..12].copy_from_slice(&s.step.to_le_bytes());
+    let floats = std::iter::once(s.t_s)
+        .chain(s.pos_ned)
+        .chain(s.vel_ned)
+        .chain(s.accel_ned)
+        .chain(s.quat_ned_to_body)
+        .chain(s.rates_frd)
+        .chain(s.specific_force_frd)
+        .chain([s.agl_m])
+        .chain(s.sonar_m)
+        .chain([s.ir_m]);
+    for (k, v) in floats.enumerate() {
+        b[12 + 8 * k..20 + 8 * k].copy_from_slice(&v.to_le_bytes());
+    }
+    b[STATE_LEN - 1] = u8::from(s.crashed);
+    b
+}
+
+/// Copter `id`'s state after a step, as its autopilot is told it. `prev_vel` is its velocity
+/// before the step (world frame), `dt` the step.
+pub fn fdm_state(world: &World, state: &State, id: usize, prev_vel: Vec3, dt: f64) -> FdmState {
+    let c = &state.copters[id];
+    let m = &c.motion;
+    let ned = |v: Vec3| [f64::from(v.x), -f64::from(v.y), -f64::from(v.z)];
+    let accel = (m.vel_m_s - prev_vel) / dt as f32;
+    let specific = m.rot.inverse() * (accel + Vec3::new(0.0, 0.0, GRAVITY_M_S2));
+    let rates = m.rot.inverse() * m.angvel_rad_s;
+    let r = &c.sensors;
+    let cap = world.sensors.spec.sonar.cap_m;
+    let sonar = r.sonar_m.map(|s| if s >= cap { f64::NAN } else { f64::from(s) });
+    let q = m.rot;
+    FdmState {
+        step: state.tick.saturating_sub(1),
+        t_s: state.time_s(world),
+        pos_ned: ned(m.pos_m),
+        vel_ned: ned(m.vel_m_s),
+        accel_ned: ned(accel),
+        quat_ned_to_body: [f64::from(q.w), f64::from(q.x), -f64::from(q.y), -f64::from(q.z)],
+        rates_frd: ned(rates),
+        specific_force_frd: ned(specific),
+        agl_m: f64::from(if r.ir_truth_m.is_finite() { r.ir_truth_m } else { m.pos_m.z }),
+        sonar_m: sonar,
+        ir_m: r.ir_m.map_or(f64::NAN, f64::from),
+        crashed: c.crash.is_some(),
+    }
+}
+
+/// How the world meets its autopilots.
+#[derive(Debug, Clone)]
+pub struct AutopilotOptions {
+    /// Where to listen for them.
+    pub listen: SocketAddr,
+    /// How long to wait for every autopilot's hello before the first step.
+    pub connect_timeout: Duration,
+    /// How long one step waits for an autopilot before it counts as gone.
+    pub step_timeout: Duration,
+}
+
+impl Default for AutopilotOptions {
+    fn default() -> Self {
+        Self {
+            listen: DEFAULT_LISTEN.parse().expect("valid address"),
+            connect_timeout: Duration::from_secs(60),
+            step_timeout: Duration::from_secs(10),
+        }
+    }
+}
+
+/// Why the autopilots could not be met.
+#[derive(Debug, thiserror::Error)]
+pub enum AutopilotError {
+    /// The listening socket.
+    #[error("cannot listen for autopilots on {addr}: {source}")]
+    Listen {
+        /// The address.
+        addr: SocketAddr,
+        /// Why.
+        source: std::io::Error,
+    },
+    /// Not every autopilot came.
+    #[error("no autopilot connected for {missing} within {waited_s:.0} s (listening on {addr})")]
+    Missing {
+        /// The aircraft still missing, as `ac_id (copter)`.
+        missing: String,
+        /// Waited, s.
+        waited_s: f64,
+        /// Where.
+        addr: SocketAddr,
+    },
+    /// An autopilot steps at another rate than the world.
+    #[error(
+        "aircraft {ac_id} steps every {autopilot_ms} ms, but the scene's control_dt_s is {world_ms} ms: \
+         set [sim] control_dt_s (and physics_dt_s) to the autopilot's step, or build the aircraft with \
+         PERIODIC_FREQUENCY = 1 / (2 × control_dt_s)"
+    )]
+    Rate {
+        /// The aircraft.
+        ac_id: u8,
+        /// Its step, ms.
+        autopilot_ms: f64,
+        /// The world's control step, ms.
+        world_ms: f64,
+    },
+}
+
+/// What one autopilot did over the run.
+#[derive(Debug, Clone, Default, Serialize)]
+pub struct AutopilotStats {
+    /// Its aircraft id.
+    pub ac_id: u8,
+    /// The copter it flew.
+    pub copter: String,
+    /// Where it connected from.
+    pub peer: String,
+    /// Steps exchanged.
+    pub steps: u64,
+    /// Wall time spent waiting for its commands, s.
+    pub wait_s: f64,
+    /// The tick at which it left, and why, if it did before the end.
+    pub left: Option<(u64, String)>,
+}
+
+struct Conn {
+    copter: usize,
+    stream: TcpStream,
+    prev_vel: Vec3,
+    gone: bool,
+    stats: AutopilotStats,
+}
+
+/// The world's side of its autopilots (see the module docs).
+pub struct Autopilots {
+    conns: Vec<Conn>,
+    dt_s: f64,
+    /// The step waiting time of all autopilots together, s.
+    wait_s: f64,
+}
+
+impl std::fmt::Debug for Autopilots {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("Autopilots").field("count", &self.conns.len()).finish_non_exhaustive()
+    }
+}
+
+impl Autopilots {
+    /// Listens on `opts.listen` and waits for one autopilot per copter of kind
+    /// [`CopterKind::Autopilot`], bound by the `ac_id` of its hello. A hello for no such copter
+    /// (or one already flown) is refused and the wait goes on; a rate other than the world's is
+    /// an error.
+    pub fn accept(world: &World, opts: &AutopilotOptions) -> Result<Self, AutopilotError> {
+        let listener =
+            TcpListener::bind(opts.listen).map_err(|source| AutopilotError::Listen { addr: opts.listen, source })?;
+        Self::accept_on(listener, world, opts)
+    }
+
+    /// [`Autopilots::accept`] on a listener already bound.
+    pub fn accept_on(listener: TcpListener, world: &World, opts: &AutopilotOptions) -> Result<Self, AutopilotError> {
+        let addr = listener.local_addr().map_err(|source| AutopilotError::Listen { addr: opts.listen, source })?;
+        let listen_err = |source| AutopilotError::Listen { addr, source };
+        listener.set_nonblocking(true).map_err(listen_err)?;
+        let mut wanted: Vec<(u8, usize)> = world
+            .copters
+            .iter()
+            .enumerate()
+            .filter(|(_, c)| c.kind == CopterKind::Autopilot)
+            .filter_map(|(i, c)| Some((c.ac_id?, i)))
+            .collect();
+        let dt_s = world.params.control_dt_s;
+        let start = Instant::now();
+        let mut conns = Vec::new();
+        while !wanted.is_empty() {
+            if start.elapsed() > opts.connect_timeout {
+                let missing = wanted
+                    .iter()
+                    .map(|&(ac, i)| format!("aircraft {ac} ({})", world.copters[i].name))
+                    .collect::<Vec<_>>()
+                    .join(", ");
+                return Err(AutopilotError::Missing { missing, waited_s: start.elapsed().as_secs_f64(), addr });
+            }
+            let (stream, peer) = match listener.accept() {
+                Ok(s) => s,
+                Err(e) if e.kind() == std::io::ErrorKind::WouldBlock => {
+                    std::thread::sleep(Duration::from_millis(5));
+                    continue;
+                }
+                Err(e) => return Err(listen_err(e)),
+            };
+            let hello = match read_hello(&stream, opts.step_timeout) {
+                Ok(h) => h,
+                Err(why) => {
+                    tracing::warn!("autopilot from {peer} refused: {why}");
+                    continue;
+                }
+            };
+            if (hello.dt_s - dt_s).abs() > 1e-9 {
+                return Err(AutopilotError::Rate {
+                    ac_id: hello.ac_id,
+                    autopilot_ms: hello.dt_s * 1e3,
+                    world_ms: dt_s * 1e3,
+                });
+            }
+            let Some(k) = wanted.iter().position(|&(ac, _)| ac == hello.ac_id) else {
+                tracing::warn!(
+                    "autopilot from {peer} refused: aircraft {} flies no copter of this scene (or one already flown)",
+                    hello.ac_id
+                );
+                continue;
+            };
+            let (ac_id, copter) = wanted.swap_remove(k);
+            let _ = stream.set_nodelay(true);
+            let _ = stream.set_read_timeout(Some(opts.step_timeout));
+            tracing::info!("autopilot of aircraft {ac_id} connected from {peer}: flies {}", world.copters[copter].name);
+            let stats = AutopilotStats {
+                ac_id,
+                copter: world.copters[copter].name.clone(),
+                peer: peer.to_string(),
+                ..Default::default()
+            };
+            conns.push(Conn { copter, stream, prev_vel: Vec3::ZERO, gone: false, stats });
+        }
+        conns.sort_by_key(|c| c.copter);
+        Ok(Self { conns, dt_s, wait_s: 0.0 })
+    }
+
+    /// How many autopilots there are.
+    pub fn len(&self) -> usize {
+        self.conns.len()
+    }
+
+    /// Whether there are none.
+    pub fn is_empty(&self) -> bool {
+        self.conns.is_empty()
+    }
+
+    /// Reads every autopilot's commands for the step from `state.tick` and sets its copter's
+    /// rotors. An autopilot that closed, stalled past the step timeout or broke the protocol is
+    /// gone: its copter's motors stop, and the run goes on.
+    pub fn commands(&mut self, world: &World, state: &State, inputs: &mut Inputs) {
+        let tick = state.tick;
+        let t0 = Instant::now();
+        for conn in self.conns.iter_mut().filter(|c| !c.gone) {
+            conn.prev_vel = state.copters[conn.copter].motion.vel_m_s;
+            let waited = Instant::now();
+            let got = read_step(&conn.stream, tick);
+            conn.stats.wait_s += waited.elapsed().as_secs_f64();
+            let cmd = &mut inputs.commands[conn.copter];
+            cmd.mode = FlightMode::Rotors;
+            match got {
+                Ok(rec) => cmd.rotors = Some(rotor_commands(rec.commands)),
+                Err(why) => {
+                    cmd.rotors = Some([0.0; 4]);
+                    tracing::warn!(
+                        "autopilot of aircraft {} ({}) gone at tick {tick}: {why}; its motors stop",
+                        conn.stats.ac_id,
+                        world.copters[conn.copter].name
+                    );
+                    conn.stats.left = Some((tick, why));
+                    conn.gone = true;
+                }
+            }
+        }
+        self.wait_s += t0.elapsed().as_secs_f64();
+    }
+
+    /// Sends every autopilot its copter's state after the step.
+    pub fn answer(&mut self, world: &World, state: &State) {
+        for conn in self.conns.iter_mut().filter(|c| !c.gone) {
+            let s = fdm_state(world, state, conn.copter, conn.prev_vel, self.dt_s);
+            match conn.stream.write_all(&encode_state(&s)) {
+                Ok(()) => conn.stats.steps += 1,
+                Err(e) => {
+                    conn.stats.left = Some((state.tick, format!("cannot send its state: {e}")));
+                    conn.gone = true;
+                }
+            }
+        }
+    }
+
+    /// What each autopilot did, in copter order.
+    pub fn stats(&self) -> Vec<AutopilotStats> {
+        self.conns.iter().map(|c| c.stats.clone()).collect()
+    }
+
+    /// The wall time all steps waited for the autopilots, s.
+    pub fn wait_s(&self) -> f64 {
+        self.wait_s
+    }
+}
+
+fn read_hello(mut stream: &TcpStream, timeout: Duration) -> Result<Hello, String> {
+    stream.set_nonblocking(false).map_err(|e| e.to_string())?;
+    stream.set_read_timeout(Some(timeout)).map_err(|e| e.to_string())?;
+    let mut b = [0u8; HELLO_LEN];
+    stream.read_exact(&mut b).map_err(|e| format!("no hello: {e}"))?;
+    decode_hello(&b).map_err(|e| e.to_string())
+}
+
+fn read_step(mut stream: &TcpStream, tick: u64) -> Result<StepRecord, String> {
+    let mut b = [0u8; STEP_LEN];
+    stream.read_exact(&mut b).map_err(|e| match e.kind() {
+        std::io::ErrorKind::UnexpectedEof => "it closed the connection".to_owned(),
+        std::io::ErrorKind::WouldBlock | std::io::ErrorKind::TimedOut => {
+            "no commands within the step timeout".to_owned()
+        }
+        _ => e.to_string(),
+    })?;
+    let rec = decode_step(&b).map_err(|e| e.to_string())?;
+    if rec.step != tick {
+        return Err(ProtocolError::StepNumber { got: rec.step, expected: tick }.to_string());
+    }
+    Ok(rec)
+}
+
+fn u32_at(b: &[u8], at: usize) -> u32 {
+    u32::from_le_bytes(b[at..at + 4].try_into().expect("4 bytes"))
+}
+
+fn f64_at(b: &[u8], at: usize) -> f64 {
+    f64::from_le_bytes(b[at..at + 8].try_into().expect("8 bytes"))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn hello(ac: u32, dt: f64) -> [u8; HELLO_LEN] {
+        let mut b = [0u8; HELLO_LEN];
+        b[0..4].copy_from_slice(b"TWFD");
+        b[4..8].copy_from_slice(&1u32.to_le_bytes());
+        b[8..12].copy_from_slice(&ac.to_le_bytes());
+        b[12..20].copy_from_slice(&dt.to_le_bytes());
+        b
+    }
+
+    fn step(k: u64, cmds: [f64; 4]) -> [u8; STEP_LEN] {
+        let mut b = [0u8; STEP_LEN];
+        b[0..4].copy_from_slice(&STEP_MAGIC.to_le_bytes());
+        b[4..12].copy_from_slice(&k.to_le_bytes());
+        b[12] = 1;
+        b[13] = 4;
+        for (i, c) in cmds.iter().enumerate() {
+            b[14 + 8 * i..22 + 8 * i].copy_from_slice(&c.to_le_bytes());
+        }
+        b
+    }
+
+    #[test]
+    fn records_decode_and_bad_ones_are_named() {
+        assert_eq!(decode_hello(&hello(7, 0.001)), Ok(Hello { ac_id: 7, dt_s: 0.001 }));
+        assert_eq!(decode_hello(&hello(300, 0.001)), Err(ProtocolError::AcId(300)));
+        assert!(matches!(decode_hello(&hello(7, f64::NAN)), Err(ProtocolError::Dt(_))));
+        let mut b = hello(7, 0.001);
+        b[0] = b'X';
+        assert!(decode_hello(&b).unwrap_err().to_string().contains("TWFD"));
+        let rec = decode_step(&step(3, [0.5, -1.0, 0.25, 1.0])).unwrap();
+        assert_eq!(rec, StepRecord { step: 3, commands: [0.5, -1.0, 0.25, 1.0] });
+        assert!(matches!(
+            decode_step(&step(3, [0.5, f64::INFINITY, 0.0, 0.0])),
+            Err(ProtocolError::Command { motor: 1, .. })
+        ));
+        let mut b = step(3, [0.0; 4]);
+        b[13] = 6;
+        assert_eq!(decode_step(&b), Err(ProtocolError::Motors(6)));
+    }
+
+    #[test]
+    fn motors_map_to_rotors_and_stopped_is_zero() {
+        // Paparazzi: FR, BR, BL, FL; Twinswarm: FL, FR, BR, BL.
+        assert_eq!(rotor_commands([0.1, 0.2, 0.3, 0.4]), [0.4, 0.1, 0.2, 0.3]);
+        assert_eq!(rotor_commands([-1.0, 2.0, 0.5, -0.5]), [0.0, 0.0, 1.0, 0.5]);
+    }
+
+    fn world() -> (World, State) {
+        let scene = r#"
+name = "ap"
+[sim]
+physics_dt_s = 0.001
+control_dt_s = 0.001
+[arena]
+size_m = [4.0, 3.0]
+height_m = 2.5
+[[copter]]
+name = "nps"
+kind = "autopilot"
+ac_id = 7
+start = { pos_m = [0.5, -0.25, 0.0], yaw_deg = 30.0 }
+"#;
+        let spec = sim_core::SceneSpec::from_toml("ap.toml", scene).unwrap();
+        let world = sim_core::compile(&spec).unwrap();
+        let state = world.initial_state();
+        (world, state)
+    }
+
+    #[test]
+    fn the_state_is_told_in_ned_and_frd() {
+        let (world, mut state) = world();
+        let inputs = world.initial_inputs();
+        sim_core::step(&world, &mut state, &inputs);
+        let s = fdm_state(&world, &state, 0, Vec3::ZERO, 0.001);
+        assert_eq!(s.step, 0);
+        assert!((s.pos_ned[0] - 0.5).abs() < 1e-6 && (s.pos_ned[1] - 0.25).abs() < 1e-6, "{:?}", s.pos_ned);
+        assert!(s.pos_ned[2] < 0.0, "the centre is above the floor: z down is negative, {:?}", s.pos_ned);
+        // At rest on the floor: the accelerometer reads −g along body z (FRD), heading −30°.
+        assert!((s.specific_force_frd[2] + 9.81).abs() < 0.05, "{:?}", s.specific_force_frd);
+        let [w, _, _, z] = s.quat_ned_to_body;
+        let psi = 2.0 * z.atan2(w);
+        assert!((psi + 30f64.to_radians()).abs() < 1e-5, "NED heading {psi}");
+        let b = encode_state(&s);
+        assert_eq!(u32_at(&b, 0), STATE_MAGIC);
+        assert_eq!(f64_at(&b, 20), s.pos_ned[0]);
+        assert_eq!(f64_at(&b, 212).to_bits(), s.ir_m.to_bits());
+        // The arena's walls are in range of every sonar.
+        assert!(s.sonar_m.iter().all(|v| v.is_finite()), "{:?}", s.sonar_m);
+    }
+
+    #[test]
+    fn a_bad_rate_and_a_stranger_are_refused_and_a_stall_stops_the_motors() {
+        let (world, state) = world();
+        let listener = TcpListener::bind("127.0.0.1:0").unwrap();
+        let addr = listener.local_addr().unwrap();
+        let opts = AutopilotOptions {
+            listen: addr,
+            connect_timeout: Duration::from_secs(10),
+            step_timeout: Duration::from_millis(300),
+        };
+        let client = std::thread::spawn(move || {
+            let mut stranger = TcpStream::connect(addr).unwrap();
+            stranger.write_all(&hello(9, 0.001)).unwrap();
+            let mut c = TcpStream::connect(addr).unwrap();
+            c.write_all(&hello(7, 0.001)).unwrap();
+            c.write_all(&step(0, [0.6; 4])).unwrap();
+            let mut b = [0u8; STATE_LEN];
+            c.read_exact(&mut b).unwrap();
+            std::thread::sleep(Duration::from_millis(800));
+            (u64::from_le_bytes(b[4..12].try_into().unwrap()), stranger)
+        });
+        let mut aps = Autopilots::accept_on(listener, &world, &opts).unwrap();
+        let mut inputs = world.initial_inputs();
+        let mut state = state;
+        aps.commands(&world, &state, &mut inputs);
+        assert_eq!(inputs.commands[0].rotors, Some([0.6; 4]));
+        sim_core::step(&world, &mut state, &inputs);
+        aps.answer(&world, &state);
+        aps.commands(&world, &state, &mut inputs);
+        assert_eq!(inputs.commands[0].rotors, Some([0.0; 4]), "a stalled autopilot's motors stop");
+        let stats = aps.stats();
+        assert_eq!(stats[0].steps, 1);
+        assert!(stats[0].left.as_ref().unwrap().1.contains("timeout"), "{:?}", stats[0].left);
+        let (answered, _) = client.join().unwrap();
+        assert_eq!(answered, 0);
+
+        let listener = TcpListener::bind("127.0.0.1:0").unwrap();
+        let addr = listener.local_addr().unwrap();
+        std::thread::spawn(move || {
+            let mut c = TcpStream::connect(addr).unwrap();
+            c.write_all(&hello(7, 0.002)).unwrap();
+            std::thread::sleep(Duration::from_millis(500));
+        });
+        let err = Autopilots::accept_on(listener, &world, &opts).unwrap_err().to_string();
+        assert!(err.contains("aircraft 7 steps every 2 ms") && err.contains("control_dt_s is 1 ms"), "{err}");
+    }
+}
