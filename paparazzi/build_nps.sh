@@ -1,16 +1,25 @@
 #!/usr/bin/env bash
 # Build a FINken NPS aircraft that flies in a Twinswarm world (Paparazzi NPS + the Twinswarm FDM).
 #
-#   paparazzi/build_nps.sh [--name NAME] [--ac-id N] [--periodic HZ] [--pprz DIR]
+#   paparazzi/build_nps.sh [--name NAME] [--ac-id N] [--periodic HZ] [--flight-plan hover|wall_avoid] [--pprz DIR]
 #
 # Installs this folder's files into the Paparazzi tree built by shared/paparazzi/build.sh
 # (default: <repo>/target/paparazzi), idempotently (a file is copied only when it differs, so
 # make rebuilds only what changed), then runs `make AIRCRAFT=NAME nps.compile` there with a
 # private conf file (CONF_XML=conf/userconf/twinswarm/conf.xml): the tree's own conf/conf.xml is
-# never touched. Only new files are added to the tree:
+# never touched. New files added to the tree:
 #   sw/simulator/nps/nps_fdm_twinswarm.{c,h}, conf/modules/fdm_twinswarm.xml,
-#   conf/airframes/twinswarm/NAME.xml, conf/flight_plans/twinswarm/finken_hover.xml,
-#   conf/userconf/twinswarm/{conf.xml,aircraft/NAME.xml}
+#   sw/airborne/modules/twinswarm/twinswarm_finken.{c,h}, conf/modules/twinswarm_finken.xml,
+#   conf/airframes/twinswarm/NAME.xml, conf/flight_plans/twinswarm/finken_{hover,wall_avoid}.xml,
+#   conf/telemetry/twinswarm/finken.xml,
+#   conf/userconf/twinswarm/{conf.xml,aircraft/NAME.xml,messages.xml}
+# and the message definitions are extended (README "Messages"): conf/userconf/twinswarm/
+# messages.xml = pprzlink's v1.0 messages.xml + conf/messages/twinswarm_messages.xml
+# (TWINSWARM_SONAR telemetry 192, SONAR_UPLINK datalink 153, GPS_INJECT moved 153 -> 42) is
+# installed as var/messages.xml and the C headers in var/include/pprzlink are regenerated from
+# it (pprzlink's own `make pymessages`), only when it differs from var/messages.xml.
+# --flight-plan: hover (default; arm, climb, hold 1 m) or wall_avoid (arm, climb to 1 m, then
+# the FINken's Wall-Avoid with a cruise tilt, forever).
 # Output: $PAPARAZZI_HOME/var/aircrafts/NAME/nps/simsitl
 #
 # --periodic HZ sets the airframe's PERIODIC_FREQUENCY (default 500); NPS then steps at
@@ -23,6 +32,7 @@ repo="$(cd "$here/.." && pwd)"
 name=twinswarm_finken
 ac_id=7
 periodic=500
+flight_plan=hover
 pprz="$repo/target/paparazzi"
 
 while [ $# -gt 0 ]; do
@@ -30,8 +40,9 @@ while [ $# -gt 0 ]; do
     --name) name="$2"; shift 2 ;;
     --ac-id) ac_id="$2"; shift 2 ;;
     --periodic) periodic="$2"; shift 2 ;;
+    --flight-plan) flight_plan="$2"; shift 2 ;;
     --pprz) pprz="$2"; shift 2 ;;
-    -h|--help) sed -n '2,20p' "$0"; exit 0 ;;
+    -h|--help) sed -n '2,29p' "$0"; exit 0 ;;
     *) echo "unknown argument: $1" >&2; exit 2 ;;
   esac
 done
@@ -39,6 +50,7 @@ done
 case "$name" in (*[!A-Za-z0-9_]*|"") echo "bad aircraft name: $name" >&2; exit 2 ;; esac
 case "$ac_id" in (*[!0-9]*|"") echo "bad ac_id: $ac_id" >&2; exit 2 ;; esac
 case "$periodic" in (*[!0-9]*|"") echo "bad periodic frequency: $periodic" >&2; exit 2 ;; esac
+case "$flight_plan" in (hover|wall_avoid) ;; (*) echo "bad flight plan: $flight_plan (hover or wall_avoid)" >&2; exit 2 ;; esac
 
 if [ ! -f "$pprz/env.sh" ]; then
   echo "no Paparazzi build at $pprz: run shared/paparazzi/build.sh $pprz first" >&2
@@ -74,23 +86,42 @@ install_file "$here/sw/nps_fdm_twinswarm.c" "$home/sw/simulator/nps/nps_fdm_twin
 install_file "$here/sw/nps_fdm_twinswarm.h" "$home/sw/simulator/nps/nps_fdm_twinswarm.h"
 install_file "$here/conf/modules/fdm_twinswarm.xml" "$home/conf/modules/fdm_twinswarm.xml"
 install_file "$here/conf/flight_plans/twinswarm_finken_hover.xml" "$home/conf/flight_plans/twinswarm/finken_hover.xml"
+install_file "$here/conf/flight_plans/twinswarm_finken_wall_avoid.xml" "$home/conf/flight_plans/twinswarm/finken_wall_avoid.xml"
+install_file "$here/sw/twinswarm_finken.c" "$home/sw/airborne/modules/twinswarm/twinswarm_finken.c"
+install_file "$here/sw/twinswarm_finken.h" "$home/sw/airborne/modules/twinswarm/twinswarm_finken.h"
+install_file "$here/conf/modules/twinswarm_finken.xml" "$home/conf/modules/twinswarm_finken.xml"
+install_file "$here/conf/telemetry/twinswarm_finken.xml" "$home/conf/telemetry/twinswarm/finken.xml"
+
+# the message definitions: pprzlink's pristine v1.0 file + ours, regenerated only on a change
+uc="$home/conf/userconf/twinswarm"
+mkdir -p "$uc"
+python3 "$here/merge_messages.py" "$home/sw/ext/pprzlink/message_definitions/v1.0/messages.xml" \
+  "$here/conf/messages/twinswarm_messages.xml" "$uc/messages.xml.tmp.$$"
+mv "$uc/messages.xml.tmp.$$" "$uc/messages.xml"
+if ! cmp -s "$uc/messages.xml" "$home/var/messages.xml" \
+   || [ ! -f "$home/var/include/pprzlink/telemetry/TWINSWARM_SONAR.h" ] \
+   || [ ! -f "$home/var/include/pprzlink/datalink/SONAR_UPLINK.h" ]; then
+  echo "installing the message definitions $uc/messages.xml as var/messages.xml, regenerating var/include/pprzlink"
+  make -C "$home/sw/ext/pprzlink" Q=@ MESSAGES_XML="$uc/messages.xml" MESSAGES_INSTALL="$home/var" \
+    VALIDATE_XML=FALSE PPRZLINK_LIB_VERSION=2.0 pymessages
+  conf_changed=1
+fi
 # (process substitution, not a pipe: install_text must run in this shell to set conf_changed)
 install_text "$home/conf/airframes/twinswarm/$name.xml" < <(
   sed "s/@PERIODIC_FREQUENCY@/$periodic/; s/<airframe name=\"twinswarm_finken\">/<airframe name=\"$name\">/" \
     "$here/conf/airframes/twinswarm_finken.xml")
 
 # the private conf: one entry per aircraft built with this script
-uc="$home/conf/userconf/twinswarm"
 install_text "$uc/aircraft/$name.xml" <<EOF
   <aircraft
    name="$name"
    ac_id="$ac_id"
    airframe="airframes/twinswarm/$name.xml"
    radio="radios/spektrum.xml"
-   telemetry="telemetry/default_rotorcraft.xml"
-   flight_plan="flight_plans/twinswarm/finken_hover.xml"
+   telemetry="telemetry/twinswarm/finken.xml"
+   flight_plan="flight_plans/twinswarm/finken_$flight_plan.xml"
    settings="settings/rotorcraft_basic.xml settings/nps.xml"
-   settings_modules="modules/ahrs_float_cmpl_quat.xml modules/guidance_pid_rotorcraft.xml modules/guidance_rotorcraft.xml modules/nav_rotorcraft.xml modules/stabilization_int_quat.xml modules/stabilization_rate.xml"
+   settings_modules="modules/ahrs_float_cmpl_quat.xml modules/guidance_pid_rotorcraft.xml modules/guidance_rotorcraft.xml modules/nav_rotorcraft.xml modules/stabilization_int_quat.xml modules/stabilization_rate.xml modules/twinswarm_finken.xml"
    gui_color="#ff8000"
   />
 EOF
@@ -104,7 +135,7 @@ if [ "$conf_changed" = 1 ] && [ -d "$home/var/aircrafts/$name" ]; then
   rm -rf "${home:?}/var/aircrafts/$name"
 fi
 
-echo "building $name (ac_id $ac_id, PERIODIC_FREQUENCY $periodic Hz, NPS step 1/$((2 * periodic)) s) in $home"
+echo "building $name (ac_id $ac_id, flight plan $flight_plan, PERIODIC_FREQUENCY $periodic Hz, NPS step 1/$((2 * periodic)) s) in $home"
 start=$(date +%s%N)
 make -C "$home" AIRCRAFT="$name" CONF_XML="$uc/conf.xml" nps.compile
 end=$(date +%s%N)

@@ -5,7 +5,11 @@ Speaks protocol v1 of paparazzi/sw/nps_fdm_twinswarm.c as the server, over TCP o
 in lockstep (each NPS step is answered at once; no wall clock), and integrates a plain rigid-body
 quadrotor: mass 0.4 kg, X-frame with a 0.2 m motor diagonal, thrust per motor k*cmd^2 (3 N at
 full command), yaw torque d*T per motor, first-order motor lag, linear drag, gravity, a floor at
-z = 0 and walls of a square arena (for the sonars). It is a bring-up tool, not Twinswarm's model.
+z = 0 and the walls of a rectangular arena (--arena 6 or 4x3: x "north" by y "east", m), which
+the four sonars see as horizontal rays along the body axes (front, right, back, left; NaN beyond
+--sonar-range) and which end the flight as a crash when the copter's centre reaches one. The
+summary reports the closest the copter's centre came to a wall. It is a bring-up tool, not
+Twinswarm's model.
 
 Motor order is the FINken airframe's (twinswarm_finken.xml): 0 front right (CW seen from above),
 1 back right (CCW), 2 back left (CW), 3 front left (CCW).
@@ -82,7 +86,8 @@ class Quad:
         self.I = (mb * (0.1 ** 2 + 0.04 ** 2) / 12 + 4 * mm * arm * arm,
                   mb * (0.1 ** 2 + 0.04 ** 2) / 12 + 4 * mm * arm * arm,
                   mb * (0.1 ** 2 + 0.1 ** 2) / 12 + 4 * mm * 2 * arm * arm)
-        self.half = a.arena / 2.0
+        self.half = (a.arena[0] / 2.0, a.arena[1] / 2.0)
+        self.sonar_range = a.sonar_range
         self.pos = [a.x, a.y, 0.0]
         self.vel = [0.0, 0.0, 0.0]
         self.acc = [0.0, 0.0, 0.0]
@@ -164,8 +169,8 @@ class Quad:
             self.crashed = True
             print(f"fake world: crash (tilt > 60 deg) at t = {self.t:.3f} s", file=sys.stderr)
         for i in (0, 1):
-            if abs(self.pos[i]) > self.half:
-                self.pos[i] = math.copysign(self.half, self.pos[i])
+            if abs(self.pos[i]) > self.half[i]:
+                self.pos[i] = math.copysign(self.half[i], self.pos[i])
                 self.vel[i] = 0.0
                 if not self.crashed:
                     self.crashed = True
@@ -185,12 +190,26 @@ class Quad:
             ang = psi + k * math.pi / 2
             dx, dy = math.cos(ang), math.sin(ang)
             best = float("inf")
-            for comp, dcomp in ((self.pos[0], dx), (self.pos[1], dy)):
+            for comp, dcomp, half in ((self.pos[0], dx, self.half[0]), (self.pos[1], dy, self.half[1])):
                 if abs(dcomp) > 1e-9:
-                    wall = self.half if dcomp > 0 else -self.half
+                    wall = half if dcomp > 0 else -half
                     best = min(best, (wall - comp) / dcomp)
-            sonar.append(best if best <= 3.0 else float("nan"))
+            sonar.append(best if best <= self.sonar_range else float("nan"))
         return body_acc, agl, sonar, ir
+
+
+def arena_size(text):
+    parts = text.lower().split("x")
+    if len(parts) == 1:
+        return (float(parts[0]), float(parts[0]))
+    if len(parts) == 2:
+        return (float(parts[0]), float(parts[1]))
+    raise argparse.ArgumentTypeError(f"arena size: 6 or 4x3, not {text!r}")
+
+
+def wall_distance(quad):
+    """distance of the copter's centre to the nearest wall, m"""
+    return min(quad.half[0] - abs(quad.pos[0]), quad.half[1] - abs(quad.pos[1]))
 
 
 def main():
@@ -204,7 +223,11 @@ def main():
     ap.add_argument("--yaw-ratio", type=float, default=0.0165, help="yaw torque / thrust, m")
     ap.add_argument("--motor-lag", type=float, default=0.015, help="s")
     ap.add_argument("--drag", type=float, default=0.3, help="linear drag, 1/s")
-    ap.add_argument("--arena", type=float, default=6.0, help="square arena side, m")
+    ap.add_argument("--arena", type=arena_size, default=(6.0, 6.0),
+                    help="arena size, m: a square's side (6) or x by y (4x3: 4 m north, 3 m east)")
+    ap.add_argument("--sonar-range", type=float, default=7.65, help="sonars see no wall beyond this, m")
+    ap.add_argument("--radius", type=float, default=0.15,
+                    help="the copter touches a wall when its centre comes closer than this, m")
     ap.add_argument("--x", type=float, default=0.0)
     ap.add_argument("--y", type=float, default=0.0)
     ap.add_argument("--yaw", type=float, default=0.0, help="initial heading, rad")
@@ -214,6 +237,9 @@ def main():
     ap.add_argument("--kick", type=float, nargs=3, default=[1.0, -1.0, 0.5], metavar="W",
                     help="the kick's body rates p q r, rad/s")
     ap.add_argument("--target", type=float, default=1.0, help="height the flight plan holds, m")
+    ap.add_argument("--pace", type=float, default=0.0,
+                    help="at most this many simulated seconds per wall second (0: as fast as possible; "
+                         "1: real time, e.g. to send datalink at wall-clock rates)")
     ap.add_argument("--csv", help="write the state every 10 ms here")
     ap.add_argument("--json", help="write the summary here")
     a = ap.parse_args()
@@ -243,6 +269,16 @@ def main():
     last_cmds = (0.0,) * 4
     max_cmd = 0.0
     max_tilt = final_tilt = 0.0
+    # walls: over the flight (from the first time above 0.5 m)
+    airborne_t = None
+    min_wall = None           # (distance, t, x, y)
+    approaches = 0            # entries into 1.0 m of a wall, after having been 1.4 m away from it
+    near = [False] * 4        # per wall: +x, -x, +y, -y
+    path = 0.0
+    max_speed = 0.0
+    last_xy = None
+    x_span = [math.inf, -math.inf]
+    y_span = [math.inf, -math.inf]
     while quad.t < a.duration:
         raw = recv_exact(conn, STEP.size)
         if raw is None:
@@ -263,6 +299,29 @@ def main():
         conn.sendall(out)
         steps += 1
         if steps % every == 0:
+            if a.pace > 0:
+                ahead = quad.t / a.pace - (time.perf_counter() - t_wall0)
+                if ahead > 0:
+                    time.sleep(ahead)
+            if airborne_t is None and -quad.pos[2] > 0.5:
+                airborne_t = quad.t
+            if airborne_t is not None:
+                d = wall_distance(quad)
+                if min_wall is None or d < min_wall[0]:
+                    min_wall = (d, quad.t, quad.pos[0], quad.pos[1])
+                for w, dw in enumerate((quad.half[0] - quad.pos[0], quad.half[0] + quad.pos[0],
+                                        quad.half[1] - quad.pos[1], quad.half[1] + quad.pos[1])):
+                    if not near[w] and dw < 1.0:
+                        near[w] = True
+                        approaches += 1
+                    elif near[w] and dw > 1.4:
+                        near[w] = False
+                if last_xy is not None:
+                    path += math.hypot(quad.pos[0] - last_xy[0], quad.pos[1] - last_xy[1])
+                last_xy = (quad.pos[0], quad.pos[1])
+                max_speed = max(max_speed, math.hypot(quad.vel[0], quad.vel[1]))
+                x_span = [min(x_span[0], quad.pos[0]), max(x_span[1], quad.pos[0])]
+                y_span = [min(y_span[0], quad.pos[1]), max(y_span[1], quad.pos[1])]
             heights.append((quad.t, -quad.pos[2]))
             phi, theta, _ = eulers(quad.q)
             final_tilt = math.degrees(math.acos(max(-1.0, min(1.0, math.cos(phi) * math.cos(theta)))))
@@ -319,6 +378,18 @@ def main():
         summ["max_tilt_deg"] = round(max_tilt, 3)
         summ["final_tilt_deg"] = round(final_tilt, 3)
         summ["final_pos"] = [round(c, 4) for c in quad.pos]
+    summ["arena_m"] = list(a.arena)
+    if min_wall is not None:
+        summ["airborne_at_s"] = airborne_t
+        summ["min_wall_distance_m"] = round(min_wall[0], 4)
+        summ["min_wall_distance_at_s"] = round(min_wall[1], 2)
+        summ["min_wall_distance_xy"] = [round(min_wall[2], 3), round(min_wall[3], 3)]
+        summ["touched_wall"] = min_wall[0] < a.radius
+        summ["wall_approaches"] = approaches
+        summ["path_m"] = round(path, 3)
+        summ["max_speed_m_s"] = round(max_speed, 3)
+        summ["x_span_m"] = [round(v, 3) for v in x_span]
+        summ["y_span_m"] = [round(v, 3) for v in y_span]
     print("fake world summary: " + json.dumps(summ), flush=True)
     if a.json:
         with open(a.json, "w") as f:
