@@ -1,0 +1,229 @@
+#!/usr/bin/env python3
+"""Fly N Paparazzi NPS FINken aircraft (the real rotorcraft autopilot, Twinswarm as its flight
+model) in one Twinswarm world, and report how they flew and how fast.
+
+    .venv/bin/python scripts/nps_swarm.py --count 4 --plan wall_avoid --duration 60
+    .venv/bin/python scripts/nps_swarm.py --count 1 --plan hover --duration 40 --json
+
+Builds (paparazzi/build_nps.sh, ~25 s per aircraft the first time, ~1 s after) one aircraft
+per ac_id (`tw_nps<ac_id>`; the id is compiled in), writes a scene with N `autopilot` copters
+(1 ms steps, the FINken's sonar schedule) in the paper's 4 m x 3 m arena (larger for more
+copters), starts `twinswarm run --no-bus` on a free port, then the N NPS processes with
+`--time_factor 1e9` (lockstep: nothing waits on the wall clock) on a private Ivy bus. Reads the
+run's JSON summary and its MCAP log (PyPI mcap, CRCs on) and prints: simulated seconds per
+wall second, the time the world waited for the autopilots, crashes, each copter's height over
+the last 10 s, the closest approach to a wall and between copters, and the digests.
+
+Needs the Paparazzi tree of shared/paparazzi/build.sh at target/paparazzi (scripts/test.sh
+builds it) and a twinswarm binary (--twinswarm, default target/debug/twinswarm).
+"""
+
+import argparse
+import json
+import math
+import os
+import socket
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parents[1]
+PPRZ = Path(os.environ.get("TWINSWARM_PAPARAZZI_BUILD", REPO / "target" / "paparazzi"))
+# The FINken's rotor-disc square as the sonars see it: arm 0.1 m at 45°, 5" rotors.
+HALF_WIDTH_M = 0.1 / math.sqrt(2) + 0.0635
+
+
+def free_port():
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def build(ac_id, plan, log):
+    name = f"tw_nps{ac_id}"
+    cmd = ["bash", str(REPO / "paparazzi" / "build_nps.sh"), "--name", name, "--ac-id", str(ac_id),
+           "--flight-plan", plan, "--pprz", str(PPRZ)]
+    r = subprocess.run(cmd, capture_output=True, text=True)
+    log.write(r.stdout + r.stderr)
+    if r.returncode != 0:
+        sys.exit(f"building {name} failed:\n{r.stdout[-3000:]}\n{r.stderr[-3000:]}")
+    return PPRZ / "paparazzi" / "var" / "aircrafts" / name / "nps" / "simsitl"
+
+
+def arena_for(n):
+    """The paper's arena for up to two copters; more get about 3 m² each."""
+    if n <= 2:
+        return 4.0, 3.0
+    side = math.ceil(math.sqrt(n))
+    return 2.0 * side + 1.0, 1.5 * math.ceil(n / side) + 1.5
+
+
+def scene(n, first_ac, duration, seed, boxes):
+    sx, sy = arena_for(n)
+    side = math.ceil(math.sqrt(n)) if n > 2 else n
+    lines = [
+        'name = "nps_swarm"',
+        "[sim]",
+        f"seed = {seed}",
+        "physics_dt_s = 0.001",
+        "control_dt_s = 0.001",
+        f"duration_s = {duration}",
+        "[arena]",
+        f"size_m = [{sx}, {sy}]",
+        "height_m = 2.5",
+        "walls = true",
+        "[sensors.sonar]",
+        "period_steps = 50",
+    ]
+    for b in boxes:
+        lines += ["[[box]]", *b]
+    rows = math.ceil(n / side)
+    for k in range(n):
+        i, j = k % side, k // side
+        x = -sx / 2 + (i + 0.5) * sx / side
+        y = -sy / 2 + (j + 0.5) * sy / rows
+        yaw = 0.0 if i % 2 == 0 else 180.0
+        lines += [
+            "[[copter]]",
+            f'name = "nps{first_ac + k}"',
+            'kind = "autopilot"',
+            f"ac_id = {first_ac + k}",
+            f"start = {{ pos_m = [{x:.3f}, {y:.3f}], yaw_deg = {yaw} }}",
+        ]
+    return "\n".join(lines) + "\n", (sx, sy)
+
+
+def states(path):
+    """Every /copters/state message of the log, decoded, CRCs checked."""
+    from mcap.reader import make_reader
+    from mcap_protobuf.decoder import DecoderFactory
+    from google.protobuf.json_format import MessageToDict
+
+    out = []
+    factory = DecoderFactory()
+    with open(path, "rb") as f:
+        reader = make_reader(f, validate_crcs=True, decoder_factories=[factory])
+        for _s, _c, _m, proto in reader.iter_decoded_messages(topics=["/copters/state"], log_time_order=False):
+            d = MessageToDict(proto, preserving_proto_field_name=True, always_print_fields_with_no_presence=True)
+            out.append(d)
+    return out
+
+
+def flight_figures(path, arena, last_s=10.0):
+    rows = states(path)
+    by_tick = {}
+    for r in rows:
+        by_tick.setdefault(int(r["tick"]), []).append(r)
+    hx, hy = arena[0] / 2, arena[1] / 2
+    wall = math.inf
+    pair = math.inf
+    heights = {}
+    t_end = max(float(r["t_s"]) for r in rows)
+    for tick, rs in by_tick.items():
+        pos = [[float(v) for v in r["pos_m"]] for r in rs]
+        for r, p in zip(rs, pos):
+            if p[2] > 0.3:
+                wall = min(wall, hx - abs(p[0]) - HALF_WIDTH_M, hy - abs(p[1]) - HALF_WIDTH_M)
+            if float(r["t_s"]) > t_end - last_s:
+                heights.setdefault(r["copter"], []).append(p[2])
+        for a in range(len(pos)):
+            for b in range(a + 1, len(pos)):
+                if pos[a][2] > 0.3 and pos[b][2] > 0.3:
+                    pair = min(pair, math.dist(pos[a], pos[b]) - 2 * HALF_WIDTH_M)
+    return {
+        "min_wall_clearance_m": None if wall == math.inf else round(wall, 3),
+        "min_pair_clearance_m": None if pair == math.inf else round(pair, 3),
+        "height_last_s": {
+            c: {"mean_m": round(statistics.fmean(h), 4), "sd_m": round(statistics.pstdev(h), 4)} for c, h in heights.items()
+        },
+    }
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--count", type=int, default=1)
+    ap.add_argument("--plan", choices=["hover", "wall_avoid"], default="wall_avoid")
+    ap.add_argument("--duration", type=float, default=60.0)
+    ap.add_argument("--first-ac", type=int, default=40, help="ac_id of the first aircraft (default 40)")
+    ap.add_argument("--seed", type=int, default=2016)
+    ap.add_argument("--box", action="append", default=[], metavar="TOML",
+                    help='a [[box]] table body, e.g. \'pos_m = [1.0, 0.0]; size_m = [0.4, 0.4, 2.0]; virtual_only = true\'')
+    ap.add_argument("--twinswarm", default=str(REPO / "target" / "debug" / "twinswarm"))
+    ap.add_argument("--out", help="keep the scene, logs and summaries here")
+    ap.add_argument("--no-log", action="store_true", help="no MCAP log (speed runs): no flight figures")
+    ap.add_argument("--run-arg", action="append", default=[], help="an extra argument for twinswarm run")
+    ap.add_argument("--json", action="store_true")
+    a = ap.parse_args(argv)
+    if not (PPRZ / "env.sh").exists():
+        sys.exit(f"no Paparazzi tree at {PPRZ}: run shared/paparazzi/build.sh {PPRZ} (scripts/test.sh does)")
+    out = Path(a.out or tempfile.mkdtemp(prefix="nps_swarm."))
+    out.mkdir(parents=True, exist_ok=True)
+    acs = [a.first_ac + k for k in range(a.count)]
+    t0 = time.monotonic()
+    with open(out / "build.log", "w") as log:
+        sims = [build(ac, a.plan, log) for ac in acs]
+    build_s = time.monotonic() - t0
+    boxes = [[s.strip() for s in b.split(";")] for b in a.box]
+    text, arena = scene(a.count, a.first_ac, a.duration, a.seed, boxes)
+    (out / "scene.toml").write_text(text)
+    port = free_port()
+    ivy_port = free_port()
+    run = [a.twinswarm, "run", str(out / "scene.toml"), "--no-bus", "--json", "--autopilot-listen", f"127.0.0.1:{port}"]
+    run += ["--no-log"] if a.no_log else ["--log", str(out / "run.mcap")]
+    run += a.run_arg
+    env = dict(os.environ)
+    with open(out / "run.err", "w") as err, open(out / "run.json", "w") as js:
+        world = subprocess.Popen(run, stdout=js, stderr=err, cwd=out)
+        for _ in range(200):
+            time.sleep(0.05)
+            if "waiting for" in (out / "run.err").read_text() or world.poll() is not None:
+                break
+        npss = []
+        for ac, sim in zip(acs, sims):
+            e = dict(env, TWINSWARM_FDM=f"127.0.0.1:{port}")
+            f = open(out / f"nps{ac}.log", "w")
+            # env.sh: Paparazzi's libraries (libivy) and PAPARAZZI_HOME.
+            cmd = f'. "{PPRZ}/env.sh" && exec "{sim}" --norc --time_factor 1e9 --ivy_bus 127.255.255.255:{ivy_port}'
+            npss.append(subprocess.Popen(["bash", "-c", cmd], stdout=f, stderr=subprocess.STDOUT, env=e, cwd=out))
+        world.wait(timeout=600 + a.duration * a.count)
+        for p in npss:
+            try:
+                p.wait(timeout=10)
+            except subprocess.TimeoutExpired:
+                p.kill()
+    if world.returncode != 0:
+        sys.exit(f"twinswarm run failed ({world.returncode}):\n{(out / 'run.err').read_text()[-3000:]}")
+    summary = json.loads((out / "run.json").read_text())
+    steps = summary["control_steps"]
+    wall = summary["wall_time_s"]
+    report = {
+        "count": a.count,
+        "plan": a.plan,
+        "sim_s": summary["sim_time_s"],
+        "wall_s": round(wall, 3),
+        "sim_s_per_wall_s": round(summary["sim_time_s"] / wall, 3),
+        "steps": steps,
+        "us_per_step": round(wall / steps * 1e6, 1),
+        "waited_for_autopilots_s": round(summary["autopilot_wait_s"], 3),
+        "world_s": round(wall - summary["autopilot_wait_s"], 3),
+        "build_s": round(build_s, 1),
+        "crashes": summary["crashes"],
+        "autopilots_left": [ap_["ac_id"] for ap_ in summary["autopilots"] if ap_["left"]],
+        "digests": {c["name"]: c["digest"] for c in summary["copters"]},
+        "out": str(out),
+    }
+    if not a.no_log:
+        report.update(flight_figures(out / "run.mcap", arena))
+    if a.json:
+        print(json.dumps(report, indent=2))
+    else:
+        for k, v in report.items():
+            print(f"{k}: {v}")
+    return report
+
+
+if __name__ == "__main__":
+    main()
