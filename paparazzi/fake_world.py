@@ -81,7 +81,9 @@ class Quad:
         self.drag = a.drag
         arm = a.diagonal / 2.0 / math.sqrt(2.0)
         # (x forward, y right) of each motor, and +1 for CCW (reaction torque +z-down)
-        self.motors = ((arm, arm, -1), (-arm, arm, +1), (-arm, -arm, -1), (arm, -arm, +1))
+        # Spin as Twinswarm's FINken (the airframe's YAW_COEF is mirrored from fink3.xml for it):
+        # front right and back left counter-clockwise seen from above.
+        self.motors = ((arm, arm, +1), (-arm, arm, -1), (-arm, -arm, +1), (arm, -arm, -1))
         mb, mm = a.mass - 4 * 0.025, 0.025      # body box + 4 motor point masses
         self.I = (mb * (0.1 ** 2 + 0.04 ** 2) / 12 + 4 * mm * arm * arm,
                   mb * (0.1 ** 2 + 0.04 ** 2) / 12 + 4 * mm * arm * arm,

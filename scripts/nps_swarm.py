@@ -42,10 +42,12 @@ def free_port():
         return s.getsockname()[1]
 
 
-def build(ac_id, plan, log):
+def build(ac_id, plan, log, udp=None):
     name = f"tw_nps{ac_id}"
     cmd = ["bash", str(REPO / "paparazzi" / "build_nps.sh"), "--name", name, "--ac-id", str(ac_id),
            "--flight-plan", plan, "--pprz", str(PPRZ)]
+    if udp:
+        cmd += ["--udp-out", str(udp[0]), "--udp-in", str(udp[1])]
     r = subprocess.run(cmd, capture_output=True, text=True)
     log.write(r.stdout + r.stderr)
     if r.returncode != 0:
@@ -120,12 +122,14 @@ def flight_figures(path, arena, last_s=10.0):
     hx, hy = arena[0] / 2, arena[1] / 2
     wall = math.inf
     pair = math.inf
+    max_x = -math.inf
     heights = {}
     t_end = max(float(r["t_s"]) for r in rows)
     for tick, rs in by_tick.items():
         pos = [[float(v) for v in r["pos_m"]] for r in rs]
         for r, p in zip(rs, pos):
             if p[2] > 0.3:
+                max_x = max(max_x, p[0])
                 wall = min(wall, hx - abs(p[0]) - HALF_WIDTH_M, hy - abs(p[1]) - HALF_WIDTH_M)
             if float(r["t_s"]) > t_end - last_s:
                 heights.setdefault(r["copter"], []).append(p[2])
@@ -136,6 +140,7 @@ def flight_figures(path, arena, last_s=10.0):
     return {
         "min_wall_clearance_m": None if wall == math.inf else round(wall, 3),
         "min_pair_clearance_m": None if pair == math.inf else round(pair, 3),
+        "max_x_m": None if max_x == -math.inf else round(max_x, 3),
         "height_last_s": {
             c: {"mean_m": round(statistics.fmean(h), 4), "sd_m": round(statistics.pstdev(h), 4)} for c, h in heights.items()
         },
@@ -151,6 +156,8 @@ def main(argv=None):
     ap.add_argument("--seed", type=int, default=2016)
     ap.add_argument("--box", action="append", default=[], metavar="TOML",
                     help='a [[box]] table body, e.g. \'pos_m = [1.0, 0.0]; size_m = [0.4, 0.4, 2.0]; virtual_only = true\'')
+    ap.add_argument("--udp-out", type=int, help="one aircraft: its telemetry's UDP port (link -udp_port)")
+    ap.add_argument("--udp-in", type=int, help="one aircraft: its datalink UDP port (link -udp_uplink_port)")
     ap.add_argument("--twinswarm", default=str(REPO / "target" / "debug" / "twinswarm"))
     ap.add_argument("--out", help="keep the scene, logs and summaries here")
     ap.add_argument("--no-log", action="store_true", help="no MCAP log (speed runs): no flight figures")
@@ -164,7 +171,10 @@ def main(argv=None):
     acs = [a.first_ac + k for k in range(a.count)]
     t0 = time.monotonic()
     with open(out / "build.log", "w") as log:
-        sims = [build(ac, a.plan, log) for ac in acs]
+        udp = (a.udp_out, a.udp_in) if a.udp_out else None
+        if udp and a.count != 1:
+            sys.exit("--udp-out/--udp-in: one aircraft only (the ports are compiled in)")
+        sims = [build(ac, a.plan, log, udp) for ac in acs]
     build_s = time.monotonic() - t0
     boxes = [[s.strip() for s in b.split(";")] for b in a.box]
     text, arena = scene(a.count, a.first_ac, a.duration, a.seed, boxes)

@@ -50,3 +50,47 @@ def test_two_runs_of_two_nps_finken_give_the_same_bits(tmp_path):
     for r in (a, b):
         assert r["autopilots_left"] == [] and r["steps"] == 20_000, r
     assert a["digests"] == b["digests"], (a, b)
+
+
+SONAR_FIELDS = ["real_front", "real_right", "real_back", "real_left", "virt_front", "virt_right", "virt_back",
+                "virt_left", "fused_front", "fused_right", "fused_back", "fused_left", "ir", "virt_age", "wa_roll",
+                "wa_pitch", "ll_roll", "ll_pitch", "uplinks"]
+# A virtual-only wall across the arena, its face 1 m ahead of where the copter starts (the
+# arena's centre, heading +x), 0.4 m thick.
+VIRTUAL_WALL = "pos_m = [1.2, 0.0]; size_m = [0.4, 3.0, 2.5]; virtual_only = true"
+
+
+def test_a_virtual_wall_reaches_an_nps_finken_through_the_real_link_and_turns_it_away(tmp_path, paparazzi_ground):
+    """The world sends SONAR_UPLINK over Ivy to Paparazzi's own `link`, which forwards it over
+    UDP to the NPS aircraft; its twinswarm_finken module fuses min(real, virtual) and its
+    Wall-Avoid turns away from a wall only the simulation has. Its telemetry (TWINSWARM_SONAR)
+    comes back through the same `link`."""
+    pprz = paparazzi_or_skip()
+    merged = pprz.home / "conf" / "userconf" / "twinswarm" / "messages.xml"
+    # link's ports become the aircraft's (compiled in): the test's stand-in uplink socket goes.
+    g = paparazzi_ground(messages_xml=merged if merged.exists() else None, server=False)
+    g.uplink.close()
+    rid = g.agent.bind(r"^46 TWINSWARM_SONAR (.*)")
+    bin_ = os.environ.get("TWINSWARM_BIN", str(ROOT / "target" / "debug" / "twinswarm"))
+    r = nps_swarm.main(list(map(str, [
+        "--twinswarm", bin_, "--out", tmp_path / "fly", "--count", 1, "--plan", "wall_avoid", "--duration", 30,
+        "--first-ac", 46, "--box", VIRTUAL_WALL, "--udp-out", g.link_port, "--udp-in", g.uplink_port,
+        f"--run-arg=--ivy={g.bus}", f"--run-arg=--messages={merged}"])))
+    assert r["autopilots_left"] == [], r
+    assert r["crashes"] == [], f"it flew into the wall it was told of: {r['crashes']}"
+    msgs = [dict(zip(SONAR_FIELDS, map(float, m[0].split()))) for m in g.agent.received(rid)]
+    assert len(msgs) > 50, f"{len(msgs)} TWINSWARM_SONAR through link:\n{g.log('link')[-2000:]}"
+    told = [m for m in msgs if m["virt_front"] > 0]
+    assert told, "no virtual front reading ever reached the module"
+    # The fused reading is the nearer of the two, and the virtual wall was the nearer one.
+    assert all(abs(m["fused_front"] - min(v for v in (m["real_front"], m["virt_front"]) if v > 0)) < 0.011
+               for m in told), told[:5]
+    assert any(m["virt_front"] < m["real_front"] - 0.3 for m in told), told[:5]
+    # It stayed clear of the virtual wall's near face (x = 1 m) with its rotor disc square.
+    assert r["max_x_m"] < 1.0 - nps_swarm.HALF_WIDTH_M, r
+    # The same flight without the uplink (no Ivy, so nothing tells the autopilot of the wall):
+    # it flies into it.
+    blind = nps_swarm.main(list(map(str, [
+        "--twinswarm", bin_, "--out", tmp_path / "blind", "--count", 1, "--plan", "wall_avoid", "--duration", 30,
+        "--first-ac", 41, "--box", VIRTUAL_WALL])))
+    assert [c["cause"]["kind"] for c in blind["crashes"]] == ["box"], blind
