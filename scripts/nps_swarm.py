@@ -63,8 +63,8 @@ def arena_for(n):
     return 2.0 * side + 1.0, 1.5 * math.ceil(n / side) + 1.5
 
 
-def scene(n, first_ac, duration, seed, boxes):
-    sx, sy = arena_for(n)
+def scene(n, first_ac, duration, seed, boxes, arena=None):
+    sx, sy = arena or arena_for(n)
     side = math.ceil(math.sqrt(n)) if n > 2 else n
     lines = [
         'name = "nps_swarm"',
@@ -154,6 +154,7 @@ def main(argv=None):
     ap.add_argument("--duration", type=float, default=60.0)
     ap.add_argument("--first-ac", type=int, default=40, help="ac_id of the first aircraft (default 40)")
     ap.add_argument("--seed", type=int, default=2016)
+    ap.add_argument("--arena", help="floor size XxY, m (default: 4x3 for up to two copters, larger for more)")
     ap.add_argument("--box", action="append", default=[], metavar="TOML",
                     help='a [[box]] table body, e.g. \'pos_m = [1.0, 0.0]; size_m = [0.4, 0.4, 2.0]; virtual_only = true\'')
     ap.add_argument("--udp-out", type=int, help="one aircraft: its telemetry's UDP port (link -udp_port)")
@@ -177,7 +178,8 @@ def main(argv=None):
         sims = [build(ac, a.plan, log, udp) for ac in acs]
     build_s = time.monotonic() - t0
     boxes = [[s.strip() for s in b.split(";")] for b in a.box]
-    text, arena = scene(a.count, a.first_ac, a.duration, a.seed, boxes)
+    size = tuple(float(v) for v in a.arena.split("x")) if a.arena else None
+    text, arena = scene(a.count, a.first_ac, a.duration, a.seed, boxes, size)
     (out / "scene.toml").write_text(text)
     port = free_port()
     ivy_port = free_port()
