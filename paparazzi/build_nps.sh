@@ -26,6 +26,8 @@
 # 127.0.0.1, Paparazzi `link -udp_port`) and where it listens for the datalink (`link
 # -udp_uplink_port`). Compiled in, like the ac_id. An aircraft built before under another name
 # with the same ac_id is dropped from the private conf (ac_ids must be unique there).
+# --cruise FWD,RIGHT (deg, default the airframe's 1.0,0.6): the wall_avoid plan's cruise tilt;
+# 0,0 flies the firmware's Wall-Avoid alone (it keeps its place between obstacles).
 # --periodic HZ sets the airframe's PERIODIC_FREQUENCY (default 500); NPS then steps at
 # 2*HZ (SYS_TIME_FREQUENCY): 1000 steps per simulated second (dt 1 ms, which divides Twinswarm's
 # 5 ms physics and 50 ms control steps) at 500 Hz; the FINken's own 512 Hz gives dt = 1/1024 s.
@@ -39,6 +41,7 @@ periodic=500
 flight_plan=hover
 udp_out=4242
 udp_in=4243
+cruise=""
 pprz="$repo/target/paparazzi"
 
 while [ $# -gt 0 ]; do
@@ -49,8 +52,9 @@ while [ $# -gt 0 ]; do
     --flight-plan) flight_plan="$2"; shift 2 ;;
     --udp-out) udp_out="$2"; shift 2 ;;
     --udp-in) udp_in="$2"; shift 2 ;;
+    --cruise) cruise="$2"; shift 2 ;;
     --pprz) pprz="$2"; shift 2 ;;
-    -h|--help) sed -n '2,33p' "$0"; exit 0 ;;
+    -h|--help) sed -n '2,35p' "$0"; exit 0 ;;
     *) echo "unknown argument: $1" >&2; exit 2 ;;
   esac
 done
@@ -58,6 +62,7 @@ done
 case "$name" in (*[!A-Za-z0-9_]*|"") echo "bad aircraft name: $name" >&2; exit 2 ;; esac
 case "$ac_id" in (*[!0-9]*|"") echo "bad ac_id: $ac_id" >&2; exit 2 ;; esac
 case "$periodic" in (*[!0-9]*|"") echo "bad periodic frequency: $periodic" >&2; exit 2 ;; esac
+case "$cruise" in ("") ;; (*[!0-9.,-]*|*,*,*) echo "bad cruise: $cruise (FWD,RIGHT in deg)" >&2; exit 2 ;; (*,*) ;; (*) echo "bad cruise: $cruise (FWD,RIGHT in deg)" >&2; exit 2 ;; esac
 case "$udp_out$udp_in" in (*[!0-9]*|"") echo "bad UDP port: $udp_out / $udp_in" >&2; exit 2 ;; esac
 case "$flight_plan" in (hover|wall_avoid) ;; (*) echo "bad flight plan: $flight_plan (hover or wall_avoid)" >&2; exit 2 ;; esac
 
@@ -118,6 +123,7 @@ fi
 # (process substitution, not a pipe: install_text must run in this shell to set conf_changed)
 install_text "$home/conf/airframes/twinswarm/$name.xml" < <(
   sed "s/@PERIODIC_FREQUENCY@/$periodic/; s/<airframe name=\"twinswarm_finken\">/<airframe name=\"$name\">/
+       ${cruise:+s|<define name=\"WA_CRUISE_FWD\" value=\"[^\"]*\"/>|<define name=\"WA_CRUISE_FWD\" value=\"${cruise%,*}\"/>|; s|<define name=\"WA_CRUISE_RIGHT\" value=\"[^\"]*\"/>|<define name=\"WA_CRUISE_RIGHT\" value=\"${cruise#*,}\"/>|;}
        s|<module name=\"telemetry\" type=\"transparent\"/>|<module name=\"telemetry\" type=\"transparent\"><configure name=\"MODEM_PORT_OUT\" value=\"$udp_out\"/><configure name=\"MODEM_PORT_IN\" value=\"$udp_in\"/></module>|" \
     "$here/conf/airframes/twinswarm_finken.xml")
 

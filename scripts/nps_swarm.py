@@ -42,12 +42,14 @@ def free_port():
         return s.getsockname()[1]
 
 
-def build(ac_id, plan, log, udp=None):
+def build(ac_id, plan, log, udp=None, cruise=None):
     name = f"tw_nps{ac_id}"
     cmd = ["bash", str(REPO / "paparazzi" / "build_nps.sh"), "--name", name, "--ac-id", str(ac_id),
            "--flight-plan", plan, "--pprz", str(PPRZ)]
     if udp:
         cmd += ["--udp-out", str(udp[0]), "--udp-in", str(udp[1])]
+    if cruise is not None:
+        cmd += ["--cruise", cruise]
     r = subprocess.run(cmd, capture_output=True, text=True)
     log.write(r.stdout + r.stderr)
     if r.returncode != 0:
@@ -63,7 +65,7 @@ def arena_for(n):
     return 2.0 * side + 1.0, 1.5 * math.ceil(n / side) + 1.5
 
 
-def scene(n, first_ac, duration, seed, boxes, arena=None):
+def scene(n, first_ac, duration, seed, boxes, arena=None, gap=None):
     sx, sy = arena or arena_for(n)
     side = math.ceil(math.sqrt(n)) if n > 2 else n
     lines = [
@@ -88,6 +90,8 @@ def scene(n, first_ac, duration, seed, boxes, arena=None):
         x = -sx / 2 + (i + 0.5) * sx / side
         y = -sy / 2 + (j + 0.5) * sy / rows
         yaw = 0.0 if i % 2 == 0 else 180.0
+        if gap is not None:
+            x, y = (k - (n - 1) / 2) * gap, 0.0
         lines += [
             "[[copter]]",
             f'name = "nps{first_ac + k}"',
@@ -154,6 +158,9 @@ def main(argv=None):
     ap.add_argument("--duration", type=float, default=60.0)
     ap.add_argument("--first-ac", type=int, default=40, help="ac_id of the first aircraft (default 40)")
     ap.add_argument("--seed", type=int, default=2016)
+    ap.add_argument("--gap", type=float, help="start the copters in a row along x, this far apart, m (facing each other in pairs)")
+    ap.add_argument("--cruise", help="FWD,RIGHT cruise tilt of the wall_avoid plan, deg (default the airframe's 1.0,0.6); "
+                    "(an aircraft is rebuilt when its options change: give such runs their own --first-ac)")
     ap.add_argument("--arena", help="floor size XxY, m (default: 4x3 for up to two copters, larger for more)")
     ap.add_argument("--box", action="append", default=[], metavar="TOML",
                     help='a [[box]] table body, e.g. \'pos_m = [1.0, 0.0]; size_m = [0.4, 0.4, 2.0]; virtual_only = true\'')
@@ -175,11 +182,11 @@ def main(argv=None):
         udp = (a.udp_out, a.udp_in) if a.udp_out else None
         if udp and a.count != 1:
             sys.exit("--udp-out/--udp-in: one aircraft only (the ports are compiled in)")
-        sims = [build(ac, a.plan, log, udp) for ac in acs]
+        sims = [build(ac, a.plan, log, udp, a.cruise) for ac in acs]
     build_s = time.monotonic() - t0
     boxes = [[s.strip() for s in b.split(";")] for b in a.box]
     size = tuple(float(v) for v in a.arena.split("x")) if a.arena else None
-    text, arena = scene(a.count, a.first_ac, a.duration, a.seed, boxes, size)
+    text, arena = scene(a.count, a.first_ac, a.duration, a.seed, boxes, size, a.gap)
     (out / "scene.toml").write_text(text)
     port = free_port()
     ivy_port = free_port()

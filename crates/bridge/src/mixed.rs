@@ -102,6 +102,7 @@ impl TelemetryPlan {
 pub fn apply_pairing(spec: &mut SceneSpec, pairing: &ResolvedPairing) -> Result<(), String> {
     for a in pairing.by_ac_id.values() {
         let kind = match a.kind {
+            AircraftKind::Real if a.autopilot => CopterKind::Autopilot,
             AircraftKind::Real => CopterKind::Real,
             AircraftKind::Virtual => CopterKind::Virtual,
         };

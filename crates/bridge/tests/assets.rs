@@ -170,3 +170,35 @@ fn resolve_errors_point_at_the_pairing_line() {
     let e = p.resolve(&conf).expect_err("virtual on a real id");
     assert_eq!(e.line(), Some(3), "{e}");
 }
+
+#[test]
+fn a_twin_flown_by_its_autopilot_becomes_an_autopilot_copter() {
+    let text = r#"<pairing version="1"><conf path="c.xml"/>
+<twin aircraft="FINken_NPS" copter="nps" flown_by="autopilot" x_m="0.5" y_m="0" z_m="0" yaw_deg="0"/>
+<twin ac_id="5" copter="real" x_m="-0.5" y_m="0" z_m="0" yaw_deg="0"/></pairing>"#;
+    let p = Pairing::parse(text, "p.xml").unwrap_or_else(|e| panic!("{e}"));
+    let conf = ConfXml::parse(
+        r#"<conf><aircraft name="FINken_NPS" ac_id="7"/><aircraft name="A" ac_id="5"/></conf>"#,
+        "c.xml",
+    )
+    .unwrap_or_else(|e| panic!("{e}"));
+    let r = p.resolve(&conf).unwrap_or_else(|e| panic!("{e}"));
+    let mut spec = sim_core::SceneSpec::from_toml("s.toml", "name = \"s\"\n").unwrap();
+    bridge::mixed::apply_pairing(&mut spec, &r).unwrap();
+    let kinds: Vec<_> = spec.copters.iter().map(|c| (c.name.as_str(), c.kind, c.ac_id)).collect();
+    assert!(kinds.contains(&("nps", sim_core::CopterKind::Autopilot, Some(7))), "{kinds:?}");
+    assert!(kinds.contains(&("real", sim_core::CopterKind::Real, Some(5))), "{kinds:?}");
+    let world = sim_core::compile(&spec).unwrap();
+    let nps = world.copter_id("nps").unwrap();
+    assert_eq!(world.copters[nps].initial_command.mode, sim_core::FlightMode::Rotors);
+    // Its telemetry reaches the ground station, not the copter.
+    let mut router = bridge::mixed::Router::new(&world, Some(r));
+    assert_eq!(router.route(7), bridge::mixed::Decision::Autopilot);
+
+    let e = pairing_err(
+        r#"<pairing version="1"><conf path="c.xml"/>
+<twin ac_id="5" copter="a" flown_by="nps" x_m="0" y_m="0" z_m="0" yaw_deg="0"/></pairing>"#,
+    );
+    assert!(e.to_string().contains("flown_by must be `telemetry` or `autopilot`, not `nps`"), "{e}");
+    assert_eq!(e.line(), Some(2), "{e}");
+}

@@ -12,6 +12,8 @@
 //!   <!-- a real aircraft, by name or by ac_id, and its twin in the scene -->
 //!   <twin aircraft="FINken_01" copter="finken_01" x_m="1.0" y_m="1.0" z_m="0" yaw_deg="0"/>
 //!   <twin ac_id="6" copter="finken_02" x_m="3.0" y_m="1.0" z_m="0" yaw_deg="90"/>
+//!   <!-- an aircraft whose autopilot (Paparazzi NPS) flies its copter in the simulation -->
+//!   <twin aircraft="FINken_NPS" copter="finken_nps" flown_by="autopilot" x_m="0" y_m="0" z_m="0" yaw_deg="0"/>
 //!   <!-- a copter that exists only in the simulation; seen by the GCS as ac_id 101 -->
 //!   <virtual name="Virtual_01" ac_id="101" x_m="2.0" y_m="2.0" z_m="0" yaw_deg="180"/>
 //!   <!-- where unknown real aircraft appear when policy="spawn" -->
@@ -22,7 +24,10 @@
 //!
 //! * `<conf path>` (required, once): the Paparazzi `conf.xml`.
 //! * `<twin>`: exactly one of `aircraft` (name in conf.xml) or `ac_id`;
-//!   `copter` is the scene copter's name; the pose is required.
+//!   `copter` is the scene copter's name; the pose is required. `flown_by`: `telemetry`
+//!   (default: a real copter's telemetry drives the twin) or `autopilot` (the aircraft is
+//!   Paparazzi's autopilot in NPS with Twinswarm's flight model: it flies the copter of kind
+//!   `autopilot` itself, and its telemetry drives nothing; see `crate::autopilot`).
 //! * `<virtual>`: `name` (also the scene copter's name) and `ac_id` (the
 //!   Ivy sender it uses towards the ground station); the pose is optional
 //!   and defaults to the spawn point.
@@ -91,6 +96,8 @@ pub struct Twin {
     pub copter: String,
     /// Spawn pose of the twin.
     pub pose: Pose,
+    /// Flown by the aircraft's own autopilot in the simulation (`flown_by="autopilot"`).
+    pub autopilot: bool,
     /// Line in the pairing file.
     pub source_line: u32,
 }
@@ -167,6 +174,8 @@ pub struct Assignment {
     pub copter: String,
     /// Spawn pose.
     pub pose: Pose,
+    /// A real aircraft's autopilot flies the copter (`flown_by="autopilot"`).
+    pub autopilot: bool,
 }
 
 /// What the bridge does with messages from one aircraft id.
@@ -308,7 +317,17 @@ impl Pairing {
                     conf_path = Some((p.value.trim().to_owned(), line));
                 }
                 "twin" => {
-                    doc.only_attrs(el, &["aircraft", "ac_id", "copter", "x_m", "y_m", "z_m", "yaw_deg"])?;
+                    doc.only_attrs(el, &["aircraft", "ac_id", "copter", "x_m", "y_m", "z_m", "yaw_deg", "flown_by"])?;
+                    let autopilot = match doc.attr(el, "flown_by").map(|a| a.value.as_str()) {
+                        None | Some("telemetry") => false,
+                        Some("autopilot") => true,
+                        Some(other) => {
+                            return Err(doc.invalid(
+                                el.offset,
+                                format!("flown_by must be `telemetry` or `autopilot`, not `{other}`"),
+                            ));
+                        }
+                    };
                     let aircraft = match (doc.attr(el, "aircraft"), doc.attr(el, "ac_id")) {
                         (Some(_), Some(_)) | (None, None) => {
                             return Err(
@@ -351,7 +370,7 @@ impl Pairing {
                     }
                     let pose =
                         parse_pose(&doc, el, true)?.ok_or_else(|| doc.invalid(el.offset, "<twin> needs a pose"))?;
-                    twins.push(Twin { aircraft, copter, pose, source_line: line });
+                    twins.push(Twin { aircraft, copter, pose, autopilot, source_line: line });
                 }
                 "virtual" => {
                     doc.only_attrs(el, &["name", "ac_id", "x_m", "y_m", "z_m", "yaw_deg"])?;
@@ -475,6 +494,7 @@ impl Pairing {
                     aircraft_name: Some(aircraft.name.clone()),
                     copter: t.copter.clone(),
                     pose: t.pose,
+                    autopilot: t.autopilot,
                 },
             );
             if prev.is_some() {
@@ -507,6 +527,7 @@ impl Pairing {
                     aircraft_name: Some(v.name.clone()),
                     copter: v.name.clone(),
                     pose,
+                    autopilot: false,
                 },
             );
         }
