@@ -21,6 +21,7 @@ builds it) and a twinswarm binary (--twinswarm, default target/debug/twinswarm).
 import argparse
 import json
 import math
+import resource
 import os
 import socket
 import statistics
@@ -190,7 +191,7 @@ def main(argv=None):
     (out / "scene.toml").write_text(text)
     port = free_port()
     ivy_port = free_port()
-    run = [a.twinswarm, "run", str(out / "scene.toml"), "--no-bus", "--json", "--autopilot-listen", f"127.0.0.1:{port}"]
+    run = [str(Path(a.twinswarm).resolve()), "run", str(out / "scene.toml"), "--no-bus", "--json", "--autopilot-listen", f"127.0.0.1:{port}"]
     run += ["--no-log"] if a.no_log else ["--log", str(out / "run.mcap")]
     run += a.run_arg
     env = dict(os.environ)
@@ -208,11 +209,18 @@ def main(argv=None):
             cmd = f'. "{PPRZ}/env.sh" && exec "{sim}" --norc --time_factor 1e9 --ivy_bus 127.255.255.255:{ivy_port}'
             npss.append(subprocess.Popen(["bash", "-c", cmd], stdout=f, stderr=subprocess.STDOUT, env=e, cwd=out))
         world.wait(timeout=600 + a.duration * a.count)
-        for p in npss:
+        # CPU time of the children waited for: the world alone here, the autopilots after.
+        ru = resource.getrusage(resource.RUSAGE_CHILDREN)
+        world_cpu = ru.ru_utime + ru.ru_stime
+        nps_exit = {}
+        for ac, p in zip(acs, npss):
             try:
-                p.wait(timeout=10)
+                nps_exit[ac] = p.wait(timeout=10)
             except subprocess.TimeoutExpired:
                 p.kill()
+                nps_exit[ac] = "killed after the run"
+    ru = resource.getrusage(resource.RUSAGE_CHILDREN)
+    nps_cpu = ru.ru_utime + ru.ru_stime - world_cpu
     if world.returncode != 0:
         sys.exit(f"twinswarm run failed ({world.returncode}):\n{(out / 'run.err').read_text()[-3000:]}")
     summary = json.loads((out / "run.json").read_text())
@@ -228,9 +236,14 @@ def main(argv=None):
         "us_per_step": round(wall / steps * 1e6, 1),
         "waited_for_autopilots_s": round(summary["autopilot_wait_s"], 3),
         "world_s": round(wall - summary["autopilot_wait_s"], 3),
+        # CPU per step: the world's (stepping, sending, receiving), each autopilot's (NPS: its
+        # autopilot, sensors, flight-model client).
+        "world_cpu_us_per_step": round(world_cpu / steps * 1e6, 1),
+        "nps_cpu_us_per_step_each": round(nps_cpu / steps / a.count * 1e6, 1),
         "build_s": round(build_s, 1),
         "crashes": summary["crashes"],
         "autopilots_left": [ap_["ac_id"] for ap_ in summary["autopilots"] if ap_["left"]],
+        "nps_exit": {ac: c for ac, c in nps_exit.items() if c != 0},
         "digests": {c["name"]: c["digest"] for c in summary["copters"]},
         "out": str(out),
     }
