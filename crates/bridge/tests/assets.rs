@@ -183,7 +183,8 @@ fn a_twin_flown_by_its_autopilot_becomes_an_autopilot_copter() {
     )
     .unwrap_or_else(|e| panic!("{e}"));
     let r = p.resolve(&conf).unwrap_or_else(|e| panic!("{e}"));
-    let mut spec = sim_core::SceneSpec::from_toml("s.toml", "name = \"s\"\n").unwrap();
+    let scene = "name = \"s\"\n[arena]\nsize_m = [4.0, 3.0]\nheight_m = 2.5\n";
+    let mut spec = sim_core::SceneSpec::from_toml("s.toml", scene).unwrap();
     bridge::mixed::apply_pairing(&mut spec, &r).unwrap();
     let kinds: Vec<_> = spec.copters.iter().map(|c| (c.name.as_str(), c.kind, c.ac_id)).collect();
     assert!(kinds.contains(&("nps", sim_core::CopterKind::Autopilot, Some(7))), "{kinds:?}");
