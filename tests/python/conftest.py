@@ -5,6 +5,12 @@ import json
 import os
 import pathlib
 import socket
+# Imported before any test: pytest's hook for unraisable exceptions imports it on first use, and
+# when the garbage collector finalises a leaked socket (ivy-python never closes its UDP
+# listener) in the middle of that first import, the hook fails on the half-initialised module
+# and fails whichever test was running (seen in CI: test_py_envs). Imported here, a leak stays
+# the warning it is.
+import tracemalloc  # noqa: F401
 
 import pytest
 
