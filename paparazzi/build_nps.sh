@@ -28,6 +28,8 @@
 # with the same ac_id is dropped from the private conf (ac_ids must be unique there).
 # --cruise FWD,RIGHT (deg, default the airframe's 1.0,0.6): the wall_avoid plan's cruise tilt;
 # 0,0 flies the firmware's Wall-Avoid alone (it keeps its place between obstacles).
+# --sighting-hold S (default 0, off; not in the firmware): a sonar reading nearer than the goal
+# distance stands in for farther ones this long, so a copter that drifts out of a cone is kept.
 # --periodic HZ sets the airframe's PERIODIC_FREQUENCY (default 500); NPS then steps at
 # 2*HZ (SYS_TIME_FREQUENCY): 1000 steps per simulated second (dt 1 ms, which divides Twinswarm's
 # 5 ms physics and 50 ms control steps) at 500 Hz; the FINken's own 512 Hz gives dt = 1/1024 s.
@@ -42,6 +44,7 @@ flight_plan=hover
 udp_out=4242
 udp_in=4243
 cruise=""
+hold=""
 pprz="$repo/target/paparazzi"
 
 while [ $# -gt 0 ]; do
@@ -53,6 +56,7 @@ while [ $# -gt 0 ]; do
     --udp-out) udp_out="$2"; shift 2 ;;
     --udp-in) udp_in="$2"; shift 2 ;;
     --cruise) cruise="$2"; shift 2 ;;
+    --sighting-hold) hold="$2"; shift 2 ;;
     --pprz) pprz="$2"; shift 2 ;;
     -h|--help) sed -n '2,35p' "$0"; exit 0 ;;
     *) echo "unknown argument: $1" >&2; exit 2 ;;
@@ -63,6 +67,7 @@ case "$name" in (*[!A-Za-z0-9_]*|"") echo "bad aircraft name: $name" >&2; exit 2
 case "$ac_id" in (*[!0-9]*|"") echo "bad ac_id: $ac_id" >&2; exit 2 ;; esac
 case "$periodic" in (*[!0-9]*|"") echo "bad periodic frequency: $periodic" >&2; exit 2 ;; esac
 case "$cruise" in ("") ;; (*[!0-9.,-]*|*,*,*) echo "bad cruise: $cruise (FWD,RIGHT in deg)" >&2; exit 2 ;; (*,*) ;; (*) echo "bad cruise: $cruise (FWD,RIGHT in deg)" >&2; exit 2 ;; esac
+case "$hold" in ("") ;; (*[!0-9.]*) echo "bad sighting hold: $hold (s)" >&2; exit 2 ;; esac
 case "$udp_out$udp_in" in (*[!0-9]*|"") echo "bad UDP port: $udp_out / $udp_in" >&2; exit 2 ;; esac
 case "$flight_plan" in (hover|wall_avoid) ;; (*) echo "bad flight plan: $flight_plan (hover or wall_avoid)" >&2; exit 2 ;; esac
 
@@ -124,6 +129,7 @@ fi
 install_text "$home/conf/airframes/twinswarm/$name.xml" < <(
   sed "s/@PERIODIC_FREQUENCY@/$periodic/; s/<airframe name=\"twinswarm_finken\">/<airframe name=\"$name\">/
        ${cruise:+s|<define name=\"WA_CRUISE_FWD\" value=\"[^\"]*\"/>|<define name=\"WA_CRUISE_FWD\" value=\"${cruise%,*}\"/>|; s|<define name=\"WA_CRUISE_RIGHT\" value=\"[^\"]*\"/>|<define name=\"WA_CRUISE_RIGHT\" value=\"${cruise#*,}\"/>|;}
+       ${hold:+s|<define name=\"WA_SIGHTING_HOLD\" value=\"[^\"]*\"/>|<define name=\"WA_SIGHTING_HOLD\" value=\"$hold\"/>|;}
        s|<module name=\"telemetry\" type=\"transparent\"/>|<module name=\"telemetry\" type=\"transparent\"><configure name=\"MODEM_PORT_OUT\" value=\"$udp_out\"/><configure name=\"MODEM_PORT_IN\" value=\"$udp_in\"/></module>|" \
     "$here/conf/airframes/twinswarm_finken.xml")
 

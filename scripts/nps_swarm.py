@@ -43,7 +43,7 @@ def free_port():
         return s.getsockname()[1]
 
 
-def build(ac_id, plan, log, udp=None, cruise=None):
+def build(ac_id, plan, log, udp=None, cruise=None, hold=None):
     name = f"tw_nps{ac_id}"
     cmd = ["bash", str(REPO / "paparazzi" / "build_nps.sh"), "--name", name, "--ac-id", str(ac_id),
            "--flight-plan", plan, "--pprz", str(PPRZ)]
@@ -51,6 +51,8 @@ def build(ac_id, plan, log, udp=None, cruise=None):
         cmd += ["--udp-out", str(udp[0]), "--udp-in", str(udp[1])]
     if cruise is not None:
         cmd += ["--cruise", cruise]
+    if hold is not None:
+        cmd += ["--sighting-hold", str(hold)]
     r = subprocess.run(cmd, capture_output=True, text=True)
     log.write(r.stdout + r.stderr)
     if r.returncode != 0:
@@ -126,7 +128,7 @@ def flight_figures(path, arena, last_s=10.0):
         by_tick.setdefault(int(r["tick"]), []).append(r)
     hx, hy = arena[0] / 2, arena[1] / 2
     wall = math.inf
-    pair = math.inf
+    pair, apart = math.inf, -math.inf
     max_x = -math.inf
     heights = {}
     t_end = max(float(r["t_s"]) for r in rows)
@@ -141,10 +143,12 @@ def flight_figures(path, arena, last_s=10.0):
         for a in range(len(pos)):
             for b in range(a + 1, len(pos)):
                 if pos[a][2] > 0.3 and pos[b][2] > 0.3:
-                    pair = min(pair, math.dist(pos[a], pos[b]) - 2 * HALF_WIDTH_M)
+                    d = math.dist(pos[a], pos[b])
+                    pair, apart = min(pair, d - 2 * HALF_WIDTH_M), max(apart, d)
     return {
         "min_wall_clearance_m": None if wall == math.inf else round(wall, 3),
         "min_pair_clearance_m": None if pair == math.inf else round(pair, 3),
+        "max_pair_distance_m": None if apart == -math.inf else round(apart, 3),
         "max_x_m": None if max_x == -math.inf else round(max_x, 3),
         "height_last_s": {
             c: {"mean_m": round(statistics.fmean(h), 4), "sd_m": round(statistics.pstdev(h), 4)} for c, h in heights.items()
@@ -162,6 +166,8 @@ def main(argv=None):
     ap.add_argument("--gap", type=float, help="start the copters in a row along x, this far apart, m (facing each other in pairs)")
     ap.add_argument("--cruise", help="FWD,RIGHT cruise tilt of the wall_avoid plan, deg (default the airframe's 1.0,0.6); "
                     "(an aircraft is rebuilt when its options change: give such runs their own --first-ac)")
+    ap.add_argument("--sighting-hold", type=float, help="the module's WA_SIGHTING_HOLD, s: a sonar reading nearer than "
+                    "the goal distance stands in for farther ones this long (default the airframe's 0, off)")
     ap.add_argument("--arena", help="floor size XxY, m (default: 4x3 for up to two copters, larger for more)")
     ap.add_argument("--box", action="append", default=[], metavar="TOML",
                     help='a [[box]] table body, e.g. \'pos_m = [1.0, 0.0]; size_m = [0.4, 0.4, 2.0]; virtual_only = true\'')
@@ -183,7 +189,7 @@ def main(argv=None):
         udp = (a.udp_out, a.udp_in) if a.udp_out else None
         if udp and a.count != 1:
             sys.exit("--udp-out/--udp-in: one aircraft only (the ports are compiled in)")
-        sims = [build(ac, a.plan, log, udp, a.cruise) for ac in acs]
+        sims = [build(ac, a.plan, log, udp, a.cruise, a.sighting_hold) for ac in acs]
     build_s = time.monotonic() - t0
     boxes = [[s.strip() for s in b.split(";")] for b in a.box]
     size = tuple(float(v) for v in a.arena.split("x")) if a.arena else None

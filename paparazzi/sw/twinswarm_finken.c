@@ -115,6 +115,14 @@
 #define TWINSWARM_FINKEN_WA_BOUNCE_DIST TWINSWARM_FINKEN_WA_GOAL_DIST
 #endif
 
+/* keep the last sighting (not in the firmware; 0: off): a reading nearer than the goal
+ * distance stands in for later, farther ones this long, s. Four 30° cones leave diagonal gaps:
+ * a copter that drifts out of a cone is still there, but the firmware's balance, seeing the far
+ * wall instead, flies back towards it. */
+#ifndef TWINSWARM_FINKEN_WA_SIGHTING_HOLD
+#define TWINSWARM_FINKEN_WA_SIGHTING_HOLD 0.f
+#endif
+
 #define FILTER_MAX_LEN 8
 
 /* ---- state ---- */
@@ -146,6 +154,8 @@ static float error_k1_m[2];     /* lead-lag's last input */
 static float out_k1_deg[2];     /* lead-lag's last output */
 static float cruise_sign[2] = {1.f, 1.f};  /* fwd, right: flipped by bounces */
 static uint32_t calls = 0;
+static float sighting_m[4] = {NAN, NAN, NAN, NAN};  /* last reading nearer than the goal */
+static float sighting_time_s[4] = {-1.f, -1.f, -1.f, -1.f};
 
 static inline float clampf(float v, float lo, float hi) { return v < lo ? lo : (v > hi ? hi : v); }
 
@@ -153,6 +163,20 @@ static inline float clampf(float v, float lo, float hi) { return v < lo ? lo : (
 static inline float far_if_nan(float v) { return isnan(v) ? INFINITY : v; }
 
 /* ---- firmware sonar filter and lead-lag ---- */
+
+/** a reading, or the last sighting where that was nearer and is recent enough */
+static float with_sighting(int k, float reading_m, float now)
+{
+  float hold = TWINSWARM_FINKEN_WA_SIGHTING_HOLD;
+  if (hold <= 0.f) { return reading_m; }
+  if (!isnan(reading_m) && reading_m < twinswarm_wa_goal_dist) {
+    sighting_m[k] = reading_m;
+    sighting_time_s[k] = now;
+    return reading_m;
+  }
+  bool recent = sighting_time_s[k] >= 0.f && now - sighting_time_s[k] <= hold;
+  return recent ? sighting_m[k] : reading_m;
+}
 
 static void filter_push(int k, float reading_m)
 {
@@ -308,9 +332,10 @@ void twinswarm_finken_periodic(void)
 
   /* the firmware's sonar filter: one sonar per update, round robin, or all four */
 #if TWINSWARM_FINKEN_SONAR_ROUND_ROBIN
-  filter_push(calls % 4, twinswarm_sonar_fused_m[calls % 4]);
+  int k = calls % 4;
+  filter_push(k, with_sighting(k, twinswarm_sonar_fused_m[k], now));
 #else
-  for (int k = 0; k < 4; k++) { filter_push(k, twinswarm_sonar_fused_m[k]); }
+  for (int k = 0; k < 4; k++) { filter_push(k, with_sighting(k, twinswarm_sonar_fused_m[k], now)); }
 #endif
 
   /* the lead-lag at its own rate */
