@@ -27,7 +27,7 @@ use crate::control::{self, Command, FlightMode, Inputs, Setpoint, WallAvoidContr
 use crate::geometry::OrientedBox;
 use crate::math::{GRAVITY_M_S2, Quat, Real, Vec3, euler_from_quat, wrap_angle_rad};
 use crate::sensors::{
-    self, SensorParams, SonarScene, SonarSchedule, crosstalk_eligible, crosstalk_reading, sonar_cones, sonar_reading,
+    self, SonarScene, SonarSchedule, crosstalk_eligible, crosstalk_reading, sonar_cones, sonar_reading,
 };
 use crate::shard::{Role, ShardView};
 use crate::state::{CopterState, CrashCause, Lane, Motion, Pinger, State};
@@ -1338,16 +1338,12 @@ pub fn copter_box(world: &World, copters: &[CopterState], i: usize) -> OrientedB
     }
 }
 
-/// Samples every copter's sensors from the current state (the lanes hold each copter's
-/// motion at the start of the step).
+/// The sensing stage, once per control step, from the lanes (each copter's motion at the start
+/// of the step): what the sonars can see, gathered once; each
+/// copter's sonars and IR ([`read_ranges`]), IMU and estimators ([`read_imu_and_estimate`]);
+/// the sonars' cross-talk ([`crosstalk`]); the fused readings into the firmware's sonar
+/// filter ([`fuse_and_filter`]).
 fn sense(world: &World, state: &mut State, inputs: &Inputs, sonar_due: bool, parallel: bool, roles: Roles<'_>) {
-    let params: &SensorParams = &world.sensors;
-    let spec = &params.spec;
-    let n = world.copters.len();
-    let dt_control = world.params.control_dt_s as Real;
-    let tick = state.tick;
-
-    // What the sonars can see, gathered once.
     let scratch = &mut state.scratch;
     let present = roles.0.map(|_| &scratch.present[..]);
     fill_sonar_scene_of(world, &state.copters, present, parallel, &mut scratch.sonar_scene);
@@ -1356,228 +1352,289 @@ fn sense(world: &World, state: &mut State, inputs: &Inputs, sonar_due: bool, par
         fill_real_scene(world, &state.copters, present, &mut scratch.real_ids, &mut scratch.real_scene);
     }
     let (scene, real_scene) = (&scratch.sonar_scene, &scratch.real_scene);
-
-    let noise = spec.noise;
-    let fresh = fresh_sonars(spec, tick, sonar_due);
-    let yaw_tau = spec.imu.yaw_bias_time_s;
-    let yaw_decay = if yaw_tau > 0.0 { (-dt_control / yaw_tau).exp() } else { 1.0 };
-    let walk = spec.imu.yaw_bias_walk_deg_per_sqrt_s.to_radians() * dt_control.sqrt();
-    let yaw_sigma = spec.imu.yaw_noise_deg.to_radians();
-    let ideal = spec.estimator.ideal;
+    let p = SenseParams::new(world, state.tick, sonar_due);
     for_each_lane(parallel, &mut state.copters, &mut scratch.lanes, |i, c, lane| {
         // A wreck's sensors stop (and its sonars no longer ping): its readings keep their
         // last values.
         if c.crash.is_some() || !roles.near(i) {
             return;
         }
-        let (pos, rot, vel, angvel) = (lane.pos_m, lane.rot, lane.vel_m_s, lane.angvel_rad_s);
-        let r = &mut c.sensors;
-        let scene = if autopilots && world.copters[i].kind == CopterKind::Autopilot { real_scene } else { scene };
-        if sonar_due {
-            let cones = sonar_cones(params, pos, rot);
-            r.sonar_tick = tick;
-            let truths = scene.cone_distances_of(&cones, fresh, pos, i, spec.sonar.max_range_m);
-            for (s, &truth) in truths.iter().enumerate().filter(|(s, _)| fresh[*s]) {
-                let nz = if noise { spec.sonar.noise_sigma_m * c.rng.normal() } else { 0.0 };
-                r.sonar_truth_m[s] = truth.min(spec.sonar.cap_m);
-                r.sonar_m[s] = sonar_reading(&spec.sonar, truth, nz);
-                r.sonar_crosstalk[s] = false;
-            }
-        }
-        // IR down the body's −z axis.
-        let dir = rot * Vec3::NEG_Z;
-        let ir_truth = scene.ir_distance(pos, dir, i);
-        r.ir_truth_m = ir_truth;
-        let ir_noise = if noise {
-            (spec.ir.noise_sigma_m + spec.ir.noise_sigma_rel * ir_truth.min(10.0)) * c.rng.normal()
-        } else {
-            0.0
-        };
-        let ir = ir_truth + ir_noise;
-        r.ir_m = (ir_truth.is_finite() && (spec.ir.min_range_m..=spec.ir.max_range_m).contains(&ir)).then_some(ir);
-        // IMU. A twin's is ideal: it flies by its real copter's telemetry, and noise or a
-        // drifting yaw of its own would only add to its error.
-        let twin = world.copters[i].kind == CopterKind::Real;
-        let noise = noise && !twin;
-        if noise {
-            c.yaw_bias_rad = wrap_angle_rad(c.yaw_bias_rad * yaw_decay + walk * c.rng.normal());
-        }
-        let acc_world = if tick == 0 { Vec3::ZERO } else { (vel - c.prev_vel_m_s) / dt_control };
-        let specific = rot.inverse() * (acc_world + Vec3::new(0.0, 0.0, GRAVITY_M_S2));
-        let mut nrm = |sigma: Real| if noise { sigma * c.rng.normal() } else { 0.0 };
-        let a_sigma = spec.imu.accel_noise_m_s2;
-        let accel = Vec3::new(specific.x + nrm(a_sigma), specific.y + nrm(a_sigma), specific.z + nrm(a_sigma));
-        r.accel_body_m_s2 = accel.into();
-        c.prev_vel_m_s = vel;
-        // Estimators: height from the IR, the AHRS's slow biases, the thrust gain.
-        let est = &mut c.estimate;
-        if twin || ideal {
-            let rpy = euler_from_quat(rot);
-            let rate_b = rot.inverse() * angvel;
-            est.ideal(rpy, c.yaw_bias_rad, rate_b.into());
-            est.ideal_height(pos.z, vel.z);
-        } else {
-            let cos_tilt = est.attitude_rad[0].cos() * est.attitude_rad[1].cos();
-            let az = (rot * accel).z - GRAVITY_M_S2;
-            est.update_height(&spec.estimator, &spec.ir, ir, cos_tilt, az, dt_control);
-            if noise {
-                est.wander_bias(&spec.estimator, dt_control, &mut c.rng);
-            }
-        }
-        // The thrust gain (ideal estimation adapts too: it is a parameter, not a state).
-        let af = &world.airframes[world.copters[i].airframe];
-        let cos_tilt = est.attitude_rad[0].cos() * est.attitude_rad[1].cos();
-        let flying = c.crash.is_none() && c.took_off_tick.is_some() && est.height_m > 0.1 && cos_tilt > 0.8;
-        if flying && !twin {
-            est.adapt_thrust(&spec.estimator, af.mass_kg, 4.0 * af.hover_thrust_per_rotor_n, accel.z, dt_control);
-        } else {
-            est.collective_sum_n = 0.0;
-            est.collective_steps = 0;
-        }
-        // The AHRS output the attitude loop last read (telemetry sends these), with the
-        // reported heading's own noise (`yaw_noise_deg`, per reading, as the telemetry's yaw).
-        r.attitude_rad = est.attitude_rad;
-        if noise && !ideal {
-            r.attitude_rad[2] = wrap_angle_rad(r.attitude_rad[2] + yaw_sigma * c.rng.normal());
-        }
-        r.yaw_bias_rad = c.yaw_bias_rad;
-        r.rate_body_rad_s = est.rate_rad_s;
-        r.height_est_m = est.height_m;
-        r.battery_v = c.battery.voltage_v;
-        r.battery_charge = c.battery.charge;
-        r.battery_a = c.battery.current_a;
+        let real_layer = autopilots && world.copters[i].kind == CopterKind::Autopilot;
+        let ir = read_ranges(world, &p, if real_layer { real_scene } else { scene }, i, c, lane);
+        read_imu_and_estimate(world, &p, i, c, lane, ir);
     });
-    // Cross-talk: copter A's pings heard by copter B's sonars, for B in id order. Each copter's
-    // sonars ping on its own cycle; B's reading is shortened when a ping of A arrives after
-    // B's own ping and before its echo.
-    if sonar_due && spec.crosstalk.enabled && n > 1 {
-        let ct = &spec.crosstalk;
-        let now_s = world.time_at(tick);
-        let stagger = if spec.sonar.schedule == SonarSchedule::RoundRobin { 0.25 } else { 0.0 };
-        let sonar = &spec.sonar;
-        let crate::state::Scratch { pingers, ping_points, ping_grid, ping_offsets, lanes, heard_min, .. } =
-            &mut state.scratch;
-        // Every copter's cones and ping timing, gathered once.
-        let copters = &state.copters;
-        fill_each(parallel, pingers, n, Pinger::default(), |i| {
-            let (lane, c) = (&lanes[i], &copters[i]);
-            Pinger {
-                pos_m: lane.pos_m,
-                cones: sonar_cones(params, lane.pos_m, lane.rot),
-                phase_s: c.sonar_phase_s,
-                cycle_s: c.sonar_cycle_s,
-                pings: c.crash.is_none() && roles.present(i),
-            }
-        });
-        ping_points.clear();
-        ping_points.extend(pingers.iter().enumerate().filter(|(_, p)| p.pings).map(|(i, p)| (i as u32, p.pos_m)));
-        ping_grid.set_cover(arena_rect(world));
-        ping_grid.build_points(ping_points, grid_cell_m(world, ping_points.len()));
-        let (pingers, grid) = (&*pingers, &*ping_grid);
-        // Emitter sonar j can reach listener sonar k only if each apex lies in the other's
-        // cone. With apexes `mount_offset_m` from the centres, that needs
-        // `(p_b − p_a)·axis_j ≥ cos_h (|p_b − p_a| − 2 offset)` and the same for k: a necessary
-        // condition on the centres that skips most of the 16 exact tests.
-        let slack = 2.0 * sonar.mount_offset_m;
-        let cos_h = params.sonar_cos_half;
-        let reach = sonar.max_range_m + slack;
-        let heard = |listener: &Pinger, k: usize, emitter: &Pinger, j: usize, d: Real| {
-            heard_reading(listener, k, emitter, j, d, now_s, stagger, sonar, ct.speed_of_sound_m_s)
-        };
-        // The eligible sonar pairs (j of `a`, k of `b`) of two copters and their distance:
-        // eligibility is symmetric (`crosstalk_eligible` gives the same bits both ways), so one
-        // visit serves both directions.
-        let eligible = |b: usize, a: usize, each: &mut dyn FnMut(usize, usize, Real)| {
-            let (me, other) = (&pingers[b], &pingers[a]);
-            let d_c = me.pos_m - other.pos_m;
-            let dist_c = d_c.length();
-            if dist_c > reach {
-                return;
-            }
-            let need = cos_h * (dist_c - slack) - 1e-4;
-            for (j, cone_a) in other.cones.iter().enumerate() {
-                if d_c.dot(cone_a.axis) < need {
-                    continue;
-                }
-                for (k, cone_b) in me.cones.iter().enumerate() {
-                    if -d_c.dot(cone_b.axis) < need {
-                        continue;
-                    }
-                    if let Some(d) = crosstalk_eligible(cone_a, cone_b, sonar.max_range_m) {
-                        each(j, k, d);
-                    }
-                }
-            }
-        };
-        // Every pair of pinging copters within reach once (by grid cells), both directions:
-        // what each listener's sonar would read. The pair's lower id is `b` (the same bits
-        // whichever cell finds it).
-        let pair = |x: usize, y: usize, hear: &mut dyn FnMut(usize, usize, Real)| {
-            let (b, a) = if x < y { (x, y) } else { (y, x) };
-            eligible(b, a, &mut |j, k, d| {
-                if let Some(q) = heard(&pingers[b], k, &pingers[a], j, d) {
-                    hear(b, k, q);
-                }
-                if let Some(q) = heard(&pingers[a], j, &pingers[b], k, d) {
-                    hear(a, j, q);
-                }
-            });
-        };
-        grid.forward_offsets(reach, ping_offsets);
-        let offsets = &ping_offsets[..];
-        let cells = grid.cell_count();
-        // A reading is a minimum, and a minimum does not depend on the order: the same bits
-        // either way.
-        if parallel && n > 64 {
-            // Chunks of cells in parallel; each lowers the readings it hears as an atomic
-            // minimum of their bits (readings are positive, and positive floats order as their
-            // bits do), applied after.
-            use rayon::prelude::*;
-            use std::sync::atomic::{AtomicU32, Ordering::Relaxed};
-            heard_min.resize_with(4 * n, || AtomicU32::new(0));
-            let copters = &state.copters;
-            heard_min.par_chunks_mut(4).zip(copters.par_iter()).for_each(|(min, c)| {
-                for (m, r) in min.iter_mut().zip(c.sensors.sonar_m) {
-                    *m.get_mut() = r.to_bits();
-                }
-            });
-            let chunk = (cells / 64).max(16);
-            let heard_min = &heard_min[..];
-            (0..cells.div_ceil(chunk)).into_par_iter().for_each(|ci| {
-                grid.visit_pairs(ci * chunk..((ci + 1) * chunk).min(cells), offsets, |x, y| {
-                    pair(x, y, &mut |i, k, q| {
-                        if fresh[k] {
-                            heard_min[4 * i + k].fetch_min(q.to_bits(), Relaxed);
-                        }
-                    });
-                });
-            });
-            for_each_lane(true, &mut state.copters, lanes, |i, c, _| {
-                for k in 0..4 {
-                    lower_reading(&mut c.sensors, k, Real::from_bits(heard_min[4 * i + k].load(Relaxed)));
-                }
-            });
-        } else {
-            let copters = &mut state.copters;
-            grid.visit_pairs(0..cells, offsets, |x, y| {
-                pair(x, y, &mut |i, k, q| {
-                    if fresh[k] {
-                        lower_reading(&mut copters[i].sensors, k, q);
-                    }
-                });
-            });
+    if sonar_due && world.sensors.spec.crosstalk.enabled && world.copters.len() > 1 {
+        crosstalk(world, state, &p, parallel, roles);
+    }
+    fuse_and_filter(world, state, inputs, &p, roles);
+}
+
+/// What every copter's sensing shares in one control step.
+struct SenseParams {
+    tick: u64,
+    dt_control: Real,
+    sonar_due: bool,
+    /// Which sonars this step reads ([`fresh_sonars`]).
+    fresh: [bool; 4],
+    /// The yaw bias's decay and random walk over the step.
+    yaw_decay: Real,
+    yaw_walk: Real,
+}
+
+impl SenseParams {
+    fn new(world: &World, tick: u64, sonar_due: bool) -> Self {
+        let spec = &world.sensors.spec;
+        let dt_control = world.params.control_dt_s as Real;
+        let yaw_tau = spec.imu.yaw_bias_time_s;
+        Self {
+            tick,
+            dt_control,
+            sonar_due,
+            fresh: fresh_sonars(spec, tick, sonar_due),
+            yaw_decay: if yaw_tau > 0.0 { (-dt_control / yaw_tau).exp() } else { 1.0 },
+            yaw_walk: spec.imu.yaw_bias_walk_deg_per_sqrt_s.to_radians() * dt_control.sqrt(),
         }
     }
+}
 
-    let wall_avoid = &spec.wall_avoid;
-    for i in 0..n {
+/// A copter's fresh sonars (when due) and its IR, down the body's −z axis, in `scene`.
+/// Returns the IR reading before its range check (the height estimator takes it as it is).
+#[inline]
+fn read_ranges(world: &World, p: &SenseParams, scene: &SonarScene, i: usize, c: &mut CopterState, lane: &Lane) -> Real {
+    let params = &world.sensors;
+    let spec = &params.spec;
+    let (pos, rot) = (lane.pos_m, lane.rot);
+    let r = &mut c.sensors;
+    if p.sonar_due {
+        let cones = sonar_cones(params, pos, rot);
+        r.sonar_tick = p.tick;
+        let truths = scene.cone_distances_of(&cones, p.fresh, pos, i, spec.sonar.max_range_m);
+        for (s, &truth) in truths.iter().enumerate().filter(|(s, _)| p.fresh[*s]) {
+            let nz = if spec.noise { spec.sonar.noise_sigma_m * c.rng.normal() } else { 0.0 };
+            r.sonar_truth_m[s] = truth.min(spec.sonar.cap_m);
+            r.sonar_m[s] = sonar_reading(&spec.sonar, truth, nz);
+            r.sonar_crosstalk[s] = false;
+        }
+    }
+    let ir_truth = scene.ir_distance(pos, rot * Vec3::NEG_Z, i);
+    r.ir_truth_m = ir_truth;
+    let ir_noise = if spec.noise {
+        (spec.ir.noise_sigma_m + spec.ir.noise_sigma_rel * ir_truth.min(10.0)) * c.rng.normal()
+    } else {
+        0.0
+    };
+    let ir = ir_truth + ir_noise;
+    r.ir_m = (ir_truth.is_finite() && (spec.ir.min_range_m..=spec.ir.max_range_m).contains(&ir)).then_some(ir);
+    ir
+}
+
+/// A copter's IMU, its estimators (height from the IR reading `ir`, the AHRS's slow biases,
+/// the thrust gain) and the readings telemetry sends. A twin's IMU is ideal: it flies by its
+/// real copter's telemetry, and noise or a drifting yaw of its own would only add to its error.
+#[inline]
+fn read_imu_and_estimate(world: &World, p: &SenseParams, i: usize, c: &mut CopterState, lane: &Lane, ir: Real) {
+    let spec = &world.sensors.spec;
+    let (pos, rot, vel, angvel) = (lane.pos_m, lane.rot, lane.vel_m_s, lane.angvel_rad_s);
+    let twin = world.copters[i].kind == CopterKind::Real;
+    let noise = spec.noise && !twin;
+    if noise {
+        c.yaw_bias_rad = wrap_angle_rad(c.yaw_bias_rad * p.yaw_decay + p.yaw_walk * c.rng.normal());
+    }
+    let acc_world = if p.tick == 0 { Vec3::ZERO } else { (vel - c.prev_vel_m_s) / p.dt_control };
+    let specific = rot.inverse() * (acc_world + Vec3::new(0.0, 0.0, GRAVITY_M_S2));
+    let mut nrm = |sigma: Real| if noise { sigma * c.rng.normal() } else { 0.0 };
+    let a_sigma = spec.imu.accel_noise_m_s2;
+    let accel = Vec3::new(specific.x + nrm(a_sigma), specific.y + nrm(a_sigma), specific.z + nrm(a_sigma));
+    c.sensors.accel_body_m_s2 = accel.into();
+    c.prev_vel_m_s = vel;
+    let est = &mut c.estimate;
+    let ideal = spec.estimator.ideal;
+    if twin || ideal {
+        let rpy = euler_from_quat(rot);
+        let rate_b = rot.inverse() * angvel;
+        est.ideal(rpy, c.yaw_bias_rad, rate_b.into());
+        est.ideal_height(pos.z, vel.z);
+    } else {
+        let cos_tilt = est.attitude_rad[0].cos() * est.attitude_rad[1].cos();
+        let az = (rot * accel).z - GRAVITY_M_S2;
+        est.update_height(&spec.estimator, &spec.ir, ir, cos_tilt, az, p.dt_control);
+        if noise {
+            est.wander_bias(&spec.estimator, p.dt_control, &mut c.rng);
+        }
+    }
+    // The thrust gain (ideal estimation adapts too: it is a parameter, not a state).
+    let af = &world.airframes[world.copters[i].airframe];
+    let cos_tilt = est.attitude_rad[0].cos() * est.attitude_rad[1].cos();
+    let flying = c.crash.is_none() && c.took_off_tick.is_some() && est.height_m > 0.1 && cos_tilt > 0.8;
+    if flying && !twin {
+        est.adapt_thrust(&spec.estimator, af.mass_kg, 4.0 * af.hover_thrust_per_rotor_n, accel.z, p.dt_control);
+    } else {
+        est.collective_sum_n = 0.0;
+        est.collective_steps = 0;
+    }
+    // The AHRS output the attitude loop last read (telemetry sends these), with the
+    // reported heading's own noise (`yaw_noise_deg`, per reading, as the telemetry's yaw).
+    let r = &mut c.sensors;
+    r.attitude_rad = est.attitude_rad;
+    if noise && !ideal {
+        r.attitude_rad[2] = wrap_angle_rad(r.attitude_rad[2] + spec.imu.yaw_noise_deg.to_radians() * c.rng.normal());
+    }
+    r.yaw_bias_rad = c.yaw_bias_rad;
+    r.rate_body_rad_s = est.rate_rad_s;
+    r.height_est_m = est.height_m;
+    r.battery_v = c.battery.voltage_v;
+    r.battery_charge = c.battery.charge;
+    r.battery_a = c.battery.current_a;
+}
+
+/// A cross-talk pair visitor: for two copters found near each other, calls `hear(copter,
+/// sonar, reading)` for each sonar of either that hears the other's ping.
+type PairVisitor<'a> = dyn Fn(usize, usize, &mut dyn FnMut(usize, usize, Real)) + Sync + 'a;
+
+/// Cross-talk: copter A's pings heard by copter B's sonars, for B in id order. Each copter's
+/// sonars ping on its own cycle; B's reading is shortened when a ping of A arrives after
+/// B's own ping and before its echo.
+fn crosstalk(world: &World, state: &mut State, p: &SenseParams, parallel: bool, roles: Roles<'_>) {
+    let params = &world.sensors;
+    let (ct, sonar) = (&params.spec.crosstalk, &params.spec.sonar);
+    let now_s = world.time_at(p.tick);
+    let stagger = if sonar.schedule == SonarSchedule::RoundRobin { 0.25 } else { 0.0 };
+    let crate::state::Scratch { pingers, ping_points, ping_grid, ping_offsets, lanes, heard_min, .. } =
+        &mut state.scratch;
+    // Every copter's cones and ping timing, gathered once.
+    let copters = &state.copters;
+    fill_each(parallel, pingers, world.copters.len(), Pinger::default(), |i| {
+        let (lane, c) = (&lanes[i], &copters[i]);
+        Pinger {
+            pos_m: lane.pos_m,
+            cones: sonar_cones(params, lane.pos_m, lane.rot),
+            phase_s: c.sonar_phase_s,
+            cycle_s: c.sonar_cycle_s,
+            pings: c.crash.is_none() && roles.present(i),
+        }
+    });
+    ping_points.clear();
+    ping_points.extend(pingers.iter().enumerate().filter(|(_, p)| p.pings).map(|(i, p)| (i as u32, p.pos_m)));
+    ping_grid.set_cover(arena_rect(world));
+    ping_grid.build_points(ping_points, grid_cell_m(world, ping_points.len()));
+    let (pingers, grid) = (&*pingers, &*ping_grid);
+    // Emitter sonar j can reach listener sonar k only if each apex lies in the other's
+    // cone. With apexes `mount_offset_m` from the centres, that needs
+    // `(p_b − p_a)·axis_j ≥ cos_h (|p_b − p_a| − 2 offset)` and the same for k: a necessary
+    // condition on the centres that skips most of the 16 exact tests.
+    let slack = 2.0 * sonar.mount_offset_m;
+    let cos_h = params.sonar_cos_half;
+    let reach = sonar.max_range_m + slack;
+    let heard = |listener: &Pinger, k: usize, emitter: &Pinger, j: usize, d: Real| {
+        heard_reading(listener, k, emitter, j, d, now_s, stagger, sonar, ct.speed_of_sound_m_s)
+    };
+    // The eligible sonar pairs (j of `a`, k of `b`) of two copters and their distance:
+    // eligibility is symmetric (`crosstalk_eligible` gives the same bits both ways), so one
+    // visit serves both directions.
+    let eligible = |b: usize, a: usize, each: &mut dyn FnMut(usize, usize, Real)| {
+        let (me, other) = (&pingers[b], &pingers[a]);
+        let d_c = me.pos_m - other.pos_m;
+        let dist_c = d_c.length();
+        if dist_c > reach {
+            return;
+        }
+        let need = cos_h * (dist_c - slack) - 1e-4;
+        for (j, cone_a) in other.cones.iter().enumerate() {
+            if d_c.dot(cone_a.axis) < need {
+                continue;
+            }
+            for (k, cone_b) in me.cones.iter().enumerate() {
+                if -d_c.dot(cone_b.axis) < need {
+                    continue;
+                }
+                if let Some(d) = crosstalk_eligible(cone_a, cone_b, sonar.max_range_m) {
+                    each(j, k, d);
+                }
+            }
+        }
+    };
+    // Every pair of pinging copters within reach once (by grid cells), both directions:
+    // what each listener's sonar would read. The pair's lower id is `b` (the same bits
+    // whichever cell finds it).
+    let pair = |x: usize, y: usize, hear: &mut dyn FnMut(usize, usize, Real)| {
+        let (b, a) = if x < y { (x, y) } else { (y, x) };
+        eligible(b, a, &mut |j, k, d| {
+            if let Some(q) = heard(&pingers[b], k, &pingers[a], j, d) {
+                hear(b, k, q);
+            }
+            if let Some(q) = heard(&pingers[a], j, &pingers[b], k, d) {
+                hear(a, j, q);
+            }
+        });
+    };
+    grid.forward_offsets(reach, ping_offsets);
+    let offsets = &ping_offsets[..];
+    let fresh = p.fresh;
+    // A reading is a minimum, and a minimum does not depend on the order: the same bits
+    // either way.
+    if parallel && world.copters.len() > 64 {
+        hear_in_parallel(&mut state.copters, lanes, heard_min, grid, offsets, fresh, &pair);
+    } else {
+        let copters = &mut state.copters;
+        grid.visit_pairs(0..grid.cell_count(), offsets, |x, y| {
+            pair(x, y, &mut |i, k, q| {
+                if fresh[k] {
+                    lower_reading(&mut copters[i].sensors, k, q);
+                }
+            });
+        });
+    }
+}
+
+/// Cross-talk on all threads: chunks of grid cells in parallel; each lowers the readings it
+/// hears as an atomic minimum of their bits (readings are positive, and positive floats order
+/// as their bits do), applied after.
+fn hear_in_parallel(
+    copters: &mut [CopterState],
+    lanes: &mut [Lane],
+    heard_min: &mut Vec<std::sync::atomic::AtomicU32>,
+    grid: &sensors::CopterGrid,
+    offsets: &[(i32, i32)],
+    fresh: [bool; 4],
+    pair: &PairVisitor<'_>,
+) {
+    use rayon::prelude::*;
+    use std::sync::atomic::{AtomicU32, Ordering::Relaxed};
+    heard_min.resize_with(4 * copters.len(), || AtomicU32::new(0));
+    heard_min.par_chunks_mut(4).zip(copters.par_iter()).for_each(|(min, c)| {
+        for (m, r) in min.iter_mut().zip(c.sensors.sonar_m) {
+            *m.get_mut() = r.to_bits();
+        }
+    });
+    let cells = grid.cell_count();
+    let chunk = (cells / 64).max(16);
+    let heard_min = &heard_min[..];
+    (0..cells.div_ceil(chunk)).into_par_iter().for_each(|ci| {
+        grid.visit_pairs(ci * chunk..((ci + 1) * chunk).min(cells), offsets, |x, y| {
+            pair(x, y, &mut |i, k, q| {
+                if fresh[k] {
+                    heard_min[4 * i + k].fetch_min(q.to_bits(), Relaxed);
+                }
+            });
+        });
+    });
+    for_each_lane(true, copters, lanes, |i, c, _| {
+        for k in 0..4 {
+            lower_reading(&mut c.sensors, k, Real::from_bits(heard_min[4 * i + k].load(Relaxed)));
+        }
+    });
+}
+
+/// Each copter's readings fused with its virtual ones (`min`), and each fresh fused reading
+/// into the firmware's sonar filter (a wreck's sonars are silent).
+fn fuse_and_filter(world: &World, state: &mut State, inputs: &Inputs, p: &SenseParams, roles: Roles<'_>) {
+    let wall_avoid = &world.sensors.spec.wall_avoid;
+    for (i, c) in state.copters.iter_mut().enumerate() {
         let virt = inputs.commands.get(i).and_then(|c| c.virtual_sonar_m);
-        let c = &mut state.copters[i];
         let r = &mut c.sensors;
         r.sonar_fused_m = sensors::fuse_min(r.sonar_m, virt);
-        // The firmware's sonar filter takes each fresh reading (a wreck's sonars are silent).
-        if sonar_due && c.crash.is_none() && roles.near(i) {
-            for k in (0..4).filter(|&k| fresh[k]) {
+        if p.sonar_due && c.crash.is_none() && roles.near(i) {
+            for k in (0..4).filter(|&k| p.fresh[k]) {
                 c.wall_avoid.filter(wall_avoid, k, r.sonar_fused_m[k]);
             }
         }
