@@ -201,6 +201,10 @@ fn step_on(world: &World, state: &mut State, inputs: &Inputs, parallel: bool, re
     state.shard = view;
 }
 
+/// One control step of the copters, stage by stage: each copter's motion into its lane;
+/// sensing ([`sense`]); the outer loops; the airflow between copters ([`airflow`]); which
+/// copters fly free of Rapier ([`reserve_free_flight`]); the physics substeps
+/// ([`physics_substep`]); the lanes back into the copters' motion.
 fn step_copters(
     world: &World,
     state: &mut State,
@@ -209,8 +213,6 @@ fn step_copters(
     view: &mut Option<ShardView>,
     report: &mut StepReport,
 ) {
-    let n = world.copters.len();
-    let command = |i: usize| -> &Command { inputs.commands.get(i).unwrap_or(&world.copters[i].initial_command) };
     let present = &mut state.scratch.present;
     present.clear();
     if let Some(v) = view {
@@ -218,42 +220,17 @@ fn step_copters(
     }
     // Before the ownership of this step is decided: what this shard owned at its start.
     let roles = Roles(view.as_ref().map(|v| &v.roles[..]));
-
-    // Every copter's motion at the start of the step.
-    let lanes = &mut state.scratch.lanes;
-    lanes.resize(n, Lane::default());
-    for_each_lane(parallel, &mut state.copters, lanes, |i, c, lane| {
-        let m = &c.motion;
-        (lane.pos_m, lane.rot, lane.vel_m_s, lane.angvel_rad_s) = (m.pos_m, m.rot, m.vel_m_s, m.angvel_rad_s);
-        lane.airframe = world.copters[i].airframe as u32;
-        lane.flying = c.crash.is_none();
-        lane.awaiting_takeoff = lane.flying && c.took_off_tick.is_none();
-        lane.batched = 0;
-    });
-
+    load_lanes(world, state, parallel);
     let sonar_period = world.sensors.spec.sonar.period_steps.max(1) as u64;
     if world.sensors.spec.enabled {
         sense(world, state, inputs, state.tick.is_multiple_of(sonar_period), parallel, roles);
     }
-
-    // Outer loop.
-    let dt_control = world.params.control_dt_s as Real;
-    let tick = state.tick;
-    for_each_lane(parallel, &mut state.copters, &mut state.scratch.lanes, |i, c, lane| {
-        if !roles.near(i) {
-            return;
-        }
-        let af = &world.airframes[world.copters[i].airframe];
-        let yaw = euler_from_quat(lane.rot)[2];
-        c.setpoint = outer_loop(world, i, af, c, command(i), lane.pos_m, lane.vel_m_s, yaw, dt_control, tick);
-    });
-
+    outer_loops(world, state, inputs, parallel, roles);
     report.shard_violations += airflow(world, state, parallel, roles);
     report.shard_violations += reserve_free_flight(world, state, parallel, view);
     // From here on: what this shard owns for this step.
     let roles = Roles(view.as_ref().map(|v| &v.roles[..]));
 
-    // Physics substeps.
     let dt = world.physics_dt();
     let scratch = &mut state.scratch;
     scratch.crash_cos_tilt.clear();
@@ -261,92 +238,8 @@ fn step_copters(
     scratch.motor_alpha.clear();
     scratch.motor_alpha.extend(world.airframes.iter().map(|af| motor_alpha(af, dt)));
     let inner = InnerParams::new(world, dt);
-    let substeps = world.params.substeps;
-    for s in 0..substeps {
-        watch_contacts(state, dt);
-        // Inner loops and rotors of every copter; free copters also move. With threads, the
-        // copters in Rapier go first (their forces go into Rapier's step), and Rapier then
-        // steps on one thread while the free copters' inner loops run on the others: a free
-        // copter's substep touches nothing of Rapier's, and nothing of it is read before
-        // Rapier's step is done. On one thread, one pass in id order: the same bits.
-        let scratch = &mut state.scratch;
-        let parallel_rapier = parallel && !scratch.in_rapier.is_empty();
-        let pass =
-            SubstepPass { world, inner, alphas: &scratch.motor_alpha, cos_tilt: &scratch.crash_cos_tilt, roles, dt };
-        let first = pass.closure(s, parallel_rapier.then_some(true));
-        for_each_lane(parallel, &mut state.copters, &mut scratch.lanes, first);
-        for k in 0..state.scratch.falling.len() {
-            let i = state.scratch.falling[k] as usize;
-            fall_wreck(world, state, i, dt);
-            let lane = &mut state.scratch.lanes[i];
-            lane.vel_before_m_s = lane.vel_m_s;
-        }
-        let (copters, falling) = (&state.copters, &mut state.scratch.falling);
-        falling.retain(|&i| !copters[i as usize].grounded);
-        // The others go through Rapier, in id order.
-        let scratch = &mut state.scratch;
-        let mut any_near = false;
-        for &i in &scratch.in_rapier {
-            let (lane, c) = (&scratch.lanes[i as usize], &state.copters[i as usize]);
-            if lane.free {
-                continue;
-            }
-            // A crashed copter at rest sleeps until something hits it. (Looked at first: a
-            // mutable borrow marks a Rapier body modified, and Rapier then revisits it.)
-            let body = &state.physics.bodies[c.body];
-            if body.is_sleeping() || body.is_fixed() {
-                continue;
-            }
-            let body = &mut state.physics.bodies[c.body];
-            any_near = true;
-            body.reset_forces(false);
-            body.reset_torques(false);
-            if c.crash.is_none() {
-                body.add_force(lane.force_n, false);
-                body.add_torque(lane.torque_n_m, false);
-            }
-        }
-        let scratch = &mut state.scratch;
-        let rapier = |physics: &mut PhysicsWorld| {
-            if any_near {
-                physics.step_with_events(&(), &scratch.collisions);
-            }
-        };
-        if parallel_rapier {
-            let pass = SubstepPass {
-                world,
-                inner,
-                alphas: &scratch.motor_alpha,
-                cos_tilt: &scratch.crash_cos_tilt,
-                roles,
-                dt,
-            };
-            let free_lanes = pass.closure(s, Some(false));
-            let (physics, copters, lanes) = (&mut state.physics, &mut state.copters, &mut scratch.lanes);
-            rayon::join(|| rapier(physics), || for_each_lane(true, copters, lanes, free_lanes));
-        } else {
-            rapier(&mut state.physics);
-        }
-        if any_near {
-            report.rapier_substeps += 1;
-            // Poisoned only if Rapier's event collector panicked; its events are still good,
-            // and losing them would lose crash detection.
-            let mut started = scratch.collisions.started.lock().unwrap_or_else(std::sync::PoisonError::into_inner);
-            std::mem::swap(&mut *started, &mut scratch.started);
-            drop(started);
-            for &i in &scratch.in_rapier {
-                let (lane, c) = (&mut scratch.lanes[i as usize], &state.copters[i as usize]);
-                if !lane.free {
-                    let body = &state.physics.bodies[c.body];
-                    lane.pos_m = body.translation();
-                    lane.rot = *body.rotation();
-                    lane.vel_m_s = body.linvel();
-                    lane.angvel_rad_s = body.angvel();
-                }
-            }
-            detect_collision_crashes(world, state, report);
-        }
-        detect_tilt_and_takeoff(world, state, report, roles, parallel, s);
+    for s in 0..world.params.substeps {
+        physics_substep(world, state, inner, roles, parallel, s, report);
     }
 
     // The step's motion is the copters' (free copters' Rapier bodies stay where they were).
@@ -358,6 +251,138 @@ fn step_copters(
     }
     state.tick += 1;
     report.tick = state.tick;
+}
+
+/// Every copter's motion at the start of the step, into its lane.
+fn load_lanes(world: &World, state: &mut State, parallel: bool) {
+    let lanes = &mut state.scratch.lanes;
+    lanes.resize(world.copters.len(), Lane::default());
+    for_each_lane(parallel, &mut state.copters, lanes, |i, c, lane| {
+        let m = &c.motion;
+        (lane.pos_m, lane.rot, lane.vel_m_s, lane.angvel_rad_s) = (m.pos_m, m.rot, m.vel_m_s, m.angvel_rad_s);
+        lane.airframe = world.copters[i].airframe as u32;
+        lane.flying = c.crash.is_none();
+        lane.awaiting_takeoff = lane.flying && c.took_off_tick.is_none();
+        lane.batched = 0;
+    });
+}
+
+/// Each copter's flight mode: its setpoint for the step's inner loops.
+fn outer_loops(world: &World, state: &mut State, inputs: &Inputs, parallel: bool, roles: Roles<'_>) {
+    let command = |i: usize| -> &Command { inputs.commands.get(i).unwrap_or(&world.copters[i].initial_command) };
+    let dt_control = world.params.control_dt_s as Real;
+    let tick = state.tick;
+    for_each_lane(parallel, &mut state.copters, &mut state.scratch.lanes, |i, c, lane| {
+        if !roles.near(i) {
+            return;
+        }
+        let af = &world.airframes[world.copters[i].airframe];
+        let yaw = euler_from_quat(lane.rot)[2];
+        c.setpoint = outer_loop(world, i, af, c, command(i), lane.pos_m, lane.vel_m_s, yaw, dt_control, tick);
+    });
+}
+
+/// Physics substep `s` of every copter: inner loops and rotors; free copters move in closed
+/// form, falling wrecks fall, the others go through Rapier; then crashes, tilts and take-offs.
+///
+/// With threads, the copters in Rapier go first (their forces go into Rapier's step), and
+/// Rapier then steps on one thread while the free copters' inner loops run on the others: a
+/// free copter's substep touches nothing of Rapier's, and nothing of it is read before
+/// Rapier's step is done. On one thread, one pass in id order: the same bits.
+fn physics_substep(
+    world: &World,
+    state: &mut State,
+    inner: InnerParams,
+    roles: Roles<'_>,
+    parallel: bool,
+    s: u32,
+    report: &mut StepReport,
+) {
+    let dt = world.physics_dt();
+    watch_contacts(state, dt);
+    let scratch = &mut state.scratch;
+    let parallel_rapier = parallel && !scratch.in_rapier.is_empty();
+    let pass = SubstepPass { world, inner, alphas: &scratch.motor_alpha, cos_tilt: &scratch.crash_cos_tilt, roles, dt };
+    let first = pass.closure(s, parallel_rapier.then_some(true));
+    for_each_lane(parallel, &mut state.copters, &mut scratch.lanes, first);
+    for k in 0..state.scratch.falling.len() {
+        let i = state.scratch.falling[k] as usize;
+        fall_wreck(world, state, i, dt);
+        let lane = &mut state.scratch.lanes[i];
+        lane.vel_before_m_s = lane.vel_m_s;
+    }
+    let (copters, falling) = (&state.copters, &mut state.scratch.falling);
+    falling.retain(|&i| !copters[i as usize].grounded);
+    // The others go through Rapier, in id order.
+    let any_near = rapier_forces(state);
+    let scratch = &mut state.scratch;
+    let rapier = |physics: &mut PhysicsWorld| {
+        if any_near {
+            physics.step_with_events(&(), &scratch.collisions);
+        }
+    };
+    if parallel_rapier {
+        let pass =
+            SubstepPass { world, inner, alphas: &scratch.motor_alpha, cos_tilt: &scratch.crash_cos_tilt, roles, dt };
+        let free_lanes = pass.closure(s, Some(false));
+        let (physics, copters, lanes) = (&mut state.physics, &mut state.copters, &mut scratch.lanes);
+        rayon::join(|| rapier(physics), || for_each_lane(true, copters, lanes, free_lanes));
+    } else {
+        rapier(&mut state.physics);
+    }
+    if any_near {
+        report.rapier_substeps += 1;
+        rapier_results(state);
+        detect_collision_crashes(world, state, report);
+    }
+    detect_tilt_and_takeoff(world, state, report, roles, parallel, s);
+}
+
+/// The forces and torques of the awake copters in Rapier onto their bodies; whether any is.
+fn rapier_forces(state: &mut State) -> bool {
+    let scratch = &state.scratch;
+    let mut any_near = false;
+    for &i in &scratch.in_rapier {
+        let (lane, c) = (&scratch.lanes[i as usize], &state.copters[i as usize]);
+        if lane.free {
+            continue;
+        }
+        // A crashed copter at rest sleeps until something hits it. (Looked at first: a
+        // mutable borrow marks a Rapier body modified, and Rapier then revisits it.)
+        let body = &state.physics.bodies[c.body];
+        if body.is_sleeping() || body.is_fixed() {
+            continue;
+        }
+        let body = &mut state.physics.bodies[c.body];
+        any_near = true;
+        body.reset_forces(false);
+        body.reset_torques(false);
+        if c.crash.is_none() {
+            body.add_force(lane.force_n, false);
+            body.add_torque(lane.torque_n_m, false);
+        }
+    }
+    any_near
+}
+
+/// After Rapier's step: its collision events, and its bodies' motion into their lanes.
+fn rapier_results(state: &mut State) {
+    let scratch = &mut state.scratch;
+    // Poisoned only if Rapier's event collector panicked; its events are still good,
+    // and losing them would lose crash detection.
+    let mut started = scratch.collisions.started.lock().unwrap_or_else(std::sync::PoisonError::into_inner);
+    std::mem::swap(&mut *started, &mut scratch.started);
+    drop(started);
+    for &i in &scratch.in_rapier {
+        let (lane, c) = (&mut scratch.lanes[i as usize], &state.copters[i as usize]);
+        if !lane.free {
+            let body = &state.physics.bodies[c.body];
+            lane.pos_m = body.translation();
+            lane.rot = *body.rotation();
+            lane.vel_m_s = body.linvel();
+            lane.angvel_rad_s = body.angvel();
+        }
+    }
 }
 
 /// What a physics substep of the copters needs.
