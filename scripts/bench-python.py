@@ -14,9 +14,10 @@ Back to back, in one process run, on this machine:
 2. the PettingZoo dict API against the batched path on the same swarm and actions;
 3. lockstep over Zenoh on loopback, one Python controller (thread and session) per copter,
    answering each state at once: control steps per second at N = 1, 10, 100;
-4. B = 8 worlds of 10 copters stepped by `step_many` on 2 threads (env-steps and copter-steps
-   per second), the package's VectorEnv (8 one-copter worlds), and the pybullet peer stepping
-   the same 80 copters;
+4. B = 8 worlds of 10 copters stepped by `step_many` on RAYON_NUM_THREADS threads (2 from
+   bench-python.sh; scripts/bench-peers.sh asks 1, on one core): env-steps and copter-steps per
+   second; the package's VectorEnv (8 one-copter worlds), and the pybullet peer stepping the same
+   80 copters;
 5. (`--only ros2-lockstep`, not by default) a ROS 2 controller node driving the lockstep:
    `examples/ros2/swarm_circle.py --lockstep` (zenoh-ros2-sdk, one session, a `cmd_vel`
    publisher per copter) answering each `/clock` tick for every copter of `run --ros2

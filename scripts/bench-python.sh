@@ -13,5 +13,8 @@ venv=.venv-bench
 cargo build --release --locked -p twinswarm
 PATH="$PWD/$venv/bin:$PATH" "$venv/bin/pip" install --quiet --disable-pip-version-check --no-build-isolation \
     --force-reinstall --no-deps ./crates/py
-# VectorEnv and step_many run on 2 threads; everything else on one.
-RAYON_NUM_THREADS=2 "$venv/bin/python" scripts/bench-python.py "$@"
+# VectorEnv and step_many run on RAYON_NUM_THREADS threads (default 2); everything else on one.
+# PIN_CORE=C pins the measurements (not the build) to core C (scripts/bench-peers.sh: core 0).
+pin=()
+[ -z "${PIN_CORE:-}" ] || pin=(taskset -c "$PIN_CORE")
+RAYON_NUM_THREADS=${RAYON_NUM_THREADS:-2} "${pin[@]}" "$venv/bin/python" scripts/bench-python.py "$@"
