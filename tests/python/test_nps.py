@@ -103,8 +103,10 @@ def test_a_virtual_wall_reaches_an_nps_finken_through_the_real_link_and_turns_it
     # It stayed clear of the virtual wall's near face (x = 1 m) with its rotor disc square.
     assert r["max_x_m"] < 1.0 - nps_swarm.HALF_WIDTH_M, r
     # The same flight without the uplink (no Ivy, so nothing tells the autopilot of the wall):
-    # it flies into it.
+    # its centre flies into it (it exists only in the simulation), until the real wall behind
+    # turns it.
     blind = nps_swarm.main(list(map(str, [
         "--twinswarm", bin_, "--out", tmp_path / "blind", "--count", 1, "--plan", "wall_avoid", "--duration", 30,
         "--first-ac", 41, "--box", VIRTUAL_WALL])))
-    assert [c["cause"]["kind"] for c in blind["crashes"]] == ["box"], blind
+    assert not [c for c in blind["crashes"] if c["cause"]["kind"] == "box"], blind
+    assert blind["max_x_m"] > 1.0, blind

@@ -144,4 +144,33 @@ start = { pos_m = [0.0, 1.0], z_m = 0.5 }
         let [vf, _, _, vl] = vs.readings(&world, &start, 0);
         assert!(vf < 1.0 && vl < 1.0, "virtual sonar {vf} {vl}");
     }
+
+    #[test]
+    fn an_autopilot_copter_falls_through_a_virtual_only_box_and_onto_a_real_one() {
+        // Two copters flown by an outside autopilot, motors off, 0.6 m above the tops of the real
+        // table and of the virtual-only ghost: the real copter would fall through the ghost.
+        let scene = SCENE
+            .replace("kind = \"real\"", "kind = \"autopilot\"")
+            .replace("start = { pos_m = [0.0, 0.0], z_m = 0.5 }", "start = { pos_m = [-1.0, 0.0], z_m = 1.6 }")
+            .replace(
+                "kind = \"virtual\"\nstart = { pos_m = [0.0, 1.0], z_m = 0.5 }",
+                "kind = \"autopilot\"\nac_id = 6\nstart = { pos_m = [1.0, 0.0], z_m = 1.6 }",
+            );
+        let spec: crate::SceneSpec = toml::from_str(&scene).unwrap();
+        let world = crate::compile(&spec).unwrap();
+        assert!(world.copters.iter().all(|c| c.kind == CopterKind::Autopilot));
+        let mut state = world.initial_state();
+        let mut inputs = world.initial_inputs();
+        for c in &mut inputs.commands {
+            c.rotors = Some([0.0; 4]);
+        }
+        for _ in 0..(2.0 / world.params.control_dt_s).round() as u32 {
+            crate::step(&world, &mut state, &inputs);
+        }
+        let (on_table, through_ghost) = (&state.copters[0], &state.copters[1]);
+        assert!(on_table.motion.pos_m.z > 0.95, "stopped by the real table: {:?}", on_table.motion.pos_m);
+        assert!(matches!(on_table.crash, Some(crate::CrashCause::Box { index: 0 }) | None), "{:?}", on_table.crash);
+        assert!(through_ghost.motion.pos_m.z < 0.3, "fell through the ghost: {:?}", through_ghost.motion.pos_m);
+        assert!(!matches!(through_ghost.crash, Some(crate::CrashCause::Box { .. })), "{:?}", through_ghost.crash);
+    }
 }

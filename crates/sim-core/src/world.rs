@@ -1,6 +1,8 @@
 //! The immutable compiled model ([`World`]) and the construction of a fresh [`State`] from it.
 
-use rapier3d::prelude::{ActiveEvents, ColliderBuilder, MassProperties, PhysicsWorld, RigidBodyBuilder, SharedShape};
+use rapier3d::prelude::{
+    ActiveEvents, ColliderBuilder, Group, InteractionGroups, MassProperties, PhysicsWorld, RigidBodyBuilder, SharedShape,
+};
 use serde::{Deserialize, Serialize};
 
 use crate::airflow::AirflowParams;
@@ -236,10 +238,12 @@ impl World {
         let h = self.arena.height_m;
         let ground = physics.insert_body(RigidBodyBuilder::fixed());
         let add = |physics: &mut PhysicsWorld, half: Vec3, center: Vec3, yaw: Real, tag: ColliderTag| {
+            let virtual_only = matches!(tag, ColliderTag::Box(i) if self.boxes[i].virtual_only);
             let collider = ColliderBuilder::cuboid(half.x, half.y, half.z)
                 .translation(center)
                 .rotation(Vec3::new(0.0, 0.0, yaw))
                 .friction(0.8)
+                .collision_groups(if virtual_only { VIRTUAL_ONLY_BOX } else { InteractionGroups::all() })
                 .user_data(tag.encode());
             physics.insert_collider(collider, Some(ground));
         };
@@ -307,11 +311,11 @@ impl World {
             .can_sleep(false)
             .user_data(id as u128);
         let handle = physics.insert_body(body);
-        let tag = ColliderTag::Copter(id).encode();
         let [main, discs @ ..] = copter_parts(af);
-        let collider = physics.insert_collider(copter_collider(main.shape, tag).position(main.position), Some(handle));
+        let part = |p: ColliderBuilder| self.copter_collider(id, p.shape).position(p.position);
+        let collider = physics.insert_collider(part(main), Some(handle));
         for disc in discs {
-            physics.insert_collider(copter_collider(disc.shape, tag).position(disc.position), Some(handle));
+            physics.insert_collider(part(disc), Some(handle));
         }
         CopterState::new(self, id, handle, collider)
     }
@@ -319,9 +323,32 @@ impl World {
     /// Copter `id`'s wreck as one collider (its parts as one compound shape, built with the
     /// world): a fifth of the leaves in Rapier's broad phase.
     pub(crate) fn wreck_collider(&self, id: usize) -> ColliderBuilder {
-        copter_collider(self.wreck_shapes[self.copters[id].airframe].clone(), ColliderTag::Copter(id).encode())
+        self.copter_collider(id, self.wreck_shapes[self.copters[id].airframe].clone())
+    }
+
+    /// A collider of copter `id` of `shape`: mass comes from the airframe (set on the body),
+    /// not from the shapes; collision events on. A copter flown by an outside autopilot is the
+    /// real copter itself: it passes through `virtual_only` boxes, which exist only in the
+    /// simulation and reach it through the virtual-sonar uplink.
+    fn copter_collider(&self, id: usize, shape: SharedShape) -> ColliderBuilder {
+        let groups = match self.copters[id].kind {
+            CopterKind::Autopilot => AUTOPILOT_COPTER,
+            CopterKind::Virtual | CopterKind::Real => InteractionGroups::all(),
+        };
+        ColliderBuilder::new(shape)
+            .density(0.0)
+            .friction(0.6)
+            .active_events(ActiveEvents::COLLISION_EVENTS)
+            .collision_groups(groups)
+            .user_data(ColliderTag::Copter(id).encode())
     }
 }
+
+/// Rapier collision groups: a `virtual_only` box meets everything but the copters flown by an
+/// outside autopilot (their own group); everything else is in every group.
+const AUTOPILOT_GROUP: Group = Group::GROUP_2;
+const AUTOPILOT_COPTER: InteractionGroups = InteractionGroups::all().with_memberships(AUTOPILOT_GROUP);
+const VIRTUAL_ONLY_BOX: InteractionGroups = InteractionGroups::all().with_filter(Group::ALL.difference(AUTOPILOT_GROUP));
 
 /// A copter's collision shapes in its body frame: the body box and the four rotor discs.
 fn copter_parts(af: &Airframe) -> [ColliderBuilder; 5] {
@@ -334,12 +361,6 @@ fn copter_parts(af: &Airframe) -> [ColliderBuilder; 5] {
     };
     let [a, b, c, d] = af.rotor_pos_in_body_m;
     [ColliderBuilder::cuboid(bx / 2.0, by / 2.0, bz / 2.0), disc(a), disc(b), disc(c), disc(d)]
-}
-
-/// A copter's collider of `shape`: mass comes from the airframe (set on the body), not from
-/// the shapes; collision events on.
-fn copter_collider(shape: SharedShape, tag: u128) -> ColliderBuilder {
-    ColliderBuilder::new(shape).density(0.0).friction(0.6).active_events(ActiveEvents::COLLISION_EVENTS).user_data(tag)
 }
 
 /// Per airframe, a wreck's shape: the copter's parts as one compound.
