@@ -129,6 +129,8 @@ pub struct BoxSpec {
     /// Whether it exists only in the simulation, not in the real lab. Virtual copters and twins
     /// collide with every box; real copters learn of `virtual_only` boxes through their twin's
     /// virtual sonar readings (see [`crate::mixed`]), and a stand-in "reality" leaves them out.
+    /// A copter flown by an outside autopilot passes through them and learns of them the same
+    /// way.
     #[serde(default)]
     pub virtual_only: bool,
 }
