@@ -1,7 +1,8 @@
 //! The immutable compiled model ([`World`]) and the construction of a fresh [`State`] from it.
 
 use rapier3d::prelude::{
-    ActiveEvents, ColliderBuilder, Group, InteractionGroups, MassProperties, PhysicsWorld, RigidBodyBuilder, SharedShape,
+    ActiveEvents, ColliderBuilder, Group, InteractionGroups, MassProperties, PhysicsWorld, RigidBodyBuilder,
+    SharedShape,
 };
 use serde::{Deserialize, Serialize};
 
@@ -348,7 +349,8 @@ impl World {
 /// outside autopilot (their own group); everything else is in every group.
 const AUTOPILOT_GROUP: Group = Group::GROUP_2;
 const AUTOPILOT_COPTER: InteractionGroups = InteractionGroups::all().with_memberships(AUTOPILOT_GROUP);
-const VIRTUAL_ONLY_BOX: InteractionGroups = InteractionGroups::all().with_filter(Group::ALL.difference(AUTOPILOT_GROUP));
+const VIRTUAL_ONLY_BOX: InteractionGroups =
+    InteractionGroups::all().with_filter(Group::ALL.difference(AUTOPILOT_GROUP));
 
 /// A copter's collision shapes in its body frame: the body box and the four rotor discs.
 fn copter_parts(af: &Airframe) -> [ColliderBuilder; 5] {
