@@ -751,8 +751,7 @@ fn watch_contacts(state: &mut State, dt: Real) {
 /// real copter's). Crashed copters neither make nor feel any.
 fn airflow(world: &World, state: &mut State, parallel: bool, roles: Roles<'_>) -> u32 {
     let spec = &world.airflow.spec;
-    let scratch = &mut state.scratch;
-    for_each_lane(parallel, &mut state.copters, &mut scratch.lanes, |i, _, lane| {
+    for_each_lane(parallel, &mut state.copters, &mut state.scratch.lanes, |i, _, lane| {
         if !roles.present(i) {
             return;
         }
@@ -768,9 +767,24 @@ fn airflow(world: &World, state: &mut State, parallel: bool, roles: Roles<'_>) -
     if !spec.downwash || world.copters.len() < 2 {
         return 0;
     }
-    let mut violations = 0;
-    let wake_limit = crate::shard::sense_reach_m(world);
-    let width_per_m = world.airflow.width_per_m;
+    let (violations, any) = gather_wakes(world, state, parallel, roles);
+    if any {
+        let scratch = &mut state.scratch;
+        scratch.wake_grid.set_cover(arena_rect(world));
+        match roles.0 {
+            Some(_) => scratch.wake_grid.build_some(&scratch.wake_reach, &scratch.present, GRID_CELL_M),
+            None => scratch.wake_grid.build(&scratch.wake_reach, GRID_CELL_M),
+        }
+        feel_wakes(world, state, parallel, roles);
+    }
+    violations
+}
+
+/// Every copter's wake and its reach (a box around its origin, for the grid) into the scratch.
+/// Returns the wakes reaching beyond a shard's halo, and whether any copter makes one.
+fn gather_wakes(world: &World, state: &mut State, parallel: bool, roles: Roles<'_>) -> (u32, bool) {
+    let spec = &world.airflow.spec;
+    let scratch = &mut state.scratch;
     let (lanes, copters) = (&scratch.lanes, &state.copters);
     fill_each(parallel, &mut scratch.wakes, lanes.len(), Wake::default(), |i| {
         let (lane, c) = (&lanes[i], &copters[i]);
@@ -801,6 +815,7 @@ fn airflow(world: &World, state: &mut State, parallel: bool, roles: Roles<'_>) -
         }
     });
     let wakes = &scratch.wakes;
+    let width_per_m = world.airflow.width_per_m;
     // An active wake is one with a length (its origin above the floor, pointing down).
     let reach = |w: &Wake| if w.length_m > 0.0 { w.reach_m(width_per_m) } else { 0.0 };
     fill_each(parallel, &mut scratch.wake_reach, wakes.len(), OrientedBox::default(), |i| OrientedBox {
@@ -808,7 +823,8 @@ fn airflow(world: &World, state: &mut State, parallel: bool, roles: Roles<'_>) -
         rotation: Quat::IDENTITY,
         half: Vec3::new(reach(&wakes[i]), 0.0, 0.0),
     });
-    let mut any = false;
+    let wake_limit = crate::shard::sense_reach_m(world);
+    let (mut violations, mut any) = (0, false);
     for (i, w) in scratch.wakes.iter().enumerate() {
         any |= w.length_m > 0.0;
         // A shard's neighbours see its copters only within the halo.
@@ -816,14 +832,15 @@ fn airflow(world: &World, state: &mut State, parallel: bool, roles: Roles<'_>) -
             violations += 1;
         }
     }
-    if !any {
-        return violations;
-    }
-    scratch.wake_grid.set_cover(arena_rect(world));
-    match roles.0 {
-        Some(_) => scratch.wake_grid.build_some(&scratch.wake_reach, &scratch.present, GRID_CELL_M),
-        None => scratch.wake_grid.build(&scratch.wake_reach, GRID_CELL_M),
-    }
+    (violations, any)
+}
+
+/// The downwash force and torque each flying virtual copter feels from the wakes near it (the
+/// wake grid built), at the rotor speeds and thrusts of the step's start.
+fn feel_wakes(world: &World, state: &mut State, parallel: bool, roles: Roles<'_>) {
+    let spec = &world.airflow.spec;
+    let width_per_m = world.airflow.width_per_m;
+    let scratch = &mut state.scratch;
     let (wakes, grid) = (&scratch.wakes, &scratch.wake_grid);
     let turbulence = spec.wake_turbulence;
     for_each_lane(parallel, &mut state.copters, &mut scratch.lanes, |i, c, lane| {
@@ -861,7 +878,6 @@ fn airflow(world: &World, state: &mut State, parallel: bool, roles: Roles<'_>) -
         lane.downwash_force_n = force;
         lane.downwash_torque_n_m = torque;
     });
-    violations
 }
 
 /// Wake speeds below this are not applied, m/s (their force is under 4 mN per rotor).
