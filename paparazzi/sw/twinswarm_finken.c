@@ -281,6 +281,8 @@ void twinswarm_finken_init(void)
   for (int k = 0; k < 4; k++) {
     history_len[k] = history_at[k] = 0;
     twinswarm_sonar_filtered_m[k] = 0.f;
+    sighting_m[k] = NAN;
+    sighting_time_s[k] = -1.f;
   }
   diff_m[0] = diff_m[1] = 0.f;
   error_k1_m[0] = error_k1_m[1] = 0.f;

@@ -1420,6 +1420,8 @@ struct SenseParams {
     /// The yaw bias's decay and random walk over the step.
     yaw_decay: Real,
     yaw_walk: Real,
+    /// The reported heading's noise per reading, rad.
+    yaw_sigma: Real,
 }
 
 impl SenseParams {
@@ -1434,6 +1436,7 @@ impl SenseParams {
             fresh: fresh_sonars(spec, tick, sonar_due),
             yaw_decay: if yaw_tau > 0.0 { (-dt_control / yaw_tau).exp() } else { 1.0 },
             yaw_walk: spec.imu.yaw_bias_walk_deg_per_sqrt_s.to_radians() * dt_control.sqrt(),
+            yaw_sigma: spec.imu.yaw_noise_deg.to_radians(),
         }
     }
 }
@@ -1518,7 +1521,7 @@ fn read_imu_and_estimate(world: &World, p: &SenseParams, i: usize, c: &mut Copte
     let r = &mut c.sensors;
     r.attitude_rad = est.attitude_rad;
     if noise && !ideal {
-        r.attitude_rad[2] = wrap_angle_rad(r.attitude_rad[2] + spec.imu.yaw_noise_deg.to_radians() * c.rng.normal());
+        r.attitude_rad[2] = wrap_angle_rad(r.attitude_rad[2] + p.yaw_sigma * c.rng.normal());
     }
     r.yaw_bias_rad = c.yaw_bias_rad;
     r.rate_body_rad_s = est.rate_rad_s;
