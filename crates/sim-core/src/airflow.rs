@@ -149,6 +149,8 @@ pub struct Wake {
     pub hubs: [crate::math::Vec3; 4],
     /// Each rotor jet's initial speed (its rotor's `v_final`), m/s.
     pub hub_v0_m_s: [Real; 4],
+    /// The hubs' farthest distance from the origin, m.
+    pub hubs_reach_m: Real,
     /// Each rotor jet's initial width (the rotor radius), m.
     pub hub_b0_m: Real,
     /// Depth below the rotors where the four jets have become one, m (0: always one).
@@ -202,6 +204,33 @@ impl Wake {
         ((1.0 - beta) * sum + beta * round * round).sqrt()
     }
 
+    /// Whether the wake is still air over every disc of radius `disc_m` centred within
+    /// `near_m` of `p` ([`Wake::speed_over_disc`] gives exactly 0 there): a test of one point
+    /// that spares the four rotors of a copter far from the wake the exact one.
+    ///
+    /// From `p`, at depth `x` along the flow and `r` across it, a centre within `near_m` lies
+    /// at a depth within `x ± near_m`; it lies `r − near_m − h` or more across from the axis
+    /// of the round jet and of each rotor jet (`h`: the hubs' farthest distance from the
+    /// origin), and every jet is narrower there than `max(b₀, hub b₀) + width_per_m · (x +
+    /// near_m + h)`. Beyond three such widths every Gaussian of [`Wake::speed_over_disc`] is
+    /// cut off. A millimetre of margin covers rounding.
+    #[inline]
+    pub fn is_still_near(&self, p: crate::math::Vec3, near_m: Real, width_per_m: Real, disc_m: Real) -> bool {
+        const MARGIN_M: Real = 1e-3;
+        let d = p - self.origin;
+        let x = d.dot(self.dir);
+        if x + near_m + MARGIN_M <= 0.0 || x - near_m - MARGIN_M > self.length_m {
+            return true;
+        }
+        if width_per_m < 0.0 {
+            return false;
+        }
+        let h = self.hubs_reach_m;
+        let across = (d - self.dir * x).length() - near_m - h - MARGIN_M;
+        let widest = self.b0_m.max(self.hub_b0_m) + width_per_m * (x + near_m + h).max(0.0);
+        across > 0.0 && across * across > 9.0 * (widest * widest + 0.5 * disc_m * disc_m)
+    }
+
     /// The largest horizontal distance from the origin at which the wake can be felt, m.
     pub fn reach_m(&self, width_per_m: Real) -> Real {
         3.0 * (self.b0_m + width_per_m * self.length_m) + self.length_m * self.dir.truncate().length()
@@ -252,6 +281,7 @@ mod tests {
             length_m: 3.0,
             hubs,
             hub_v0_m_s: [v0; 4],
+            hubs_reach_m: 0.1,
             hub_b0_m: 0.0637,
             merge_m,
         }
@@ -284,6 +314,36 @@ mod tests {
         assert!(hub > 1.5 * axis, "{hub} vs {axis}");
         let one = round_wake(11.0, 0.0);
         assert_eq!(w.speed_at(Vec3::new(0.05, 0.0, -0.7), k), one.speed_at(Vec3::new(0.05, 0.0, -0.7), k));
+    }
+
+    #[test]
+    fn a_wake_still_near_a_point_is_still_over_every_disc_around_it() {
+        let k = 0.094 / std::f32::consts::LN_2.sqrt();
+        let mut rng = crate::rng::Rng32::new(3, 0);
+        let (mut still, mut felt, mut elsewhere) = (0, 0, 0);
+        for _ in 0..4000 {
+            let mut u = || 2.0 * rng.uniform() - 1.0;
+            let tilt = crate::math::Quat::from_rotation_x(0.5 * u()) * crate::math::Quat::from_rotation_y(0.5 * u());
+            let mut w = round_wake(11.0, if u() > 0.0 { 0.5 } else { 0.0 });
+            w.origin = Vec3::new(20.0 + 3.0 * u(), -7.0 + 3.0 * u(), 1.5 + u());
+            w.dir = tilt * Vec3::NEG_Z;
+            w.hubs = w.hubs.map(|h| w.origin + tilt * h);
+            w.length_m = w.origin.z / -w.dir.z;
+            let p = w.origin + Vec3::new(u(), u(), u() - 0.5);
+            let near = 0.12;
+            if !w.is_still_near(p, near, k, 0.0637) {
+                elsewhere += usize::from(w.speed_over_disc(p, k, 0.0637) != 0.0);
+                continue;
+            }
+            still += 1;
+            for _ in 0..16 {
+                let q = p + Vec3::new(u(), u(), u()).clamp_length_max(1.0) * near;
+                let v = w.speed_over_disc(q, k, 0.0637);
+                felt += usize::from(v != 0.0);
+            }
+        }
+        assert!(still > 1000 && elsewhere > 500, "the test rarely applies: {still}, {elsewhere}");
+        assert_eq!(felt, 0);
     }
 
     #[test]

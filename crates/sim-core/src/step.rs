@@ -802,14 +802,16 @@ fn gather_wakes(world: &World, state: &mut State, parallel: bool, roles: Roles<'
             return Wake { origin, ..Wake::default() };
         }
         let rho_a = af.spec.air_density_kg_m3 * af.disc_area_m2;
+        let hubs = af.rotor_pos_in_body_m.map(|arm| lane.pos_m + lane.rot * arm);
         Wake {
             origin,
             dir,
             v0_m_s: (0.5 * thrust / rho_a).sqrt(),
             b0_m: af.spec.rotor_diameter_m,
             length_m: origin.z / -dir.z,
-            hubs: af.rotor_pos_in_body_m.map(|arm| lane.pos_m + lane.rot * arm),
+            hubs,
             hub_v0_m_s: c.rotor_thrust_n.map(|t| (2.0 * t.max(0.0) / rho_a).sqrt()),
+            hubs_reach_m: hubs.iter().map(|h| (*h - origin).length()).fold(0.0, Real::max),
             hub_b0_m: 0.5 * af.spec.rotor_diameter_m,
             merge_m: spec.wake_merge_sizes * 2.0 * af.spec.arm_length_m,
         }
@@ -853,13 +855,14 @@ fn feel_wakes(world: &World, state: &mut State, parallel: bool, roles: Roles<'_>
         let axis = lane.rot * Vec3::Z;
         let (mut force, mut torque) = (Vec3::ZERO, Vec3::ZERO);
         let radius = af.radius_m;
+        let arms = af.rotor_pos_in_body_m.map(|arm| lane.rot * arm);
+        let arms_reach = arms.iter().map(|a| a.length()).fold(0.0, Real::max);
         grid.visit_near(lane.pos_m, radius, |j| {
             let w = &wakes[j];
-            if j == i || w.length_m <= 0.0 {
+            if j == i || w.length_m <= 0.0 || w.is_still_near(lane.pos_m, arms_reach, width_per_m, rotor_r) {
                 return radius;
             }
-            for (r, arm) in af.rotor_pos_in_body_m.iter().enumerate() {
-                let arm = lane.rot * *arm;
+            for (r, &arm) in arms.iter().enumerate() {
                 let v = w.speed_over_disc(lane.pos_m + arm, width_per_m, rotor_r);
                 if v > MIN_WAKE_SPEED_M_S {
                     // The inflow through this rotor's disc, and the thrust it costs along the
