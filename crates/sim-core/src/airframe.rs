@@ -227,6 +227,10 @@ pub struct Airframe {
     pub rest_height_m: Real,
     /// Largest horizontal extent from the centre (for overlap checks), m.
     pub radius_m: Real,
+    /// At least the farthest any collider (body box, rotor discs) reaches from the centre of
+    /// mass, in any direction and at any attitude, m.
+    #[serde(skip)]
+    pub reach_bound_m: Real,
 }
 
 /// Why an airframe is not physical.
@@ -291,6 +295,10 @@ impl Airframe {
             ],
             rest_height_m: bz / 2.0,
             radius_m: (s.arm_length_m + s.rotor_diameter_m / 2.0).max(bx.hypot(by) / 2.0),
+            reach_bound_m: {
+                let disc = (0.5 * s.rotor_diameter_m).hypot(crate::step::ROTOR_DISC_HALF_THICKNESS_M);
+                (0.5 * bx.hypot(by).hypot(bz)).max(disc + (2.0 * a * a + rotor_z * rotor_z).sqrt()) * 1.001 + 1e-4
+            },
         })
     }
 

@@ -10,7 +10,7 @@ use serde::{Deserialize, Serialize};
 
 use crate::control::WallAvoidSpec;
 use crate::estimate::EstimatorSpec;
-use crate::geometry::{Cone, OrientedBox, cone_box_distance, ray_box};
+use crate::geometry::{Cone, OrientedBox, Wedge, cone_box_distance, ray_box};
 use crate::math::{Quat, Real, Vec3};
 use crate::scene::{FieldPath, PathSeg, SceneError};
 
@@ -227,6 +227,8 @@ pub struct SensorParams {
     pub sonar_half_angle_rad: Real,
     /// cos of the sonar half-angle.
     pub sonar_cos_half: Real,
+    /// sin of the sonar half-angle.
+    pub sonar_sin_half: Real,
 }
 
 impl SensorSpec {
@@ -340,7 +342,12 @@ impl SensorSpec {
             }
         }
         let half = (s.opening_deg / 2.0).to_radians();
-        Ok(SensorParams { spec: self.clone(), sonar_half_angle_rad: half, sonar_cos_half: half.cos() })
+        Ok(SensorParams {
+            spec: self.clone(),
+            sonar_half_angle_rad: half,
+            sonar_cos_half: half.cos(),
+            sonar_sin_half: half.sin(),
+        })
     }
 }
 
@@ -405,6 +412,8 @@ pub struct CopterGrid {
     ny: usize,
     starts: Vec<u32>,
     items: Vec<u32>,
+    /// Each item's centre on the floor, in the order of `items`.
+    floor_xy: Vec<[Real; 2]>,
     cells: Vec<u32>,
     cursor: Vec<u32>,
     max_radius_m: Real,
@@ -479,12 +488,16 @@ impl CopterGrid {
         }
         self.items.clear();
         self.items.resize(n, 0);
+        self.floor_xy.clear();
+        self.floor_xy.resize(n, [0.0; 2]);
         // Fill in item order, so each cell lists its items in that order.
         self.cursor.clear();
         self.cursor.extend_from_slice(&self.starts[..n_cells]);
         for (k, &c) in self.cells.iter().enumerate() {
             let slot = &mut self.cursor[c as usize];
-            self.items[*slot as usize] = item(k).0;
+            let (id, at) = item(k);
+            self.items[*slot as usize] = id;
+            self.floor_xy[*slot as usize] = [at.x, at.y];
             *slot += 1;
         }
     }
@@ -495,101 +508,88 @@ impl CopterGrid {
         (ix.clamp(-1, self.nx as isize), iy.clamp(-1, self.ny as isize))
     }
 
-    /// Number of cells (for [`CopterGrid::visit_pairs`]'s ranges).
-    pub fn cell_count(&self) -> usize {
-        self.nx * self.ny
-    }
-
-    /// The cell offsets `(dx, dy)` after a cell (`dy > 0`, or `dy = 0` and `dx > 0`) whose items
-    /// may lie within `radius_m` of an item of it: with them, [`CopterGrid::visit_pairs`] visits
-    /// every pair of items within `radius_m` of each other.
-    pub fn forward_offsets(&self, radius_m: Real, out: &mut Vec<(i32, i32)>) {
-        out.clear();
-        // In cells, with room for the rounding of `cell_of` at cell borders.
-        let r = (radius_m + 2.0 * self.max_radius_m) / self.cell_m + 0.01;
-        let m = r.ceil() as i32 + 1;
-        for dy in 0..=m {
-            for dx in -m..=m {
-                if dy == 0 && dx <= 0 {
-                    continue;
-                }
-                // The gap between the two cells, in cells.
-                let (gx, gy) = ((dx.abs() - 1).max(0) as Real, (dy - 1).max(0) as Real);
-                if gx * gx + gy * gy <= r * r {
-                    out.push((dx, dy));
-                }
-            }
-        }
-    }
-
-    /// Visits the pairs of items of the cells `cells` (indices): each item with the items after
-    /// it in its cell, and with the items of the cells at `offsets` (see
-    /// [`CopterGrid::forward_offsets`]). Over all cells, each pair comes once, in no particular
-    /// order of its two ids.
-    pub fn visit_pairs(
-        &self,
-        cells: std::ops::Range<usize>,
-        offsets: &[(i32, i32)],
-        mut visit: impl FnMut(usize, usize),
-    ) {
-        let (nx, ny) = (self.nx as i32, self.ny as i32);
-        for c in cells {
-            let items = &self.items[self.starts[c] as usize..self.starts[c + 1] as usize];
-            if items.is_empty() {
-                continue;
-            }
-            for (k, &x) in items.iter().enumerate() {
-                for &y in &items[k + 1..] {
-                    visit(x as usize, y as usize);
-                }
-            }
-            let (cx, cy) = ((c % self.nx) as i32, (c / self.nx) as i32);
-            for &(dx, dy) in offsets {
-                let (ox, oy) = (cx + dx, cy + dy);
-                if ox < 0 || ox >= nx || oy >= ny {
-                    continue;
-                }
-                let o = oy as usize * self.nx + ox as usize;
-                let others = &self.items[self.starts[o] as usize..self.starts[o + 1] as usize];
-                for &x in items {
-                    for &y in others {
-                        visit(x as usize, y as usize);
-                    }
-                }
-            }
-        }
-    }
-
     /// Visits copter ids in rings of cells around `p`, nearest rings first. `visit` gets each
     /// id and returns the current search radius (m): rings that cannot hold anything closer
     /// are not visited.
-    pub fn visit_near(&self, p: Vec3, mut radius_m: Real, mut visit: impl FnMut(usize) -> Real) {
+    pub fn visit_near(&self, p: Vec3, radius_m: Real, visit: impl FnMut(usize) -> Real) {
+        self.visit_near_over(p, radius_m, None, visit);
+    }
+
+    /// [`CopterGrid::visit_near`] of only the items that may lie over `wedge` grown by the
+    /// `Real` (m) that comes with it (an item lies within the grid's bounding radius of its
+    /// centre), in the same order otherwise.
+    pub fn visit_near_over(
+        &self,
+        p: Vec3,
+        mut radius_m: Real,
+        wedge: Option<(&Wedge, Real)>,
+        mut visit: impl FnMut(usize) -> Real,
+    ) {
         if self.nx == 0 {
             return;
         }
         let (cx, cy) = self.cell_of(p);
+        let [x0, y0, x1, y1] = self.cells_over(wedge, radius_m);
         let max_ring = self.nx.max(self.ny) as isize + 2;
         for r in 0..=max_ring {
             let ring_min = (r as Real - 1.0).max(0.0) * self.cell_m - self.max_radius_m;
             if ring_min > radius_m {
                 break;
             }
-            for iy in (cy - r)..=(cy + r) {
-                if iy < 0 || iy >= self.ny as isize {
-                    continue;
-                }
-                let edge_row = iy == cy - r || iy == cy + r;
-                let step = if edge_row || r == 0 { 1 } else { (2 * r) as usize };
-                let mut ix = cx - r;
-                while ix <= cx + r {
-                    if ix >= 0 && ix < self.nx as isize {
-                        let c = iy as usize * self.nx + ix as usize;
-                        for k in self.starts[c]..self.starts[c + 1] {
-                            radius_m = visit(self.items[k as usize] as usize);
-                        }
+            for iy in (cy - r).max(y0)..=(cy + r).min(y1) {
+                // The ring's cells in this row: all of an edge row, the two ends of the others.
+                let (from, to) = ((cx - r).max(x0), (cx + r).min(x1));
+                let step = if iy == cy - r || iy == cy + r || r == 0 { 1 } else { 2 * r };
+                let mut ix = if step == 1 { from } else { cx - r };
+                while ix <= to {
+                    if ix >= from {
+                        self.visit_cell(ix, iy, wedge, |k| radius_m = visit(k));
                     }
-                    ix += step as isize;
+                    ix += step;
                 }
+            }
+        }
+    }
+
+    /// Visits the ids of the items that may lie over `wedge` grown by the `Real` (m) that
+    /// comes with it, in the cells that may hold one within `radius_m` of `p`, row by row.
+    pub fn visit_over(&self, p: Vec3, radius_m: Real, wedge: (&Wedge, Real), mut visit: impl FnMut(usize)) {
+        if self.nx == 0 {
+            return;
+        }
+        let [x0, y0, x1, y1] = self.cells_over(Some(wedge), radius_m);
+        let [x0, y0, x1, y1] = {
+            let r = radius_m + self.max_radius_m;
+            let (lo, hi) = (self.cell_of(p - Vec3::new(r, r, 0.0)), self.cell_of(p + Vec3::new(r, r, 0.0)));
+            [x0.max(lo.0), y0.max(lo.1), x1.min(hi.0), y1.min(hi.1)]
+        };
+        for iy in y0..=y1 {
+            for ix in x0..=x1 {
+                self.visit_cell(ix, iy, Some(wedge), &mut visit);
+            }
+        }
+    }
+
+    /// The range of cells `[x0, y0, x1, y1]` (inclusive, within the grid) that may hold an item
+    /// within `radius_m` of the apex of `wedge` grown by the `Real` that comes with it (all
+    /// cells without a wedge).
+    fn cells_over(&self, wedge: Option<(&Wedge, Real)>, radius_m: Real) -> [isize; 4] {
+        let (nx, ny) = (self.nx as isize, self.ny as isize);
+        let Some((w, grow)) = wedge else { return [0, 0, nx - 1, ny - 1] };
+        let m = grow + self.max_radius_m + self.cell_m;
+        let [a, b, c, d] = w.bounds(radius_m + m);
+        let (lo, hi) = (self.cell_of(Vec3::new(a - m, b - m, 0.0)), self.cell_of(Vec3::new(c + m, d + m, 0.0)));
+        [lo.0.max(0), lo.1.max(0), hi.0.min(nx - 1), hi.1.min(ny - 1)]
+    }
+
+    /// Visits the ids of cell `(ix, iy)` (within the grid) that may lie over `wedge`.
+    #[inline]
+    fn visit_cell(&self, ix: isize, iy: isize, wedge: Option<(&Wedge, Real)>, mut visit: impl FnMut(usize)) {
+        let c = iy as usize * self.nx + ix as usize;
+        let (start, end) = (self.starts[c] as usize, self.starts[c + 1] as usize);
+        for (&id, &[x, y]) in self.items[start..end].iter().zip(&self.floor_xy[start..end]) {
+            if wedge.is_none_or(|(w, grow)| w.meets_disc(x, y, self.max_radius_m + grow)) {
+                visit(id as usize);
             }
         }
     }
@@ -670,14 +670,19 @@ impl SonarScene {
         }
         let off = cones.iter().map(|c| (c.apex - origin).length()).fold(0.0, Real::max);
         let radius = |best: &[Real; 4]| best.iter().copied().fold(0.0, Real::max) + off;
-        self.grid.visit_near(origin, radius(&best), |id| {
+        // One cone (the firmware's one sonar per tick) looks over a twelfth of the floor.
+        let one = (wanted.iter().filter(|w| **w).count() == 1).then(|| {
+            let cone = &cones[wanted.iter().position(|w| *w).unwrap_or(0)];
+            Wedge::of_cone(cone.apex, cone.axis, cone.sin_h)
+        });
+        self.grid.visit_near_over(origin, radius(&best), one.as_ref().map(|w| (w, 1e-3)), |id| {
             if id == self_id {
                 return radius(&best);
             }
             let b = &self.copters[id];
+            let r = b.bounding_radius();
             let d = b.center - origin;
             let l = d.length();
-            let r = b.bounding_radius();
             // cos(h + β) with sin β = r / l; inside the sphere every cone is possible.
             let (sin_b, cos_b) = if l > r { (r / l, (1.0 - (r / l) * (r / l)).max(0.0).sqrt()) } else { (1.0, 0.0) };
             for k in 0..4 {
@@ -805,7 +810,7 @@ pub fn sonar_cones(params: &SensorParams, pos: Vec3, rot: Quat) -> [Cone; 4] {
     let off = params.spec.sonar.mount_offset_m;
     SONAR_AXES_IN_BODY.map(|axis_b| {
         let axis = rot * axis_b;
-        Cone { apex: pos + axis * off, axis, cos_h: params.sonar_cos_half, sin_h: params.sonar_half_angle_rad.sin() }
+        Cone { apex: pos + axis * off, axis, cos_h: params.sonar_cos_half, sin_h: params.sonar_sin_half }
     })
 }
 

@@ -410,9 +410,6 @@ pub(crate) struct Scratch {
     /// the cross-talk pass need not visit them.
     pub(crate) ping_points: Vec<(u32, Vec3)>,
     pub(crate) ping_grid: CopterGrid,
-    /// The cell offsets of `ping_grid` within cross-talk's reach (see
-    /// [`CopterGrid::forward_offsets`]).
-    pub(crate) ping_offsets: Vec<(i32, i32)>,
     /// One lane per copter: its motion during the step and its free-flight reservation.
     pub(crate) lanes: Vec<Lane>,
     /// Reserved spheres of all copters (radius in `half.x`), for the free-flight test.
@@ -424,9 +421,6 @@ pub(crate) struct Scratch {
     /// Per chunk of [`step::ALERT_CHUNK`] lanes: whether one of them may have crashed, taken
     /// off or left its reservation in the last substep (see `step::detect_tilt_and_takeoff`).
     pub(crate) alerts: Vec<bool>,
-    /// Cross-talk on threads: per copter and sonar, the bits of the lowest reading heard
-    /// (readings are positive: their bits order as they do).
-    pub(crate) heard_min: Vec<std::sync::atomic::AtomicU32>,
     /// Copters on watch and what they may meet this step, (on watch, other) once per pair.
     pub(crate) watch_pairs: Vec<(u32, u32)>,
     /// cos of each airframe's crash tilt.

@@ -24,7 +24,7 @@ use serde::Serialize;
 use crate::airflow::{Wake, ground_effect_ratio, inflow_thrust_factor};
 use crate::airframe::{Airframe, ParticleNoise, ROTOR_YAW_SIGN};
 use crate::control::{self, Command, FlightMode, Inputs, Setpoint, WallAvoidController};
-use crate::geometry::OrientedBox;
+use crate::geometry::{Cone, OrientedBox, Wedge};
 use crate::math::{GRAVITY_M_S2, Quat, Real, Vec3, euler_from_quat, wrap_angle_rad};
 use crate::sensors::{
     self, SonarScene, SonarSchedule, crosstalk_eligible, crosstalk_reading, sonar_cones, sonar_reading,
@@ -465,6 +465,10 @@ fn substep_lane(
             }
             c.grounded = false;
             integrate_free(af, lane, thrust_n, torque_body_n_m, dt);
+            // Higher than any collider reaches, it cannot touch the floor.
+            if lane.pos_m.z > af.reach_bound_m {
+                break 'motion;
+            }
             let below = lowest_point_below_centre(af, lane.rot);
             if lane.pos_m.z - below < 0.0 {
                 touch_floor(af, c, lane, vel_before, below);
@@ -1395,7 +1399,11 @@ fn sense(world: &World, state: &mut State, inputs: &Inputs, sonar_due: bool, par
     if autopilots {
         fill_real_scene(world, &state.copters, present, &mut scratch.real_ids, &mut scratch.real_scene);
     }
-    let (scene, real_scene) = (&scratch.sonar_scene, &scratch.real_scene);
+    if sonar_due {
+        gather_pingers(world, state, parallel, roles);
+    }
+    let scratch = &mut state.scratch;
+    let (scene, real_scene, pingers) = (&scratch.sonar_scene, &scratch.real_scene, &scratch.pingers);
     let p = SenseParams::new(world, state.tick, sonar_due);
     for_each_lane(parallel, &mut state.copters, &mut scratch.lanes, |i, c, lane| {
         // A wreck's sensors stop (and its sonars no longer ping): its readings keep their
@@ -1404,11 +1412,12 @@ fn sense(world: &World, state: &mut State, inputs: &Inputs, sonar_due: bool, par
             return;
         }
         let real_layer = autopilots && world.copters[i].kind == CopterKind::Autopilot;
-        let ir = read_ranges(world, &p, if real_layer { real_scene } else { scene }, i, c, lane);
+        let cones = pingers.get(i).map(|p| &p.cones);
+        let ir = read_ranges(world, &p, if real_layer { real_scene } else { scene }, i, cones, c, lane);
         read_imu_and_estimate(world, &p, i, c, lane, ir);
     });
     if sonar_due && world.sensors.spec.crosstalk.enabled && world.copters.len() > 1 {
-        crosstalk(world, state, &p, parallel, roles);
+        crosstalk(world, state, &p, parallel);
     }
     fuse_and_filter(world, state, inputs, &p, roles);
 }
@@ -1444,18 +1453,45 @@ impl SenseParams {
     }
 }
 
-/// A copter's fresh sonars (when due) and its IR, down the body's −z axis, in `scene`.
-/// Returns the IR reading before its range check (the height estimator takes it as it is).
+/// Every copter's sonar cones and ping timing, for a sonar update ([`read_ranges`] and
+/// [`crosstalk`]); a wreck's or an absent copter's sonars are silent.
+fn gather_pingers(world: &World, state: &mut State, parallel: bool, roles: Roles<'_>) {
+    let (copters, lanes) = (&state.copters, &state.scratch.lanes);
+    fill_each(parallel, &mut state.scratch.pingers, world.copters.len(), Pinger::default(), |i| {
+        let (lane, c) = (&lanes[i], &copters[i]);
+        let pings = c.crash.is_none() && roles.present(i);
+        Pinger {
+            pos_m: lane.pos_m,
+            cones: if pings { sonar_cones(&world.sensors, lane.pos_m, lane.rot) } else { Default::default() },
+            phase_s: c.sonar_phase_s,
+            cycle_s: c.sonar_cycle_s,
+            pings,
+        }
+    });
+}
+
+/// A copter's fresh sonars (when due: `cones` from [`gather_pingers`]) and its IR, down the
+/// body's −z axis, in `scene`. Returns the IR reading before its range check (the height
+/// estimator takes it as it is).
 #[inline]
-fn read_ranges(world: &World, p: &SenseParams, scene: &SonarScene, i: usize, c: &mut CopterState, lane: &Lane) -> Real {
+fn read_ranges(
+    world: &World,
+    p: &SenseParams,
+    scene: &SonarScene,
+    i: usize,
+    cones: Option<&[Cone; 4]>,
+    c: &mut CopterState,
+    lane: &Lane,
+) -> Real {
     let params = &world.sensors;
     let spec = &params.spec;
     let (pos, rot) = (lane.pos_m, lane.rot);
     let r = &mut c.sensors;
-    if p.sonar_due {
-        let cones = sonar_cones(params, pos, rot);
+    if p.sonar_due
+        && let Some(cones) = cones
+    {
         r.sonar_tick = p.tick;
-        let truths = scene.cone_distances_of(&cones, p.fresh, pos, i, spec.sonar.max_range_m);
+        let truths = scene.cone_distances_of(cones, p.fresh, pos, i, spec.sonar.max_range_m);
         for (s, &truth) in truths.iter().enumerate().filter(|(s, _)| p.fresh[*s]) {
             let nz = if spec.noise { spec.sonar.noise_sigma_m * c.rng.normal() } else { 0.0 };
             r.sonar_truth_m[s] = truth.min(spec.sonar.cap_m);
@@ -1534,32 +1570,17 @@ fn read_imu_and_estimate(world: &World, p: &SenseParams, i: usize, c: &mut Copte
     r.battery_a = c.battery.current_a;
 }
 
-/// A cross-talk pair visitor: for two copters found near each other, calls `hear(copter,
-/// sonar, reading)` for each sonar of either that hears the other's ping.
-type PairVisitor<'a> = dyn Fn(usize, usize, &mut dyn FnMut(usize, usize, Real)) + Sync + 'a;
-
-/// Cross-talk: copter A's pings heard by copter B's sonars, for B in id order. Each copter's
-/// sonars ping on its own cycle; B's reading is shortened when a ping of A arrives after
-/// B's own ping and before its echo.
-fn crosstalk(world: &World, state: &mut State, p: &SenseParams, parallel: bool, roles: Roles<'_>) {
+/// Cross-talk: copter A's pings heard by copter B's fresh sonars. Each copter's sonars ping
+/// on its own cycle; B's reading is shortened when a ping of A arrives after B's own ping and
+/// before its echo. Each listener looks for emitters only in the grid cells under its fresh
+/// sonar's cone (a [`Wedge`]), and writes only its own readings: a reading is a minimum, the
+/// same in any order and on any thread.
+fn crosstalk(world: &World, state: &mut State, p: &SenseParams, parallel: bool) {
     let params = &world.sensors;
     let (ct, sonar) = (&params.spec.crosstalk, &params.spec.sonar);
     let now_s = world.time_at(p.tick);
     let stagger = if sonar.schedule == SonarSchedule::RoundRobin { 0.25 } else { 0.0 };
-    let crate::state::Scratch { pingers, ping_points, ping_grid, ping_offsets, lanes, heard_min, .. } =
-        &mut state.scratch;
-    // Every copter's cones and ping timing, gathered once.
-    let copters = &state.copters;
-    fill_each(parallel, pingers, world.copters.len(), Pinger::default(), |i| {
-        let (lane, c) = (&lanes[i], &copters[i]);
-        Pinger {
-            pos_m: lane.pos_m,
-            cones: sonar_cones(params, lane.pos_m, lane.rot),
-            phase_s: c.sonar_phase_s,
-            cycle_s: c.sonar_cycle_s,
-            pings: c.crash.is_none() && roles.present(i),
-        }
-    });
+    let crate::state::Scratch { pingers, ping_points, ping_grid, lanes, .. } = &mut state.scratch;
     ping_points.clear();
     ping_points.extend(pingers.iter().enumerate().filter(|(_, p)| p.pings).map(|(i, p)| (i as u32, p.pos_m)));
     ping_grid.set_cover(arena_rect(world));
@@ -1568,106 +1589,52 @@ fn crosstalk(world: &World, state: &mut State, p: &SenseParams, parallel: bool, 
     // Emitter sonar j can reach listener sonar k only if each apex lies in the other's
     // cone. With apexes `mount_offset_m` from the centres, that needs
     // `(p_b − p_a)·axis_j ≥ cos_h (|p_b − p_a| − 2 offset)` and the same for k: a necessary
-    // condition on the centres that skips most of the 16 exact tests.
+    // condition on the centres that skips most of the exact tests. It holds only within
+    // `(cos_h 2 offset + 1e-4) / sin_h` of the listener's cone from its centre: the wedge's
+    // growth.
     let slack = 2.0 * sonar.mount_offset_m;
     let cos_h = params.sonar_cos_half;
+    let sin_h = params.sonar_sin_half;
     let reach = sonar.max_range_m + slack;
-    let heard = |listener: &Pinger, k: usize, emitter: &Pinger, j: usize, d: Real| {
-        heard_reading(listener, k, emitter, j, d, now_s, stagger, sonar, ct.speed_of_sound_m_s)
-    };
-    // The eligible sonar pairs (j of `a`, k of `b`) of two copters and their distance:
-    // eligibility is symmetric (`crosstalk_eligible` gives the same bits both ways), so one
-    // visit serves both directions.
-    let eligible = |b: usize, a: usize, each: &mut dyn FnMut(usize, usize, Real)| {
-        let (me, other) = (&pingers[b], &pingers[a]);
-        let d_c = me.pos_m - other.pos_m;
+    let grow = (cos_h * slack + 1e-4) / sin_h.max(1e-3) + 1e-3;
+    // What listener `b`'s sonar `k` reads of each of emitter `a`'s pings it hears. The tests
+    // are those of a visit of the pair from its lower id: the same bits whichever listens.
+    let listen = |b: usize, k: usize, a: usize, hear: &mut dyn FnMut(Real)| {
+        let (lo, hi) = if b < a { (b, a) } else { (a, b) };
+        let d_c = pingers[lo].pos_m - pingers[hi].pos_m;
         let dist_c = d_c.length();
         if dist_c > reach {
             return;
         }
         let need = cos_h * (dist_c - slack) - 1e-4;
-        for (j, cone_a) in other.cones.iter().enumerate() {
-            if d_c.dot(cone_a.axis) < need {
-                continue;
-            }
-            for (k, cone_b) in me.cones.iter().enumerate() {
-                if -d_c.dot(cone_b.axis) < need {
-                    continue;
-                }
-                if let Some(d) = crosstalk_eligible(cone_a, cone_b, sonar.max_range_m) {
-                    each(j, k, d);
-                }
+        let sees =
+            |i: usize, cone: &Cone| if i == lo { -d_c.dot(cone.axis) >= need } else { d_c.dot(cone.axis) >= need };
+        let (listener, emitter) = (&pingers[b], &pingers[a]);
+        let ear = &listener.cones[k];
+        if !sees(b, ear) {
+            return;
+        }
+        for (j, mouth) in emitter.cones.iter().enumerate().filter(|(_, mouth)| sees(a, mouth)) {
+            let (cone_hi, cone_lo) = if a == hi { (mouth, ear) } else { (ear, mouth) };
+            let Some(d) = crosstalk_eligible(cone_hi, cone_lo, sonar.max_range_m) else { continue };
+            if let Some(q) = heard_reading(listener, k, emitter, j, d, now_s, stagger, sonar, ct.speed_of_sound_m_s) {
+                hear(q);
             }
         }
     };
-    // Every pair of pinging copters within reach once (by grid cells), both directions:
-    // what each listener's sonar would read. The pair's lower id is `b` (the same bits
-    // whichever cell finds it).
-    let pair = |x: usize, y: usize, hear: &mut dyn FnMut(usize, usize, Real)| {
-        let (b, a) = if x < y { (x, y) } else { (y, x) };
-        eligible(b, a, &mut |j, k, d| {
-            if let Some(q) = heard(&pingers[b], k, &pingers[a], j, d) {
-                hear(b, k, q);
-            }
-            if let Some(q) = heard(&pingers[a], j, &pingers[b], k, d) {
-                hear(a, j, q);
-            }
-        });
-    };
-    grid.forward_offsets(reach, ping_offsets);
-    let offsets = &ping_offsets[..];
     let fresh = p.fresh;
-    // A reading is a minimum, and a minimum does not depend on the order: the same bits
-    // either way.
-    if parallel && world.copters.len() > 64 {
-        hear_in_parallel(&mut state.copters, lanes, heard_min, grid, offsets, fresh, &pair);
-    } else {
-        let copters = &mut state.copters;
-        grid.visit_pairs(0..grid.cell_count(), offsets, |x, y| {
-            pair(x, y, &mut |i, k, q| {
-                if fresh[k] {
-                    lower_reading(&mut copters[i].sensors, k, q);
-                }
-            });
-        });
-    }
-}
-
-/// Cross-talk on all threads: chunks of grid cells in parallel; each lowers the readings it
-/// hears as an atomic minimum of their bits (readings are positive, and positive floats order
-/// as their bits do), applied after.
-fn hear_in_parallel(
-    copters: &mut [CopterState],
-    lanes: &mut [Lane],
-    heard_min: &mut Vec<std::sync::atomic::AtomicU32>,
-    grid: &sensors::CopterGrid,
-    offsets: &[(i32, i32)],
-    fresh: [bool; 4],
-    pair: &PairVisitor<'_>,
-) {
-    use rayon::prelude::*;
-    use std::sync::atomic::{AtomicU32, Ordering::Relaxed};
-    heard_min.resize_with(4 * copters.len(), || AtomicU32::new(0));
-    heard_min.par_chunks_mut(4).zip(copters.par_iter()).for_each(|(min, c)| {
-        for (m, r) in min.iter_mut().zip(c.sensors.sonar_m) {
-            *m.get_mut() = r.to_bits();
+    for_each_lane(parallel, &mut state.copters, lanes, |b, c, _| {
+        let me = &pingers[b];
+        if !me.pings {
+            return;
         }
-    });
-    let cells = grid.cell_count();
-    let chunk = (cells / 64).max(16);
-    let heard_min = &heard_min[..];
-    (0..cells.div_ceil(chunk)).into_par_iter().for_each(|ci| {
-        grid.visit_pairs(ci * chunk..((ci + 1) * chunk).min(cells), offsets, |x, y| {
-            pair(x, y, &mut |i, k, q| {
-                if fresh[k] {
-                    heard_min[4 * i + k].fetch_min(q.to_bits(), Relaxed);
+        for k in (0..4).filter(|&k| fresh[k]) {
+            let wedge = Wedge::of_cone(me.pos_m, me.cones[k].axis, sin_h);
+            grid.visit_over(me.pos_m, reach, (&wedge, grow), |a| {
+                if a != b {
+                    listen(b, k, a, &mut |q| lower_reading(&mut c.sensors, k, q));
                 }
             });
-        });
-    });
-    for_each_lane(true, copters, lanes, |i, c, _| {
-        for k in 0..4 {
-            lower_reading(&mut c.sensors, k, Real::from_bits(heard_min[4 * i + k].load(Relaxed)));
         }
     });
 }
@@ -2058,5 +2025,29 @@ fn slide_off(lane: &mut Lane, n: Vec3, depth: Real) {
     let into = lane.vel_m_s.dot(n);
     if into < 0.0 {
         lane.vel_m_s -= n * into;
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::airframe::AirframeSpec;
+
+    #[test]
+    fn no_collider_reaches_past_the_airframes_reach_bound() {
+        let mut rng = crate::rng::Rng32::new(5, 0);
+        let boxy = AirframeSpec { body_size_m: [0.3, 0.2, 0.15], ..Default::default() };
+        for spec in [AirframeSpec::default(), boxy] {
+            let af = Airframe::derive(&spec).unwrap();
+            let mut farthest: Real = 0.0;
+            for _ in 0..20_000 {
+                let mut u = || 2.0 * rng.uniform() - 1.0;
+                let rot = crate::math::quat_from_euler(3.2 * u(), 1.6 * u(), 3.2 * u());
+                let d = Vec3::new(u(), u(), u()).normalize_or(Vec3::Z);
+                farthest = farthest.max(reach_along(&af, rot, d));
+            }
+            assert!(farthest <= af.reach_bound_m, "{farthest} > {}", af.reach_bound_m);
+            assert!(farthest > 0.97 * af.reach_bound_m, "a loose bound: {farthest} of {}", af.reach_bound_m);
+        }
     }
 }
