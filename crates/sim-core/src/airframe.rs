@@ -231,6 +231,9 @@ pub struct Airframe {
     /// mass, in any direction and at any attitude, m.
     #[serde(skip)]
     pub reach_bound_m: Real,
+    /// `√(2 ρ A)`: induced power is `T^{3/2}` over it, per rotor.
+    #[serde(skip)]
+    pub sqrt_2_rho_a: Real,
 }
 
 /// Why an airframe is not physical.
@@ -295,6 +298,7 @@ impl Airframe {
             ],
             rest_height_m: bz / 2.0,
             radius_m: (s.arm_length_m + s.rotor_diameter_m / 2.0).max(bx.hypot(by) / 2.0),
+            sqrt_2_rho_a: (2.0 * s.air_density_kg_m3 * disc_area).sqrt(),
             reach_bound_m: {
                 let disc = (0.5 * s.rotor_diameter_m).hypot(crate::step::ROTOR_DISC_HALF_THICKNESS_M);
                 (0.5 * bx.hypot(by).hypot(bz)).max(disc + (2.0 * a * a + rotor_z * rotor_z).sqrt()) * 1.001 + 1e-4

@@ -251,8 +251,7 @@ pub fn ray_box(origin: Vec3, dir: Vec3, b: &OrientedBox) -> Option<Real> {
 #[derive(Clone, Copy, Debug)]
 pub struct Wedge {
     apex: [Real; 2],
-    /// Unit direction of the axis on the floor, and of the wedge's two edges (left, right).
-    dir: [Real; 2],
+    /// Unit directions of the wedge's two edges on the floor (left, right).
     edges: [[Real; 2]; 2],
     /// The whole floor.
     full: bool,
@@ -267,26 +266,48 @@ impl Wedge {
         let dir = [axis.x / flat.max(1e-6), axis.y / flat.max(1e-6)];
         let cos_phi = (1.0 - sin_phi * sin_phi).max(0.0).sqrt();
         let turn = |s: Real| [dir[0] * cos_phi - dir[1] * s, dir[0] * s + dir[1] * cos_phi];
-        Self { apex: [apex.x, apex.y], dir, edges: [turn(sin_phi), turn(-sin_phi)], full }
+        Self { apex: [apex.x, apex.y], edges: [turn(sin_phi), turn(-sin_phi)], full }
     }
 
-    /// Whether the disc of radius `r` at `(x, y)` on the floor may meet the wedge.
+    /// Whether the disc of radius `r` at `(x, y)` on the floor may meet the wedge: false only
+    /// if it lies wholly beyond one of the wedge's edge lines (near the apex it may be true of
+    /// a disc that misses the wedge).
     #[inline]
     pub fn meets_disc(&self, x: Real, y: Real, r: Real) -> bool {
-        if self.full {
-            return true;
-        }
         let c = [x - self.apex[0], y - self.apex[1]];
-        let cross = |a: [Real; 2], b: [Real; 2]| a[0] * b[1] - a[1] * b[0];
         let [left, right] = self.edges;
-        if cross(right, c) >= 0.0 && cross(c, left) >= 0.0 {
-            return true;
+        // Signed distances into the wedge from its edge lines.
+        let into_right = right[0] * c[1] - right[1] * c[0];
+        let into_left = c[0] * left[1] - c[1] * left[0];
+        self.full | ((into_right >= -r) & (into_left >= -r))
+    }
+
+    /// The range of `x` on the floor where a disc of radius `r` centred between `y0` and `y1`
+    /// may meet the wedge ([`Wedge::meets_disc`]), if it is bounded.
+    pub fn x_range(&self, y0: Real, y1: Real, r: Real) -> (Real, Real) {
+        if self.full {
+            return (Real::NEG_INFINITY, Real::INFINITY);
         }
-        // Outside: the distance to the nearer edge's ray.
-        let edge = if cross(self.dir, c) >= 0.0 { left } else { right };
-        let along = c[0] * edge[0] + c[1] * edge[1];
-        let d2 = if along <= 0.0 { c[0] * c[0] + c[1] * c[1] } else { cross(edge, c) * cross(edge, c) };
-        d2 <= r * r
+        let (ya, yb) = (y0 - self.apex[1], y1 - self.apex[1]);
+        let (mut lo, mut hi) = (Real::NEG_INFINITY, Real::INFINITY);
+        // `into_right = right.x y − right.y x ≥ −r`, `into_left = left.y x − left.x y ≥ −r`:
+        // each bounds x on one side, loosest over the row.
+        let [left, right] = self.edges;
+        for (ey, ex, sign) in [(right[1], right[0], -1.0), (left[1], left[0], 1.0)] {
+            if ey.abs() < 1e-6 {
+                continue;
+            }
+            // sign · ey · x ≥ −r + sign · ex · y, for some y in the row.
+            let k = sign * ey;
+            let at = |y: Real| (-r + sign * ex * y) / k;
+            let (a, b) = (at(ya), at(yb));
+            if k > 0.0 {
+                lo = lo.max(a.min(b));
+            } else {
+                hi = hi.min(a.max(b));
+            }
+        }
+        (lo + self.apex[0], hi + self.apex[0])
     }
 
     /// The floor rectangle `[x0, y0, x1, y1]` that holds the wedge's points within `radius`
@@ -342,6 +363,10 @@ mod tests {
                 }
                 total += 1;
                 missed += usize::from(!wedge.meets_disc(q.x, q.y, 0.1));
+                if wedge.meets_disc(q.x, q.y, 0.3) {
+                    let (lo, hi) = wedge.x_range(q.y - 0.2, q.y + 0.01, 0.3);
+                    assert!(lo <= q.x && q.x <= hi, "{q}: x outside {lo}..{hi}");
+                }
             }
         }
         assert!(missed > total / 2, "the wedge should skip most of the floor: {missed} of {total}");

@@ -503,8 +503,13 @@ impl CopterGrid {
     }
 
     fn cell_of(&self, p: Vec3) -> (isize, isize) {
-        let ix = ((p.x - self.min[0]) / self.cell_m).floor() as isize;
-        let iy = ((p.y - self.min[1]) / self.cell_m).floor() as isize;
+        // floor(), without a libm call: the truncation, one less below zero.
+        let floor = |v: Real| {
+            let t = v as isize;
+            t.saturating_sub(isize::from((t as Real) > v))
+        };
+        let ix = floor((p.x - self.min[0]) / self.cell_m);
+        let iy = floor((p.y - self.min[1]) / self.cell_m);
         (ix.clamp(-1, self.nx as isize), iy.clamp(-1, self.ny as isize))
     }
 
@@ -563,8 +568,14 @@ impl CopterGrid {
             let (lo, hi) = (self.cell_of(p - Vec3::new(r, r, 0.0)), self.cell_of(p + Vec3::new(r, r, 0.0)));
             [x0.max(lo.0), y0.max(lo.1), x1.min(hi.0), y1.min(hi.1)]
         };
+        let (w, grow) = wedge;
+        let reach = self.max_radius_m + grow;
         for iy in y0..=y1 {
-            for ix in x0..=x1 {
+            // The row's cells whose items may lie over the wedge.
+            let row = |i: isize| self.min[1] + i as Real * self.cell_m;
+            let (a, b) = w.x_range(row(iy) - 1e-3, row(iy + 1) + 1e-3, reach);
+            let (a, b) = (self.cell_of(Vec3::new(a - 1e-3, 0.0, 0.0)).0, self.cell_of(Vec3::new(b + 1e-3, 0.0, 0.0)).0);
+            for ix in a.max(x0)..=b.min(x1) {
                 self.visit_cell(ix, iy, Some(wedge), &mut visit);
             }
         }
@@ -658,7 +669,7 @@ impl SonarScene {
         // An unwanted cone starts with nothing left to find: no test ever lowers its `best`.
         let mut best = wanted.map(|w| if w { max_range_m } else { 0.0 });
         let mut hit = [false; 4];
-        for (k, cone) in cones.iter().enumerate() {
+        for (k, cone) in cones.iter().enumerate().filter(|(k, _)| wanted[*k]) {
             for &(n, c) in &self.walls {
                 if let Some(d) = cone.distance_to_plane(n, c)
                     && d < best[k]

@@ -1015,7 +1015,7 @@ fn inner_loop(
         torque_body += af.rotor_pos_in_body_m[r].cross(Vec3::new(0.0, 0.0, f));
     }
     if !twin {
-        let power = induced_power / (2.0 * af.spec.air_density_kg_m3 * af.disc_area_m2).sqrt() / spec.efficiency;
+        let power = induced_power / af.sqrt_2_rho_a / spec.efficiency;
         c.battery.draw(spec, power, dt);
     }
     (thrust, torque_body)
