@@ -502,6 +502,7 @@ impl CopterGrid {
         }
     }
 
+    #[inline]
     fn cell_of(&self, p: Vec3) -> (isize, isize) {
         // floor(), without a libm call: the truncation, one less below zero.
         let floor = |v: Real| {
@@ -570,11 +571,14 @@ impl CopterGrid {
         };
         let (w, grow) = wedge;
         let reach = self.max_radius_m + grow;
+        // Columns by a multiplication, a millimetre wide of the cells' rounding.
+        let per_m = 1.0 / self.cell_m;
+        let column = |x: Real| ((x - self.min[0]) * per_m).clamp(-1.0, self.nx as Real) as isize;
         for iy in y0..=y1 {
             // The row's cells whose items may lie over the wedge.
             let row = |i: isize| self.min[1] + i as Real * self.cell_m;
             let (a, b) = w.x_range(row(iy) - 1e-3, row(iy + 1) + 1e-3, reach);
-            let (a, b) = (self.cell_of(Vec3::new(a - 1e-3, 0.0, 0.0)).0, self.cell_of(Vec3::new(b + 1e-3, 0.0, 0.0)).0);
+            let (a, b) = (column(a - 1e-3 - self.cell_m), column(b + 1e-3));
             for ix in a.max(x0)..=b.min(x1) {
                 self.visit_cell(ix, iy, Some(wedge), &mut visit);
             }

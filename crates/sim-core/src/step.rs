@@ -761,7 +761,7 @@ fn airflow(world: &World, state: &mut State, parallel: bool, roles: Roles<'_>) -
         }
         let real_layer = world.copters[i].kind.is_real_layer();
         let af = &world.airframes[world.copters[i].airframe];
-        lane.ground_m = match spec.ground_effect {
+        lane.ground_m = match spec.ground_effect && may_be_over_a_box(world, lane.pos_m.z, af.reach_bound_m) {
             true => af.rotor_pos_in_body_m.map(|arm| ground_below(world, lane.pos_m + lane.rot * arm, real_layer)),
             false => [0.0; 4],
         };
@@ -889,6 +889,16 @@ fn feel_wakes(world: &World, state: &mut State, parallel: bool, roles: Roles<'_>
 
 /// Wake speeds below this are not applied, m/s (their force is under 4 mN per rotor).
 const MIN_WAKE_SPEED_M_S: Real = 0.05;
+
+/// Whether a point within `reach_m` of height `z` may have a box's top under it (see
+/// [`ground_below`]): some box's top above the floor lies up to 1 m below it.
+#[inline]
+fn may_be_over_a_box(world: &World, z: Real, reach_m: Real) -> bool {
+    world.boxes.iter().any(|b| {
+        let top = b.center_m.z + b.half_extents_m.z;
+        top > 0.0 && top <= z + reach_m && z - reach_m - top <= 1.0
+    })
+}
 
 /// Height of the surface below a point: the floor, or the top of a box under it. Real-layer
 /// copters skip boxes that exist only in the simulation (a real copter flies over nothing
