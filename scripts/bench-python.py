@@ -8,7 +8,8 @@ Back to back, in one process run, on this machine:
    one thread: the CLI (`twinswarm run --no-bus --no-log`), the Python batched path (each step:
    `truth()`, `sensors()`, a batched `command("mode", "wall_avoid")` for every copter (it keeps
    the physics)
-   and `step()`; its digests must equal the CLI's), and the pybullet peer
+   and `step()`; its digests must equal the CLI's), alternating, three runs each, the best of
+   each counted, and the pybullet peer
    (`peer_pybullet.py bench --scheme ctrl50_zoh --k 10 --rays 1`); real-time factors on the
    wall clock and their ratios;
 2. the PettingZoo dict API against the batched path on the same swarm and actions;
@@ -84,14 +85,21 @@ def bench_dense(binary, rows, ns, seconds):
     for n in ns:
         text = scene(binary, "dense", n)
         steps = round(seconds / 0.05)
-        cli = cli_run(binary, text, seconds)
-        sim, wall = python_path(text, steps)
-        same = sim.digest() == [c["digest"] for c in cli["copters"]]
-        assert same, "the Python batched path parted from the CLI"
+        # The CLI and the Python path alternate, three runs each; the best of each counts (on a
+        # shared machine a run is only ever slowed down).
+        cli_rtfs, py_rtfs = [], []
+        for _ in range(3):
+            cli = cli_run(binary, text, seconds)
+            sim, wall = python_path(text, steps)
+            same = sim.digest() == [c["digest"] for c in cli["copters"]]
+            assert same, "the Python batched path parted from the CLI"
+            cli_rtfs.append(cli["real_time_factor"])
+            py_rtfs.append(steps * 0.05 / wall)
         pb = peer(n, min(seconds, 20.0))
-        py_rtf = steps * 0.05 / wall
-        emit(rows, bench="dense", N=n, sim_s=seconds, cli_rtf=round(cli["real_time_factor"], 2),
-             python_rtf=round(py_rtf, 2), python_vs_cli=round(py_rtf / cli["real_time_factor"], 3),
+        py_rtf, cli_rtf = max(py_rtfs), max(cli_rtfs)
+        emit(rows, bench="dense", N=n, sim_s=seconds, cli_rtf=round(cli_rtf, 2),
+             python_rtf=round(py_rtf, 2), python_vs_cli=round(py_rtf / cli_rtf, 3),
+             cli_rtfs=[round(r, 2) for r in cli_rtfs], python_rtfs=[round(r, 2) for r in py_rtfs],
              peer_rtf=pb["rtf_wallclock"], python_vs_peer=round(py_rtf / pb["rtf_wallclock"], 2),
              crashed=int(sim.crashed().sum()), digests_equal=same)
 

@@ -343,21 +343,26 @@ impl Sim {
         let world = self.world();
         let n = world.copters.len();
         let mut cmds = Vec::with_capacity(ids.len());
-        let modes = match modes.len() {
-            // One mode for every copter of `ids`.
-            1 => vec![modes[0].clone(); ids.len()],
-            k if k == ids.len() => modes,
-            k => return Err(bad(format!("command('mode'): {k} modes for {} copters", ids.len()))),
-        };
-        for (row, (mode, &id)) in modes.iter().zip(&ids).enumerate() {
-            if id >= n {
-                return Err(bad(format!("command('mode'): no copter with id {id} (the swarm has {n})")));
-            }
-            let parsed: FlightMode = serde_json::from_value(serde_json::Value::String(mode.clone())).map_err(|_| {
+        if modes.len() != 1 && modes.len() != ids.len() {
+            return Err(bad(format!("command('mode'): {} modes for {} copters", modes.len(), ids.len())));
+        }
+        let parse = |row: usize, mode: &String| -> PyResult<FlightMode> {
+            serde_json::from_value(serde_json::Value::String(mode.clone())).map_err(|_| {
                 bad(format!(
                     "command('mode'): row {row}: unknown mode {mode:?} (manual, mixed_manual, wall_avoid, target, velocity, rotors)"
                 ))
-            })?;
+            })
+        };
+        // One mode for every copter of `ids` is parsed once.
+        let one = if modes.len() == 1 { Some(parse(0, &modes[0])?) } else { None };
+        for (row, &id) in ids.iter().enumerate() {
+            if id >= n {
+                return Err(bad(format!("command('mode'): no copter with id {id} (the swarm has {n})")));
+            }
+            let parsed = match one {
+                Some(mode) => mode,
+                None => parse(row, &modes[row])?,
+            };
             if self.world().copters[id].kind == CopterKind::Real {
                 return Err(bad(format!(
                     "command('mode'): copter {id} is a twin: its real copter's telemetry drives it"
