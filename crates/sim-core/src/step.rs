@@ -1599,14 +1599,13 @@ fn crosstalk(world: &World, state: &mut State, p: &SenseParams, parallel: bool) 
     // Emitter sonar j can reach listener sonar k only if each apex lies in the other's
     // cone. With apexes `mount_offset_m` from the centres, that needs
     // `(p_b − p_a)·axis_j ≥ cos_h (|p_b − p_a| − 2 offset)` and the same for k: a necessary
-    // condition on the centres that skips most of the exact tests. It holds only within
-    // `(cos_h 2 offset + 1e-4) / sin_h` of the listener's cone from its centre: the wedge's
-    // growth.
+    // condition on the centres that skips most of the exact tests. It holds only near the
+    // listener's cone from its centre ([`crosstalk_growth`]): the wedge's growth.
     let slack = 2.0 * sonar.mount_offset_m;
     let cos_h = params.sonar_cos_half;
     let sin_h = params.sonar_sin_half;
     let reach = sonar.max_range_m + slack;
-    let grow = (cos_h * slack + 1e-4) / sin_h.max(1e-3) + 1e-3;
+    let grow = crosstalk_growth(params.sonar_half_angle_rad, slack);
     // What listener `b`'s sonar `k` reads of each of emitter `a`'s pings it hears. The tests
     // are those of a visit of the pair from its lower id: the same bits whichever listens.
     let listen = |b: usize, k: usize, a: usize, hear: &mut dyn FnMut(Real)| {
@@ -1647,6 +1646,19 @@ fn crosstalk(world: &World, state: &mut State, p: &SenseParams, parallel: bool) 
             });
         }
     });
+}
+
+/// How far from the cone of half-angle `h` (apex at the origin, axis `u`) a point `v` with
+/// `v·u ≥ cos h (|v| − slack) − 1e-4` can lie, at most, m: cross-talk's pre-test on the centres.
+///
+/// With `c = cos h · slack + 1e-4`, a point at angle `θ > h` from the axis passes when `|v| (cos h
+/// − cos θ) ≤ c`; its distance to the cone is `|v| sin(θ − h)` (or `|v|` beyond `h + 90°`), and
+/// `sin(θ − h) / (cos h − cos θ) = cos((θ − h)/2) / sin((θ + h)/2) ≤ 1 / sin((θ + h)/2)`, whose
+/// half-sum lies in `[h, min(h + 45°, 90° + h/2)]`. A millimetre of margin covers rounding.
+fn crosstalk_growth(h: Real, slack: Real) -> Real {
+    let c = h.cos() * slack + 1e-4;
+    let least_sin = h.sin().min((h + std::f32::consts::FRAC_PI_4).sin()).min((0.5 * h).cos());
+    c / least_sin.max(1e-3) + 1e-3
 }
 
 /// Each copter's readings fused with its virtual ones (`min`), and each fresh fused reading
@@ -2042,6 +2054,34 @@ fn slide_off(lane: &mut Lane, n: Vec3, depth: Real) {
 mod tests {
     use super::*;
     use crate::airframe::AirframeSpec;
+
+    #[test]
+    fn crosstalks_pretest_passes_only_near_the_listeners_cone() {
+        let mut rng = crate::rng::Rng32::new(9, 0);
+        for opening_deg in [10.0_f32, 30.0, 90.0, 150.0, 179.0] {
+            let h = (0.5 * opening_deg).to_radians();
+            let slack = 0.1;
+            let grow = crosstalk_growth(h, slack);
+            let (mut passed, mut farthest) = (0, 0.0_f32);
+            for _ in 0..20_000 {
+                let mut u = || 2.0 * rng.uniform() - 1.0;
+                let v = Vec3::new(u(), u(), u()) * 3.0 * rng.uniform();
+                if v.x < h.cos() * (v.length() - slack) - 1e-4 {
+                    continue;
+                }
+                passed += 1;
+                let theta = (v.x / v.length().max(1e-9)).clamp(-1.0, 1.0).acos();
+                let to_cone = match theta - h {
+                    off if off <= 0.0 => 0.0,
+                    off if off <= std::f32::consts::FRAC_PI_2 => v.length() * off.sin(),
+                    _ => v.length(),
+                };
+                farthest = farthest.max(to_cone);
+            }
+            assert!(passed > 100, "{opening_deg}°: {passed}");
+            assert!(farthest <= grow, "{opening_deg}°: {farthest} m from the cone, growth {grow} m");
+        }
+    }
 
     #[test]
     fn no_collider_reaches_past_the_airframes_reach_bound() {
