@@ -494,6 +494,27 @@ fn substep_lane(
 /// bodies fixed in Rapier where flying copters can hit them.
 fn reserve_free_flight(world: &World, state: &mut State, parallel: bool, view: &mut Option<ShardView>) -> u32 {
     let roles = Roles(view.as_ref().map(|v| &v.roles[..]));
+    reserve_spheres(world, state, parallel, roles);
+    sort_free_and_watched(world, state, parallel, roles);
+    // A shard decides which copters it steps now: the reservations are known.
+    let violations = view.as_mut().map_or(0, |v| take_ownership(state, v));
+    let roles = Roles(view.as_ref().map(|v| &v.roles[..]));
+    gather_watch_pairs(state, roles);
+    gather_falling(world, state, roles);
+    enable_rapier_bodies(world, state, view);
+    let roles = Roles(view.as_ref().map(|v| &v.roles[..]));
+    let scratch = &mut state.scratch;
+    scratch.in_rapier.clear();
+    // Room for every copter, so that entering Rapier during the step never grows it.
+    scratch.in_rapier.reserve(scratch.lanes.len());
+    let lanes = scratch.lanes.iter().enumerate();
+    scratch.in_rapier.extend(lanes.filter(|(i, l)| !l.free && roles.owned(*i)).map(|(i, _)| i as u32));
+    violations
+}
+
+/// Each copter's reachable sphere for the step (`Lane::reserved_m`, and per substep
+/// `substep_reserved_m`), and the grid of them.
+fn reserve_spheres(world: &World, state: &mut State, parallel: bool, roles: Roles<'_>) {
     let t = world.params.control_dt_s as Real;
     let dt = world.physics_dt();
     let scratch = &mut state.scratch;
@@ -525,6 +546,12 @@ fn reserve_free_flight(world: &World, state: &mut State, parallel: bool, view: &
         Some(_) => scratch.sphere_grid.build_some(&scratch.spheres, &scratch.present, GRID_CELL_M),
         None => scratch.sphere_grid.build(&scratch.spheres, GRID_CELL_M),
     }
+}
+
+/// Which copters fly free (their spheres clear of the walls, the ceiling and the boxes) and,
+/// of those, which on watch (their spheres meet another copter's).
+fn sort_free_and_watched(world: &World, state: &mut State, parallel: bool, roles: Roles<'_>) {
+    let scratch = &mut state.scratch;
     let spheres = &scratch.spheres;
     let grid = &scratch.sphere_grid;
     let arena = &world.arena;
@@ -565,11 +592,11 @@ fn reserve_free_flight(world: &World, state: &mut State, parallel: bool, view: &
         // Rapier keeps a copter on the floor itself; back in free flight it lands anew.
         c.grounded &= free;
     });
-    // A shard decides which copters it steps now: the reservations are known.
-    let violations = view.as_mut().map_or(0, |v| take_ownership(state, v));
-    let roles = Roles(view.as_ref().map(|v| &v.roles[..]));
-    // Everything a copter on watch may come close to this step (once per pair; in a shard,
-    // both are its own: they are in one contact cluster).
+}
+
+/// Everything a copter on watch may come close to this step (once per pair; in a shard,
+/// both are its own: they are in one contact cluster).
+fn gather_watch_pairs(state: &mut State, roles: Roles<'_>) {
     let scratch = &mut state.scratch;
     scratch.watch_pairs.clear();
     // A few neighbours per copter, kept from step to step.
@@ -584,15 +611,25 @@ fn reserve_free_flight(world: &World, state: &mut State, parallel: bool, view: &
             r
         });
     }
-    // The wrecks this shard moves in closed form, in id order.
+}
+
+/// The wrecks this shard moves in closed form, in id order.
+fn gather_falling(world: &World, state: &mut State, roles: Roles<'_>) {
     let scratch = &mut state.scratch;
     scratch.falling.clear();
     // Room for every copter, so that a crash never grows it.
     scratch.falling.reserve(scratch.lanes.len());
-    if closed_form {
+    if world.params.closed_form {
         let owned_falling = |(i, c): (usize, &CopterState)| c.crash.is_some() && !c.grounded && roles.owned(i);
         scratch.falling.extend(state.copters.iter().enumerate().filter(|&ic| owned_falling(ic)).map(|(i, _)| i as u32));
     }
+}
+
+/// Each copter's Rapier body enabled for the step if it goes through Rapier, disabled if it
+/// flies free or belongs to another shard; a wreck a shard has just taken over enters as its
+/// owner had it.
+fn enable_rapier_bodies(world: &World, state: &mut State, view: &Option<ShardView>) {
+    let closed_form = world.params.closed_form;
     for (i, (lane, c)) in state.scratch.lanes.iter().zip(&state.copters).enumerate() {
         // Borrowed mutably only when something changes: a mutable borrow marks a Rapier body
         // modified, and Rapier's next step revisits every modified body.
@@ -627,14 +664,6 @@ fn reserve_free_flight(world: &World, state: &mut State, parallel: bool, view: &
             enter_rapier(body, lane);
         }
     }
-    let roles = Roles(view.as_ref().map(|v| &v.roles[..]));
-    let scratch = &mut state.scratch;
-    scratch.in_rapier.clear();
-    // Room for every copter, so that entering Rapier during the step never grows it.
-    scratch.in_rapier.reserve(scratch.lanes.len());
-    let lanes = scratch.lanes.iter().enumerate();
-    scratch.in_rapier.extend(lanes.filter(|(i, l)| !l.free && roles.owned(*i)).map(|(i, _)| i as u32));
-    violations
 }
 
 /// A shard's ownership for this step (see [`crate::shard`]): copters whose reservations
