@@ -602,8 +602,13 @@ impl CopterGrid {
     fn visit_cell(&self, ix: isize, iy: isize, wedge: Option<(&Wedge, Real)>, mut visit: impl FnMut(usize)) {
         let c = iy as usize * self.nx + ix as usize;
         let (start, end) = (self.starts[c] as usize, self.starts[c + 1] as usize);
+        let Some((w, grow)) = wedge else {
+            // No wedge: every item, without reading their floor positions.
+            self.items[start..end].iter().for_each(|&id| visit(id as usize));
+            return;
+        };
         for (&id, &[x, y]) in self.items[start..end].iter().zip(&self.floor_xy[start..end]) {
-            if wedge.is_none_or(|(w, grow)| w.meets_disc(x, y, self.max_radius_m + grow)) {
+            if w.meets_disc(x, y, self.max_radius_m + grow) {
                 visit(id as usize);
             }
         }
