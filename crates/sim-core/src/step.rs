@@ -939,8 +939,14 @@ fn ground_below(world: &World, p: Vec3, real_layer: bool) -> Real {
         if top <= ground || top > p.z || p.z - top > 1.0 || (real_layer && b.virtual_only) {
             continue;
         }
-        let local = Quat::from_rotation_z(-b.yaw_rad) * (p - b.center_m);
-        if local.x.abs() <= b.half_extents_m.x && local.y.abs() <= b.half_extents_m.y {
+        // A yaw keeps horizontal lengths: beyond the box's horizontal circumcircle (with a
+        // margin for the rotation's rounding) the point is over no part of it.
+        let (d, h) = (p - b.center_m, b.half_extents_m);
+        if d.x * d.x + d.y * d.y > (h.x * h.x + h.y * h.y) * (1.0 + 1e-5) {
+            continue;
+        }
+        let local = Quat::from_rotation_z(-b.yaw_rad) * d;
+        if local.x.abs() <= h.x && local.y.abs() <= h.y {
             ground = top;
         }
     }
