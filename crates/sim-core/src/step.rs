@@ -1037,7 +1037,9 @@ fn inner_loop(
     // Each rotor over the surface below it.
     let mut ground = [1.0; 4];
     let radius = 0.5 * af.spec.rotor_diameter_m;
-    if p.ground_effect {
+    // No rotor lies lower than the reach bound below the centre (a millimetre covers rounding).
+    let lowest = lane.pos_m.z - af.reach_bound_m - lane.ground_m.iter().copied().fold(0.0, Real::max);
+    if p.ground_effect && lowest < GROUND_EFFECT_RADII * radius + 1e-3 {
         for ((g, arm), below) in ground.iter_mut().zip(&af.rotor_pos_in_body_m).zip(lane.ground_m) {
             let height = lane.pos_m.z + (rot * *arm).z - below;
             // Less what it is at the cut-off, so that a rotor crossing it sees no step.
