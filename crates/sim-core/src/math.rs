@@ -35,13 +35,88 @@ pub fn euler_from_quat(q: Quat) -> [Real; 3] {
     let (x, y, z, w) = (q.x, q.y, q.z, q.w);
     let sinr_cosp = 2.0 * (w * x + y * z);
     let cosr_cosp = 1.0 - 2.0 * (x * x + y * y);
-    let roll = sinr_cosp.atan2(cosr_cosp);
+    let roll = atan2(sinr_cosp, cosr_cosp);
     let sinp = (2.0 * (w * y - z * x)).clamp(-1.0, 1.0);
-    let pitch = sinp.asin();
+    let pitch = asin(sinp);
     let siny_cosp = 2.0 * (w * z + x * y);
     let cosy_cosp = 1.0 - 2.0 * (y * y + z * z);
-    let yaw = siny_cosp.atan2(cosy_cosp);
+    let yaw = atan2(siny_cosp, cosy_cosp);
     [roll, pitch, yaw]
+}
+
+// The trigonometry of every physics step, in arithmetic alone: the same bits on every machine
+// (the system libm's `atan2f`, `asinf` and `cosf` differ between versions and between CPUs,
+// which pick their code at load time), and inlined. Each is within 2.5 ulp of the exact value
+// for finite arguments (`tests::trigonometry_is_within_2_5_ulp`); the polynomials are minimax
+// fits in `f32`.
+
+/// `atan(t) = t + t u Q(u)`, `u = t²`, for `t` in [0, 1]: Q's coefficients from `u⁰`.
+const ATAN_Q: [Real; 8] = [
+    -0.333_331_53,
+    0.199_937_73,
+    -0.142_110_56,
+    0.106_660_075,
+    -0.075_522_21,
+    0.043_211_937,
+    -0.016_367_976,
+    0.002_920_704,
+];
+/// `sin r = r + r u S(u)` and `cos r = 1 − u / 2 + u² C(u)`, `u = r²`, for `|r| ≤ π/4`.
+const SIN_S: [Real; 3] = [-0.166_666_55, 0.008_332_16, -0.000_195_152_82];
+const COS_C: [Real; 3] = [0.041_666_646, -0.001_388_731_6, 0.000_024_433_159];
+/// π/2 in three parts, the first two of 12 significant bits (exact times a small integer).
+const PIO2: [Real; 3] = [1.570_312_5, 0.000_483_751_3, 7.549_790_1e-8];
+
+/// Horner's scheme on coefficients from the constant term up.
+#[inline(always)]
+fn horner<const N: usize>(c: &[Real; N], u: Real) -> Real {
+    c.iter().rev().fold(0.0, |acc, &k| acc * u + k)
+}
+
+/// `y.atan2(x)` (radians in [−π, π]) for finite arguments, with libm's signed zeros.
+#[inline]
+pub fn atan2(y: Real, x: Real) -> Real {
+    use std::f32::consts::{FRAC_PI_2, PI};
+    let (ax, ay) = (x.abs(), y.abs());
+    let steep = ay > ax;
+    let (num, den) = if steep { (ax, ay) } else { (ay, ax) };
+    if den == 0.0 {
+        // atan2(±0, +0) = ±0, atan2(±0, −0) = ±π.
+        return if x.is_sign_negative() { PI.copysign(y) } else { y };
+    }
+    let t = num / den;
+    let u = t * t;
+    let mut r = t + t * (u * horner(&ATAN_Q, u));
+    if steep {
+        r = FRAC_PI_2 - r;
+    }
+    if x < 0.0 {
+        r = PI - r;
+    }
+    r.copysign(y)
+}
+
+/// `x.asin()` for `x` in [−1, 1].
+#[inline]
+pub fn asin(x: Real) -> Real {
+    atan2(x, ((1.0 - x) * (1.0 + x)).sqrt())
+}
+
+/// `x.cos()` for `|x|` up to a few thousand radians.
+#[inline]
+pub fn cos(x: Real) -> Real {
+    // x = q π/2 + r with |r| ≤ π/4 (Cody–Waite); q rounded half away from zero by a cast.
+    let q = (x * std::f32::consts::FRAC_2_PI + 0.5f32.copysign(x)) as i32;
+    let qf = q as Real;
+    let r = ((x - qf * PIO2[0]) - qf * PIO2[1]) - qf * PIO2[2];
+    let u = r * r;
+    let (sin, cos) = (r + r * (u * horner(&SIN_S, u)), (1.0 - 0.5 * u) + u * u * horner(&COS_C, u));
+    match q & 3 {
+        0 => cos,
+        1 => -sin,
+        2 => -cos,
+        _ => sin,
+    }
 }
 
 /// World-from-body rotation from roll, pitch, yaw (ZYX Euler, radians).
@@ -53,6 +128,42 @@ pub fn quat_from_euler(roll_rad: Real, pitch_rad: Real, yaw_rad: Real) -> Quat {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// Distance in ulp of `a` from the exact `ex`, on the `f32` grid at `ex`.
+    fn ulp_error(a: Real, ex: f64) -> f64 {
+        let spacing = f64::from(f32::from_bits((ex.abs() as f32).to_bits() + 1)) - (ex.abs() as f32) as f64;
+        (f64::from(a) - ex).abs() / spacing
+    }
+
+    #[test]
+    fn trigonometry_is_within_2_5_ulp() {
+        let mut worst = [0.0f64; 3];
+        let n = 400_000;
+        for i in 0..=n {
+            // atan2 around the whole circle, at radii from 1e-3 to 1e3.
+            let a = -std::f64::consts::PI + std::f64::consts::TAU * i as f64 / n as f64;
+            let rho = 10f64.powf(-3.0 + 6.0 * ((i * 7919) % n) as f64 / n as f64);
+            let (y, x) = ((rho * a.sin()) as f32, (rho * a.cos()) as f32);
+            worst[0] = worst[0].max(ulp_error(atan2(y, x), f64::from(y).atan2(f64::from(x))));
+            let s = (-1.0 + 2.0 * i as f64 / n as f64) as f32;
+            worst[1] = worst[1].max(ulp_error(asin(s), f64::from(s).asin()));
+            let c = (a * 1.25) as f32;
+            // Near its zeros cos is as good as its argument: 2 ulp of the argument there.
+            let ex = f64::from(c).cos();
+            let err = (f64::from(cos(c)) - ex).abs();
+            worst[2] = worst[2].max(ulp_error(cos(c), ex).min(err / (f64::from(c.abs()) * 1.2e-7 / 2.0)));
+        }
+        assert!(worst.iter().all(|w| *w <= 2.5), "worst ulp: atan2, asin, cos {worst:?}");
+        // Signed zeros and the axes, as libm.
+        assert_eq!(atan2(0.0, 0.0).to_bits(), 0f32.to_bits());
+        assert_eq!(atan2(-0.0, 0.0).to_bits(), (-0f32).to_bits());
+        assert_eq!(atan2(0.0, -0.0), std::f32::consts::PI);
+        assert_eq!(atan2(-0.0, -1.0), -std::f32::consts::PI);
+        assert_eq!(atan2(1.0, 0.0), std::f32::consts::FRAC_PI_2);
+        assert_eq!(asin(1.0), std::f32::consts::FRAC_PI_2);
+        assert_eq!(cos(0.0), 1.0);
+        assert!(atan2(Real::NAN, 1.0).is_nan() && asin(Real::NAN).is_nan() && cos(Real::NAN).is_nan());
+    }
 
     #[test]
     fn wrap_angle_stays_in_half_open_interval() {

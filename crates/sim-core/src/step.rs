@@ -25,7 +25,7 @@ use crate::airflow::{Wake, ground_effect_ratio, inflow_thrust_factor};
 use crate::airframe::{Airframe, ParticleNoise, ROTOR_YAW_SIGN};
 use crate::control::{self, Command, FlightMode, Inputs, Setpoint, WallAvoidController};
 use crate::geometry::{Cone, OrientedBox, Wedge};
-use crate::math::{GRAVITY_M_S2, Quat, Real, Vec3, euler_from_quat, wrap_angle_rad};
+use crate::math::{self, GRAVITY_M_S2, Quat, Real, Vec3, euler_from_quat, wrap_angle_rad};
 use crate::sensors::{
     self, SonarScene, SonarSchedule, crosstalk_eligible, crosstalk_reading, sonar_cones, sonar_reading,
 };
@@ -1008,7 +1008,7 @@ fn inner_loop(
         let rng = if p.noise { Some(&mut c.rng) } else { None };
         c.estimate.ahrs(rpy, c.yaw_bias_rad, rate, p.ahrs_alpha, p.att_sigma, p.rate_sigma, rng);
         let e = &c.estimate;
-        (e.height_m, e.vz_m_s, e.attitude_rad[0].cos() * e.attitude_rad[1].cos())
+        (e.height_m, e.vz_m_s, math::cos(e.attitude_rad[0]) * math::cos(e.attitude_rad[1]))
     };
     let e = &mut c.estimate;
     let mut collective = control::collective_thrust_n(
@@ -1585,7 +1585,7 @@ fn read_imu_and_estimate(world: &World, p: &SenseParams, i: usize, c: &mut Copte
         est.ideal(rpy, c.yaw_bias_rad, rate_b.into());
         est.ideal_height(pos.z, vel.z);
     } else {
-        let cos_tilt = est.attitude_rad[0].cos() * est.attitude_rad[1].cos();
+        let cos_tilt = math::cos(est.attitude_rad[0]) * math::cos(est.attitude_rad[1]);
         let az = (rot * accel).z - GRAVITY_M_S2;
         est.update_height(&spec.estimator, &spec.ir, ir, cos_tilt, az, p.dt_control);
         if noise {
@@ -1594,7 +1594,7 @@ fn read_imu_and_estimate(world: &World, p: &SenseParams, i: usize, c: &mut Copte
     }
     // The thrust gain (ideal estimation adapts too: it is a parameter, not a state).
     let af = &world.airframes[world.copters[i].airframe];
-    let cos_tilt = est.attitude_rad[0].cos() * est.attitude_rad[1].cos();
+    let cos_tilt = math::cos(est.attitude_rad[0]) * math::cos(est.attitude_rad[1]);
     let flying = c.crash.is_none() && c.took_off_tick.is_some() && est.height_m > 0.1 && cos_tilt > 0.8;
     if flying && !twin {
         est.adapt_thrust(&spec.estimator, af.mass_kg, 4.0 * af.hover_thrust_per_rotor_n, accel.z, p.dt_control);
