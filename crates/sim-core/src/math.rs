@@ -44,11 +44,12 @@ pub fn euler_from_quat(q: Quat) -> [Real; 3] {
     [roll, pitch, yaw]
 }
 
-// The trigonometry of every physics step, in arithmetic alone: the same bits on every machine
-// (the system libm's `atan2f`, `asinf` and `cosf` differ between versions and between CPUs,
-// which pick their code at load time), and inlined. Each is within 2.5 ulp of the exact value
-// for finite arguments (`tests::trigonometry_is_within_2_5_ulp`); the polynomials are minimax
-// fits in `f32`.
+// The transcendental functions of every physics step and of the normal noise, in arithmetic
+// alone: the same bits on every machine (the system libm's `atan2f`, `asinf`, `cosf` and `logf`
+// differ between versions and between CPUs, which pick their code at load time), and inlined.
+// Each is within 2.5 ulp of the exact value for finite arguments
+// (`tests::portable_math_is_within_2_5_ulp`); the polynomials are minimax fits in `f32` (`ln`'s
+// is fdlibm's).
 
 /// `atan(t) = t + t u Q(u)`, `u = t²`, for `t` in [0, 1]: Q's coefficients from `u⁰`.
 const ATAN_Q: [Real; 8] = [
@@ -66,6 +67,10 @@ const SIN_S: [Real; 3] = [-0.166_666_55, 0.008_332_16, -0.000_195_152_82];
 const COS_C: [Real; 3] = [0.041_666_646, -0.001_388_731_6, 0.000_024_433_159];
 /// π/2 in three parts, the first two of 12 significant bits (exact times a small integer).
 const PIO2: [Real; 3] = [1.570_312_5, 0.000_483_751_3, 7.549_790_1e-8];
+
+/// `ln(1 + s) − ln(1 − s) = 2s + s R(s²)`: R's coefficients (musl's `logf`, from fdlibm).
+const LN_LG: [Real; 4] =
+    [Real::from_bits(0x3f2a_aaaa), Real::from_bits(0x3ecc_ce13), Real::from_bits(0x3e91_e9ee), Real::from_bits(0x3e78_9e26)];
 
 /// Horner's scheme on coefficients from the constant term up.
 #[inline(always)]
@@ -102,6 +107,27 @@ pub fn asin(x: Real) -> Real {
     atan2(x, ((1.0 - x) * (1.0 + x)).sqrt())
 }
 
+/// `x.ln()` for positive normal `x` (musl's `logf`, from fdlibm; ±∞ and NaN as libm, 0 and
+/// below give NaN).
+#[inline]
+pub fn ln(x: Real) -> Real {
+    // ln 2 in two parts, the first exact times any exponent.
+    const LN2: [Real; 2] = [Real::from_bits(0x3f31_7180), Real::from_bits(0x3717_f7d1)];
+    let bits = x.to_bits();
+    if !(0x0080_0000..0x7f80_0000).contains(&bits) {
+        return if bits == 0x7f80_0000 || x.is_nan() { x } else { Real::NAN };
+    }
+    // x = 2^k m with m in [√½, √2).
+    let ix = bits + (0x3f80_0000 - 0x3f35_04f3);
+    let k = (ix >> 23) as i32 - 0x7f;
+    let f = Real::from_bits((ix & 0x007f_ffff) + 0x3f35_04f3) - 1.0;
+    let s = f / (2.0 + f);
+    let (z, w) = (s * s, s * s * s * s);
+    let r = z * (LN_LG[0] + w * LN_LG[2]) + w * (LN_LG[1] + w * LN_LG[3]);
+    let (hfsq, dk) = (0.5 * f * f, k as Real);
+    s * (hfsq + r) + dk * LN2[1] - hfsq + f + dk * LN2[0]
+}
+
 /// `x.cos()` for `|x|` up to a few thousand radians.
 #[inline]
 pub fn cos(x: Real) -> Real {
@@ -136,7 +162,7 @@ mod tests {
     }
 
     #[test]
-    fn trigonometry_is_within_2_5_ulp() {
+    fn portable_math_is_within_2_5_ulp() {
         let mut worst = [0.0f64; 3];
         let n = 400_000;
         for i in 0..=n {
@@ -154,6 +180,18 @@ mod tests {
             worst[2] = worst[2].max(ulp_error(cos(c), ex).min(err / (f64::from(c.abs()) * 1.2e-7 / 2.0)));
         }
         assert!(worst.iter().all(|w| *w <= 2.5), "worst ulp: atan2, asin, cos {worst:?}");
+        // ln over every binade of the normal floats, and near 1.
+        let mut worst_ln: f64 = 0.0;
+        for i in 0..=n {
+            let x = (2f64.powf(-126.0 + 253.0 * i as f64 / n as f64)) as f32;
+            let near_one = (1.0 + (i as f64 / n as f64 - 0.5) * 1e-3) as f32;
+            for x in [x, near_one] {
+                worst_ln = worst_ln.max(ulp_error(ln(x), f64::from(x).ln()));
+            }
+        }
+        assert!(worst_ln <= 2.5, "worst ulp: ln {worst_ln}");
+        assert_eq!(ln(1.0), 0.0);
+        assert!(ln(0.0).is_nan() && ln(-1.0).is_nan() && ln(Real::INFINITY) == Real::INFINITY);
         // Signed zeros and the axes, as libm.
         assert_eq!(atan2(0.0, 0.0).to_bits(), 0f32.to_bits());
         assert_eq!(atan2(-0.0, 0.0).to_bits(), (-0f32).to_bits());

@@ -33,7 +33,7 @@ impl Rng32 {
     pub fn normal(&mut self) -> Real {
         let u1 = 1.0 - self.uniform(); // (0, 1]
         let u2 = self.uniform();
-        (-2.0 * u1.ln()).sqrt() * (std::f32::consts::TAU * u2).cos()
+        (-2.0 * crate::math::ln(u1)).sqrt() * crate::math::cos(std::f32::consts::TAU * u2)
     }
 
     /// Zero-mean, unit-variance noise from one 32-bit draw: the sum of two 16-bit uniforms
