@@ -456,15 +456,19 @@ fn substep_lane(
         }
         let af = &world.airframes[world.copters[i].airframe];
         let twin = world.copters[i].kind == CopterKind::Real;
-        let (thrust_n, torque_body_n_m) =
-            if c.crash.is_some() { (0.0, Vec3::ZERO) } else { inner_loop(af, inner, twin, c, lane, dt, alpha) };
+        // The body rates, read by the gyros and the closed-form step alike.
+        let rate_body = lane.rot.inverse() * lane.angvel_rad_s;
+        let (thrust_n, torque_body_n_m) = match c.crash {
+            Some(_) => (0.0, Vec3::ZERO),
+            None => inner_loop(af, inner, twin, c, lane, rate_body, dt, alpha),
+        };
         if lane.free {
             let vel_before = lane.vel_m_s;
             if c.grounded && !lifts_off(af, lane, thrust_n) {
                 break 'motion;
             }
             c.grounded = false;
-            integrate_free(af, lane, thrust_n, torque_body_n_m, dt);
+            integrate_free(af, lane, rate_body, thrust_n, torque_body_n_m, dt);
             // Higher than any collider reaches, it cannot touch the floor.
             if lane.pos_m.z > af.reach_bound_m {
                 break 'motion;
@@ -986,6 +990,7 @@ impl InnerParams {
 /// Returns the total thrust along body z, N, and the torque in the body frame, N·m.
 ///
 /// The controllers read the copter's estimates (twins and `ideal` estimation: the truth).
+#[allow(clippy::too_many_arguments)]
 #[inline]
 fn inner_loop(
     af: &Airframe,
@@ -993,11 +998,11 @@ fn inner_loop(
     twin: bool,
     c: &mut CopterState,
     lane: &Lane,
+    rate_body: Vec3,
     dt: Real,
     alpha: Real,
 ) -> (Real, Vec3) {
     let rot = lane.rot;
-    let rate_body = rot.inverse() * lane.angvel_rad_s;
     let rpy = euler_from_quat(rot);
     let rate = [rate_body.x, rate_body.y, rate_body.z];
     let truth = twin || p.ideal;
@@ -1074,15 +1079,16 @@ const GROUND_EFFECT_RADII: Real = 12.0;
 /// One physics step of a free-flying copter in closed form: gravity, thrust, torque, Rapier's
 /// linear and angular damping (`v / (1 + c dt)`) and its explicit, momentum-preserving
 /// gyroscopic term; semi-implicit Euler (velocities first, then pose with the new ones).
+/// `rate_body` is its angular velocity in the body frame.
 #[inline(always)]
-fn integrate_free(af: &Airframe, lane: &mut Lane, thrust_n: Real, torque_body_n_m: Vec3, dt: Real) {
+fn integrate_free(af: &Airframe, lane: &mut Lane, rate_body: Vec3, thrust_n: Real, torque_body_n_m: Vec3, dt: Real) {
     let rot = lane.rot;
     let acc = rot * Vec3::new(0.0, 0.0, thrust_n / af.mass_kg) + lane.downwash_force_n / af.mass_kg
         - Vec3::new(0.0, 0.0, GRAVITY_M_S2);
     let vel = (lane.vel_m_s + acc * dt) * (1.0 / (1.0 + dt * af.spec.linear_damping));
     let inertia = Vec3::from(af.inertia_kg_m2);
     let torque_body_n_m = torque_body_n_m + rot.inverse() * lane.downwash_torque_n_m;
-    let mut w_b = rot.inverse() * lane.angvel_rad_s + torque_body_n_m / inertia * dt;
+    let mut w_b = rate_body + torque_body_n_m / inertia * dt;
     let l = inertia * w_b;
     let l_gyro = l - w_b.cross(l) * dt;
     let n2 = l_gyro.length_squared();
@@ -1985,7 +1991,8 @@ fn fall_wreck(world: &World, state: &mut State, i: usize, dt: Real) {
     let af = &world.airframes[world.copters[i].airframe];
     let scratch = &mut state.scratch;
     let mut lane = scratch.lanes[i];
-    integrate_free(af, &mut lane, 0.0, Vec3::ZERO, dt);
+    let rate_body = lane.rot.inverse() * lane.angvel_rad_s;
+    integrate_free(af, &mut lane, rate_body, 0.0, Vec3::ZERO, dt);
     // Planes `x · n = -h` with inward normal `n`: the walls and the ceiling.
     let arena = &world.arena;
     let (hx, hy, hz) = (arena.size_m[0] / 2.0, arena.size_m[1] / 2.0, arena.height_m);
