@@ -66,7 +66,7 @@ const ATAN_Q: [Real; 8] = [
 const SIN_S: [Real; 3] = [-0.166_666_55, 0.008_332_16, -0.000_195_152_82];
 const COS_C: [Real; 3] = [0.041_666_646, -0.001_388_731_6, 0.000_024_433_159];
 /// π/2 in three parts, the first two of 12 significant bits (exact times a small integer).
-const PIO2: [Real; 3] = [1.570_312_5, 0.000_483_751_3, 7.549_790_1e-8];
+const PIO2: [Real; 3] = [1.570_312_5, 0.000_483_751_3, 7.549_79e-8];
 
 /// `ln(1 + s) − ln(1 − s) = 2s + s R(s²)`: R's coefficients (musl's `logf`, from fdlibm).
 const LN_LG: [Real; 4] =
