@@ -164,7 +164,7 @@ mod tests {
     #[test]
     fn portable_math_is_within_2_5_ulp() {
         let mut worst = [0.0f64; 3];
-        let n = 400_000;
+        let n: u64 = 400_000;
         for i in 0..=n {
             // atan2 around the whole circle, at radii from 1e-3 to 1e3.
             let a = -std::f64::consts::PI + std::f64::consts::TAU * i as f64 / n as f64;
