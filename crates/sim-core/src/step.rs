@@ -579,7 +579,7 @@ fn sort_free_and_watched(world: &World, state: &mut State, parallel: bool, roles
             free = p.x.abs() + r < hx && p.y.abs() + r < hy && p.z + r < arena.height_m;
         }
         if free {
-            free = world.boxes.iter().all(|b| b.distance_to_point(p) > r);
+            free = world.boxes.iter().all(|b| b.is_farther_than(p, r));
         }
         // Clear of the walls and boxes but near other copters: on watch.
         let mut watch = false;

@@ -96,6 +96,14 @@ impl StaticBox {
         let d = local.abs() - self.half_extents_m;
         d.max(Vec3::ZERO).length()
     }
+
+    /// Whether a point lies farther than `r` from the box: `distance_to_point(p) > r`, with a
+    /// test on the box's circumscribed sphere first (a millimetre of margin covers rounding,
+    /// so it decides only where the exact test agrees).
+    #[inline]
+    pub fn is_farther_than(&self, p: Vec3, r: Real) -> bool {
+        (p - self.center_m).length() - self.half_extents_m.length() > r + 1e-3 || self.distance_to_point(p) > r
+    }
 }
 
 /// One copter of the scene, compiled.
@@ -368,4 +376,32 @@ fn copter_parts(af: &Airframe) -> [ColliderBuilder; 5] {
 /// Per airframe, a wreck's shape: the copter's parts as one compound.
 pub(crate) fn wreck_shapes(airframes: &[Airframe]) -> Vec<SharedShape> {
     airframes.iter().map(|af| SharedShape::compound(copter_parts(af).map(|p| (p.position, p.shape)).to_vec())).collect()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_box_is_farther_than_r_exactly_when_its_distance_is() {
+        let mut rng = crate::rng::Rng32::new(5, 0);
+        let b = StaticBox {
+            name: "pillar".into(),
+            center_m: Vec3::new(1.0, -2.0, 0.6),
+            half_extents_m: Vec3::new(0.2, 0.4, 0.6),
+            yaw_rad: 0.7,
+            virtual_only: false,
+        };
+        let (mut decided_by_sphere, mut total) = (0, 0);
+        for _ in 0..20_000 {
+            let mut u = || 2.0 * rng.uniform() - 1.0;
+            let p = b.center_m + Vec3::new(u(), u(), u()) * 3.0;
+            let r = 2.0 * rng.uniform();
+            assert_eq!(b.is_farther_than(p, r), b.distance_to_point(p) > r, "{p} {r}");
+            total += 1;
+            decided_by_sphere += usize::from((p - b.center_m).length() - b.half_extents_m.length() > r + 1e-3);
+        }
+        // The sphere test decides a good share of the cases (it is not vacuous).
+        assert!(decided_by_sphere * 5 > total, "{decided_by_sphere} of {total}");
+    }
 }
