@@ -794,7 +794,7 @@ fn airflow(world: &World, state: &mut State, parallel: bool, roles: Roles<'_>) -
         }
         let real_layer = world.copters[i].kind.is_real_layer();
         let af = &world.airframes[world.copters[i].airframe];
-        lane.ground_m = match spec.ground_effect && may_be_over_a_box(world, lane.pos_m.z, af.reach_bound_m) {
+        lane.ground_m = match spec.ground_effect && may_be_over_a_box(world, lane.pos_m, af.reach_bound_m) {
             true => af.rotor_pos_in_body_m.map(|arm| ground_below(world, lane.pos_m + lane.rot * arm, real_layer)),
             false => [0.0; 4],
         };
@@ -923,13 +923,16 @@ fn feel_wakes(world: &World, state: &mut State, parallel: bool, roles: Roles<'_>
 /// Wake speeds below this are not applied, m/s (their force is under 4 mN per rotor).
 const MIN_WAKE_SPEED_M_S: Real = 0.05;
 
-/// Whether a point within `reach_m` of height `z` may have a box's top under it (see
-/// [`ground_below`]): some box's top above the floor lies up to 1 m below it.
+/// Whether a point within `reach_m` of `p` may have a box's top under it (see
+/// [`ground_below`]): some box's top above the floor lies up to 1 m below it, and within
+/// `reach_m` of its horizontal circumcircle (a millimetre covers rounding).
 #[inline]
-fn may_be_over_a_box(world: &World, z: Real, reach_m: Real) -> bool {
+fn may_be_over_a_box(world: &World, p: Vec3, reach_m: Real) -> bool {
     world.boxes.iter().any(|b| {
-        let top = b.center_m.z + b.half_extents_m.z;
-        top > 0.0 && top <= z + reach_m && z - reach_m - top <= 1.0
+        let (top, h) = (b.center_m.z + b.half_extents_m.z, b.half_extents_m);
+        let near = ((h.x * h.x + h.y * h.y) * (1.0 + 1e-5)).sqrt() + reach_m + 1e-3;
+        let (dx, dy) = (p.x - b.center_m.x, p.y - b.center_m.y);
+        top > 0.0 && top <= p.z + reach_m && p.z - reach_m - top <= 1.0 && dx * dx + dy * dy <= near * near
     })
 }
 
