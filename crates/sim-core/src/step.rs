@@ -243,12 +243,11 @@ fn step_copters(
     }
 
     // The step's motion is the copters' (free copters' Rapier bodies stay where they were).
-    for (i, (lane, c)) in state.scratch.lanes.iter().zip(&mut state.copters).enumerate() {
-        if !roles.owned(i) {
-            continue;
+    for_each_lane(parallel, &mut state.copters, &mut state.scratch.lanes, |i, c, lane| {
+        if roles.owned(i) {
+            c.motion = Motion { pos_m: lane.pos_m, rot: lane.rot, vel_m_s: lane.vel_m_s, angvel_rad_s: lane.angvel_rad_s };
         }
-        c.motion = Motion { pos_m: lane.pos_m, rot: lane.rot, vel_m_s: lane.vel_m_s, angvel_rad_s: lane.angvel_rad_s };
-    }
+    });
     state.tick += 1;
     report.tick = state.tick;
 }
@@ -1475,7 +1474,7 @@ fn sense(world: &World, state: &mut State, inputs: &Inputs, sonar_due: bool, par
     if sonar_due && world.sensors.spec.crosstalk.enabled && world.copters.len() > 1 {
         crosstalk(world, state, &p, parallel);
     }
-    fuse_and_filter(world, state, inputs, &p, roles);
+    fuse_and_filter(world, state, inputs, &p, parallel, roles);
 }
 
 /// What every copter's sensing shares in one control step.
@@ -1709,9 +1708,16 @@ fn crosstalk_growth(h: Real, slack: Real) -> Real {
 
 /// Each copter's readings fused with its virtual ones (`min`), and each fresh fused reading
 /// into the firmware's sonar filter (a wreck's sonars are silent).
-fn fuse_and_filter(world: &World, state: &mut State, inputs: &Inputs, p: &SenseParams, roles: Roles<'_>) {
+fn fuse_and_filter(
+    world: &World,
+    state: &mut State,
+    inputs: &Inputs,
+    p: &SenseParams,
+    parallel: bool,
+    roles: Roles<'_>,
+) {
     let wall_avoid = &world.sensors.spec.wall_avoid;
-    for (i, c) in state.copters.iter_mut().enumerate() {
+    for_each_lane(parallel, &mut state.copters, &mut state.scratch.lanes, |i, c, _| {
         let virt = inputs.commands.get(i).and_then(|c| c.virtual_sonar_m);
         let r = &mut c.sensors;
         r.sonar_fused_m = sensors::fuse_min(r.sonar_m, virt);
@@ -1720,7 +1726,7 @@ fn fuse_and_filter(world: &World, state: &mut State, inputs: &Inputs, p: &SenseP
                 c.wall_avoid.filter(wall_avoid, k, r.sonar_fused_m[k]);
             }
         }
-    }
+    });
 }
 
 /// Which sonars a sonar update at `tick` reads: all four, or the firmware's one in turn.
