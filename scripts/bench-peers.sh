@@ -8,6 +8,10 @@
 #   SIM_SECONDS=30   simulated seconds of every run (Twinswarm from tick 0, both peers)
 #   PEER_MAX_N=1000  pybullet runs only up to this N (it is slow at 10,000); larger N say "skipped"
 #   CRAZYFLOW_MAX_N=1000  the same for Crazyflow (at 10,000 it had not finished after 19 minutes)
+#   ROUNDS=1         runs every N's measurements this many times, round after round; the table
+#                    gives the median drone-s/s and the median of the rounds' ratios (each ratio
+#                    from runs minutes apart at most), with their range: the host's speed moves
+#                    by up to 2× within an hour, Crazyflow's most
 #   STEP_MANY=1      also the 8 worlds of 10 copters: Twinswarm's `step_many` through
 #                    `scripts/bench-python.sh --only vector` (which builds the release binary and
 #                    the wheel into .venv-bench first), beside Crazyflow at N = 10, W = 8; 0 skips it
@@ -48,6 +52,7 @@ sim_s=${SIM_SECONDS:-30}
 peer_max_n=${PEER_MAX_N:-1000}
 crazyflow_max_n=${CRAZYFLOW_MAX_N:-1000}
 step_many=${STEP_MANY:-1}
+rounds=${ROUNDS:-1}
 core=${BENCH_CORE:-0}
 pin=(taskset -c "$core")
 pybullet_peer=../shared/bench/peer_pybullet.py
@@ -98,17 +103,20 @@ run() {
 
 load_before=$(cut -d' ' -f1-3 /proc/loadavg)
 echo "load average before: $load_before" >&2
-for n in "${ns[@]}"; do
-    for scene in dense cruise; do
-        run twinswarm "${pin[@]}" "$out/swarm_rt" --scene "$scene" --n "$n" --threads 1 --sim-seconds "$sim_s"
+for round in $(seq "$rounds"); do
+    [ "$rounds" = 1 ] || echo "round $round of $rounds" >&2
+    for n in "${ns[@]}"; do
+        for scene in dense cruise; do
+            run twinswarm "${pin[@]}" "$out/swarm_rt" --scene "$scene" --n "$n" --threads 1 --sim-seconds "$sim_s"
+        done
+        if [ "$n" -le "$peer_max_n" ]; then
+            run pybullet "${pin[@]}" "$venv/bin/python" "$pybullet_peer" bench --scheme ctrl50_zoh --k 10 --rays 1 \
+                --n "$n" --sim-seconds "$sim_s"
+        fi
+        if [ "$n" -le "$crazyflow_max_n" ]; then
+            run crazyflow "${pin[@]}" "${cf_env[@]}" "$cf_venv/bin/python" "$crazyflow_peer" "$n" 1 "$sim_s" 200
+        fi
     done
-    if [ "$n" -le "$peer_max_n" ]; then
-        run pybullet "${pin[@]}" "$venv/bin/python" "$pybullet_peer" bench --scheme ctrl50_zoh --k 10 --rays 1 \
-            --n "$n" --sim-seconds "$sim_s"
-    fi
-    if [ "$n" -le "$crazyflow_max_n" ]; then
-        run crazyflow "${pin[@]}" "${cf_env[@]}" "$cf_venv/bin/python" "$crazyflow_peer" "$n" 1 "$sim_s" 200
-    fi
 done
 # 8 worlds of 10 copters.
 run crazyflow "${pin[@]}" "${cf_env[@]}" "$cf_venv/bin/python" "$crazyflow_peer" 10 8 "$sim_s" 200
@@ -128,13 +136,14 @@ versions="$("$venv/bin/python" -c "$meta" pybullet), $("$cf_venv/bin/python" -c 
 commit=$(git rev-parse --short HEAD)
 # Uncommitted changes to what builds the simulator (not to scripts or docs) are said.
 git diff --quiet HEAD -- crates benches Cargo.toml Cargo.lock || commit="$commit + uncommitted changes"
-CRAZYFLOW_MAX_N=$crazyflow_max_n python3 - "$out" "$sim_s" "$peer_max_n" "$step_many" "$load_before" "$load_after" "$commit" "$(date -u +%F)" \
+ROUNDS=$rounds CRAZYFLOW_MAX_N=$crazyflow_max_n python3 - "$out" "$sim_s" "$peer_max_n" "$step_many" "$load_before" "$load_after" "$commit" "$(date -u +%F)" \
     "$write_docs" "${ns[*]}" "$versions" <<'PY'
-import json, os, re, sys
+import json, os, re, statistics, sys
 
 out, sim_s, peer_max_n, step_many, load0, load1, commit, date, write_docs, ns, versions = sys.argv[1:]
 peer_max_n, ns = int(peer_max_n), [int(n) for n in ns.split()]
 cf_max_n = int(os.environ["CRAZYFLOW_MAX_N"])
+rounds = int(os.environ["ROUNDS"])
 
 
 def rows(name):
@@ -142,10 +151,30 @@ def rows(name):
     return [json.loads(l) for l in open(path)] if os.path.exists(path) else []
 
 
-ts = {(r["scenario"], r["N"]): r for r in rows("twinswarm")}
-pb = {r["N"]: r for r in rows("pybullet")}
-cf = {(r["n"], r["worlds"]): r for r in rows("crazyflow")}
+def by(rs, key):
+    # Each key's runs in round order.
+    out = {}
+    for r in rs:
+        out.setdefault(key(r), []).append(r)
+    return out
+
+
+ts = by(rows("twinswarm"), lambda r: (r["scenario"], r["N"]))
+pb = by(rows("pybullet"), lambda r: r["N"])
+cf = by(rows("crazyflow"), lambda r: (r["n"], r["worlds"]))
 vec = rows("vector")
+
+
+def med(vs):
+    vs = [v for v in vs if v is not None]
+    return statistics.median(vs) if vs else None
+
+
+def paired(a, b):
+    # The median of the rounds' ratios a/b (the runs of one round are minutes apart at most),
+    # and their range.
+    rs = [x / y for x, y in zip(a, b) if x is not None and y]
+    return (statistics.median(rs), min(rs), max(rs)) if rs else None
 
 
 def num(v):
@@ -157,11 +186,20 @@ def ratio(a, b):
 
 
 def fmt_ratio(r):
-    return "—" if r is None else f"{r:.2f}×"
+    if r is None:
+        return "—"
+    if isinstance(r, tuple):
+        m, lo, hi = r
+        return f"{m:.2f}×" if rounds == 1 else f"{m:.2f}× ({lo:.2f}–{hi:.2f})"
+    return f"{r:.2f}×"
+
+
+def median_of(r):
+    return r[0] if isinstance(r, tuple) else r
 
 
 def verdict(r, ok, what):
-    return f"{what}: {'not measured' if r is None else 'met' if ok(r) else 'MISSED'}"
+    return f"{what}: {'not measured' if r is None else 'met' if ok(median_of(r)) else 'MISSED'}"
 
 
 lines = [
@@ -171,14 +209,17 @@ lines = [
 ]
 for scene, label in (("dense_takeoff", "dense take-off"), ("cruise", "cruise")):
     for n in ns:
-        t, p, c = ts.get((scene, n)), pb.get(n), cf.get((n, 1))
-        t_cpu = n * t["rtf_cpu"] if t and t["rtf_cpu"] is not None else None
-        ts_cell = f"{num(t_cpu)} / {num(n * t['rtf_wallclock'])}" if t_cpu else "failed"
-        p_dss = n * p["rtf_cpu"] if p else None
+        t, p, c = ts.get((scene, n), []), pb.get(n, []), cf.get((n, 1), [])
+        t_cpus = [n * r["rtf_cpu"] if r["rtf_cpu"] is not None else None for r in t]
+        t_cpu = med(t_cpus)
+        ts_cell = f"{num(t_cpu)} / {num(med([n * r['rtf_wallclock'] for r in t]))}" if t_cpu else "failed"
+        p_dsss = [n * r["rtf_cpu"] for r in p]
+        p_dss = med(p_dsss)
         p_cell = num(p_dss) if p else f"skipped (N > PEER_MAX_N = {peer_max_n})" if n > peer_max_n else "failed"
-        c_cell = (f"{num(c['ctrl20hz_drone_s_per_s'])} / {num(c['fused_drone_s_per_s'])}" if c
+        c_ctrl = [r["ctrl20hz_drone_s_per_s"] for r in c]
+        c_cell = (f"{num(med(c_ctrl))} / {num(med([r['fused_drone_s_per_s'] for r in c]))}" if c
                   else f"skipped (N > CRAZYFLOW_MAX_N = {cf_max_n})" if n > cf_max_n else "failed")
-        rp, rc = ratio(t_cpu, p_dss), ratio(t_cpu, c["ctrl20hz_drone_s_per_s"] if c else None)
+        rp, rc = paired(t_cpus, p_dsss), paired(t_cpus, c_ctrl)
         targets = []
         if scene == "dense_takeoff" and n in (100, 1000):
             targets.append(verdict(rp, lambda r: r >= 6, "≥ 6× pybullet"))
@@ -186,10 +227,10 @@ for scene, label in (("dense_takeoff", "dense take-off"), ("cruise", "cruise")):
             targets.append(verdict(rc, lambda r: r > 1.0, "> 1.0× Crazyflow"))
         if scene == "dense_takeoff" and n == 1000:
             targets.append(verdict(rc, lambda r: r >= 0.7, "≥ 0.7× Crazyflow"))
-        crashed = f"{t['crashed']:,}" if t else ""
+        crashed = f"{t[-1]['crashed']:,}" if t else ""
         lines.append(f"| {label} | {n:,} | {ts_cell} | {crashed} | {p_cell} | {c_cell} "
                      f"| {fmt_ratio(rp)} | {fmt_ratio(rc)} | {'; '.join(targets) or '—'} |")
-c = cf.get((10, 8))
+c = (cf.get((10, 8)) or [None])[-1]
 c_cell = f"{num(c['ctrl20hz_drone_s_per_s'])} / {num(c['fused_drone_s_per_s'])}" if c else "failed"
 if vec:
     v = vec[-1]
@@ -201,7 +242,8 @@ else:
     why = "not run, STEP_MANY=0" if step_many != "1" else "failed"
     lines.append(f"| 8 worlds × 10 copters (Twinswarm `step_many` {why}) | 80 | — | | — | {c_cell} | — | — | — |")
 
-stamp = (f"`scripts/bench-peers.sh {' '.join(map(str, ns))}` at {commit}, {date}, {sim_s} simulated seconds per run, "
+rounds_note = "" if rounds == 1 else f"ROUNDS={rounds}: medians, and each ratio the median of the rounds' with their range; "
+stamp = (f"`scripts/bench-peers.sh {' '.join(map(str, ns))}` at {commit}, {date}, {rounds_note}{sim_s} simulated seconds per run, "
          f"every run on one thread pinned to one core; {versions}; load average {load0} before, {load1} after.")
 notes = [
     "Drone-s/s: drone-seconds simulated per second, N × real-time factor. Twinswarm's first figure and "
