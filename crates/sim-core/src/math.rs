@@ -69,8 +69,12 @@ const COS_C: [Real; 3] = [0.041_666_646, -0.001_388_731_6, 0.000_024_433_159];
 const PIO2: [Real; 3] = [1.570_312_5, 0.000_483_751_3, 7.549_79e-8];
 
 /// `ln(1 + s) − ln(1 − s) = 2s + s R(s²)`: R's coefficients (musl's `logf`, from fdlibm).
-const LN_LG: [Real; 4] =
-    [Real::from_bits(0x3f2a_aaaa), Real::from_bits(0x3ecc_ce13), Real::from_bits(0x3e91_e9ee), Real::from_bits(0x3e78_9e26)];
+const LN_LG: [Real; 4] = [
+    Real::from_bits(0x3f2a_aaaa),
+    Real::from_bits(0x3ecc_ce13),
+    Real::from_bits(0x3e91_e9ee),
+    Real::from_bits(0x3e78_9e26),
+];
 
 /// Horner's scheme on coefficients from the constant term up.
 #[inline(always)]
@@ -91,7 +95,13 @@ pub fn atan2(y: Real, x: Real) -> Real {
     }
     let t = num / den;
     let u = t * t;
-    let mut r = t + t * (u * horner(&ATAN_Q, u));
+    // Estrin's scheme: four short chains at once rather than Horner's one of eight steps
+    // (this sits on every substep's chain from attitude to thrust).
+    let c = &ATAN_Q;
+    let (u2, u4) = (u * u, u * u * (u * u));
+    let (p01, p23, p45, p67) = (c[0] + c[1] * u, c[2] + c[3] * u, c[4] + c[5] * u, c[6] + c[7] * u);
+    let q = (p01 + p23 * u2) + (p45 + p67 * u2) * u4;
+    let mut r = t + t * (u * q);
     if steep {
         r = FRAC_PI_2 - r;
     }

@@ -245,7 +245,8 @@ fn step_copters(
     // The step's motion is the copters' (free copters' Rapier bodies stay where they were).
     for_each_lane(parallel, &mut state.copters, &mut state.scratch.lanes, |i, c, lane| {
         if roles.owned(i) {
-            c.motion = Motion { pos_m: lane.pos_m, rot: lane.rot, vel_m_s: lane.vel_m_s, angvel_rad_s: lane.angvel_rad_s };
+            c.motion =
+                Motion { pos_m: lane.pos_m, rot: lane.rot, vel_m_s: lane.vel_m_s, angvel_rad_s: lane.angvel_rad_s };
         }
     });
     state.tick += 1;
