@@ -45,11 +45,11 @@ pub fn euler_from_quat(q: Quat) -> [Real; 3] {
 }
 
 // The transcendental functions of every physics step and of the normal noise, in arithmetic
-// alone: the same bits on every machine (the system libm's `atan2f`, `asinf`, `cosf` and `logf`
-// differ between versions and between CPUs, which pick their code at load time), and inlined.
-// Each is within 2.5 ulp of the exact value for finite arguments
-// (`tests::portable_math_is_within_2_5_ulp`); the polynomials are minimax fits in `f32` (`ln`'s
-// is fdlibm's).
+// alone, inlined: these give the same bits on every machine, where the system libm's `atan2f`,
+// `asinf`, `cosf` and `logf` differ between versions and between CPUs (glibc picks its code at
+// load time). Other libm calls remain elsewhere (ARCHITECTURE.md). Each is within 2.5 ulp of
+// the exact value for finite arguments (`tests::portable_math_is_within_2_5_ulp`); the
+// polynomials are minimax fits in `f32` (`ln`'s is fdlibm's).
 
 /// `atan(t) = t + t u Q(u)`, `u = t²`, for `t` in [0, 1]: Q's coefficients from `u⁰`.
 const ATAN_Q: [Real; 8] = [
