@@ -240,7 +240,7 @@ pub fn real_boxes(world: &World) -> Vec<BoxObstacle> {
 /// Whether a real copter's sonars see box `b`: not `virtual_only`, top at least
 /// [`MIN_BOX_TOP_M`].
 pub fn is_real_box(b: &sim_core::world::StaticBox) -> bool {
-    !b.virtual_only && b.center_m.z + b.half_extents_m.z >= MIN_BOX_TOP_M
+    !b.virtual_only && b.top_m() >= MIN_BOX_TOP_M
 }
 
 /// The MEDUSA filter configuration for copter `id` of `world`: the motion model's drag is the

@@ -924,15 +924,13 @@ fn feel_wakes(world: &World, state: &mut State, parallel: bool, roles: Roles<'_>
 const MIN_WAKE_SPEED_M_S: Real = 0.05;
 
 /// Whether a point within `reach_m` of `p` may have a box's top under it (see
-/// [`ground_below`]): some box's top above the floor lies up to 1 m below it, and within
-/// `reach_m` of its horizontal circumcircle (a millimetre covers rounding).
+/// [`ground_below`]): some box's top above the floor lies up to 1 m below it, its footprint
+/// within `reach_m` horizontally.
 #[inline]
 fn may_be_over_a_box(world: &World, p: Vec3, reach_m: Real) -> bool {
     world.boxes.iter().any(|b| {
-        let (top, h) = (b.center_m.z + b.half_extents_m.z, b.half_extents_m);
-        let near = ((h.x * h.x + h.y * h.y) * (1.0 + 1e-5)).sqrt() + reach_m + 1e-3;
-        let (dx, dy) = (p.x - b.center_m.x, p.y - b.center_m.y);
-        top > 0.0 && top <= p.z + reach_m && p.z - reach_m - top <= 1.0 && dx * dx + dy * dy <= near * near
+        let top = b.top_m();
+        top > 0.0 && top <= p.z + reach_m && p.z - reach_m - top <= 1.0 && b.footprint_may_be_within(p, reach_m)
     })
 }
 
@@ -942,18 +940,17 @@ fn may_be_over_a_box(world: &World, p: Vec3, reach_m: Real) -> bool {
 fn ground_below(world: &World, p: Vec3, real_layer: bool) -> Real {
     let mut ground = 0.0;
     for b in &world.boxes {
-        let top = b.center_m.z + b.half_extents_m.z;
-        if top <= ground || top > p.z || p.z - top > 1.0 || (real_layer && b.virtual_only) {
+        let top = b.top_m();
+        if top <= ground
+            || top > p.z
+            || p.z - top > 1.0
+            || (real_layer && b.virtual_only)
+            || !b.footprint_may_be_within(p, 0.0)
+        {
             continue;
         }
-        // A yaw keeps horizontal lengths: beyond the box's horizontal circumcircle (with a
-        // margin for the rotation's rounding) the point is over no part of it.
-        let (d, h) = (p - b.center_m, b.half_extents_m);
-        if d.x * d.x + d.y * d.y > (h.x * h.x + h.y * h.y) * (1.0 + 1e-5) {
-            continue;
-        }
-        let local = Quat::from_rotation_z(-b.yaw_rad) * d;
-        if local.x.abs() <= h.x && local.y.abs() <= h.y {
+        let local = Quat::from_rotation_z(-b.yaw_rad) * (p - b.center_m);
+        if local.x.abs() <= b.half_extents_m.x && local.y.abs() <= b.half_extents_m.y {
             ground = top;
         }
     }

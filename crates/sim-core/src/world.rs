@@ -97,6 +97,23 @@ impl StaticBox {
         d.max(Vec3::ZERO).length()
     }
 
+    /// Height of its top, m.
+    #[inline]
+    pub fn top_m(&self) -> Real {
+        self.center_m.z + self.half_extents_m.z
+    }
+
+    /// Whether a point may lie within `reach_m` horizontally of the box's footprint: false only
+    /// where its horizontal distance from the centre exceeds the footprint's circumradius plus
+    /// `reach_m` (a yaw keeps horizontal lengths; a margin covers its rounding).
+    #[inline]
+    pub fn footprint_may_be_within(&self, p: Vec3, reach_m: Real) -> bool {
+        let h = self.half_extents_m;
+        let near = (h.x * h.x + h.y * h.y).sqrt() * (1.0 + 1e-5) + reach_m + 1e-3;
+        let (dx, dy) = (p.x - self.center_m.x, p.y - self.center_m.y);
+        dx * dx + dy * dy <= near * near
+    }
+
     /// Whether a point lies farther than `r` from the box: `distance_to_point(p) > r`, with a
     /// test on the box's circumscribed sphere first (a millimetre of margin covers rounding,
     /// so it decides only where the exact test agrees).
@@ -403,5 +420,33 @@ mod tests {
         }
         // The sphere test decides a good share of the cases (it is not vacuous).
         assert!(decided_by_sphere * 5 > total, "{decided_by_sphere} of {total}");
+    }
+
+    #[test]
+    fn a_point_over_a_footprint_or_near_it_passes_the_footprint_pretest() {
+        let mut rng = crate::rng::Rng32::new(6, 0);
+        let b = StaticBox {
+            name: "table".into(),
+            center_m: Vec3::new(-3.0, 1.0, 0.3),
+            half_extents_m: Vec3::new(1.2, 0.5, 0.3),
+            yaw_rad: -0.4,
+            virtual_only: false,
+        };
+        let (mut rejected, mut total) = (0, 0);
+        for _ in 0..20_000 {
+            let mut u = || 2.0 * rng.uniform() - 1.0;
+            let p = b.center_m + Vec3::new(u() * 4.0, u() * 4.0, u());
+            let reach = 0.5 * rng.uniform();
+            // Exactly: the footprint grown by `reach` (its distance in the box's own frame).
+            let local = Quat::from_rotation_z(-b.yaw_rad) * (p - b.center_m);
+            let out = Vec3::new(local.x.abs() - b.half_extents_m.x, local.y.abs() - b.half_extents_m.y, 0.0);
+            let within = out.max(Vec3::ZERO).length() <= reach;
+            let pass = b.footprint_may_be_within(p, reach);
+            assert!(pass || !within, "{p} {reach}");
+            total += 1;
+            rejected += usize::from(!pass);
+        }
+        // Most points far from it are turned away (it is not vacuous).
+        assert!(rejected * 4 > total, "{rejected} of {total}");
     }
 }
