@@ -30,6 +30,7 @@ pub mod control;
 pub mod estimate;
 pub mod finite;
 pub mod geometry;
+mod lanes;
 pub mod math;
 pub mod mixed;
 pub mod rng;

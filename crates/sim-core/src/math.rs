@@ -52,7 +52,7 @@ pub fn euler_from_quat(q: Quat) -> [Real; 3] {
 // polynomials are minimax fits in `f32` (`ln`'s is fdlibm's).
 
 /// `atan(t) = t + t u Q(u)`, `u = t²`, for `t` in [0, 1]: Q's coefficients from `u⁰`.
-const ATAN_Q: [Real; 8] = [
+pub(crate) const ATAN_Q: [Real; 8] = [
     -0.333_331_53,
     0.199_937_73,
     -0.142_110_56,

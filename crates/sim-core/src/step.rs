@@ -25,6 +25,7 @@ use crate::airflow::{Wake, ground_effect_ratio, inflow_thrust_factor};
 use crate::airframe::{Airframe, ParticleNoise, ROTOR_YAW_SIGN};
 use crate::control::{self, Command, FlightMode, Inputs, Setpoint, WallAvoidController};
 use crate::geometry::{Cone, OrientedBox, Wedge};
+use crate::lanes::{self, F4, LANES, Q4, V4};
 use crate::math::{self, GRAVITY_M_S2, Quat, Real, Vec3, euler_from_quat, wrap_angle_rad};
 use crate::sensors::{
     self, SonarScene, SonarSchedule, crosstalk_eligible, crosstalk_reading, sonar_cones, sonar_reading,
@@ -152,18 +153,26 @@ fn for_each_lane<F>(parallel: bool, copters: &mut [CopterState], lanes: &mut [La
 where
     F: Fn(usize, &mut CopterState, &mut Lane) + Sync + Send,
 {
+    for_each_chunk(parallel, copters, lanes, |first, cs, ls| {
+        for (j, (c, l)) in cs.iter_mut().zip(ls.iter_mut()).enumerate() {
+            f(first + j, c, l);
+        }
+    });
+}
+
+/// Runs `f` on chunks of copters with their lanes (and the first one's id), in parallel or
+/// all in one. `f` must only touch the copters and lanes it is given.
+fn for_each_chunk<F>(parallel: bool, copters: &mut [CopterState], lanes: &mut [Lane], f: F)
+where
+    F: Fn(usize, &mut [CopterState], &mut [Lane]) + Sync + Send,
+{
     if parallel && copters.len() > 64 {
         use rayon::prelude::*;
         let chunk = lane_chunk(copters.len());
-        copters.par_chunks_mut(chunk).zip(lanes.par_chunks_mut(chunk)).enumerate().for_each(|(k, (cs, ls))| {
-            for (j, (c, l)) in cs.iter_mut().zip(ls.iter_mut()).enumerate() {
-                f(k * chunk + j, c, l);
-            }
-        });
+        let chunks = copters.par_chunks_mut(chunk).zip(lanes.par_chunks_mut(chunk));
+        chunks.enumerate().for_each(|(k, (cs, ls))| f(k * chunk, cs, ls));
     } else {
-        for (i, (c, l)) in copters.iter_mut().zip(lanes.iter_mut()).enumerate() {
-            f(i, c, l);
-        }
+        f(0, copters, lanes);
     }
 }
 
@@ -304,7 +313,7 @@ fn physics_substep(
     let parallel_rapier = parallel && !scratch.in_rapier.is_empty();
     let pass = SubstepPass { world, inner, alphas: &scratch.motor_alpha, cos_tilt: &scratch.crash_cos_tilt, roles, dt };
     let first = pass.closure(s, parallel_rapier.then_some(true));
-    for_each_lane(parallel, &mut state.copters, &mut scratch.lanes, first);
+    for_each_chunk(parallel, &mut state.copters, &mut scratch.lanes, first);
     for k in 0..state.scratch.falling.len() {
         let i = state.scratch.falling[k] as usize;
         fall_wreck(world, state, i, dt);
@@ -326,7 +335,7 @@ fn physics_substep(
             SubstepPass { world, inner, alphas: &scratch.motor_alpha, cos_tilt: &scratch.crash_cos_tilt, roles, dt };
         let free_lanes = pass.closure(s, Some(false));
         let (physics, copters, lanes) = (&mut state.physics, &mut state.copters, &mut scratch.lanes);
-        rayon::join(|| rapier(physics), || for_each_lane(true, copters, lanes, free_lanes));
+        rayon::join(|| rapier(physics), || for_each_chunk(true, copters, lanes, free_lanes));
     } else {
         rapier(&mut state.physics);
     }
@@ -407,30 +416,200 @@ impl<'a> SubstepPass<'a> {
     /// first after which something may happen to it ([`may_act`]: a crash, a take-off,
     /// leaving its reservation), and the later substeps take it on from there
     /// (`Lane::batched`). The same arithmetic, in another order: the same bits.
+    ///
+    /// Those that run ahead and have left the floor go four at a time ([`run_ahead_batch`]):
+    /// the closed-form parts of their substeps on [`lanes`], the same bits.
     fn closure(
         self,
         s: u32,
         in_rapier: Option<bool>,
-    ) -> impl Fn(usize, &mut CopterState, &mut Lane) + Sync + Send + 'a {
-        let Self { world, inner, alphas, cos_tilt, roles, dt } = self;
-        move |i, c, lane| {
-            if s < lane.batched || in_rapier.is_some_and(|r| r == lane.free) {
-                return;
-            }
-            let alpha = alphas[world.copters[i].airframe];
-            let ahead = s == 0 && lane.free && !lane.watch && c.crash.is_none() && roles.owned(i);
-            if !ahead {
-                substep_lane(world, &inner, alpha, roles, i, c, lane, dt);
-                return;
-            }
-            while lane.batched < world.params.substeps {
-                substep_lane(world, &inner, alpha, roles, i, c, lane, dt);
-                lane.batched += 1;
-                if may_act(world, cos_tilt, lane) {
-                    break;
+    ) -> impl Fn(usize, &mut [CopterState], &mut [Lane]) + Sync + Send + 'a {
+        move |first, cs, ls| {
+            let (mut batch, mut filled) = ([0; LANES], 0);
+            for j in 0..cs.len() {
+                let (i, c, lane) = (first + j, &mut cs[j], &mut ls[j]);
+                if s < lane.batched || in_rapier.is_some_and(|r| r == lane.free) {
+                    continue;
+                }
+                let ahead = s == 0 && lane.free && !lane.watch && c.crash.is_none() && self.roles.owned(i);
+                if !ahead {
+                    substep_lane(self.world, &self.inner, self.alpha(i), self.roles, i, c, lane, self.dt);
+                    continue;
+                }
+                // A batch is of one airframe, in the air.
+                let airframe = if filled == 0 { lane.airframe } else { ls[batch[0]].airframe };
+                if cs[j].grounded || ls[j].airframe != airframe {
+                    self.run_ahead(i, &mut cs[j], &mut ls[j]);
+                    continue;
+                }
+                batch[filled] = j;
+                filled += 1;
+                if filled == LANES {
+                    let (Ok(bc), Ok(bl)) = (cs.get_disjoint_mut(batch), ls.get_disjoint_mut(batch)) else {
+                        unreachable!("a batch holds distinct copters")
+                    };
+                    run_ahead_batch(&self, batch.map(|j| first + j), bc, bl);
+                    filled = 0;
                 }
             }
+            for &j in &batch[..filled] {
+                self.run_ahead(first + j, &mut cs[j], &mut ls[j]);
+            }
         }
+    }
+
+    fn alpha(&self, i: usize) -> Real {
+        self.alphas[self.world.copters[i].airframe]
+    }
+
+    /// A free copter off watch runs its substeps one after the other, up to the first after
+    /// which something may happen to it.
+    fn run_ahead(&self, i: usize, c: &mut CopterState, lane: &mut Lane) {
+        while lane.batched < self.world.params.substeps {
+            substep_lane(self.world, &self.inner, self.alpha(i), self.roles, i, c, lane, self.dt);
+            lane.batched += 1;
+            if may_act(self.world, self.cos_tilt, lane) {
+                break;
+            }
+        }
+    }
+}
+
+/// Four free copters off watch and off the floor, of one airframe, run ahead side by side:
+/// each substep's inner loops one by one, then the body rates, Euler angles and closed-form
+/// flight on four lanes, until one of them may act ([`may_act`]) or may touch the floor (it
+/// then meets it as [`substep_lane`] does), or all have run the step's substeps. The copters
+/// stopped early go on in the lockstep substeps: the same arithmetic, the same bits.
+fn run_ahead_batch(pass: &SubstepPass<'_>, ids: [usize; LANES], cs: [&mut CopterState; LANES], ls: [&mut Lane; LANES]) {
+    let (world, dt) = (pass.world, pass.dt);
+    let af = &world.airframes[ls[0].airframe as usize];
+    let twin = ids.map(|i| world.copters[i].kind == CopterKind::Real);
+    let alpha = pass.alpha(ids[0]);
+    let mut f = FreeLanes::gather(&ls);
+    let mut n = 0;
+    let mut ls = ls;
+    let floor_near = loop {
+        let rate_body = f.rot.inverse().rotate(f.angvel);
+        let [roll, pitch, yaw] = lanes::euler_from_quat(f.rot).map(F4::to_array);
+        let (rots, rates) = (f.rot.lanes(), rate_body.lanes());
+        let (z, vz) = (f.pos.z.to_array(), f.vel.z.to_array());
+        let mut thrust = [0.0; LANES];
+        let mut torque = [Vec3::ZERO; LANES];
+        for l in 0..LANES {
+            let input = InnerInput {
+                rot: rots[l],
+                rpy: [roll[l], pitch[l], yaw[l]],
+                rate_body: rates[l],
+                z_m: z[l],
+                vz_m_s: vz[l],
+                ground_m: ls[l].ground_m,
+            };
+            (thrust[l], torque[l]) = inner_loop(af, &pass.inner, twin[l], cs[l], &input, dt, alpha);
+        }
+        let vel_before = f.vel;
+        f.integrate(af, rate_body, F4::from_array(thrust), V4::gather(torque), dt);
+        n += 1;
+        // Higher than any collider reaches, it cannot touch the floor.
+        let floor_near = f.pos.z.gt(F4::splat(af.reach_bound_m)).not();
+        if floor_near.any() {
+            break Some((floor_near, vel_before));
+        }
+        if n == world.params.substeps || f.may_act(af, pass.cos_tilt, &ls) {
+            break None;
+        }
+    };
+    f.scatter(&mut ls, n);
+    if let Some((near, vel_before)) = floor_near {
+        for l in (0..LANES).filter(|&l| near.get(l)) {
+            let (c, lane) = (&mut *cs[l], &mut *ls[l]);
+            let below = lowest_point_below_centre(af, lane.rot);
+            if lane.pos_m.z - below < 0.0 {
+                touch_floor(af, c, lane, vel_before.lane(l), below);
+            }
+            lane.vel_before_m_s = lane.vel_m_s;
+        }
+    }
+}
+
+/// The motion of a batch of free copters, one per lane.
+struct FreeLanes {
+    pos: V4,
+    rot: Q4,
+    vel: V4,
+    angvel: V4,
+    downwash_force: V4,
+    downwash_torque: V4,
+}
+
+impl FreeLanes {
+    fn gather(ls: &[&mut Lane; LANES]) -> Self {
+        Self {
+            pos: V4::gather(std::array::from_fn(|l| ls[l].pos_m)),
+            rot: Q4::gather(std::array::from_fn(|l| ls[l].rot)),
+            vel: V4::gather(std::array::from_fn(|l| ls[l].vel_m_s)),
+            angvel: V4::gather(std::array::from_fn(|l| ls[l].angvel_rad_s)),
+            downwash_force: V4::gather(std::array::from_fn(|l| ls[l].downwash_force_n)),
+            downwash_torque: V4::gather(std::array::from_fn(|l| ls[l].downwash_torque_n_m)),
+        }
+    }
+
+    /// Back into the lanes, after `n` substeps run ahead.
+    fn scatter(&self, ls: &mut [&mut Lane; LANES], n: u32) {
+        let (pos, rot, vel, angvel) = (self.pos.lanes(), self.rot.lanes(), self.vel.lanes(), self.angvel.lanes());
+        for (l, lane) in ls.iter_mut().enumerate() {
+            lane.pos_m = pos[l];
+            lane.rot = rot[l];
+            lane.vel_m_s = vel[l];
+            lane.angvel_rad_s = angvel[l];
+            lane.vel_before_m_s = lane.vel_m_s;
+            lane.batched = n;
+        }
+    }
+
+    /// [`integrate_free`] on every lane.
+    #[inline(always)]
+    fn integrate(&mut self, af: &Airframe, rate_body: V4, thrust_n: F4, torque_body_n_m: V4, dt: Real) {
+        let rot = self.rot;
+        let zero = F4::splat(0.0);
+        let acc = rot.rotate(V4::new(zero, zero, thrust_n / af.mass_kg)) + self.downwash_force.div_by(af.mass_kg)
+            - V4::splat(Vec3::new(0.0, 0.0, GRAVITY_M_S2));
+        let vel = (self.vel + acc.scale_by(dt)).scale_by(1.0 / (1.0 + dt * af.spec.linear_damping));
+        let inertia = Vec3::from(af.inertia_kg_m2);
+        let torque_body_n_m = torque_body_n_m + rot.inverse().rotate(self.downwash_torque);
+        let w_b = rate_body + torque_body_n_m.div_each(inertia).scale_by(dt);
+        let l = w_b.mul_each(inertia);
+        let l_gyro = l - w_b.cross(l).scale_by(dt);
+        let n2 = l_gyro.dot(l_gyro);
+        let conserved = l_gyro.scale((l.dot(l) / n2).sqrt()).div_each(inertia);
+        let spins = n2.gt(zero);
+        let w_b = V4::new(
+            F4::select(spins, conserved.x, w_b.x),
+            F4::select(spins, conserved.y, w_b.y),
+            F4::select(spins, conserved.z, w_b.z),
+        );
+        let w = rot.rotate(w_b.scale_by(1.0 / (1.0 + dt * af.spec.angular_damping)));
+        self.vel = vel;
+        self.angvel = w;
+        self.pos = self.pos + vel.scale_by(dt);
+        let half_w = w.scale_by(0.5 * dt);
+        self.rot = rot.add_normalize(Q4::pure_mul(half_w, rot));
+    }
+
+    /// Whether [`may_act`] holds for any lane.
+    #[inline(always)]
+    fn may_act(&self, af: &Airframe, crash_cos_tilt: &[Real], ls: &[&mut Lane; LANES]) -> bool {
+        let zero = F4::splat(0.0);
+        let up = self.rot.rotate(V4::new(zero, zero, F4::splat(1.0))).z.clamp(-1.0, 1.0);
+        let offset = self.pos - V4::gather(std::array::from_fn(|l| ls[l].anchor_m));
+        let (up, moved) = (up.to_array(), offset.dot(offset).sqrt().to_array());
+        let (z, takeoff_m) = (self.pos.z.to_array(), af.rest_height_m + TAKEOFF_MARGIN_M);
+        (0..LANES).any(|l| {
+            let lane = &ls[l];
+            lane.flying
+                && (up[l] < crash_cos_tilt[lane.airframe as usize]
+                    || (lane.free && (lane.floor_impact_m_s > 0.0 || moved[l] > lane.reach_m))
+                    || (lane.awaiting_takeoff && z[l] > takeoff_m))
+        })
     }
 }
 
@@ -460,7 +639,7 @@ fn substep_lane(
         let rate_body = lane.rot.inverse() * lane.angvel_rad_s;
         let (thrust_n, torque_body_n_m) = match c.crash {
             Some(_) => (0.0, Vec3::ZERO),
-            None => inner_loop(af, inner, twin, c, lane, rate_body, dt, alpha),
+            None => inner_loop(af, inner, twin, c, &InnerInput::of(lane, rate_body), dt, alpha),
         };
         if lane.free {
             let vel_before = lane.vel_m_s;
@@ -990,25 +1169,22 @@ impl InnerParams {
 /// Returns the total thrust along body z, N, and the torque in the body frame, N·m.
 ///
 /// The controllers read the copter's estimates (twins and `ideal` estimation: the truth).
-#[allow(clippy::too_many_arguments)]
 #[inline]
 fn inner_loop(
     af: &Airframe,
     p: &InnerParams,
     twin: bool,
     c: &mut CopterState,
-    lane: &Lane,
-    rate_body: Vec3,
+    m: &InnerInput,
     dt: Real,
     alpha: Real,
 ) -> (Real, Vec3) {
-    let rot = lane.rot;
-    let rpy = euler_from_quat(rot);
+    let InnerInput { rot, rpy, rate_body, z_m, vz_m_s, ground_m } = *m;
     let rate = [rate_body.x, rate_body.y, rate_body.z];
     let truth = twin || p.ideal;
     let (z, vz, cos_tilt) = if truth {
         c.estimate.ideal(rpy, c.yaw_bias_rad, rate);
-        (lane.pos_m.z, lane.vel_m_s.z, (rot * Vec3::Z).z)
+        (z_m, vz_m_s, (rot * Vec3::Z).z)
     } else {
         let rng = if p.noise { Some(&mut c.rng) } else { None };
         c.estimate.ahrs(rpy, c.yaw_bias_rad, rate, p.ahrs_alpha, p.att_sigma, p.rate_sigma, rng);
@@ -1043,10 +1219,10 @@ fn inner_loop(
     let mut ground = [1.0; 4];
     let radius = 0.5 * af.spec.rotor_diameter_m;
     // No rotor lies lower than the reach bound below the centre (a millimetre covers rounding).
-    let lowest = lane.pos_m.z - af.reach_bound_m - lane.ground_m.iter().copied().fold(0.0, Real::max);
+    let lowest = z_m - af.reach_bound_m - ground_m.iter().copied().fold(0.0, Real::max);
     if p.ground_effect && lowest < GROUND_EFFECT_RADII * radius + 1e-3 {
-        for ((g, arm), below) in ground.iter_mut().zip(&af.rotor_pos_in_body_m).zip(lane.ground_m) {
-            let height = lane.pos_m.z + (rot * *arm).z - below;
+        for ((g, arm), below) in ground.iter_mut().zip(&af.rotor_pos_in_body_m).zip(ground_m) {
+            let height = z_m + (rot * *arm).z - below;
             // Less what it is at the cut-off, so that a rotor crossing it sees no step.
             if height < GROUND_EFFECT_RADII * radius {
                 let at_cut_off = ground_effect_ratio(radius, GROUND_EFFECT_RADII * radius, p.ground_effect_min_radii);
@@ -1071,6 +1247,29 @@ fn inner_loop(
         c.battery.draw(spec, power, dt);
     }
     (thrust, torque_body)
+}
+
+/// What the inner loop reads of a copter's motion at the start of a substep.
+#[derive(Clone, Copy)]
+struct InnerInput {
+    rot: Quat,
+    /// Its Euler angles ([`euler_from_quat`]).
+    rpy: [Real; 3],
+    /// Its angular velocity in the body frame, rad/s.
+    rate_body: Vec3,
+    /// Height of the centre of mass and its vertical speed, m and m/s.
+    z_m: Real,
+    vz_m_s: Real,
+    /// `Lane::ground_m`.
+    ground_m: [Real; 4],
+}
+
+impl InnerInput {
+    #[inline(always)]
+    fn of(lane: &Lane, rate_body: Vec3) -> Self {
+        let (rot, z_m, vz_m_s, ground_m) = (lane.rot, lane.pos_m.z, lane.vel_m_s.z, lane.ground_m);
+        Self { rot, rpy: euler_from_quat(rot), rate_body, z_m, vz_m_s, ground_m }
+    }
 }
 
 /// Ground effect is computed only below this many rotor radii (above, it is under 0.2 %).
