@@ -17,11 +17,11 @@ pub(crate) const LANES: usize = 4;
 /// One number per lane: a `wide::f32x4` (an SSE2 register on x86-64). Every operation is the
 /// scalar one on each lane.
 #[derive(Clone, Copy, Debug, Default, PartialEq)]
-pub(crate) struct F4(wide::f32x4);
+pub(crate) struct F4(pub(crate) wide::f32x4);
 
 /// One flag per lane, as all-ones or all-zeros lanes.
 #[derive(Clone, Copy, Debug)]
-pub(crate) struct M4(wide::f32x4);
+pub(crate) struct M4(pub(crate) wide::f32x4);
 
 impl F4 {
     #[inline(always)]
@@ -101,6 +101,11 @@ impl M4 {
     #[inline(always)]
     pub(crate) fn any(self) -> bool {
         self.0.any()
+    }
+
+    #[inline(always)]
+    pub(crate) fn all(self) -> bool {
+        self.0.all()
     }
 
     #[inline(always)]
@@ -215,6 +220,12 @@ impl V4 {
     #[inline(always)]
     pub(crate) fn div_each(self, o: Vec3) -> Self {
         Self::new(self.x / o.x, self.y / o.y, self.z / o.z)
+    }
+
+    /// Each lane's vector over its own number.
+    #[inline(always)]
+    pub(crate) fn div_lanes(self, s: F4) -> Self {
+        Self::new(self.x / s, self.y / s, self.z / s)
     }
 
     #[inline(always)]
@@ -360,6 +371,33 @@ pub(crate) fn euler_from_quat(q: Q4) -> [F4; 3] {
     [roll, pitch, yaw]
 }
 
+/// [`math::wrap_angle_rad`] per lane: a lane outside (−π, π] takes the scalar path.
+#[inline(always)]
+pub(crate) fn wrap_angle_rad(a: F4) -> F4 {
+    use std::f32::consts::PI;
+    let inside = M4(a.gt(F4::splat(-PI)).0 & !a.gt(F4::splat(PI)).0 & !a.0.is_nan());
+    if inside.all() {
+        return a;
+    }
+    F4::from_array(a.to_array().map(math::wrap_angle_rad))
+}
+
+/// [`math::cos`] per lane, for `|x|` below π/4 (the quadrant `q = 0`); a lane beyond takes
+/// the scalar path.
+#[inline(always)]
+pub(crate) fn cos(x: F4) -> F4 {
+    // `q = (x 2/π + ½ sign x) as i32` is 0 exactly when that sum lies in (−1, 1).
+    let t = x * std::f32::consts::FRAC_2_PI + F4::splat(0.5).copysign(x);
+    if !M4(t.abs().lt(F4::splat(1.0)).0).all() {
+        return F4::from_array(x.to_array().map(math::cos));
+    }
+    let qf = 0.0;
+    let r = ((x - qf * math::PIO2[0]) - qf * math::PIO2[1]) - qf * math::PIO2[2];
+    let u = r * r;
+    let c = &math::COS_C;
+    (1.0 - 0.5 * u) + u * u * ((c[2] * u + c[1]) * u + c[0])
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -446,5 +484,24 @@ mod tests {
         let h = std::f32::consts::FRAC_1_SQRT_2;
         check([Quat::IDENTITY, Quat::from_xyzw(1.0, 0.0, 0.0, 0.0), Quat::from_xyzw(0.0, h, 0.0, h), q()]);
         check([Quat::from_xyzw(0.0, 0.0, 1.0, 0.0), Quat::from_xyzw(0.0, -h, 0.0, h), q(), Quat::IDENTITY]);
+    }
+
+    #[test]
+    fn cosine_and_wrapping_match_the_scalar_ones_bit_for_bit() {
+        let mut r = numbers(13);
+        let mut checked_fast = 0;
+        for _ in 0..50_000 {
+            let x: [Real; LANES] = std::array::from_fn(|_| r() * 1.5);
+            let (c, w) = (cos(F4::from_array(x)).to_array(), wrap_angle_rad(F4::from_array(x)).to_array());
+            for l in 0..LANES {
+                assert!(same(c[l], math::cos(x[l])) && same(w[l], math::wrap_angle_rad(x[l])), "{}", x[l]);
+            }
+            checked_fast += usize::from(x.iter().all(|x| x.abs() < 0.7));
+        }
+        assert!(checked_fast > 1000, "{checked_fast}");
+        let edges = [0.0, -0.0, std::f32::consts::PI, -std::f32::consts::PI];
+        assert!(same(cos(F4::from_array(edges)).get(1), math::cos(-0.0)));
+        let wrapped = wrap_angle_rad(F4::from_array(edges)).to_array();
+        assert!((0..LANES).all(|l| same(wrapped[l], math::wrap_angle_rad(edges[l]))));
     }
 }

@@ -63,10 +63,10 @@ pub(crate) const ATAN_Q: [Real; 8] = [
     0.002_920_704,
 ];
 /// `sin r = r + r u S(u)` and `cos r = 1 − u / 2 + u² C(u)`, `u = r²`, for `|r| ≤ π/4`.
-const SIN_S: [Real; 3] = [-0.166_666_55, 0.008_332_16, -0.000_195_152_82];
-const COS_C: [Real; 3] = [0.041_666_646, -0.001_388_731_6, 0.000_024_433_159];
+pub(crate) const SIN_S: [Real; 3] = [-0.166_666_55, 0.008_332_16, -0.000_195_152_82];
+pub(crate) const COS_C: [Real; 3] = [0.041_666_646, -0.001_388_731_6, 0.000_024_433_159];
 /// π/2 in three parts, the first two of 12 significant bits (exact times a small integer).
-const PIO2: [Real; 3] = [1.570_312_5, 0.000_483_751_3, 7.549_79e-8];
+pub(crate) const PIO2: [Real; 3] = [1.570_312_5, 0.000_483_751_3, 7.549_79e-8];
 
 /// `ln(1 + s) − ln(1 − s) = 2s + s R(s²)`: R's coefficients (musl's `logf`, from fdlibm).
 const LN_LG: [Real; 4] = [
@@ -78,7 +78,7 @@ const LN_LG: [Real; 4] = [
 
 /// Horner's scheme on coefficients from the constant term up.
 #[inline(always)]
-fn horner<const N: usize>(c: &[Real; N], u: Real) -> Real {
+pub(crate) fn horner<const N: usize>(c: &[Real; N], u: Real) -> Real {
     c.iter().rev().fold(0.0, |acc, &k| acc * u + k)
 }
 

@@ -25,7 +25,7 @@ use crate::airflow::{Wake, ground_effect_ratio, inflow_thrust_factor};
 use crate::airframe::{Airframe, ParticleNoise, ROTOR_YAW_SIGN};
 use crate::control::{self, Command, FlightMode, Inputs, Setpoint, WallAvoidController};
 use crate::geometry::{Cone, OrientedBox, Wedge};
-use crate::lanes::{self, F4, LANES, Q4, V4};
+use crate::lanes::LANES;
 use crate::math::{self, GRAVITY_M_S2, Quat, Real, Vec3, euler_from_quat, wrap_angle_rad};
 use crate::sensors::{
     self, SonarScene, SonarSchedule, crosstalk_eligible, crosstalk_reading, sonar_cones, sonar_reading,
@@ -33,9 +33,12 @@ use crate::sensors::{
 use crate::shard::{Role, ShardView};
 use crate::state::{CopterState, CrashCause, Lane, Motion, Pinger, State};
 use crate::world::{ColliderTag, CopterKind, World};
+use batch::run_ahead_batch;
 use rapier3d::prelude::{
     InteractionGroups, PhysicsWorld, RigidBody, RigidBodyActivation, RigidBodyBuilder, RigidBodyHandle, RigidBodyType,
 };
+
+mod batch;
 
 /// Something that happened during a step.
 #[derive(Clone, Debug, PartialEq, Serialize)]
@@ -472,144 +475,6 @@ impl<'a> SubstepPass<'a> {
                 break;
             }
         }
-    }
-}
-
-/// Four free copters off watch and off the floor, of one airframe, run ahead side by side:
-/// each substep's inner loops one by one, then the body rates, Euler angles and closed-form
-/// flight on four lanes, until one of them may act ([`may_act`]) or may touch the floor (it
-/// then meets it as [`substep_lane`] does), or all have run the step's substeps. The copters
-/// stopped early go on in the lockstep substeps: the same arithmetic, the same bits.
-fn run_ahead_batch(pass: &SubstepPass<'_>, ids: [usize; LANES], cs: [&mut CopterState; LANES], ls: [&mut Lane; LANES]) {
-    let (world, dt) = (pass.world, pass.dt);
-    let af = &world.airframes[ls[0].airframe as usize];
-    let twin = ids.map(|i| world.copters[i].kind == CopterKind::Real);
-    let alpha = pass.alpha(ids[0]);
-    let mut f = FreeLanes::gather(&ls);
-    let mut n = 0;
-    let mut ls = ls;
-    let floor_near = loop {
-        let rate_body = f.rot.inverse().rotate(f.angvel);
-        let [roll, pitch, yaw] = lanes::euler_from_quat(f.rot).map(F4::to_array);
-        let (rots, rates) = (f.rot.lanes(), rate_body.lanes());
-        let (z, vz) = (f.pos.z.to_array(), f.vel.z.to_array());
-        let mut thrust = [0.0; LANES];
-        let mut torque = [Vec3::ZERO; LANES];
-        for l in 0..LANES {
-            let input = InnerInput {
-                rot: rots[l],
-                rpy: [roll[l], pitch[l], yaw[l]],
-                rate_body: rates[l],
-                z_m: z[l],
-                vz_m_s: vz[l],
-                ground_m: ls[l].ground_m,
-            };
-            (thrust[l], torque[l]) = inner_loop(af, &pass.inner, twin[l], cs[l], &input, dt, alpha);
-        }
-        let vel_before = f.vel;
-        f.integrate(af, rate_body, F4::from_array(thrust), V4::gather(torque), dt);
-        n += 1;
-        // Higher than any collider reaches, it cannot touch the floor.
-        let floor_near = f.pos.z.gt(F4::splat(af.reach_bound_m)).not();
-        if floor_near.any() {
-            break Some((floor_near, vel_before));
-        }
-        if n == world.params.substeps || f.may_act(af, pass.cos_tilt, &ls) {
-            break None;
-        }
-    };
-    f.scatter(&mut ls, n);
-    if let Some((near, vel_before)) = floor_near {
-        for l in (0..LANES).filter(|&l| near.get(l)) {
-            let (c, lane) = (&mut *cs[l], &mut *ls[l]);
-            let below = lowest_point_below_centre(af, lane.rot);
-            if lane.pos_m.z - below < 0.0 {
-                touch_floor(af, c, lane, vel_before.lane(l), below);
-            }
-            lane.vel_before_m_s = lane.vel_m_s;
-        }
-    }
-}
-
-/// The motion of a batch of free copters, one per lane.
-struct FreeLanes {
-    pos: V4,
-    rot: Q4,
-    vel: V4,
-    angvel: V4,
-    downwash_force: V4,
-    downwash_torque: V4,
-}
-
-impl FreeLanes {
-    fn gather(ls: &[&mut Lane; LANES]) -> Self {
-        Self {
-            pos: V4::gather(std::array::from_fn(|l| ls[l].pos_m)),
-            rot: Q4::gather(std::array::from_fn(|l| ls[l].rot)),
-            vel: V4::gather(std::array::from_fn(|l| ls[l].vel_m_s)),
-            angvel: V4::gather(std::array::from_fn(|l| ls[l].angvel_rad_s)),
-            downwash_force: V4::gather(std::array::from_fn(|l| ls[l].downwash_force_n)),
-            downwash_torque: V4::gather(std::array::from_fn(|l| ls[l].downwash_torque_n_m)),
-        }
-    }
-
-    /// Back into the lanes, after `n` substeps run ahead.
-    fn scatter(&self, ls: &mut [&mut Lane; LANES], n: u32) {
-        let (pos, rot, vel, angvel) = (self.pos.lanes(), self.rot.lanes(), self.vel.lanes(), self.angvel.lanes());
-        for (l, lane) in ls.iter_mut().enumerate() {
-            lane.pos_m = pos[l];
-            lane.rot = rot[l];
-            lane.vel_m_s = vel[l];
-            lane.angvel_rad_s = angvel[l];
-            lane.vel_before_m_s = lane.vel_m_s;
-            lane.batched = n;
-        }
-    }
-
-    /// [`integrate_free`] on every lane.
-    #[inline(always)]
-    fn integrate(&mut self, af: &Airframe, rate_body: V4, thrust_n: F4, torque_body_n_m: V4, dt: Real) {
-        let rot = self.rot;
-        let zero = F4::splat(0.0);
-        let acc = rot.rotate(V4::new(zero, zero, thrust_n / af.mass_kg)) + self.downwash_force.div_by(af.mass_kg)
-            - V4::splat(Vec3::new(0.0, 0.0, GRAVITY_M_S2));
-        let vel = (self.vel + acc.scale_by(dt)).scale_by(1.0 / (1.0 + dt * af.spec.linear_damping));
-        let inertia = Vec3::from(af.inertia_kg_m2);
-        let torque_body_n_m = torque_body_n_m + rot.inverse().rotate(self.downwash_torque);
-        let w_b = rate_body + torque_body_n_m.div_each(inertia).scale_by(dt);
-        let l = w_b.mul_each(inertia);
-        let l_gyro = l - w_b.cross(l).scale_by(dt);
-        let n2 = l_gyro.dot(l_gyro);
-        let conserved = l_gyro.scale((l.dot(l) / n2).sqrt()).div_each(inertia);
-        let spins = n2.gt(zero);
-        let w_b = V4::new(
-            F4::select(spins, conserved.x, w_b.x),
-            F4::select(spins, conserved.y, w_b.y),
-            F4::select(spins, conserved.z, w_b.z),
-        );
-        let w = rot.rotate(w_b.scale_by(1.0 / (1.0 + dt * af.spec.angular_damping)));
-        self.vel = vel;
-        self.angvel = w;
-        self.pos = self.pos + vel.scale_by(dt);
-        let half_w = w.scale_by(0.5 * dt);
-        self.rot = rot.add_normalize(Q4::pure_mul(half_w, rot));
-    }
-
-    /// Whether [`may_act`] holds for any lane.
-    #[inline(always)]
-    fn may_act(&self, af: &Airframe, crash_cos_tilt: &[Real], ls: &[&mut Lane; LANES]) -> bool {
-        let zero = F4::splat(0.0);
-        let up = self.rot.rotate(V4::new(zero, zero, F4::splat(1.0))).z.clamp(-1.0, 1.0);
-        let offset = self.pos - V4::gather(std::array::from_fn(|l| ls[l].anchor_m));
-        let (up, moved) = (up.to_array(), offset.dot(offset).sqrt().to_array());
-        let (z, takeoff_m) = (self.pos.z.to_array(), af.rest_height_m + TAKEOFF_MARGIN_M);
-        (0..LANES).any(|l| {
-            let lane = &ls[l];
-            lane.flying
-                && (up[l] < crash_cos_tilt[lane.airframe as usize]
-                    || (lane.free && (lane.floor_impact_m_s > 0.0 || moved[l] > lane.reach_m))
-                    || (lane.awaiting_takeoff && z[l] > takeoff_m))
-        })
     }
 }
 
@@ -1179,7 +1044,15 @@ fn inner_loop(
     dt: Real,
     alpha: Real,
 ) -> (Real, Vec3) {
-    let InnerInput { rot, rpy, rate_body, z_m, vz_m_s, ground_m } = *m;
+    let (collective, torque) = steer(af, p, twin, c, m, dt);
+    drive(af, p, twin, c, m, collective, torque, dt, alpha)
+}
+
+/// The inner loop's first half: AHRS, height hold and attitude PIDs. Returns the collective
+/// thrust and the torque they command, N and N·m in the body frame.
+#[inline]
+fn steer(af: &Airframe, p: &InnerParams, twin: bool, c: &mut CopterState, m: &InnerInput, dt: Real) -> (Real, Vec3) {
+    let InnerInput { rot, rpy, rate_body, z_m, vz_m_s, .. } = *m;
     let rate = [rate_body.x, rate_body.y, rate_body.z];
     let truth = twin || p.ideal;
     let (z, vz, cos_tilt) = if truth {
@@ -1211,6 +1084,26 @@ fn inner_loop(
     // collective, that is the trim over the thrust gain (a full pack makes more per command).
     let torque = control::attitude_torque(af, &mut c.pids, &c.setpoint, e.attitude_rad, Vec3::from(e.rate_rad_s), dt)
         + Vec3::new(c.trim_torque_n_m[0], c.trim_torque_n_m[1], 0.0) / e.thrust_gain;
+    (collective, torque)
+}
+
+/// The inner loop's second half: mixer, ground effect, rotor model and battery, from the
+/// commanded collective and torque. Returns the total thrust along body z, N, and the torque
+/// in the body frame, N·m.
+#[allow(clippy::too_many_arguments)]
+#[inline]
+fn drive(
+    af: &Airframe,
+    p: &InnerParams,
+    twin: bool,
+    c: &mut CopterState,
+    m: &InnerInput,
+    collective: Real,
+    torque: Vec3,
+    dt: Real,
+    alpha: Real,
+) -> (Real, Vec3) {
+    let InnerInput { rot, z_m, ground_m, .. } = *m;
     let wanted = match c.setpoint.rotors {
         Some(u) => u.map(|u| u * af.max_thrust_per_rotor_n),
         None => control::mix(af, collective, torque),

@@ -1,0 +1,408 @@
+//! Batches of four copters run ahead side by side ([`run_ahead_batch`]): the parts of a
+//! free copter's substep on [`lanes`], each lane rounding as the scalar code does.
+
+use super::*;
+use crate::airframe::PidGains;
+use crate::lanes::{self, F4, M4, Q4, V4};
+
+/// Four free copters off watch and off the floor, of one airframe, run ahead side by side:
+/// each substep's inner loops one by one, then the body rates, Euler angles and closed-form
+/// flight on four lanes, until one of them may act ([`may_act`]) or may touch the floor (it
+/// then meets it as [`substep_lane`] does), or all have run the step's substeps. The copters
+/// stopped early go on in the lockstep substeps: the same arithmetic, the same bits.
+pub(super) fn run_ahead_batch(
+    pass: &SubstepPass<'_>,
+    ids: [usize; LANES],
+    mut cs: [&mut CopterState; LANES],
+    ls: [&mut Lane; LANES],
+) {
+    let (world, dt) = (pass.world, pass.dt);
+    let af = &world.airframes[ls[0].airframe as usize];
+    let twin = ids.map(|i| world.copters[i].kind == CopterKind::Real);
+    let alpha = pass.alpha(ids[0]);
+    let mut f = FreeLanes::gather(&ls);
+    let mut steering = SteerLanes::gather(af, &pass.inner, twin, &cs);
+    let mut n = 0;
+    let mut ls = ls;
+    let floor_near = loop {
+        let rate_body = f.rot.inverse().rotate(f.angvel);
+        let rpy = lanes::euler_from_quat(f.rot);
+        let [roll, pitch, yaw] = rpy.map(F4::to_array);
+        let (rots, rates) = (f.rot.lanes(), rate_body.lanes());
+        let (z, vz) = (f.pos.z.to_array(), f.vel.z.to_array());
+        let inputs: [InnerInput; LANES] = std::array::from_fn(|l| InnerInput {
+            rot: rots[l],
+            rpy: [roll[l], pitch[l], yaw[l]],
+            rate_body: rates[l],
+            z_m: z[l],
+            vz_m_s: vz[l],
+            ground_m: ls[l].ground_m,
+        });
+        let commands: [(Real, Vec3); LANES] = match &mut steering {
+            Some(steering) => {
+                let noise = pass.inner.noise.then(|| imu_draws(&mut cs));
+                let (collective, torque) = steering.step(af, &pass.inner, rpy, rate_body, noise, dt);
+                let (collective, torque) = (collective.to_array(), torque.lanes());
+                std::array::from_fn(|l| (collective[l], torque[l]))
+            }
+            None => std::array::from_fn(|l| steer(af, &pass.inner, twin[l], cs[l], &inputs[l], dt)),
+        };
+        let mut thrust = [0.0; LANES];
+        let mut torque = [Vec3::ZERO; LANES];
+        for l in 0..LANES {
+            let (collective, command) = commands[l];
+            (thrust[l], torque[l]) = drive(af, &pass.inner, twin[l], cs[l], &inputs[l], collective, command, dt, alpha);
+        }
+        let vel_before = f.vel;
+        f.integrate(af, rate_body, F4::from_array(thrust), V4::gather(torque), dt);
+        n += 1;
+        // Higher than any collider reaches, it cannot touch the floor.
+        let floor_near = f.pos.z.gt(F4::splat(af.reach_bound_m)).not();
+        if floor_near.any() {
+            break Some((floor_near, vel_before));
+        }
+        if n == world.params.substeps || f.may_act(af, pass.cos_tilt, &ls) {
+            break None;
+        }
+    };
+    f.scatter(&mut ls, n);
+    if let Some(steering) = &steering {
+        steering.scatter(&mut cs, n);
+    }
+    if let Some((near, vel_before)) = floor_near {
+        for l in (0..LANES).filter(|&l| near.get(l)) {
+            let (c, lane) = (&mut *cs[l], &mut *ls[l]);
+            let below = lowest_point_below_centre(af, lane.rot);
+            if lane.pos_m.z - below < 0.0 {
+                touch_floor(af, c, lane, vel_before.lane(l), below);
+            }
+            lane.vel_before_m_s = lane.vel_m_s;
+        }
+    }
+}
+
+/// The motion of a batch of free copters, one per lane.
+struct FreeLanes {
+    pos: V4,
+    rot: Q4,
+    vel: V4,
+    angvel: V4,
+    downwash_force: V4,
+    downwash_torque: V4,
+}
+
+impl FreeLanes {
+    fn gather(ls: &[&mut Lane; LANES]) -> Self {
+        Self {
+            pos: V4::gather(std::array::from_fn(|l| ls[l].pos_m)),
+            rot: Q4::gather(std::array::from_fn(|l| ls[l].rot)),
+            vel: V4::gather(std::array::from_fn(|l| ls[l].vel_m_s)),
+            angvel: V4::gather(std::array::from_fn(|l| ls[l].angvel_rad_s)),
+            downwash_force: V4::gather(std::array::from_fn(|l| ls[l].downwash_force_n)),
+            downwash_torque: V4::gather(std::array::from_fn(|l| ls[l].downwash_torque_n_m)),
+        }
+    }
+
+    /// Back into the lanes, after `n` substeps run ahead.
+    fn scatter(&self, ls: &mut [&mut Lane; LANES], n: u32) {
+        let (pos, rot, vel, angvel) = (self.pos.lanes(), self.rot.lanes(), self.vel.lanes(), self.angvel.lanes());
+        for (l, lane) in ls.iter_mut().enumerate() {
+            lane.pos_m = pos[l];
+            lane.rot = rot[l];
+            lane.vel_m_s = vel[l];
+            lane.angvel_rad_s = angvel[l];
+            lane.vel_before_m_s = lane.vel_m_s;
+            lane.batched = n;
+        }
+    }
+
+    /// [`integrate_free`] on every lane.
+    #[inline(always)]
+    fn integrate(&mut self, af: &Airframe, rate_body: V4, thrust_n: F4, torque_body_n_m: V4, dt: Real) {
+        let rot = self.rot;
+        let zero = F4::splat(0.0);
+        let acc = rot.rotate(V4::new(zero, zero, thrust_n / af.mass_kg)) + self.downwash_force.div_by(af.mass_kg)
+            - V4::splat(Vec3::new(0.0, 0.0, GRAVITY_M_S2));
+        let vel = (self.vel + acc.scale_by(dt)).scale_by(1.0 / (1.0 + dt * af.spec.linear_damping));
+        let inertia = Vec3::from(af.inertia_kg_m2);
+        let torque_body_n_m = torque_body_n_m + rot.inverse().rotate(self.downwash_torque);
+        let w_b = rate_body + torque_body_n_m.div_each(inertia).scale_by(dt);
+        let l = w_b.mul_each(inertia);
+        let l_gyro = l - w_b.cross(l).scale_by(dt);
+        let n2 = l_gyro.dot(l_gyro);
+        let conserved = l_gyro.scale((l.dot(l) / n2).sqrt()).div_each(inertia);
+        let spins = n2.gt(zero);
+        let w_b = V4::new(
+            F4::select(spins, conserved.x, w_b.x),
+            F4::select(spins, conserved.y, w_b.y),
+            F4::select(spins, conserved.z, w_b.z),
+        );
+        let w = rot.rotate(w_b.scale_by(1.0 / (1.0 + dt * af.spec.angular_damping)));
+        self.vel = vel;
+        self.angvel = w;
+        self.pos = self.pos + vel.scale_by(dt);
+        let half_w = w.scale_by(0.5 * dt);
+        self.rot = rot.add_normalize(Q4::pure_mul(half_w, rot));
+    }
+
+    /// Whether [`may_act`] holds for any lane.
+    #[inline(always)]
+    fn may_act(&self, af: &Airframe, crash_cos_tilt: &[Real], ls: &[&mut Lane; LANES]) -> bool {
+        let zero = F4::splat(0.0);
+        let up = self.rot.rotate(V4::new(zero, zero, F4::splat(1.0))).z.clamp(-1.0, 1.0);
+        let offset = self.pos - V4::gather(std::array::from_fn(|l| ls[l].anchor_m));
+        let (up, moved) = (up.to_array(), offset.dot(offset).sqrt().to_array());
+        let (z, takeoff_m) = (self.pos.z.to_array(), af.rest_height_m + TAKEOFF_MARGIN_M);
+        (0..LANES).any(|l| {
+            let lane = &ls[l];
+            lane.flying
+                && (up[l] < crash_cos_tilt[lane.airframe as usize]
+                    || (lane.free && (lane.floor_impact_m_s > 0.0 || moved[l] > lane.reach_m))
+                    || (lane.awaiting_takeoff && z[l] > takeoff_m))
+        })
+    }
+}
+
+/// The attitude and height loops of a batch ([`steer`]), one copter per lane, with the state
+/// they keep, held in lanes for the batch. For copters with an estimator (not twins, not
+/// `ideal`) holding a height on the PIDs: [`SteerLanes::gather`] says whether all four do.
+struct SteerLanes {
+    attitude_bias: [F4; 2],
+    mount_offset: [F4; 2],
+    yaw_bias: F4,
+    gyro_bias: [F4; 3],
+    attitude_lag: [F4; 3],
+    rate_lag: [F4; 3],
+    attitude: [F4; 3],
+    rate: [F4; 3],
+    height: F4,
+    vz: F4,
+    height_integral: F4,
+    thrust_gain: F4,
+    collective_sum: F4,
+    /// The PIDs' integral, last error, reference angle and rate: roll, pitch, yaw.
+    integral: [F4; 3],
+    last_error: [F4; 3],
+    reference: [F4; 3],
+    reference_rate: [F4; 3],
+    /// Roll and pitch targets (clamped to the maximum tilt), yaw and height setpoints.
+    roll_target: F4,
+    pitch_target: F4,
+    yaw_setpoint: F4,
+    height_setpoint: F4,
+    trim: [F4; 2],
+}
+
+impl SteerLanes {
+    /// The batch's state, when every copter's inner loop takes the path lanes compute.
+    fn gather(af: &Airframe, p: &InnerParams, twin: [bool; LANES], cs: &[&mut CopterState; LANES]) -> Option<Self> {
+        let holds = |c: &CopterState| {
+            let sp = &c.setpoint;
+            sp.rotors.is_none() && sp.height_m > 0.0 && sp.height_m > af.rest_height_m + control::LANDING_BAND_M
+        };
+        let spec = &af.spec;
+        if p.ideal || twin.contains(&true) || !cs.iter().all(|c| holds(c)) || spec.attitude_ref_omega_rad_s <= 0.0 {
+            return None;
+        }
+        let lanes = |f: &dyn Fn(&CopterState) -> Real| F4::from_array(std::array::from_fn(|l| f(cs[l])));
+        let axes = |f: &dyn Fn(&CopterState, usize) -> Real| std::array::from_fn(|k| lanes(&|c| f(c, k)));
+        let max_tilt = spec.max_tilt_deg.to_radians();
+        Some(Self {
+            attitude_bias: [lanes(&|c| c.estimate.attitude_bias_rad[0]), lanes(&|c| c.estimate.attitude_bias_rad[1])],
+            mount_offset: [lanes(&|c| c.estimate.mount_offset_rad[0]), lanes(&|c| c.estimate.mount_offset_rad[1])],
+            yaw_bias: lanes(&|c| c.yaw_bias_rad),
+            gyro_bias: axes(&|c, k| c.estimate.gyro_bias_rad_s[k]),
+            attitude_lag: axes(&|c, k| c.estimate.attitude_lag_rad[k]),
+            rate_lag: axes(&|c, k| c.estimate.rate_lag_rad_s[k]),
+            attitude: axes(&|c, k| c.estimate.attitude_rad[k]),
+            rate: axes(&|c, k| c.estimate.rate_rad_s[k]),
+            height: lanes(&|c| c.estimate.height_m),
+            vz: lanes(&|c| c.estimate.vz_m_s),
+            height_integral: lanes(&|c| c.estimate.height_integral_n),
+            thrust_gain: lanes(&|c| c.estimate.thrust_gain),
+            collective_sum: lanes(&|c| c.estimate.collective_sum_n),
+            integral: axes(&|c, k| c.pids[k].integral),
+            last_error: axes(&|c, k| c.pids[k].last_error),
+            reference: axes(&|c, k| c.pids[k].reference_rad),
+            reference_rate: axes(&|c, k| c.pids[k].reference_rate_rad_s),
+            roll_target: lanes(&|c| c.setpoint.roll_rad.clamp(-max_tilt, max_tilt)),
+            pitch_target: lanes(&|c| c.setpoint.pitch_rad.clamp(-max_tilt, max_tilt)),
+            yaw_setpoint: lanes(&|c| c.setpoint.yaw_rad),
+            height_setpoint: lanes(&|c| c.setpoint.height_m),
+            trim: [lanes(&|c| c.trim_torque_n_m[0]), lanes(&|c| c.trim_torque_n_m[1])],
+        })
+    }
+
+    /// Back into the copters, after `n` substeps.
+    fn scatter(&self, cs: &mut [&mut CopterState; LANES], n: u32) {
+        let arrays = |v: &[F4; 3]| v.map(F4::to_array);
+        let (att_lag, rate_lag, att, rate) =
+            (arrays(&self.attitude_lag), arrays(&self.rate_lag), arrays(&self.attitude), arrays(&self.rate));
+        let (integral, last, reference, reference_rate) =
+            (arrays(&self.integral), arrays(&self.last_error), arrays(&self.reference), arrays(&self.reference_rate));
+        let (height_integral, collective_sum) = (self.height_integral.to_array(), self.collective_sum.to_array());
+        for (l, c) in cs.iter_mut().enumerate() {
+            let e = &mut c.estimate;
+            for k in 0..3 {
+                e.attitude_lag_rad[k] = att_lag[k][l];
+                e.rate_lag_rad_s[k] = rate_lag[k][l];
+                e.attitude_rad[k] = att[k][l];
+                e.rate_rad_s[k] = rate[k][l];
+                let pid = &mut c.pids[k];
+                (pid.integral, pid.last_error) = (integral[k][l], last[k][l]);
+                (pid.reference_rad, pid.reference_rate_rad_s) = (reference[k][l], reference_rate[k][l]);
+            }
+            e.height_integral_n = height_integral[l];
+            e.landing_stalled_s = 0.0;
+            e.collective_sum_n = collective_sum[l];
+            e.collective_steps += n;
+        }
+    }
+
+    /// One substep of [`steer`] on every lane; `noise` holds each lane's two draws per axis
+    /// (attitude, rate) when the IMU is noisy. Returns the collective and the torque.
+    #[inline(always)]
+    fn step(
+        &mut self,
+        af: &Airframe,
+        p: &InnerParams,
+        rpy: [F4; 3],
+        rate_body: V4,
+        noise: Option<[[F4; 2]; 3]>,
+        dt: Real,
+    ) -> (F4, V4) {
+        let wrap = lanes::wrap_angle_rad;
+        // `Estimate::ahrs`.
+        let target = [
+            rpy[0] + self.attitude_bias[0] + self.mount_offset[0],
+            rpy[1] + self.attitude_bias[1] + self.mount_offset[1],
+            rpy[2] + self.yaw_bias,
+        ];
+        let rate = [rate_body.x, rate_body.y, rate_body.z];
+        let alpha = p.ahrs_alpha;
+        for k in 0..3 {
+            self.attitude_lag[k] = wrap(self.attitude_lag[k] + alpha * wrap(target[k] - self.attitude_lag[k]));
+            self.rate_lag[k] = self.rate_lag[k] + alpha * (rate[k] + self.gyro_bias[k] - self.rate_lag[k]);
+        }
+        match noise {
+            Some(draws) => {
+                for (k, [att, rate]) in draws.into_iter().enumerate() {
+                    self.attitude[k] = wrap(self.attitude_lag[k] + p.att_sigma * att);
+                    self.rate[k] = self.rate_lag[k] + p.rate_sigma * rate;
+                }
+            }
+            None => (self.attitude, self.rate) = (self.attitude_lag, self.rate_lag),
+        }
+        let cos_tilt = lanes::cos(self.attitude[0]) * lanes::cos(self.attitude[1]);
+        // `control::collective_thrust_n`, holding a height.
+        let spec = &af.spec;
+        let hover = 4.0 * af.hover_thrust_per_rotor_n;
+        let e = self.height_setpoint - self.height;
+        let bound = 0.25 * hover;
+        self.height_integral = (self.height_integral + spec.height_ki_n_per_m_s * e * dt).clamp(-bound, bound);
+        let t = hover + spec.height_kp_n_per_m * e + self.height_integral - spec.height_kd_n_s_per_m * self.vz;
+        let half = F4::splat(0.5);
+        let collective = t / F4::select(cos_tilt.gt(half), cos_tilt, half) / self.thrust_gain;
+        self.collective_sum = self.collective_sum + collective;
+        // `control::attitude_torque`.
+        let (omega, zeta) = (spec.attitude_ref_omega_rad_s, spec.attitude_ref_zeta);
+        for (k, target) in [(0, self.roll_target), (1, self.pitch_target)] {
+            let acc = omega * omega * (target - self.reference[k]) - 2.0 * zeta * omega * self.reference_rate[k];
+            self.reference_rate[k] = self.reference_rate[k] + acc * dt;
+            self.reference[k] = self.reference[k] + self.reference_rate[k] * dt;
+        }
+        let errors = [
+            self.reference[0] - self.attitude[0],
+            self.reference[1] - self.attitude[1],
+            wrap(self.yaw_setpoint - self.attitude[2]),
+        ];
+        let rates = [self.rate[0] - self.reference_rate[0], self.rate[1] - self.reference_rate[1], self.rate[2]];
+        let (g, gy) = (&spec.roll_pitch_pid, &spec.yaw_pid);
+        let gains = [(g, 0.3 * g.kp), (g, 0.3 * g.kp), (gy, 0.3 * gy.kp)];
+        let accel: [F4; 3] = std::array::from_fn(|k| self.pid(k, gains[k].0, errors[k], rates[k], dt, gains[k].1));
+        let [ix, iy, iz] = af.inertia_kg_m2;
+        let torque = V4::new(accel[0] * ix, accel[1] * iy, accel[2] * iz)
+            + V4::new(self.trim[0], self.trim[1], F4::splat(0.0)).div_lanes(self.thrust_gain);
+        (collective, torque)
+    }
+
+    /// `PidState::update` on axis `k`.
+    #[inline(always)]
+    fn pid(&mut self, k: usize, g: &PidGains, error: F4, rate: F4, dt: Real, limit: Real) -> F4 {
+        // `signum` differs: the signs differ, or either is NaN.
+        let sign_flip =
+            (error.0 ^ self.last_error[k].0).is_sign_negative() | error.0.is_nan() | self.last_error[k].0.is_nan();
+        let integral = F4::select(M4(sign_flip), F4::splat(0.0), self.integral[k]);
+        self.last_error[k] = error;
+        let mut integral = integral + error * dt;
+        if g.ki > 0.0 {
+            let max_i = limit / g.ki;
+            integral = integral.clamp(-max_i, max_i);
+        }
+        self.integral[k] = integral;
+        g.kp * error + g.ki * integral - g.kd * rate
+    }
+}
+
+/// Each copter's IMU noise for one substep, drawn as `Estimate::ahrs` draws it: per axis, the
+/// attitude's draw, then the rate's.
+fn imu_draws(cs: &mut [&mut CopterState; LANES]) -> [[F4; 2]; 3] {
+    let mut draws = [[[0.0; LANES]; 2]; 3];
+    for (l, c) in cs.iter_mut().enumerate() {
+        for axis in &mut draws {
+            axis[0][l] = c.rng.triangular();
+            axis[1][l] = c.rng.triangular();
+        }
+    }
+    draws.map(|axis| axis.map(F4::from_array))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::scene;
+
+    /// A batch leaves its four copters and their lanes exactly as running each of them ahead
+    /// alone does: through the take-off (near the floor), the climb and the hover, with noise.
+    #[test]
+    fn a_batch_runs_ahead_as_its_copters_do_alone() {
+        let world = scene::compile(&scene::dense_swarm(16, 1.5, true, 0, 3)).expect("scene compiles");
+        let (mut state, inputs) = (world.initial_state(), world.initial_inputs());
+        let dt = world.physics_dt();
+        let (mut compared, mut near_floor, mut held) = (0, 0, 0);
+        for _ in 0..80 {
+            step(&world, &mut state, &inputs);
+            let scratch = &state.scratch;
+            let pass = SubstepPass {
+                world: &world,
+                inner: InnerParams::new(&world, dt),
+                alphas: &scratch.motor_alpha,
+                cos_tilt: &scratch.crash_cos_tilt,
+                roles: Roles(None),
+                dt,
+            };
+            let flying: Vec<usize> =
+                (0..16).filter(|&i| state.copters[i].crash.is_none() && !state.copters[i].grounded).collect();
+            for ids in flying.chunks_exact(LANES) {
+                let ids: [usize; LANES] = ids.try_into().unwrap();
+                let lane = |i: usize| Lane { free: true, watch: false, batched: 0, reach_m: 1e3, ..scratch.lanes[i] };
+                let (mut cs, mut ls) = (ids.map(|i| state.copters[i].clone()), ids.map(lane));
+                let (mut alone_cs, mut alone_ls) = (cs.clone(), ls);
+                near_floor += ls.iter().filter(|l| l.pos_m.z <= world.airframes[0].reach_bound_m + 0.05).count();
+                held += cs.iter().filter(|c| c.setpoint.height_m > world.airframes[0].rest_height_m + 0.1).count();
+                run_ahead_batch(&pass, ids, cs.each_mut(), ls.each_mut());
+                for l in 0..LANES {
+                    while alone_ls[l].batched < ls[l].batched {
+                        let (c, lane) = (&mut alone_cs[l], &mut alone_ls[l]);
+                        substep_lane(&world, &pass.inner, pass.alpha(ids[l]), pass.roles, ids[l], c, lane, dt);
+                        lane.batched += 1;
+                    }
+                    assert_eq!(format!("{:?}", cs[l]), format!("{:?}", alone_cs[l]), "copter {}", ids[l]);
+                    assert_eq!(format!("{:?}", ls[l]), format!("{:?}", alone_ls[l]), "lane {}", ids[l]);
+                    compared += 1;
+                }
+            }
+        }
+        assert!(compared > 500 && near_floor > 10 && held > 500, "{compared} {near_floor} {held}");
+    }
+}
