@@ -83,6 +83,25 @@ impl F4 {
         Self((sign.0 & sign_bit) | self.0.abs())
     }
 
+    /// `Real::max` on each lane, where the two are not zeros of opposite signs (which `max`
+    /// may return either of): a NaN gives the other.
+    #[inline(always)]
+    pub(crate) fn max(self, o: Self) -> Self {
+        F4::select(o.gt(self), o, F4::select(M4(self.0.is_nan()), o, self))
+    }
+
+    /// `Real::min` on each lane, as [`F4::max`].
+    #[inline(always)]
+    pub(crate) fn min(self, o: Self) -> Self {
+        F4::select(o.lt(self), o, F4::select(M4(self.0.is_nan()), o, self))
+    }
+
+    /// Lanes holding a zero of either sign.
+    #[inline(always)]
+    pub(crate) fn is_zero(self) -> M4 {
+        self.eq_lanes(F4::splat(0.0))
+    }
+
     /// `Real::clamp` on each lane (a NaN stays NaN).
     #[inline(always)]
     pub(crate) fn clamp(self, lo: Real, hi: Real) -> Self {
@@ -106,6 +125,18 @@ impl M4 {
     #[inline(always)]
     pub(crate) fn all(self) -> bool {
         self.0.all()
+    }
+
+    /// Lanes set in either.
+    #[inline(always)]
+    pub(crate) fn or(self, o: M4) -> M4 {
+        M4(self.0 | o.0)
+    }
+
+    /// Lanes set in both.
+    #[inline(always)]
+    pub(crate) fn and(self, o: M4) -> M4 {
+        M4(self.0 & o.0)
     }
 
     #[inline(always)]

@@ -38,21 +38,7 @@ pub(super) fn run_ahead_batch(
             vz_m_s: vz[l],
             ground_m: ls[l].ground_m,
         });
-        let commands: [(Real, Vec3); LANES] = match &mut steering {
-            Some(steering) => {
-                let noise = pass.inner.noise.then(|| imu_draws(&mut cs));
-                let (collective, torque) = steering.step(af, &pass.inner, rpy, rate_body, noise, dt);
-                let (collective, torque) = (collective.to_array(), torque.lanes());
-                std::array::from_fn(|l| (collective[l], torque[l]))
-            }
-            None => std::array::from_fn(|l| steer(af, &pass.inner, twin[l], cs[l], &inputs[l], dt)),
-        };
-        let mut thrust = [0.0; LANES];
-        let mut torque = [Vec3::ZERO; LANES];
-        for l in 0..LANES {
-            let (collective, command) = commands[l];
-            (thrust[l], torque[l]) = drive(af, &pass.inner, twin[l], cs[l], &inputs[l], collective, command, dt, alpha);
-        }
+        let (thrust, torque) = inner_loops(pass, af, twin, &mut steering, &mut cs, &inputs, rpy, rate_body, alpha);
         let vel_before = f.vel;
         f.integrate(af, rate_body, F4::from_array(thrust), V4::gather(torque), dt);
         n += 1;
@@ -79,6 +65,37 @@ pub(super) fn run_ahead_batch(
             lane.vel_before_m_s = lane.vel_m_s;
         }
     }
+}
+
+/// The inner loops of a batch's four copters: on lanes where they can be, else one by one.
+#[allow(clippy::too_many_arguments)]
+#[inline(always)]
+fn inner_loops(
+    pass: &SubstepPass<'_>,
+    af: &Airframe,
+    twin: [bool; LANES],
+    steering: &mut Option<SteerLanes>,
+    cs: &mut [&mut CopterState; LANES],
+    inputs: &[InnerInput; LANES],
+    rpy: [F4; 3],
+    rate_body: V4,
+    alpha: Real,
+) -> ([Real; LANES], [Vec3; LANES]) {
+    let (p, dt) = (&pass.inner, pass.dt);
+    let Some(steering) = steering else {
+        let each: [(Real, Vec3); LANES] =
+            std::array::from_fn(|l| inner_loop(af, p, twin[l], cs[l], &inputs[l], dt, alpha));
+        return (each.map(|e| e.0), each.map(|e| e.1));
+    };
+    let noise = p.noise.then(|| imu_draws(cs));
+    let (collective, torque) = steering.step(af, p, rpy, rate_body, noise, dt);
+    if let Some(done) = drive_lanes(af, p, cs, inputs, collective, torque, dt, alpha) {
+        return done;
+    }
+    let (collective, torque) = (collective.to_array(), torque.lanes());
+    let each: [(Real, Vec3); LANES] =
+        std::array::from_fn(|l| drive(af, p, twin[l], cs[l], &inputs[l], collective[l], torque[l], dt, alpha));
+    (each.map(|e| e.0), each.map(|e| e.1))
 }
 
 /// The motion of a batch of free copters, one per lane.
@@ -341,6 +358,147 @@ impl SteerLanes {
         }
         self.integral[k] = integral;
         g.kp * error + g.ki * integral - g.kd * rate
+    }
+}
+
+/// [`drive`] on four copters without ground effect, particle noise off or dithered, as
+/// [`SteerLanes`] steers them: `None`, before anything changes, where a lane would meet the
+/// one case lanes cannot reproduce exactly: `min` or `max` between zeros of opposite signs
+/// (an exact zero among the mixer's terms or the rotor commands), or where ground effect or
+/// Poisson particles apply. Returns each copter's thrust and torque in the body frame.
+#[allow(clippy::too_many_arguments)]
+fn drive_lanes(
+    af: &Airframe,
+    p: &InnerParams,
+    cs: &mut [&mut CopterState; LANES],
+    inputs: &[InnerInput; LANES],
+    collective: F4,
+    torque: V4,
+    dt: Real,
+    alpha: Real,
+) -> Option<([Real; LANES], [Vec3; LANES])> {
+    let radius = 0.5 * af.spec.rotor_diameter_m;
+    let near_ground = |m: &InnerInput| {
+        let lowest = m.z_m - af.reach_bound_m - m.ground_m.iter().copied().fold(0.0, Real::max);
+        p.ground_effect && lowest < GROUND_EFFECT_RADII * radius + 1e-3
+    };
+    if af.spec.particle_noise == ParticleNoise::Poisson || inputs.iter().any(near_ground) {
+        return None;
+    }
+    let wanted = mix_lanes(af, collective, torque)?;
+    Some(rotors_and_battery(af, cs, wanted, dt, alpha))
+}
+
+/// `control::mix` on four lanes; `None` where a term is an exact zero (see [`drive_lanes`]).
+#[inline(always)]
+fn mix_lanes(af: &Airframe, collective: F4, torque: V4) -> Option<[F4; 4]> {
+    let max = F4::splat(af.max_thrust_per_rotor_n);
+    let a2x4 = 4.0 * af.rotor_pos_in_body_m[0].x * af.rotor_pos_in_body_m[0].x;
+    let c = af.d_n_m_s2 / af.k_n_s2;
+    let mut att: [F4; 4] = std::array::from_fn(|i| {
+        let p = af.rotor_pos_in_body_m[i];
+        (torque.x * p.y - torque.y * p.x) / a2x4
+    });
+    let yaw: [F4; 4] = std::array::from_fn(|i| torque.z * ROTOR_YAW_SIGN[i] / (4.0 * c));
+    let span = |att: &[F4; 4]| {
+        let start = (F4::splat(Real::MAX), F4::splat(Real::MIN));
+        att.iter().fold(start, |(lo, hi), &v| (lo.min(v), hi.max(v)))
+    };
+    let zero_in = |att: &[F4; 4]| att.iter().fold(M4(collective.is_zero().0), |z, a| z.or(a.is_zero()));
+    let mut zero = zero_in(&att);
+    let (lo, hi) = span(&att);
+    let scaled = (hi - lo).gt(max);
+    let s = max / (hi - lo);
+    att = att.map(|a| F4::select(scaled, a * s, a));
+    zero = zero.or(zero_in(&att));
+    let (lo, hi) = span(&att);
+    let (floor, ceil) = (-lo, (max - hi).max(-lo));
+    let base = (collective / 4.0).max(floor).min(ceil);
+    let mut yaw_scale = F4::splat(1.0);
+    for i in 0..4 {
+        let (f, y) = (base + att[i], yaw[i]);
+        let over = y.gt(F4::splat(0.0)).and((f + y).gt(max));
+        let under = y.lt(F4::splat(0.0)).and((f + y).lt(F4::splat(0.0)));
+        let (to_max, to_zero) = ((max - f) / y, f / -y);
+        zero = zero.or(over.and(to_max.is_zero())).or(under.and(to_zero.is_zero()));
+        yaw_scale = F4::select(over, yaw_scale.min(to_max), F4::select(under, yaw_scale.min(to_zero), yaw_scale));
+    }
+    let yaw_scale = yaw_scale.max(F4::splat(0.0));
+    let out: [F4; 4] =
+        std::array::from_fn(|i| (base + att[i] + yaw_scale * yaw[i]).clamp(0.0, af.max_thrust_per_rotor_n));
+    zero = out.iter().fold(zero, |z, o| z.or(o.is_zero()));
+    (!zero.any()).then_some(out)
+}
+
+/// `rotor_model`, the thrust and torque sums and the battery's draw of [`drive`], on four
+/// lanes, for rotor commands `wanted` (none of them zero).
+#[inline(always)]
+fn rotors_and_battery(
+    af: &Airframe,
+    cs: &mut [&mut CopterState; LANES],
+    wanted: [F4; 4],
+    dt: Real,
+    alpha: Real,
+) -> ([Real; LANES], [Vec3; LANES]) {
+    let spec = &af.spec.battery;
+    let lanes = |f: &dyn Fn(&CopterState) -> Real| F4::from_array(std::array::from_fn(|l| f(cs[l])));
+    let scale = lanes(&|c| c.battery.speed_scale(spec));
+    let zero = F4::splat(0.0);
+    let mut omega = [zero; 4];
+    let mut lambda = [zero; 4];
+    let mut mean = [zero; 4];
+    let mut yaw = zero;
+    for r in 0..4 {
+        let omega_cmd = (wanted[r].max(zero) / af.k_n_s2).sqrt().min(F4::splat(af.omega_max_rad_s)) * scale;
+        let speed = lanes(&|c| c.rotor_speed_rad_s[r]);
+        omega[r] = speed + alpha * (omega_cmd - speed);
+        let tol = lanes(&|c| c.rotor_tolerance[r]);
+        mean[r] = tol * (af.k_n_s2 * omega[r] * omega[r]) * 1.0;
+        lambda[r] = af.particle_rate_per_v_final_per_m * af.v_final_per_omega_m * omega[r] * dt;
+        yaw = yaw + ROTOR_YAW_SIGN[r] * tol * af.d_n_m_s2 * omega[r] * omega[r];
+    }
+    // Each copter's draws, rotor by rotor, as `rotor_model` makes them.
+    let (omega_l, lambda_l, mean_l) = (omega.map(F4::to_array), lambda.map(F4::to_array), mean.map(F4::to_array));
+    let mut thrust_l = [[0.0; LANES]; 4];
+    for (l, c) in cs.iter_mut().enumerate() {
+        for r in 0..4 {
+            let (lambda, mean) = (lambda_l[r][l], mean_l[r][l]);
+            thrust_l[r][l] = match af.spec.particle_noise {
+                ParticleNoise::Off => mean,
+                _ if lambda <= 0.0 => 0.0,
+                _ => mean * ((lambda + c.rng.uniform()) as u32 as Real) / lambda,
+            };
+            c.rotor_speed_rad_s[r] = omega_l[r][l];
+            c.rotor_thrust_n[r] = thrust_l[r][l];
+        }
+    }
+    let thrust = thrust_l.map(F4::from_array);
+    let (mut total, mut induced) = (zero, zero);
+    let mut torque_body = V4::new(zero, zero, yaw);
+    for (f, arm) in thrust.into_iter().zip(af.rotor_pos_in_body_m) {
+        total = total + f;
+        induced = induced + f * f.max(zero).sqrt();
+        torque_body = torque_body + V4::splat(arm).cross(V4::new(zero, zero, f));
+    }
+    battery_draw(spec, cs, induced / af.sqrt_2_rho_a / spec.efficiency, dt);
+    (total.to_array(), torque_body.lanes())
+}
+
+/// `BatteryState::draw` on four lanes.
+#[inline(always)]
+fn battery_draw(spec: &crate::battery::BatterySpec, cs: &mut [&mut CopterState; LANES], power_w: F4, dt: Real) {
+    let lanes = |f: &dyn Fn(&CopterState) -> Real| F4::from_array(std::array::from_fn(|l| f(cs[l])));
+    let charge = lanes(&|c| c.battery.charge);
+    let e = lanes(&|c| spec.open_circuit_v(c.battery.charge));
+    let zero = F4::splat(0.0);
+    let power = power_w.max(zero);
+    let disc = e * e - 4.0 * power * spec.internal_resistance_ohm;
+    let v = F4::select(disc.gt(zero), 0.5 * (e + disc.sqrt()), 0.5 * e);
+    let i = F4::select(v.gt(zero), power / v, zero);
+    let charge = (charge - i * dt / (spec.capacity_mah * 3.6)).max(zero);
+    let (v, i, charge) = (v.to_array(), i.to_array(), charge.to_array());
+    for (l, c) in cs.iter_mut().enumerate() {
+        (c.battery.voltage_v, c.battery.current_a, c.battery.charge) = (v[l], i[l], charge[l]);
     }
 }
 
