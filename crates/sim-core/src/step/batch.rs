@@ -361,11 +361,12 @@ impl SteerLanes {
     }
 }
 
-/// [`drive`] on four copters without ground effect, particle noise off or dithered, as
-/// [`SteerLanes`] steers them: `None`, before anything changes, where a lane would meet the
-/// one case lanes cannot reproduce exactly: `min` or `max` between zeros of opposite signs
-/// (an exact zero among the mixer's terms or the rotor commands), or where ground effect or
-/// Poisson particles apply. Returns each copter's thrust and torque in the body frame.
+/// [`drive`] on four copters with particle noise off or dithered, as [`SteerLanes`] steers
+/// them: `None`, before anything changes, where a lane would meet the one case lanes cannot
+/// reproduce exactly (`min` or `max` between zeros of opposite signs: an exact zero among the
+/// mixer's terms or the rotor commands), or with Poisson particles or no floor on the ground
+/// effect's height. Returns each copter's
+/// thrust and torque in the body frame.
 #[allow(clippy::too_many_arguments)]
 fn drive_lanes(
     af: &Airframe,
@@ -377,16 +378,43 @@ fn drive_lanes(
     dt: Real,
     alpha: Real,
 ) -> Option<([Real; LANES], [Vec3; LANES])> {
-    let radius = 0.5 * af.spec.rotor_diameter_m;
-    let near_ground = |m: &InnerInput| {
-        let lowest = m.z_m - af.reach_bound_m - m.ground_m.iter().copied().fold(0.0, Real::max);
-        p.ground_effect && lowest < GROUND_EFFECT_RADII * radius + 1e-3
-    };
-    if af.spec.particle_noise == ParticleNoise::Poisson || inputs.iter().any(near_ground) {
+    // Ground effect's `max` meets a zero only with a zero floor on its height.
+    let min_height = p.ground_effect_min_radii * 0.5 * af.spec.rotor_diameter_m;
+    if af.spec.particle_noise == ParticleNoise::Poisson || min_height.is_nan() || min_height <= 0.0 {
         return None;
     }
     let wanted = mix_lanes(af, collective, torque)?;
-    Some(rotors_and_battery(af, cs, wanted, dt, alpha))
+    let ground = ground_effect_lanes(af, p, inputs);
+    Some(rotors_and_battery(af, cs, wanted, ground, dt, alpha))
+}
+
+/// The ground effect's factor on each rotor's thrust of four copters, as [`drive`] finds it.
+#[inline(always)]
+fn ground_effect_lanes(af: &Airframe, p: &InnerParams, inputs: &[InnerInput; LANES]) -> [F4; 4] {
+    let one = F4::splat(1.0);
+    let radius = 0.5 * af.spec.rotor_diameter_m;
+    let near: [bool; LANES] = std::array::from_fn(|l| {
+        let m = &inputs[l];
+        let lowest = m.z_m - af.reach_bound_m - m.ground_m.iter().copied().fold(0.0, Real::max);
+        p.ground_effect && lowest < GROUND_EFFECT_RADII * radius + 1e-3
+    });
+    if !near.contains(&true) {
+        return [one; 4];
+    }
+    let near = M4(F4::from_array(near.map(|n| if n { Real::from_bits(u32::MAX) } else { 0.0 })).0);
+    let cut_off = GROUND_EFFECT_RADII * radius;
+    let at_cut_off = ground_effect_ratio(radius, cut_off, p.ground_effect_min_radii);
+    let rot = Q4::gather(inputs.map(|m| m.rot));
+    let z = F4::from_array(inputs.map(|m| m.z_m));
+    let min_z = F4::splat(p.ground_effect_min_radii * radius);
+    std::array::from_fn(|r| {
+        let below = F4::from_array(inputs.map(|m| m.ground_m[r]));
+        let height = z + rot.rotate(V4::splat(af.rotor_pos_in_body_m[r])).z - below;
+        // `airflow::ground_effect_ratio`.
+        let q = radius / (4.0 * height.max(min_z));
+        let g = 1.0 + 1.0 / (1.0 - q * q) - at_cut_off;
+        F4::select(near.and(height.lt(F4::splat(cut_off))), g, one)
+    })
 }
 
 /// `control::mix` on four lanes; `None` where a term is an exact zero (see [`drive_lanes`]).
@@ -437,6 +465,7 @@ fn rotors_and_battery(
     af: &Airframe,
     cs: &mut [&mut CopterState; LANES],
     wanted: [F4; 4],
+    ground: [F4; 4],
     dt: Real,
     alpha: Real,
 ) -> ([Real; LANES], [Vec3; LANES]) {
@@ -453,7 +482,7 @@ fn rotors_and_battery(
         let speed = lanes(&|c| c.rotor_speed_rad_s[r]);
         omega[r] = speed + alpha * (omega_cmd - speed);
         let tol = lanes(&|c| c.rotor_tolerance[r]);
-        mean[r] = tol * (af.k_n_s2 * omega[r] * omega[r]) * 1.0;
+        mean[r] = tol * (af.k_n_s2 * omega[r] * omega[r]) * ground[r];
         lambda[r] = af.particle_rate_per_v_final_per_m * af.v_final_per_omega_m * omega[r] * dt;
         yaw = yaw + ROTOR_YAW_SIGN[r] * tol * af.d_n_m_s2 * omega[r] * omega[r];
     }
