@@ -421,7 +421,7 @@ impl<'a> SubstepPass<'a> {
     /// (`Lane::batched`). The same arithmetic, in another order: the same bits.
     ///
     /// Those that run ahead and have left the floor go four at a time ([`run_ahead_batch`]):
-    /// the closed-form parts of their substeps on [`lanes`], the same bits.
+    /// their substeps on [`lanes`], the same bits.
     fn closure(
         self,
         s: u32,

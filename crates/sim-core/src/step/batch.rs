@@ -1,12 +1,16 @@
-//! Batches of four copters run ahead side by side ([`run_ahead_batch`]): the parts of a
-//! free copter's substep on [`lanes`], each lane rounding as the scalar code does.
+//! Batches of four copters run ahead side by side ([`run_ahead_batch`]): a free copter's
+//! substep on [`lanes`], each lane rounding as the scalar code does.
+//!
+//! The lane functions here are twins of scalar ones (`steer`, `drive`, `control::mix`,
+//! `rotor_model`, `BatteryState::draw`, `integrate_free`, `may_act`): a change to one must be
+//! made to its twin, and `tests::a_batch_runs_ahead_as_its_copters_do_alone` fails until it is.
 
 use super::*;
 use crate::airframe::PidGains;
 use crate::lanes::{self, F4, M4, Q4, V4};
 
 /// Four free copters off watch and off the floor, of one airframe, run ahead side by side:
-/// each substep's inner loops one by one, then the body rates, Euler angles and closed-form
+/// each substep's body rates, Euler angles, inner loops ([`inner_loops`]) and closed-form
 /// flight on four lanes, until one of them may act ([`may_act`]) or may touch the floor (it
 /// then meets it as [`substep_lane`] does), or all have run the step's substeps. The copters
 /// stopped early go on in the lockstep substeps: the same arithmetic, the same bits.
