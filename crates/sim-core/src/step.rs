@@ -440,8 +440,8 @@ impl<'a> SubstepPass<'a> {
                     continue;
                 }
                 // A batch is of one airframe, in the air.
-                let airframe = if filled == 0 { lane.airframe } else { ls[batch[0]].airframe };
-                if cs[j].grounded || ls[j].airframe != airframe {
+                let other_airframe = filled > 0 && ls[batch[0]].airframe != ls[j].airframe;
+                if cs[j].grounded || other_airframe {
                     self.run_ahead(i, &mut cs[j], &mut ls[j]);
                     continue;
                 }

@@ -225,7 +225,7 @@ impl SteerLanes {
         if p.ideal || twin.contains(&true) || !cs.iter().all(|c| holds(c)) || spec.attitude_ref_omega_rad_s <= 0.0 {
             return None;
         }
-        let lanes = |f: &dyn Fn(&CopterState) -> Real| F4::from_array(std::array::from_fn(|l| f(cs[l])));
+        let lanes = |f: &dyn Fn(&CopterState) -> Real| per_copter(cs, f);
         let axes = |f: &dyn Fn(&CopterState, usize) -> Real| std::array::from_fn(|k| lanes(&|c| f(c, k)));
         let max_tilt = spec.max_tilt_deg.to_radians();
         Some(Self {
@@ -474,7 +474,7 @@ fn rotors_and_battery(
     alpha: Real,
 ) -> ([Real; LANES], [Vec3; LANES]) {
     let spec = &af.spec.battery;
-    let lanes = |f: &dyn Fn(&CopterState) -> Real| F4::from_array(std::array::from_fn(|l| f(cs[l])));
+    let lanes = |f: &dyn Fn(&CopterState) -> Real| per_copter(cs, f);
     let scale = lanes(&|c| c.battery.speed_scale(spec));
     let zero = F4::splat(0.0);
     let mut omega = [zero; 4];
@@ -520,7 +520,7 @@ fn rotors_and_battery(
 /// `BatteryState::draw` on four lanes.
 #[inline(always)]
 fn battery_draw(spec: &crate::battery::BatterySpec, cs: &mut [&mut CopterState; LANES], power_w: F4, dt: Real) {
-    let lanes = |f: &dyn Fn(&CopterState) -> Real| F4::from_array(std::array::from_fn(|l| f(cs[l])));
+    let lanes = |f: &dyn Fn(&CopterState) -> Real| per_copter(cs, f);
     let charge = lanes(&|c| c.battery.charge);
     let e = lanes(&|c| spec.open_circuit_v(c.battery.charge));
     let zero = F4::splat(0.0);
@@ -533,6 +533,12 @@ fn battery_draw(spec: &crate::battery::BatterySpec, cs: &mut [&mut CopterState; 
     for (l, c) in cs.iter_mut().enumerate() {
         (c.battery.voltage_v, c.battery.current_a, c.battery.charge) = (v[l], i[l], charge[l]);
     }
+}
+
+/// One number of each of a batch's copters, as lanes.
+#[inline(always)]
+fn per_copter(cs: &[&mut CopterState; LANES], f: &dyn Fn(&CopterState) -> Real) -> F4 {
+    F4::from_array(std::array::from_fn(|l| f(cs[l])))
 }
 
 /// Each copter's IMU noise for one substep, drawn as `Estimate::ahrs` draws it: per axis, the
