@@ -527,15 +527,41 @@ impl CopterGrid {
     pub fn visit_near_over(
         &self,
         p: Vec3,
-        mut radius_m: Real,
+        radius_m: Real,
         wedge: Option<(&Wedge, Real)>,
-        mut visit: impl FnMut(usize) -> Real,
+        visit: impl FnMut(usize) -> Real,
     ) {
         if self.nx == 0 {
             return;
         }
+        let cells = self.cells_over(wedge, radius_m);
+        self.visit_rings(p, radius_m, cells, wedge, visit);
+    }
+
+    /// [`CopterGrid::visit_near`] of only the items whose centre may lie within the grid's
+    /// bounding radius of the floor rectangle `[x0, y0, x1, y1]`, in the same order otherwise.
+    pub fn visit_near_within(&self, p: Vec3, radius_m: Real, rect: [Real; 4], visit: impl FnMut(usize) -> Real) {
+        if self.nx == 0 {
+            return;
+        }
+        let m = self.max_radius_m + 1e-3;
+        let lo = self.cell_of(Vec3::new(rect[0] - m, rect[1] - m, 0.0));
+        let hi = self.cell_of(Vec3::new(rect[2] + m, rect[3] + m, 0.0));
+        let (nx, ny) = (self.nx as isize, self.ny as isize);
+        let cells = [lo.0.max(0), lo.1.max(0), hi.0.min(nx - 1), hi.1.min(ny - 1)];
+        self.visit_rings(p, radius_m, cells, None, visit);
+    }
+
+    /// The rings of [`CopterGrid::visit_near_over`] within the cells `[x0, y0, x1, y1]`.
+    fn visit_rings(
+        &self,
+        p: Vec3,
+        mut radius_m: Real,
+        [x0, y0, x1, y1]: [isize; 4],
+        wedge: Option<(&Wedge, Real)>,
+        mut visit: impl FnMut(usize) -> Real,
+    ) {
         let (cx, cy) = self.cell_of(p);
-        let [x0, y0, x1, y1] = self.cells_over(wedge, radius_m);
         let max_ring = self.nx.max(self.ny) as isize + 2;
         for r in 0..=max_ring {
             let ring_min = (r as Real - 1.0).max(0.0) * self.cell_m - self.max_radius_m;
@@ -691,15 +717,18 @@ impl SonarScene {
         let off = cones.iter().map(|c| (c.apex - origin).length()).fold(0.0, Real::max);
         let radius = |best: &[Real; 4]| best.iter().copied().fold(0.0, Real::max) + off;
         // One cone (the firmware's one sonar per tick) looks over a twelfth of the floor.
-        let one = (wanted.iter().filter(|w| **w).count() == 1).then(|| {
-            let cone = &cones[wanted.iter().position(|w| *w).unwrap_or(0)];
-            Wedge::of_cone(cone.apex, cone.axis, cone.sin_h)
-        });
+        let only = (wanted.iter().filter(|w| **w).count() == 1).then(|| wanted.iter().position(|w| *w).unwrap_or(0));
+        let one = only.map(|k| Wedge::of_cone(cones[k].apex, cones[k].axis, cones[k].sin_h));
         self.grid.visit_near_over(origin, radius(&best), one.as_ref().map(|w| (w, 1e-3)), |id| {
             if id == self_id {
                 return radius(&best);
             }
             let b = &self.copters[id];
+            // One cone: the tests from `origin` would only repeat `consider_box`'s own.
+            if let Some(k) = only {
+                consider_box(&cones[k], b, &mut best[k], &mut hit[k]);
+                return radius(&best);
+            }
             let r = b.bounding_radius();
             let d = b.center - origin;
             let l = d.length();
@@ -782,8 +811,12 @@ impl SonarScene {
         };
         if self.grid.built_for == self.copters.len() && !self.copters.is_empty() && best.is_finite() {
             // Only copters whose bounding sphere is within `best` of the origin can be hit:
-            // the grid visits exactly those rings (the minimum does not depend on the order).
-            self.grid.visit_near(origin, best, |id| {
+            // the grid visits exactly those rings (the minimum does not depend on the order),
+            // and of them only the cells near the ray's shadow on the floor up to `best` (a
+            // hit lies on it, and a box's centre within its bounding radius of the hit).
+            let end = origin + dir * best;
+            let shadow = [origin.x.min(end.x), origin.y.min(end.y), origin.x.max(end.x), origin.y.max(end.y)];
+            self.grid.visit_near_within(origin, best, shadow, |id| {
                 consider(id, &self.copters[id], &mut best);
                 best
             });

@@ -26,23 +26,29 @@ pub(super) fn run_ahead_batch(
     let alpha = pass.alpha(ids[0]);
     let mut f = FreeLanes::gather(&ls);
     let mut steering = SteerLanes::gather(af, &pass.inner, twin, &cs);
+    let ground_m = ls.each_ref().map(|l| l.ground_m);
+    let ground = GroundLanes::of(&ground_m);
     let mut n = 0;
     let mut ls = ls;
     let floor_near = loop {
         let rate_body = f.rot.inverse().rotate(f.angvel);
         let rpy = lanes::euler_from_quat(f.rot);
-        let [roll, pitch, yaw] = rpy.map(F4::to_array);
-        let (rots, rates) = (f.rot.lanes(), rate_body.lanes());
-        let (z, vz) = (f.pos.z.to_array(), f.vel.z.to_array());
-        let inputs: [InnerInput; LANES] = std::array::from_fn(|l| InnerInput {
-            rot: rots[l],
-            rpy: [roll[l], pitch[l], yaw[l]],
-            rate_body: rates[l],
-            z_m: z[l],
-            vz_m_s: vz[l],
-            ground_m: ls[l].ground_m,
-        });
-        let (thrust, torque) = inner_loops(pass, af, twin, &mut steering, &mut cs, &inputs, rpy, rate_body, alpha);
+        // Each copter's inputs, for the inner loops lanes do not compute.
+        let inputs = || {
+            let [roll, pitch, yaw] = rpy.map(F4::to_array);
+            let (rots, rates) = (f.rot.lanes(), rate_body.lanes());
+            let (z, vz) = (f.pos.z.to_array(), f.vel.z.to_array());
+            std::array::from_fn(|l| InnerInput {
+                rot: rots[l],
+                rpy: [roll[l], pitch[l], yaw[l]],
+                rate_body: rates[l],
+                z_m: z[l],
+                vz_m_s: vz[l],
+                ground_m: ground_m[l],
+            })
+        };
+        let at = Attitude { rot: f.rot, rpy, rate_body, z: f.pos.z };
+        let (thrust, torque) = inner_loops(pass, af, twin, &mut steering, &mut cs, inputs, &at, &ground, alpha);
         let vel_before = f.vel;
         f.integrate(af, rate_body, F4::from_array(thrust), V4::gather(torque), dt);
         n += 1;
@@ -71,7 +77,36 @@ pub(super) fn run_ahead_batch(
     }
 }
 
-/// The inner loops of a batch's four copters: on lanes where they can be, else one by one.
+/// What the inner loops read of a batch's motion in a substep, one copter per lane.
+struct Attitude {
+    rot: Q4,
+    /// Euler angles ([`lanes::euler_from_quat`]).
+    rpy: [F4; 3],
+    /// Angular velocity in the body frame, rad/s.
+    rate_body: V4,
+    /// Height of the centre of mass, m.
+    z: F4,
+}
+
+/// The ground under a batch's rotors (`Lane::ground_m`), which stays for the batch.
+struct GroundLanes {
+    /// Under rotor `r`, one copter per lane, m.
+    below: [F4; 4],
+    /// The highest of the four (at least 0), m.
+    highest: F4,
+}
+
+impl GroundLanes {
+    fn of(ground_m: &[[Real; 4]; LANES]) -> Self {
+        Self {
+            below: std::array::from_fn(|r| F4::from_array(ground_m.map(|g| g[r]))),
+            highest: F4::from_array(ground_m.map(|g| g.iter().copied().fold(0.0, Real::max))),
+        }
+    }
+}
+
+/// The inner loops of a batch's four copters: on lanes where they can be, else one by one
+/// (on `inputs`).
 #[allow(clippy::too_many_arguments)]
 #[inline(always)]
 fn inner_loops(
@@ -80,22 +115,24 @@ fn inner_loops(
     twin: [bool; LANES],
     steering: &mut Option<SteerLanes>,
     cs: &mut [&mut CopterState; LANES],
-    inputs: &[InnerInput; LANES],
-    rpy: [F4; 3],
-    rate_body: V4,
+    inputs: impl Fn() -> [InnerInput; LANES],
+    at: &Attitude,
+    ground: &GroundLanes,
     alpha: Real,
 ) -> ([Real; LANES], [Vec3; LANES]) {
     let (p, dt) = (&pass.inner, pass.dt);
     let Some(steering) = steering else {
+        let inputs = inputs();
         let each: [(Real, Vec3); LANES] =
             std::array::from_fn(|l| inner_loop(af, p, twin[l], cs[l], &inputs[l], dt, alpha));
         return (each.map(|e| e.0), each.map(|e| e.1));
     };
     let noise = p.noise.then(|| imu_draws(cs));
-    let (collective, torque) = steering.step(af, p, rpy, rate_body, noise, dt);
-    if let Some(done) = drive_lanes(af, p, cs, inputs, collective, torque, dt, alpha) {
+    let (collective, torque) = steering.step(af, p, at.rpy, at.rate_body, noise, dt);
+    if let Some(done) = drive_lanes(af, p, cs, at, ground, collective, torque, dt, alpha) {
         return done;
     }
+    let inputs = inputs();
     let (collective, torque) = (collective.to_array(), torque.lanes());
     let each: [(Real, Vec3); LANES] =
         std::array::from_fn(|l| drive(af, p, twin[l], cs[l], &inputs[l], collective[l], torque[l], dt, alpha));
@@ -225,32 +262,32 @@ impl SteerLanes {
         if p.ideal || twin.contains(&true) || !cs.iter().all(|c| holds(c)) || spec.attitude_ref_omega_rad_s <= 0.0 {
             return None;
         }
-        let lanes = |f: &dyn Fn(&CopterState) -> Real| per_copter(cs, f);
-        let axes = |f: &dyn Fn(&CopterState, usize) -> Real| std::array::from_fn(|k| lanes(&|c| f(c, k)));
+        let lanes = |f: fn(&CopterState) -> Real| per_copter(cs, f);
+        let axes = |f: fn(&CopterState, usize) -> Real| std::array::from_fn(|k| per_copter(cs, |c| f(c, k)));
         let max_tilt = spec.max_tilt_deg.to_radians();
         Some(Self {
-            attitude_bias: [lanes(&|c| c.estimate.attitude_bias_rad[0]), lanes(&|c| c.estimate.attitude_bias_rad[1])],
-            mount_offset: [lanes(&|c| c.estimate.mount_offset_rad[0]), lanes(&|c| c.estimate.mount_offset_rad[1])],
-            yaw_bias: lanes(&|c| c.yaw_bias_rad),
-            gyro_bias: axes(&|c, k| c.estimate.gyro_bias_rad_s[k]),
-            attitude_lag: axes(&|c, k| c.estimate.attitude_lag_rad[k]),
-            rate_lag: axes(&|c, k| c.estimate.rate_lag_rad_s[k]),
-            attitude: axes(&|c, k| c.estimate.attitude_rad[k]),
-            rate: axes(&|c, k| c.estimate.rate_rad_s[k]),
-            height: lanes(&|c| c.estimate.height_m),
-            vz: lanes(&|c| c.estimate.vz_m_s),
-            height_integral: lanes(&|c| c.estimate.height_integral_n),
-            thrust_gain: lanes(&|c| c.estimate.thrust_gain),
-            collective_sum: lanes(&|c| c.estimate.collective_sum_n),
-            integral: axes(&|c, k| c.pids[k].integral),
-            last_error: axes(&|c, k| c.pids[k].last_error),
-            reference: axes(&|c, k| c.pids[k].reference_rad),
-            reference_rate: axes(&|c, k| c.pids[k].reference_rate_rad_s),
-            roll_target: lanes(&|c| c.setpoint.roll_rad.clamp(-max_tilt, max_tilt)),
-            pitch_target: lanes(&|c| c.setpoint.pitch_rad.clamp(-max_tilt, max_tilt)),
-            yaw_setpoint: lanes(&|c| c.setpoint.yaw_rad),
-            height_setpoint: lanes(&|c| c.setpoint.height_m),
-            trim: [lanes(&|c| c.trim_torque_n_m[0]), lanes(&|c| c.trim_torque_n_m[1])],
+            attitude_bias: [lanes(|c| c.estimate.attitude_bias_rad[0]), lanes(|c| c.estimate.attitude_bias_rad[1])],
+            mount_offset: [lanes(|c| c.estimate.mount_offset_rad[0]), lanes(|c| c.estimate.mount_offset_rad[1])],
+            yaw_bias: lanes(|c| c.yaw_bias_rad),
+            gyro_bias: axes(|c, k| c.estimate.gyro_bias_rad_s[k]),
+            attitude_lag: axes(|c, k| c.estimate.attitude_lag_rad[k]),
+            rate_lag: axes(|c, k| c.estimate.rate_lag_rad_s[k]),
+            attitude: axes(|c, k| c.estimate.attitude_rad[k]),
+            rate: axes(|c, k| c.estimate.rate_rad_s[k]),
+            height: lanes(|c| c.estimate.height_m),
+            vz: lanes(|c| c.estimate.vz_m_s),
+            height_integral: lanes(|c| c.estimate.height_integral_n),
+            thrust_gain: lanes(|c| c.estimate.thrust_gain),
+            collective_sum: lanes(|c| c.estimate.collective_sum_n),
+            integral: axes(|c, k| c.pids[k].integral),
+            last_error: axes(|c, k| c.pids[k].last_error),
+            reference: axes(|c, k| c.pids[k].reference_rad),
+            reference_rate: axes(|c, k| c.pids[k].reference_rate_rad_s),
+            roll_target: per_copter(cs, |c| c.setpoint.roll_rad.clamp(-max_tilt, max_tilt)),
+            pitch_target: per_copter(cs, |c| c.setpoint.pitch_rad.clamp(-max_tilt, max_tilt)),
+            yaw_setpoint: lanes(|c| c.setpoint.yaw_rad),
+            height_setpoint: lanes(|c| c.setpoint.height_m),
+            trim: [lanes(|c| c.trim_torque_n_m[0]), lanes(|c| c.trim_torque_n_m[1])],
         })
     }
 
@@ -376,7 +413,8 @@ fn drive_lanes(
     af: &Airframe,
     p: &InnerParams,
     cs: &mut [&mut CopterState; LANES],
-    inputs: &[InnerInput; LANES],
+    at: &Attitude,
+    ground: &GroundLanes,
     collective: F4,
     torque: V4,
     dt: Real,
@@ -388,32 +426,25 @@ fn drive_lanes(
         return None;
     }
     let wanted = mix_lanes(af, collective, torque)?;
-    let ground = ground_effect_lanes(af, p, inputs);
+    let ground = ground_effect_lanes(af, p, at, ground);
     Some(rotors_and_battery(af, cs, wanted, ground, dt, alpha))
 }
 
 /// The ground effect's factor on each rotor's thrust of four copters, as [`drive`] finds it.
 #[inline(always)]
-fn ground_effect_lanes(af: &Airframe, p: &InnerParams, inputs: &[InnerInput; LANES]) -> [F4; 4] {
+fn ground_effect_lanes(af: &Airframe, p: &InnerParams, at: &Attitude, ground: &GroundLanes) -> [F4; 4] {
     let one = F4::splat(1.0);
     let radius = 0.5 * af.spec.rotor_diameter_m;
-    let near: [bool; LANES] = std::array::from_fn(|l| {
-        let m = &inputs[l];
-        let lowest = m.z_m - af.reach_bound_m - m.ground_m.iter().copied().fold(0.0, Real::max);
-        p.ground_effect && lowest < GROUND_EFFECT_RADII * radius + 1e-3
-    });
-    if !near.contains(&true) {
+    let lowest = at.z - F4::splat(af.reach_bound_m) - ground.highest;
+    let near = lowest.lt(F4::splat(GROUND_EFFECT_RADII * radius + 1e-3));
+    if !p.ground_effect || !near.any() {
         return [one; 4];
     }
-    let near = M4(F4::from_array(near.map(|n| if n { Real::from_bits(u32::MAX) } else { 0.0 })).0);
     let cut_off = GROUND_EFFECT_RADII * radius;
     let at_cut_off = ground_effect_ratio(radius, cut_off, p.ground_effect_min_radii);
-    let rot = Q4::gather(inputs.map(|m| m.rot));
-    let z = F4::from_array(inputs.map(|m| m.z_m));
     let min_z = F4::splat(p.ground_effect_min_radii * radius);
     std::array::from_fn(|r| {
-        let below = F4::from_array(inputs.map(|m| m.ground_m[r]));
-        let height = z + rot.rotate(V4::splat(af.rotor_pos_in_body_m[r])).z - below;
+        let height = at.z + at.rot.rotate(V4::splat(af.rotor_pos_in_body_m[r])).z - ground.below[r];
         // `airflow::ground_effect_ratio`.
         let q = radius / (4.0 * height.max(min_z));
         let g = 1.0 + 1.0 / (1.0 - q * q) - at_cut_off;
@@ -474,8 +505,7 @@ fn rotors_and_battery(
     alpha: Real,
 ) -> ([Real; LANES], [Vec3; LANES]) {
     let spec = &af.spec.battery;
-    let lanes = |f: &dyn Fn(&CopterState) -> Real| per_copter(cs, f);
-    let scale = lanes(&|c| c.battery.speed_scale(spec));
+    let scale = per_copter(cs, |c| c.battery.speed_scale(spec));
     let zero = F4::splat(0.0);
     let mut omega = [zero; 4];
     let mut lambda = [zero; 4];
@@ -483,9 +513,9 @@ fn rotors_and_battery(
     let mut yaw = zero;
     for r in 0..4 {
         let omega_cmd = (wanted[r].max(zero) / af.k_n_s2).sqrt().min(F4::splat(af.omega_max_rad_s)) * scale;
-        let speed = lanes(&|c| c.rotor_speed_rad_s[r]);
+        let speed = per_copter(cs, |c| c.rotor_speed_rad_s[r]);
         omega[r] = speed + alpha * (omega_cmd - speed);
-        let tol = lanes(&|c| c.rotor_tolerance[r]);
+        let tol = per_copter(cs, |c| c.rotor_tolerance[r]);
         mean[r] = tol * (af.k_n_s2 * omega[r] * omega[r]) * ground[r];
         lambda[r] = af.particle_rate_per_v_final_per_m * af.v_final_per_omega_m * omega[r] * dt;
         yaw = yaw + ROTOR_YAW_SIGN[r] * tol * af.d_n_m_s2 * omega[r] * omega[r];
@@ -520,9 +550,8 @@ fn rotors_and_battery(
 /// `BatteryState::draw` on four lanes.
 #[inline(always)]
 fn battery_draw(spec: &crate::battery::BatterySpec, cs: &mut [&mut CopterState; LANES], power_w: F4, dt: Real) {
-    let lanes = |f: &dyn Fn(&CopterState) -> Real| per_copter(cs, f);
-    let charge = lanes(&|c| c.battery.charge);
-    let e = lanes(&|c| spec.open_circuit_v(c.battery.charge));
+    let charge = per_copter(cs, |c| c.battery.charge);
+    let e = per_copter(cs, |c| spec.open_circuit_v(c.battery.charge));
     let zero = F4::splat(0.0);
     let power = power_w.max(zero);
     let disc = e * e - 4.0 * power * spec.internal_resistance_ohm;
@@ -537,7 +566,7 @@ fn battery_draw(spec: &crate::battery::BatterySpec, cs: &mut [&mut CopterState; 
 
 /// One number of each of a batch's copters, as lanes.
 #[inline(always)]
-fn per_copter(cs: &[&mut CopterState; LANES], f: &dyn Fn(&CopterState) -> Real) -> F4 {
+fn per_copter(cs: &[&mut CopterState; LANES], f: impl Fn(&CopterState) -> Real) -> F4 {
     F4::from_array(std::array::from_fn(|l| f(cs[l])))
 }
 
