@@ -597,14 +597,16 @@ impl CopterGrid {
         };
         let (w, grow) = wedge;
         let reach = self.max_radius_m + grow;
-        // Columns by a multiplication, a millimetre wide of the cells' rounding.
+        // Columns by a multiplication: a millimetre and a thousandth of a cell wider than
+        // `x_range`, which covers the rounding of the multiplication and of `cell_of`'s division.
         let per_m = 1.0 / self.cell_m;
+        let pad = 1e-3 + 1e-3 * self.cell_m;
         let column = |x: Real| ((x - self.min[0]) * per_m).clamp(-1.0, self.nx as Real) as isize;
         for iy in y0..=y1 {
             // The row's cells whose items may lie over the wedge.
             let row = |i: isize| self.min[1] + i as Real * self.cell_m;
             let (a, b) = w.x_range(row(iy) - 1e-3, row(iy + 1) + 1e-3, reach);
-            let (a, b) = (column(a - 1e-3 - self.cell_m), column(b + 1e-3));
+            let (a, b) = (column(a - pad), column(b + pad));
             for ix in a.max(x0)..=b.min(x1) {
                 self.visit_cell(ix, iy, Some(wedge), &mut visit);
             }

@@ -1743,7 +1743,7 @@ fn crosstalk(world: &World, state: &mut State, p: &SenseParams, parallel: bool) 
     let grow = crosstalk_growth(params.sonar_half_angle_rad, slack);
     // What listener `b`'s sonar `k` reads of each of emitter `a`'s pings it hears. The tests
     // are those of a visit of the pair from its lower id: the same bits whichever listens.
-    let listen = |b: usize, k: usize, a: usize, hear: &mut dyn FnMut(Real)| {
+    let listen = |b: usize, k: usize, a: usize, readings: &mut sensors::SensorReadings| {
         let (lo, hi) = if b < a { (b, a) } else { (a, b) };
         let d_c = pingers[lo].pos_m - pingers[hi].pos_m;
         let dist_c = d_c.length();
@@ -1762,7 +1762,7 @@ fn crosstalk(world: &World, state: &mut State, p: &SenseParams, parallel: bool) 
             let (cone_hi, cone_lo) = if a == hi { (mouth, ear) } else { (ear, mouth) };
             let Some(d) = crosstalk_eligible(cone_hi, cone_lo, sonar.max_range_m) else { continue };
             if let Some(q) = heard_reading(listener, k, emitter, j, d, now_s, stagger, sonar, ct.speed_of_sound_m_s) {
-                hear(q);
+                lower_reading(readings, k, q);
             }
         }
     };
@@ -1776,7 +1776,7 @@ fn crosstalk(world: &World, state: &mut State, p: &SenseParams, parallel: bool) 
             let wedge = Wedge::of_cone(me.pos_m, me.cones[k].axis, sin_h);
             grid.visit_over(me.pos_m, reach, (&wedge, grow), |a| {
                 if a != b {
-                    listen(b, k, a, &mut |q| lower_reading(&mut c.sensors, k, q));
+                    listen(b, k, a, &mut c.sensors);
                 }
             });
         }

@@ -28,6 +28,7 @@ pub(super) fn run_ahead_batch(
     let mut steering = SteerLanes::gather(af, &pass.inner, twin, &cs);
     let ground_m = ls.each_ref().map(|l| l.ground_m);
     let ground = GroundLanes::of(&ground_m);
+    let bounds = ActBounds::of(af, pass.cos_tilt, &ls);
     let mut n = 0;
     let mut ls = ls;
     let floor_near = loop {
@@ -50,14 +51,14 @@ pub(super) fn run_ahead_batch(
         let at = Attitude { rot: f.rot, rpy, rate_body, z: f.pos.z };
         let (thrust, torque) = inner_loops(pass, af, twin, &mut steering, &mut cs, inputs, &at, &ground, alpha);
         let vel_before = f.vel;
-        f.integrate(af, rate_body, F4::from_array(thrust), V4::gather(torque), dt);
+        f.integrate(af, rate_body, thrust, torque, dt);
         n += 1;
         // Higher than any collider reaches, it cannot touch the floor.
         let floor_near = f.pos.z.gt(F4::splat(af.reach_bound_m)).not();
         if floor_near.any() {
             break Some((floor_near, vel_before));
         }
-        if n == world.params.substeps || f.may_act(af, pass.cos_tilt, &ls) {
+        if n == world.params.substeps || f.may_act(&bounds) {
             break None;
         }
     };
@@ -119,13 +120,12 @@ fn inner_loops(
     at: &Attitude,
     ground: &GroundLanes,
     alpha: Real,
-) -> ([Real; LANES], [Vec3; LANES]) {
+) -> (F4, V4) {
     let (p, dt) = (&pass.inner, pass.dt);
+    let lanes = |each: [(Real, Vec3); LANES]| (F4::from_array(each.map(|e| e.0)), V4::gather(each.map(|e| e.1)));
     let Some(steering) = steering else {
         let inputs = inputs();
-        let each: [(Real, Vec3); LANES] =
-            std::array::from_fn(|l| inner_loop(af, p, twin[l], cs[l], &inputs[l], dt, alpha));
-        return (each.map(|e| e.0), each.map(|e| e.1));
+        return lanes(std::array::from_fn(|l| inner_loop(af, p, twin[l], cs[l], &inputs[l], dt, alpha)));
     };
     let noise = p.noise.then(|| imu_draws(cs));
     let (collective, torque) = steering.step(af, p, at.rpy, at.rate_body, noise, dt);
@@ -134,9 +134,7 @@ fn inner_loops(
     }
     let inputs = inputs();
     let (collective, torque) = (collective.to_array(), torque.lanes());
-    let each: [(Real, Vec3); LANES] =
-        std::array::from_fn(|l| drive(af, p, twin[l], cs[l], &inputs[l], collective[l], torque[l], dt, alpha));
-    (each.map(|e| e.0), each.map(|e| e.1))
+    lanes(std::array::from_fn(|l| drive(af, p, twin[l], cs[l], &inputs[l], collective[l], torque[l], dt, alpha)))
 }
 
 /// The motion of a batch of free copters, one per lane.
@@ -205,19 +203,41 @@ impl FreeLanes {
 
     /// Whether [`may_act`] holds for any lane.
     #[inline(always)]
-    fn may_act(&self, af: &Airframe, crash_cos_tilt: &[Real], ls: &[&mut Lane; LANES]) -> bool {
+    fn may_act(&self, b: &ActBounds) -> bool {
         let zero = F4::splat(0.0);
         let up = self.rot.rotate(V4::new(zero, zero, F4::splat(1.0))).z.clamp(-1.0, 1.0);
-        let offset = self.pos - V4::gather(std::array::from_fn(|l| ls[l].anchor_m));
-        let (up, moved) = (up.to_array(), offset.dot(offset).sqrt().to_array());
-        let (z, takeoff_m) = (self.pos.z.to_array(), af.rest_height_m + TAKEOFF_MARGIN_M);
-        (0..LANES).any(|l| {
-            let lane = &ls[l];
-            lane.flying
-                && (up[l] < crash_cos_tilt[lane.airframe as usize]
-                    || (lane.free && (lane.floor_impact_m_s > 0.0 || moved[l] > lane.reach_m))
-                    || (lane.awaiting_takeoff && z[l] > takeoff_m))
-        })
+        let offset = self.pos - b.anchor;
+        let moved = offset.dot(offset).sqrt();
+        b.now || up.lt(b.least_up).or(moved.gt(b.most_moved)).or(self.pos.z.gt(b.highest)).any()
+    }
+}
+
+/// [`may_act`]'s bounds for a batch's copters, one per lane: what it reads of a lane other
+/// than its motion stays for the batch. A bound a lane cannot cross is infinite (comparisons
+/// with a NaN are false, as in the scalar test).
+struct ActBounds {
+    /// Some lane may act at once (flying free after a floor impact).
+    now: bool,
+    /// The least `z` of the body's up axis (flying: the crash tilt's cosine).
+    least_up: F4,
+    /// The farthest the copter may move from its anchor (flying free: its reach), m.
+    most_moved: F4,
+    anchor: V4,
+    /// The height of a take-off (flying, awaiting one), m.
+    highest: F4,
+}
+
+impl ActBounds {
+    fn of(af: &Airframe, crash_cos_tilt: &[Real], ls: &[&mut Lane; LANES]) -> Self {
+        let each = |f: &dyn Fn(&Lane) -> Real| F4::from_array(std::array::from_fn(|l| f(ls[l])));
+        let takeoff_m = af.rest_height_m + TAKEOFF_MARGIN_M;
+        Self {
+            now: ls.iter().any(|l| l.flying && l.free && l.floor_impact_m_s > 0.0),
+            least_up: each(&|l| if l.flying { crash_cos_tilt[l.airframe as usize] } else { Real::NEG_INFINITY }),
+            most_moved: each(&|l| if l.flying && l.free { l.reach_m } else { Real::INFINITY }),
+            anchor: V4::gather(std::array::from_fn(|l| ls[l].anchor_m)),
+            highest: each(&|l| if l.flying && l.awaiting_takeoff { takeoff_m } else { Real::INFINITY }),
+        }
     }
 }
 
@@ -419,7 +439,7 @@ fn drive_lanes(
     torque: V4,
     dt: Real,
     alpha: Real,
-) -> Option<([Real; LANES], [Vec3; LANES])> {
+) -> Option<(F4, V4)> {
     // Ground effect's `max` meets a zero only with a zero floor on its height.
     let min_height = p.ground_effect_min_radii * 0.5 * af.spec.rotor_diameter_m;
     if af.spec.particle_noise == ParticleNoise::Poisson || min_height.is_nan() || min_height <= 0.0 {
@@ -503,7 +523,7 @@ fn rotors_and_battery(
     ground: [F4; 4],
     dt: Real,
     alpha: Real,
-) -> ([Real; LANES], [Vec3; LANES]) {
+) -> (F4, V4) {
     let spec = &af.spec.battery;
     let scale = per_copter(cs, |c| c.battery.speed_scale(spec));
     let zero = F4::splat(0.0);
@@ -544,7 +564,7 @@ fn rotors_and_battery(
         torque_body = torque_body + V4::splat(arm).cross(V4::new(zero, zero, f));
     }
     battery_draw(spec, cs, induced / af.sqrt_2_rho_a / spec.efficiency, dt);
-    (total.to_array(), torque_body.lanes())
+    (total, torque_body)
 }
 
 /// `BatteryState::draw` on four lanes.
