@@ -544,11 +544,7 @@ impl CopterGrid {
         if self.nx == 0 {
             return;
         }
-        let m = self.max_radius_m + 1e-3;
-        let lo = self.cell_of(Vec3::new(rect[0] - m, rect[1] - m, 0.0));
-        let hi = self.cell_of(Vec3::new(rect[2] + m, rect[3] + m, 0.0));
-        let (nx, ny) = (self.nx as isize, self.ny as isize);
-        let cells = [lo.0.max(0), lo.1.max(0), hi.0.min(nx - 1), hi.1.min(ny - 1)];
+        let cells = self.cells_in(rect, self.max_radius_m + 1e-3);
         self.visit_rings(p, radius_m, cells, None, visit);
     }
 
@@ -620,7 +616,13 @@ impl CopterGrid {
         let (nx, ny) = (self.nx as isize, self.ny as isize);
         let Some((w, grow)) = wedge else { return [0, 0, nx - 1, ny - 1] };
         let m = grow + self.max_radius_m + self.cell_m;
-        let [a, b, c, d] = w.bounds(radius_m + m);
+        self.cells_in(w.bounds(radius_m + m), m)
+    }
+
+    /// The range of cells `[x0, y0, x1, y1]` (inclusive, within the grid) over the floor
+    /// rectangle `[x0, y0, x1, y1]` grown by `m` on every side.
+    fn cells_in(&self, [a, b, c, d]: [Real; 4], m: Real) -> [isize; 4] {
+        let (nx, ny) = (self.nx as isize, self.ny as isize);
         let (lo, hi) = (self.cell_of(Vec3::new(a - m, b - m, 0.0)), self.cell_of(Vec3::new(c + m, d + m, 0.0)));
         [lo.0.max(0), lo.1.max(0), hi.0.min(nx - 1), hi.1.min(ny - 1)]
     }
