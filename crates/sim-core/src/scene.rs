@@ -933,6 +933,34 @@ pub fn dense_swarm(n: usize, spacing_m: Real, takeoff: bool, n_boxes: usize, see
     spec
 }
 
+/// [`dense_swarm`]'s take-off (1.5 m grid) among ten boxes of several sizes, heights and yaws
+/// placed from `seed` instead of its pillars; copters that would start on or beside a box are
+/// left out. The sharding checks' scene with boxes (`examples/shard_bits`, `tests/shard.rs`).
+pub fn boxes_swarm(n: usize, seed: u64) -> SceneSpec {
+    let mut spec = dense_swarm(n, 1.5, true, 0, seed);
+    spec.name = "boxes_swarm".into();
+    let [w, d] = spec.arena.size_m;
+    let mut rng = crate::rng::Rng32::new(seed, 7);
+    spec.boxes = (0..10)
+        .map(|k| BoxSpec {
+            name: Some(format!("box{k}")),
+            pos_m: [(rng.uniform() - 0.5) * (w - 4.0), (rng.uniform() - 0.5) * (d - 4.0)],
+            z_m: 0.0,
+            size_m: [0.2 + 1.3 * rng.uniform(), 0.2 + 0.8 * rng.uniform(), 0.3 + 2.0 * rng.uniform()],
+            yaw_deg: 90.0 * rng.uniform(),
+            virtual_only: false,
+        })
+        .collect();
+    let boxes = spec.boxes.clone();
+    spec.copters.retain(|c| {
+        boxes.iter().all(|b| {
+            let r = 0.5 * b.size_m[0].hypot(b.size_m[1]) + 0.4;
+            (c.start.pos_m[0] - b.pos_m[0]).hypot(c.start.pos_m[1] - b.pos_m[1]) > r
+        })
+    });
+    spec
+}
+
 /// A flock crossing the hall: `n` copters on a 4 m grid in the air, all heading +x at
 /// 0.3 m/s (Wall-Avoid at 1 m), starting 10 m left of centre in a hall 42 m wider and 22 m
 /// deeper than the grid's [`dense_swarm`] arena. Over a minute the flock drifts about 18 m across

@@ -15,7 +15,11 @@
 //! [`crate::step`] once the reservations are known:
 //! 1. a copter's *home* is the region holding its centre at the start of the step;
 //! 2. copters whose reservation spheres meet (the only ones that can touch each other within
-//!    the step) form contact clusters; a cluster belongs to the home of its lowest id. So
+//!    the step) form contact clusters; a cluster belongs to the home of its lowest id, unless
+//!    Rapier carries one of its copters over from the last step ([`Ghost::held_by`]: near a
+//!    box or a wall, or on watch beside another copter, and within [`HELD_ZONE_M`] of its
+//!    holder's region): then to the shard whose Rapier world holds the lowest such copter,
+//!    since Rapier's contact memory does not travel with a ghost. So
 //!    two copters that may collide across a border are stepped by one shard, the lower id's,
 //!    and a copter migrates simply by being owned by another shard at the next step (its
 //!    whole state, random stream, controllers, estimator and battery included, is already
@@ -48,6 +52,11 @@ pub type ShardId = u16;
 /// How far from its region a copter may be owned by a shard (contact clusters pulled across
 /// a border), m. Larger clusters are violations.
 pub const PULL_ZONE_M: Real = 3.0;
+
+/// How far from the region of the shard whose Rapier world holds it a copter stays with that
+/// shard ([`Ghost::held_by`]), m: a cluster kept there must stay inside the pull zone, with a
+/// reservation sphere's reach to spare.
+pub const HELD_ZONE_M: Real = PULL_ZONE_M - 1.0;
 
 /// Beyond this distance from a region, a neighbour's copter is sent and held as [`Role::Far`]:
 /// the pull zone plus two reservation spheres (no copter this shard may own can meet it).
@@ -233,6 +242,11 @@ pub struct Ghost {
     pub id: u32,
     /// Whether Rapier had it asleep (a wreck at rest).
     pub asleep: bool,
+    /// The sender, if its Rapier world moved this copter in the last step (a flying copter
+    /// near a box, a wall or another copter; a wreck with `closed_form = false`): Rapier's
+    /// contact memory does not travel, so while Rapier keeps it the copter stays with that
+    /// shard (see [`crate::step`]'s ownership).
+    pub held_by: Option<ShardId>,
     /// Its whole state (near the receiver's region) or what others read of it (farther).
     pub state: GhostState,
 }
@@ -274,6 +288,11 @@ pub struct ShardView {
     pub roles: Vec<Role>,
     /// Whether Rapier had each ghost asleep at its owner.
     pub(crate) asleep: Vec<bool>,
+    /// Per copter: the shard whose Rapier world moved it in the last step, if one did
+    /// ([`Ghost::held_by`]; for this shard's own copters, set when ownership is decided).
+    pub(crate) held_by: Vec<Option<ShardId>>,
+    /// Per cluster root: the shard holding its lowest held copter, reused.
+    pub(crate) claim: Vec<Option<ShardId>>,
     /// Contact-cluster roots (union-find), reused.
     pub(crate) parent: Vec<u32>,
     /// Per cluster root: whether this shard had or takes one of its copters, reused.
@@ -281,7 +300,7 @@ pub struct ShardView {
 }
 
 /// What a snapshot keeps of a [`ShardView`] (it is not part of a serialised [`State`]): the
-/// roles after the last step and the sleep flags of the last ghosts. The partition is not
+/// roles after the last step, the sleep flags and holders of the last ghosts. The partition is not
 /// kept: it follows from the scene and the shard count.
 #[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
 pub struct ShardSnapshot {
@@ -293,6 +312,22 @@ pub struct ShardSnapshot {
     pub roles: Vec<Role>,
     /// Whether Rapier had each ghost asleep at its owner.
     pub asleep: Vec<bool>,
+    /// The shard whose Rapier world held each ghost ([`Ghost::held_by`]).
+    pub held_by: Vec<Option<ShardId>>,
+}
+
+impl ShardView {
+    fn new(me: ShardId, partition: Partition, roles: Vec<Role>, asleep: Vec<bool>, held: Vec<Option<ShardId>>) -> Self {
+        let (parent, related, claim) = (Vec::new(), Vec::new(), Vec::new());
+        Self { me, partition, roles, asleep, held_by: held, claim, parent, related }
+    }
+}
+
+/// Whether a shard's Rapier world carries `body` over from its last step: enabled and moving
+/// (a flying copter near something, or a wreck with `closed_form = false`), not a disabled
+/// free flyer's or a closed-form wreck's fixed body.
+pub(crate) fn held_in_rapier(body: &rapier3d::dynamics::RigidBody) -> bool {
+    body.is_enabled() && body.is_dynamic()
 }
 
 impl State {
@@ -311,8 +346,7 @@ impl State {
             .map(|c| if partition.region_of(c.motion.pos_m) == me { Role::Owned } else { Role::Ghost })
             .collect();
         let n = self.copters.len();
-        self.shard =
-            Some(ShardView { me, partition, roles, asleep: vec![false; n], parent: Vec::new(), related: Vec::new() });
+        self.shard = Some(ShardView::new(me, partition, roles, vec![false; n], vec![None; n]));
         Ok(())
     }
 
@@ -320,7 +354,8 @@ impl State {
     pub fn shard_snapshot(&self) -> Option<ShardSnapshot> {
         let v = self.shard.as_ref()?;
         let shards = v.partition.shards() as u16;
-        Some(ShardSnapshot { me: v.me, shards, roles: v.roles.clone(), asleep: v.asleep.clone() })
+        let (roles, asleep, held_by) = (v.roles.clone(), v.asleep.clone(), v.held_by.clone());
+        Some(ShardSnapshot { me: v.me, shards, roles, asleep, held_by })
     }
 
     /// Makes a restored state the shard it was: `partition` must be the split it was made
@@ -331,11 +366,12 @@ impl State {
             return Err(ShardError::Id { shard: usize::from(snap.me), shards });
         }
         let n = self.copters.len();
-        if snap.roles.len() != n || snap.asleep.len() != n {
-            return Err(ShardError::Unknown { copter: snap.roles.len().max(snap.asleep.len()), copters: n });
+        if snap.roles.len() != n || snap.asleep.len() != n || snap.held_by.len() != n {
+            let copter = snap.roles.len().max(snap.asleep.len()).max(snap.held_by.len());
+            return Err(ShardError::Unknown { copter, copters: n });
         }
-        let ShardSnapshot { me, roles, asleep, .. } = snap;
-        self.shard = Some(ShardView { me, partition, roles, asleep, parent: Vec::new(), related: Vec::new() });
+        let ShardSnapshot { me, roles, asleep, held_by, .. } = snap;
+        self.shard = Some(ShardView::new(me, partition, roles, asleep, held_by));
         Ok(())
     }
 
@@ -357,8 +393,10 @@ impl State {
             if d > view.partition.halo_m {
                 continue;
             }
+            let body = self.physics.bodies.get(c.body);
             // With `closed_form = false`: a sleeping wreck is a sleeping one to its next owner.
-            let asleep = self.physics.bodies.get(c.body).is_some_and(|b| b.is_sleeping() || b.is_fixed());
+            let asleep = body.is_some_and(|b| b.is_sleeping() || b.is_fixed());
+            let held_by = body.is_some_and(held_in_rapier).then_some(view.me);
             let state = if d <= FAR_BEYOND_M {
                 GhostState::Full(Box::new(c.clone()))
             } else {
@@ -370,7 +408,7 @@ impl State {
                     sonar_cycle_s: c.sonar_cycle_s,
                 })
             };
-            out.push(Ghost { id: i as u32, asleep, state });
+            out.push(Ghost { id: i as u32, asleep, held_by, state });
         }
     }
 
@@ -380,9 +418,9 @@ impl State {
         let tick = self.tick;
         let n = self.copters.len();
         let Some(view) = &mut self.shard else { return Ok(()) };
-        for role in &mut view.roles {
+        for (role, held_by) in view.roles.iter_mut().zip(&mut view.held_by) {
             if matches!(*role, Role::Ghost | Role::Far) {
-                *role = Role::Absent;
+                (*role, *held_by) = (Role::Absent, None);
             }
         }
         for g in ghosts {
@@ -396,7 +434,7 @@ impl State {
             if view.roles[id] == Role::Owned {
                 return Err(ShardError::Duplicate { copter: id, tick });
             }
-            view.asleep[id] = g.asleep;
+            (view.asleep[id], view.held_by[id]) = (g.asleep, g.held_by);
             let c = &mut self.copters[id];
             match g.state {
                 GhostState::Full(state) => {

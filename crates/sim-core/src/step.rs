@@ -715,7 +715,9 @@ fn enable_rapier_bodies(world: &World, state: &mut State, view: &Option<ShardVie
 }
 
 /// A shard's ownership for this step (see [`crate::shard`]): copters whose reservations
-/// meet form contact clusters, and a cluster belongs to the home region of its lowest id.
+/// meet form contact clusters, and a cluster belongs to the home region of its lowest id,
+/// unless Rapier carries one of its copters over from the last step: then it stays with the
+/// shard whose Rapier world holds the lowest such copter ([`held_clusters`]).
 /// Counts the violations: a cluster this shard had or takes a copter of, with a member
 /// beyond the pull zone (its view of that cluster may be incomplete).
 fn take_ownership(state: &mut State, view: &mut ShardView) -> u32 {
@@ -736,13 +738,15 @@ fn take_ownership(state: &mut State, view: &mut ShardView) -> u32 {
             r
         });
     }
+    held_clusters(state, view);
+    let scratch = &state.scratch;
     let (me, part) = (view.me, &view.partition);
-    let related = &mut view.related;
+    let (parent, related) = (&mut view.parent, &mut view.related);
     related.clear();
     related.resize(n, false);
     for &i in &scratch.present {
         let home = root(parent, i);
-        let owner = part.region_of(scratch.lanes[home as usize].pos_m);
+        let owner = view.claim[home as usize].unwrap_or_else(|| part.region_of(scratch.lanes[home as usize].pos_m));
         let was = view.roles[i as usize];
         let now = match (owner == me, was) {
             (true, _) => Role::Owned,
@@ -762,6 +766,34 @@ fn take_ownership(state: &mut State, view: &mut ShardView) -> u32 {
         }
     }
     violations
+}
+
+/// Which clusters stay where Rapier holds them (`ShardView::claim`, per cluster root). A
+/// copter that Rapier moved in the last step and that is not free now keeps its Rapier body,
+/// with the contact memory (speculative contacts, warm starts, the island) that one process
+/// keeps; another shard would take it over fresh. So it stays with the shard that holds it
+/// (this one's own copters from its Rapier world, ghosts as their owners sent them), and its
+/// cluster with it, while it is within [`crate::shard::HELD_ZONE_M`] of that shard's region.
+fn held_clusters(state: &State, view: &mut ShardView) {
+    use crate::shard::{HELD_ZONE_M, held_in_rapier, root};
+    let n = state.copters.len();
+    view.claim.clear();
+    view.claim.resize(n, None);
+    // The present copters, in id order: a cluster goes with its lowest held copter.
+    for &i in &state.scratch.present {
+        let i = i as usize;
+        if view.roles[i] == Role::Owned {
+            let held = state.physics.bodies.get(state.copters[i].body).is_some_and(held_in_rapier);
+            view.held_by[i] = held.then_some(view.me);
+        }
+        let lane = &state.scratch.lanes[i];
+        let Some(k) = view.held_by[i] else { continue };
+        if (lane.free && !lane.watch) || view.partition.distance_to(lane.pos_m, k) > HELD_ZONE_M {
+            continue;
+        }
+        let home = root(&mut view.parent, i as u32) as usize;
+        view.claim[home].get_or_insert(k);
+    }
 }
 
 /// A wreck that has just become this shard's enters its Rapier world as its owner had it
