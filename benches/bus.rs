@@ -15,7 +15,7 @@ fn texts() -> Vec<String> {
         out.push(format!("{ac} SONAR_ARRAY 120 85 300 42"));
         out.push(format!("{ac} ATTITUDE 0.01 1.57 -0.02"));
         out.push(format!("{ac} FINKEN_ACTUATORS_SET_POINT 2.5 -1.0 90.0 55.0"));
-        out.push(format!("{ac} FINKEN_IR_ADC 80.5 512"));
+        out.push(format!("{ac} FINKEN_IR_ADC 0.805 512"));
         out.push(format!("{ac} ROTORCRAFT_FP 256 -512 204 0 0 0 10 -20 6400 256 -512 204 6400 2000 42"));
     }
     out

@@ -1,6 +1,8 @@
 //! Real FINken flights, as Paparazzi's `server` logged them (`shared/data/finken_flights`,
 //! see its SOURCES.md): read with the definitions each log carries, turned into twin inputs,
-//! and the virtual-sonar uplink chosen by the messages.xml in use.
+//! their flights found where the IR says the copter took off (its `ir_distance` read in
+//! metres, checked against `pos_z`), and the virtual-sonar uplink chosen by the messages.xml
+//! in use.
 //!
 //! Skips loudly where the shared data is absent; fails under `CI=true`.
 
@@ -13,7 +15,7 @@ use bridge::mixed::{Interpreter, Quantity, TwinAttitude};
 use bridge::paparazzi::convert::{Uplink, uplink_readings, uplink_text};
 use bridge::paparazzi::flightlog::FlightLog;
 use bridge::paparazzi::messages::MessageSet;
-use bridge::realflight::{Series, derive_arena, flights, start_pose};
+use bridge::realflight::{Series, derive_arena, flights, ground_ir_m, ir_unit_check, ir_unit_comparison, start_pose};
 use bridge::sim::{BusInput, Request};
 
 const LINKED: &str = "finken_flights/report_2015-12-16/15_12_16__13_55_00.data";
@@ -140,4 +142,124 @@ fn sonar_uplink_is_encoded_as_the_original_bridge_sent_it() {
     let fork = MessageSet::from_file(dir.join("paparazzi_finken/FINken_conf_messages.xml")).expect("parses");
     assert_eq!(Uplink::defined_by(&fork), Uplink::None);
     assert_eq!(uplink_text(&fork, Uplink::None, 5, [1.0; 4]).expect("nothing"), None);
+}
+
+/// The aircraft that sent the most.
+fn main_aircraft(log: &FlightLog) -> u8 {
+    log.senders().into_iter().max_by_key(|(_, n)| *n).map(|(a, _)| a).expect("an aircraft sent something")
+}
+
+/// A log's IR heights (log time, value) in time order, straight from the decoded fields as the
+/// log carries them: `FINKEN_SENSOR_MODEL.pos_z` and `FINKEN_IR_ADC.ir_distance`, no unit
+/// applied and no `Series` in between.
+fn raw_ir(log: &FlightLog, ac_id: u8) -> Vec<(f64, f64)> {
+    let mut v: Vec<(f64, f64)> = log
+        .from_aircraft(ac_id)
+        .filter_map(|r| {
+            let msg = log.message(r);
+            let field = match msg.def.name.as_str() {
+                "FINKEN_SENSOR_MODEL" => "pos_z",
+                "FINKEN_IR_ADC" => "ir_distance",
+                _ => return None,
+            };
+            let z = msg.get(field).and_then(bridge::Value::as_f64)?;
+            (z.is_finite() && z > 0.0).then_some((r.time_s, z))
+        })
+        .collect();
+    v.sort_by(|a, b| a.0.total_cmp(&b.0));
+    v
+}
+
+/// `ROTORCRAFT_STATUS.ap_motors_on` (log time, on), straight from the decoded fields.
+fn raw_motors(log: &FlightLog, ac_id: u8) -> Vec<(f64, bool)> {
+    log.from_aircraft(ac_id)
+        .filter(|r| log.def(r).name == "ROTORCRAFT_STATUS")
+        .filter_map(|r| Some((r.time_s, log.message(r).get("ap_motors_on").and_then(bridge::Value::as_f64)? > 0.0)))
+        .collect()
+}
+
+/// Take-offs by the IR alone: the first sample of each run above the floor reading (the 5th
+/// percentile of all readings) + 0.1 m that stays above it 3 s or more.
+fn ir_take_offs(ir: &[(f64, f64)]) -> Vec<f64> {
+    let mut sorted: Vec<f64> = ir.iter().map(|s| s.1).collect();
+    sorted.sort_by(f64::total_cmp);
+    let Some(&ground) = sorted.get(sorted.len() / 20) else { return Vec::new() };
+    let up = |z: f64| z > ground + 0.1;
+    let mut out = Vec::new();
+    let mut i = 0;
+    while i < ir.len() {
+        let run = ir[i..].iter().take_while(|s| up(s.1)).count();
+        if run == 0 {
+            i += 1;
+            continue;
+        }
+        let (start, end) = (ir[i].0, ir[i + run - 1].0);
+        if end - start >= 3.0 {
+            out.push(start);
+        }
+        i += run;
+    }
+    out
+}
+
+/// Every shared log that has its `.log`: `FINKEN_IR_ADC.ir_distance` (no `unit`, `alt_unit`
+/// cm in the lab's definitions) reads in metres, as `FINKEN_SENSOR_MODEL.pos_z` does; every
+/// flight starts within 1 s of an IR take-off worked out here from the raw values (not when the
+/// motors started, tens of seconds earlier in the `robust_multicopter_flight` logs), the first
+/// at the first take-off with the motors on; and the two logs of a copter turned by hand on the
+/// floor (`MC1_DISTANCES`, `MC2_DISTANCES`) have no flight.
+#[test]
+fn every_flight_starts_at_its_ir_take_off_and_the_ir_reads_in_metres() {
+    let dir = shared_or_skip!();
+    let mut checked = 0;
+    for data in common::files_with_extension(&dir.join("finken_flights"), "data") {
+        // The one `.data` without its `.log` is tested above (a clear error).
+        if !data.with_extension("log").exists() {
+            continue;
+        }
+        let name = data.display().to_string();
+        let log = FlightLog::open(&data).unwrap_or_else(|e| panic!("{name}: {e}"));
+        let ac_id = main_aircraft(&log);
+
+        // The unit, checked against the independent value the same log carries.
+        assert_eq!(ir_unit_check(&log, ac_id), None, "{name}");
+        if log.from_aircraft(ac_id).any(|r| log.def(r).name == "FINKEN_IR_ADC") {
+            let c = ir_unit_comparison(&log, ac_id).unwrap_or_else(|| panic!("{name}: no IR to hold against pos_z"));
+            assert_eq!(c.read_as, "m", "{name}: {c:?}");
+            assert!(c.pairs >= 20 && (0.9..1.1).contains(&c.median_ratio), "{name}: {c:?}");
+        }
+
+        let series = Series::of(&log, ac_id);
+        let ground = ground_ir_m(&series).unwrap_or_else(|| panic!("{name}: no IR"));
+        assert!((0.19..0.26).contains(&ground), "{name}: the IR on the floor reads {ground} m");
+        let fl = flights(&series);
+        let take_offs = ir_take_offs(&raw_ir(&log, ac_id));
+        checked += 1;
+        if name.contains("MC1_DISTANCES") || name.contains("MC2_DISTANCES") {
+            assert!(take_offs.is_empty(), "{name}: never left the floor, yet the IR rose at {take_offs:?}");
+            assert!(fl.is_empty(), "{name}: {fl:?}");
+            continue;
+        }
+        assert!(!fl.is_empty(), "{name}: no flight (IR take-offs at {take_offs:?})");
+        for f in &fl {
+            let off = |t: &f64| (t - f.start_s).abs();
+            let nearest = take_offs.iter().min_by(|a, b| off(a).total_cmp(&off(b)));
+            assert!(
+                nearest.is_some_and(|t| off(t) <= 1.0),
+                "{name}: {f:?} does not start at an IR take-off (nearest {nearest:?}; all {take_offs:?})"
+            );
+        }
+        // The first flight: the first take-off since the last status that said the motors were
+        // off before they first ran.
+        let motors = raw_motors(&log, ac_id);
+        let first_on = motors.iter().find(|m| m.1).map(|m| m.0).unwrap_or_else(|| panic!("{name}: motors never on"));
+        let off_before = motors.iter().rev().find(|m| !m.1 && m.0 < first_on).map_or(f64::NEG_INFINITY, |m| m.0);
+        let first = take_offs.iter().copied().find(|t| *t >= off_before);
+        assert!(
+            first.is_some_and(|t| (fl[0].start_s - t).abs() <= 1.0),
+            "{name}: first flight {:?}, first take-off with the motors on {first:?} (on at {first_on} s)",
+            fl[0]
+        );
+    }
+    assert!(checked >= 9, "{checked} logs with their .log checked");
 }

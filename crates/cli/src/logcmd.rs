@@ -234,6 +234,10 @@ pub fn import(file: &Path, out: Option<&Path>, ac_id: Option<u8>) -> anyhow::Res
             &default_out
         }
     };
+    // A unit the values contradict is said, never rescaled away.
+    if let Some(w) = bridge::realflight::ir_unit_check(&log, ac_id) {
+        eprintln!("warning: {}: {w}", file.display());
+    }
     let command_line = std::env::args().collect::<Vec<_>>().join(" ");
     let s = bridge::log::import_flight(&log, ac_id, out, &command_line)?;
     outln!(

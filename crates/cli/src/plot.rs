@@ -187,7 +187,9 @@ impl PlotData {
         };
         let sensors = if need_sensors {
             let msgs = file.messages::<proto::CopterSensors>("/copters/sensors").map_err(read_error)?;
-            let rows_of = msgs.into_iter().map(|(t, m)| {
+            // A message without sonars has none to draw (`log import` writes the IR-only
+            // `FINKEN_IR_ADC` so); any other count than four is bad input.
+            let rows_of = msgs.into_iter().filter(|(_, m)| !m.sonar_m.is_empty()).map(|(t, m)| {
                 let row = proto::fixed("sonar_m", &m.sonar_m).map(|sonar_m| SensorRow {
                     t_s: m.t_s,
                     id: m.id as usize,
@@ -535,7 +537,8 @@ fn draw_sonar(data: &PlotData, id: usize, root: &Area<'_>) -> DrawResult {
     let t = time_range(data);
     let name = &data.copters[id].name;
     let readings: Vec<&SensorRow> = data.sensors.iter().filter(|s| s.id == id).collect();
-    let max = readings.iter().flat_map(|r| r.sonar_m).fold(1.0f32, f32::max) as f64;
+    // No echo is infinite: left out of the lines and of the scale.
+    let max = readings.iter().flat_map(|r| r.sonar_m).filter(|v| v.is_finite()).fold(1.0f32, f32::max) as f64;
     let mut chart = ChartBuilder::on(&areas[0])
         .caption(format!("{name}: sonar distances"), (FONT, 20))
         .margin(12)
@@ -553,12 +556,22 @@ fn draw_sonar(data: &PlotData, id: usize, root: &Area<'_>) -> DrawResult {
     for (k, label) in ["front", "right", "back", "left"].into_iter().enumerate() {
         let color = PALETTE[k];
         chart
-            .draw_series(LineSeries::new(readings.iter().map(|r| (r.t_s, r.sonar_m[k] as f64)), color.stroke_width(1)))?
+            .draw_series(LineSeries::new(
+                readings.iter().map(|r| (r.t_s, r.sonar_m[k] as f64)).filter(|p| p.1.is_finite()),
+                color.stroke_width(1),
+            ))?
             .label(label)
             .legend(move |(x, y)| PathElement::new(vec![(x, y), (x + 20, y)], color.stroke_width(2)));
     }
     draw_legend(&mut chart)?;
-    let ys: Vec<(f64, f64)> = data.states.iter().filter(|s| s.id == id).map(|s| (s.t_s, s.pos_m[1] as f64)).collect();
+    // A real flight's import has no position (NaN): the panel stays empty.
+    let ys: Vec<(f64, f64)> = data
+        .states
+        .iter()
+        .filter(|s| s.id == id)
+        .map(|s| (s.t_s, s.pos_m[1] as f64))
+        .filter(|p| p.1.is_finite())
+        .collect();
     let y_range = value_range(ys.iter().map(|p| p.1), 0.2);
     let mut chart = ChartBuilder::on(&areas[1])
         .caption(format!("{name}: y position"), (FONT, 20))
@@ -654,6 +667,76 @@ mod tests {
             let width = u32::from_be_bytes(png[16..20].try_into().unwrap());
             let height = u32::from_be_bytes(png[20..24].try_into().unwrap());
             assert_eq!((width, height), (w, h), "{}", out.display());
+        }
+        let _ = std::fs::remove_dir_all(&dir);
+    }
+
+    /// A real flight's log in the `default` telemetry mode (the 2015 fork's layout, reduced):
+    /// `FINKEN_SENSOR_MODEL` every 0.1 s (sonars in cm, `pos_z`, the attitude), `FINKEN_IR_ADC`
+    /// every 1 s (the IR only), no AHRS message; 20 s, imported as `log import` does.
+    fn default_mode_import(dir: &Path) -> std::path::PathBuf {
+        use bridge::paparazzi::flightlog::{FlightLog, LogConfig};
+        let log = r#"<?xml version="1.0"?>
+<configuration time_of_day="1448458956.0" data_file="d.data">
+  <protocol>
+    <msg_class NAME="telemetry">
+      <message NAME="FINKEN_SENSOR_MODEL" ID="217">
+        <field TYPE="int16" NAME="distance_d_front" ALT_UNIT="cm"/>
+        <field TYPE="int16" NAME="distance_d_rigth" ALT_UNIT="cm"/>
+        <field TYPE="int16" NAME="distance_d_left" ALT_UNIT="cm"/>
+        <field TYPE="int16" NAME="distance_d_back" ALT_UNIT="cm"/>
+        <field TYPE="float" NAME="pos_z" ALT_UNIT="m"/>
+        <field TYPE="float" NAME="pos_pitch" ALT_UNIT="rad"/>
+        <field TYPE="float" NAME="pos_roll" ALT_UNIT="rad"/>
+        <field TYPE="float" NAME="pos_yaw" ALT_UNIT="rad"/>
+      </message>
+      <message NAME="FINKEN_IR_ADC" ID="252">
+        <field TYPE="float" NAME="ir_distance" ALT_UNIT="cm"/>
+        <field TYPE="uint16" NAME="ir_measurement"/>
+      </message>
+    </msg_class>
+  </protocol>
+</configuration>
+"#;
+        let config = LogConfig::parse(log, "d.log").unwrap();
+        let mut data = String::new();
+        for k in 0..200u32 {
+            let t = f64::from(k) / 10.0;
+            let roll = 0.1 * (t * 0.5).sin();
+            let (front, back) = (150 + k % 7, 230 - k % 5);
+            data += &format!("{t:.3} 6 FINKEN_SENSOR_MODEL {front} 140 160 {back} 0.5 0.02 {roll:.4} 1.5\n");
+            if k % 10 == 3 {
+                data += &format!("{:.3} 6 FINKEN_IR_ADC 0.5 2400\n", t + 0.05);
+            }
+        }
+        let flight = FlightLog::from_parts(config, data.as_bytes(), "d.data");
+        assert_eq!(flight.errors.total(), 0, "{:?}", flight.errors);
+        let out = dir.join("default.mcap");
+        bridge::log::import_flight(&flight, 6, &out, "test").unwrap();
+        out
+    }
+
+    #[test]
+    fn an_imported_default_mode_log_plots_its_sonars_and_its_attitude() {
+        register_font().unwrap();
+        let dir = temp_dir("default-mode");
+        let path = default_mode_import(&dir);
+        let file = LogFile::open(&path).unwrap();
+        // The IR-only messages are on /copters/sensors without sonars.
+        let sensors = file.messages::<proto::CopterSensors>("/copters/sensors").unwrap();
+        assert_eq!(sensors.len(), 220);
+        assert_eq!(sensors.iter().filter(|(_, m)| m.sonar_m.is_empty()).count(), 20);
+        let data = PlotData::load(&file, true, true).unwrap();
+        assert_eq!(data.sensors.len(), 200, "the messages with sonars");
+        assert!(data.sensors.iter().all(|r| r.sonar_m.iter().all(|v| (1.0..2.4).contains(v))), "m, not cm");
+        // Without an AHRS message the attitude is FINKEN_SENSOR_MODEL's, on /copters/state.
+        assert_eq!(data.states.len(), 200);
+        assert!(data.states.iter().any(|s| s.rpy_rad[0] > 0.09), "the roll it carries");
+        let (att, sonar) = (dir.join("att.png"), dir.join("sonar.png"));
+        plot(&path, &PlotRequest { attitude: Some(&att), sonar: Some(&sonar), ..PlotRequest::default() }).unwrap();
+        for out in [&att, &sonar] {
+            let png = std::fs::read(out).unwrap();
+            assert!(png.len() > 1000 && png.starts_with(b"\x89PNG"), "{}", out.display());
         }
         let _ = std::fs::remove_dir_all(&dir);
     }

@@ -9,9 +9,11 @@
 //!    the gateway's [`Interpreter`] and the step loop a live run uses, with the sync
 //!    correction on (MEDUSA on the real sonars, as a lab runs it) and off (the flight model
 //!    predicting from the telemetry alone);
-//! 3. its trace is held against what the real copter measured ([`score`]): attitude, the
-//!    distances its sonars would read against the real sonars, height against the IR, time
-//!    in the arena, the first time it strays.
+//! 3. its trace is held against what the real copter measured ([`Scorer::score`]): attitude,
+//!    the distances its sonars would read against the real sonars, height against the IR, time
+//!    in the arena (its position against the arena's walls), the first time it strays. A twin's
+//!    crash ends its scoring, and is reported with its time and cause: the errors are of the
+//!    twin before it, and the time after it counts as neither inside the arena nor consistent.
 //!
 //! With `--vrep`, V-REP's own output for its twin of the flight is scored the same way.
 
@@ -25,7 +27,7 @@ use anyhow::Context;
 use bridge::mixed::{Interpreter, TwinAttitude};
 use bridge::paparazzi::flightlog::{FlightLog, LineErrors};
 use bridge::paparazzi::messages::MessageSet;
-use bridge::realflight::{ArenaEstimate, Flight, REAL_SONAR_MAX_M, Series, StartPose};
+use bridge::realflight::{ArenaEstimate, Flight, REAL_SONAR_MAX_M, Series, StartPose, UnitWarning};
 use bridge::sim::{BusInput, LoopOptions, Request, StepObserver};
 use serde::Serialize;
 use sim_core::math::{Quat, Vec3, quat_from_euler};
@@ -111,7 +113,19 @@ impl Spread {
     }
 }
 
-/// How a twin (ours or V-REP's) held against the real copter over one flight.
+/// A twin's crash: its scoring ends there.
+#[derive(Clone, Debug, PartialEq, Serialize)]
+pub struct TwinCrash {
+    /// Log time of the first step that found it crashed, s.
+    pub t_s: f64,
+    /// The same, s after take-off.
+    pub after_take_off_s: f64,
+    /// The cause, as the simulator gives it (`Wall`, `Floor { speed_m_s: 2.1 }`, …).
+    pub cause: String,
+}
+
+/// How a twin (ours or V-REP's) held against the real copter over one flight: over the span
+/// `[take-off + 1 s, landing]`, and of the errors only those of the twin before any crash.
 #[derive(Clone, Debug, Default, Serialize)]
 pub struct Metrics {
     /// Sonar disagreement |twin − real| per direction (front, right, back, left), cm.
@@ -124,20 +138,27 @@ pub struct Metrics {
     pub height_bias_cm: f64,
     /// RMS, cm.
     pub height_rms_cm: f64,
-    /// Share of the flight with the twin's centre inside the arena.
+    /// Share of the span the twin flew with its centre inside the arena's walls: of every
+    /// step of the span, those before any crash with its position inside (the steps after a
+    /// crash are not inside: a twin that hit a wall did not stay in the arena).
     pub inside_share: f64,
-    /// First time outside the arena, s after take-off.
+    /// First time its position was outside the arena, s after take-off.
     pub first_outside_s: Option<f64>,
     /// First time the running 1 s mean of the sonar disagreement (the median of the four
     /// directions) exceeded `--stray-m`, s after take-off.
     pub strayed_s: Option<f64>,
-    /// How long it stayed consistent: until it strayed, or the whole span scored, s.
+    /// How long it stayed consistent: until it strayed or crashed, or the whole span, s.
     pub consistent_s: f64,
-    /// The share of the span scored with the running disagreement within `--stray-m` (a twin
-    /// that strays and comes back counts again once it is back).
+    /// The share of the span's sonar samples (after its first second) with the running
+    /// disagreement within `--stray-m` (a twin that strays and comes back counts again once it
+    /// is back; the samples after a crash never count).
     pub consistent_share: f64,
-    /// The span scored, s.
+    /// The span scored: from the first step of the span to the last before any crash, s.
     pub scored_s: f64,
+    /// The whole span, s: what the shares are of.
+    pub span_s: f64,
+    /// Its crash, if it crashed.
+    pub crash: Option<TwinCrash>,
 }
 
 /// One flight's result.
@@ -155,8 +176,6 @@ pub struct FlightReport {
     pub synced: Metrics,
     /// The twin predicting from the telemetry alone.
     pub unsynced: Metrics,
-    /// Crashes of the twin, if any (synced, unsynced).
-    pub crashes: [Option<String>; 2],
     /// V-REP's twin over the span its output covers, if given and overlapping.
     pub vrep: Option<vrep::VrepScore>,
     /// The series the plots draw.
@@ -193,6 +212,9 @@ pub struct ValidateReport {
     pub lines: u64,
     /// Unreadable lines.
     pub line_errors: LineErrors,
+    /// Quantities whose values disagree with the unit they are read in
+    /// ([`bridge::realflight::ir_unit_check`]); also printed to stderr.
+    pub unit_warnings: Vec<UnitWarning>,
     /// The arena.
     pub arena: ArenaEstimate,
     /// Where the arena came from.
@@ -214,6 +236,12 @@ pub fn run(args: ValidateArgs) -> anyhow::Result<()> {
                 BadInput(anyhow::anyhow!("{}: no aircraft sent anything readable", args.file.display()))
             })?,
         };
+    // A unit the values contradict is said before anything is read from them (and even where
+    // no flight is found); the values are never rescaled to agree.
+    let unit_warnings: Vec<UnitWarning> = bridge::realflight::ir_unit_check(&log, ac_id).into_iter().collect();
+    for w in &unit_warnings {
+        eprintln!("warning: {}: {w}", args.file.display());
+    }
     let series = Arc::new(Series::of(&log, ac_id));
     let all = bridge::realflight::flights(&series);
     anyhow::ensure!(!all.is_empty(), BadInput(anyhow::anyhow!("aircraft {ac_id}: no flight in the log")));
@@ -252,6 +280,7 @@ pub fn run(args: ValidateArgs) -> anyhow::Result<()> {
         telemetry_mode: aircraft.and_then(|a| a.mode_sending(&seen)).map(str::to_owned),
         lines: log.lines,
         line_errors: log.errors.clone(),
+        unit_warnings,
         arena: base.arena.clone(),
         arena_from: base.arena_from.clone(),
         flights,
@@ -358,7 +387,14 @@ fn validate_flight(
         runs.push(fly_twin(&world, series, messages, texts, t0, &start, ac_id, args.twin_attitude, sync)?);
     }
     let scorer = Scorer::new(&world, series, flight, start.level_rad, args.stray_m);
-    let [synced, unsynced] = [&runs[0], &runs[1]].map(|r| scorer.score(&r.trace));
+    let crash_of = |r: &Flown| {
+        r.crash.as_ref().map(|(t_s, cause)| TwinCrash {
+            t_s: *t_s,
+            after_take_off_s: t_s - flight.start_s,
+            cause: cause.clone(),
+        })
+    };
+    let [synced, unsynced] = [&runs[0], &runs[1]].map(|r| scorer.score(&r.trace, crash_of(r).as_ref()));
     let vrep_trace = vrep.map(|v| v.trace_in(&flight)).filter(|t| !t.is_empty());
     let vrep = vrep.and_then(|v| v.score(&scorer));
     let mut traces =
@@ -368,17 +404,7 @@ fn validate_flight(
     }
     // The plots' series cost a sonar cone per sample and trace: only when plots are asked for.
     let curves = if args.plots.is_some() { scorer.curves(&traces) } else { Curves::default() };
-    Ok(FlightReport {
-        index,
-        flight,
-        start,
-        sources: runs[0].sources.clone(),
-        synced,
-        unsynced,
-        crashes: [runs[0].crash.clone(), runs[1].crash.clone()],
-        vrep,
-        curves,
-    })
+    Ok(FlightReport { index, flight, start, sources: runs[0].sources.clone(), synced, unsynced, vrep, curves })
 }
 
 /// The arena with the twin at the flight's start, on the floor.
@@ -399,7 +425,8 @@ fn twin_world(base: &Base, start: &StartPose, ac_id: u8, duration_s: f64) -> any
 struct Flown {
     trace: Vec<TracePoint>,
     sources: String,
-    crash: Option<String>,
+    /// When (log time, s) and why it crashed.
+    crash: Option<(f64, String)>,
 }
 
 /// Plays the log's texts into the step loop at their recorded times and records the twin.
@@ -412,6 +439,8 @@ struct Player {
     requests: SyncSender<Request>,
     base: Instant,
     trace: Vec<TracePoint>,
+    /// The log time of the first step that found the twin crashed, and the cause.
+    crash: Option<(f64, String)>,
     queue_full: u64,
 }
 
@@ -420,6 +449,11 @@ impl StepObserver for Player {
         let t = self.t0 + state.time_s(world);
         let p = state.pose(0);
         self.trace.push(TracePoint { t_s: t, pos_m: p.pos_m, rpy_rad: p.rpy_rad });
+        if self.crash.is_none()
+            && let Some(cause) = state.copters[0].crash
+        {
+            self.crash = Some((t, format!("{cause:?}")));
+        }
         while let Some((tr, text)) = self.texts.get(self.next).filter(|(tr, _)| *tr <= t) {
             let since = (tr - self.t0).max(0.0);
             let origin = BusInput {
@@ -463,6 +497,7 @@ fn fly_twin(
         requests: tx,
         base: Instant::now(),
         trace: Vec::new(),
+        crash: None,
         queue_full: 0,
     };
     let opts = LoopOptions { realtime: false, ticks: world.default_ticks(), sync, ..Default::default() };
@@ -480,7 +515,9 @@ fn fly_twin(
     anyhow::ensure!(player.queue_full == 0, "{} telemetry inputs did not fit the loop's queue", player.queue_full);
     let report = player.interpreter.report();
     let sources = report.source_lines().into_iter().map(|(_, l)| l).collect::<Vec<_>>().join("; ");
-    let crash = state.copters[0].crash.map(|c| format!("{c:?}"));
+    // Every step is observed; the final state is asked only should a crash have escaped that.
+    let end_s = player.trace.last().map_or(t0, |p| p.t_s);
+    let crash = player.crash.clone().or_else(|| state.copters[0].crash.map(|c| (end_s, format!("{c:?}"))));
     let _ = world2;
     Ok(Flown { trace: player.trace, sources, crash })
 }
@@ -517,15 +554,30 @@ impl<'a> Scorer<'a> {
             .map(|cone| self.sonar.cone_distance(&cone, usize::MAX, range).min(REAL_SONAR_MAX_M))
     }
 
-    /// Scores a trace over `[take-off + SETTLE_S, landing]` (and only where the trace is).
-    pub fn score(&self, trace: &[TracePoint]) -> Metrics {
+    /// Scores a trace over its span, `[take-off + SETTLE_S, landing]` (and only where the
+    /// trace is). A `crash` ends the scoring: the errors (sonar, attitude, height) and the stray
+    /// test are of the steps before it; the shares (inside, consistent) are of the whole span,
+    /// the time from the crash on in neither.
+    pub fn score(&self, trace: &[TracePoint], crash: Option<&TwinCrash>) -> Metrics {
         let (from, to) = (self.flight.start_s + SETTLE_S, self.flight.end_s);
         let span: Vec<&TracePoint> = trace.iter().filter(|p| p.t_s >= from && p.t_s <= to).collect();
-        let (Some(first), Some(last)) = (span.first(), span.last()) else { return Metrics::default() };
-        let mut m = Metrics { scored_s: last.t_s - first.t_s, ..Metrics::default() };
+        let (Some(first), Some(last)) = (span.first(), span.last()) else {
+            return Metrics { crash: crash.cloned(), ..Metrics::default() };
+        };
+        // Flying: the steps before the crash (the step that found it shows the twin on what it
+        // hit, and every one after it a wreck).
+        let crashed_s = crash.map_or(f64::INFINITY, |c| c.t_s);
+        let flying: Vec<&TracePoint> = span.iter().copied().take_while(|p| p.t_s < crashed_s).collect();
+        let mut m = Metrics {
+            scored_s: flying.last().map_or(0.0, |p| p.t_s - first.t_s),
+            span_s: last.t_s - first.t_s,
+            crash: crash.cloned(),
+            ..Metrics::default()
+        };
         let [hx, hy] = self.world.arena.size_m.map(|v| v / 2.0);
         let (mut att, mut h, mut inside) = ([Vec::new(), Vec::new()], Vec::new(), 0usize);
-        for p in &span {
+        for p in &flying {
+            // A position that is no number is nowhere, so not inside.
             if p.pos_m.x.abs() <= hx && p.pos_m.y.abs() <= hy {
                 inside += 1;
             } else if m.first_outside_s.is_none() {
@@ -542,19 +594,25 @@ impl<'a> Scorer<'a> {
         }
         m.inside_share = inside as f64 / span.len() as f64;
         m.attitude_rms_deg = att.map(|v| rms(&v));
-        m.height_bias_cm = h.iter().sum::<f64>() / h.len().max(1) as f64;
+        m.height_bias_cm = if h.is_empty() { f64::NAN } else { h.iter().sum::<f64>() / h.len() as f64 };
         m.height_rms_cm = rms(&h);
-        self.score_sonar(trace, first.t_s, last.t_s, &mut m);
+        self.score_sonar(trace, first.t_s, last.t_s, crashed_s, &mut m);
         m
     }
 
-    fn score_sonar(&self, trace: &[TracePoint], from: f64, to: f64, m: &mut Metrics) {
+    /// The sonar metrics over the real sonar samples in `[from, to]`: those from `crashed_s` on
+    /// are judged (after the first [`STRAY_WINDOW_S`]) and never consistent.
+    fn score_sonar(&self, trace: &[TracePoint], from: f64, to: f64, crashed_s: f64, m: &mut Metrics) {
         let mut per = [Vec::new(), Vec::new(), Vec::new(), Vec::new()];
         let mut all = Vec::new();
         let mut window: std::collections::VecDeque<(f64, f64)> = Default::default();
         let mut sum = 0.0;
         let (mut judged, mut within) = (0usize, 0usize);
         for s in self.series.sensors.iter().filter(|s| s.t_s >= from && s.t_s <= to) {
+            if s.t_s >= crashed_s {
+                judged += usize::from(s.sonar_m.is_some() && s.t_s - from >= STRAY_WINDOW_S);
+                continue;
+            }
             let (Some(real), Some(p)) = (s.sonar_m, latest_point(trace, s.t_s)) else { continue };
             let twin = self.twin_sonar(p);
             let mut step = Vec::with_capacity(4);
@@ -586,7 +644,10 @@ impl<'a> Scorer<'a> {
         }
         m.sonar_cm = [0, 1, 2, 3].map(|k| Spread::of(&per[k]));
         m.sonar_all_cm = Spread::of(&all);
-        m.consistent_s = m.strayed_s.map_or(m.scored_s, |s| s - (from - self.flight.start_s));
+        // Consistent until it strayed or crashed, whichever came first (log time).
+        let strayed = m.strayed_s.map(|s| s + self.flight.start_s);
+        let ended = strayed.into_iter().chain((crashed_s < to).then_some(crashed_s)).reduce(f64::min);
+        m.consistent_s = ended.map_or(m.span_s, |t| (t - from).max(0.0));
         m.consistent_share = within as f64 / judged.max(1) as f64;
     }
 }
@@ -655,7 +716,8 @@ impl ValidateReport {
         }
         s += &format!(
             "  (sonar: |twin − real| in cm, median/p95 front right back left | all; attitude: RMS against the AHRS; \
-             strayed: running {STRAY_WINDOW_S:.0} s mean of the median sonar disagreement above {:.0} cm; {:.2} s wall)\n",
+             inside: share of the flight flown inside the arena; strayed: running {STRAY_WINDOW_S:.0} s mean of the \
+             median sonar disagreement above {:.0} cm; a twin's crash ends its scoring; {:.2} s wall)\n",
             stray_m * 100.0,
             self.wall_s
         );
@@ -707,9 +769,13 @@ impl FlightReport {
                 v.from_s, v.to_s, v.start_s, v.rate, v.start_from
             );
         }
-        for (label, c) in ["sync on", "sync off"].iter().zip(&self.crashes) {
-            if let Some(c) = c {
-                s += &format!("    twin ({label}) crashed: {c}\n");
+        for (label, m) in [("sync on", &self.synced), ("sync off", &self.unsynced)] {
+            if let Some(c) = &m.crash {
+                s += &format!(
+                    "    twin ({label}) crashed: {} at log {:.1} s ({:.1} s after take-off); scored to then ({:.1} of \
+                     {:.1} s), the rest neither inside nor consistent\n",
+                    c.cause, c.t_s, c.after_take_off_s, m.scored_s, m.span_s
+                );
             }
         }
         s
@@ -717,3 +783,199 @@ impl FlightReport {
 }
 
 mod plots;
+
+#[cfg(test)]
+mod tests {
+    //! Every metric `validate` reports, shown passing on a twin that flies as the real copter
+    //! did and failing on a case made to fail it.
+
+    use super::*;
+    use bridge::realflight::Sample;
+
+    /// The flight scored: its span is 11-30 s.
+    const FLIGHT: Flight = Flight { start_s: 10.0, end_s: 30.0 };
+
+    /// A 4 × 3 m arena with a twin in it, as `validate` builds it.
+    fn world() -> World {
+        let toml = "name = \"test-arena\"\n[arena]\nsize_m = [4.0, 3.0]\nheight_m = 2.5\n";
+        let mut spec = sim_core::SceneSpec::from_toml("<test arena>", toml).expect("a scene");
+        spec.sensors.sonar.floor_echo = false;
+        spec.copters.clear();
+        let arena = ArenaEstimate { size_m: [4.0, 3.0], sum_modes_m: [3.8, 2.8], samples: 0, share_square: 1.0 };
+        let base = Base { spec, arena, arena_from: "test".into() };
+        let start =
+            StartPose { pos_m: [0.0, 0.0], yaw_rad: 0.0, heading_offset_rad: 0.0, level_rad: [0.0; 2], samples: 0 };
+        twin_world(&base, &start, 5, 40.0).expect("the twin's world")
+    }
+
+    /// A hover that wanders about the middle of the arena at 0.6 m, rocking a little.
+    fn hover(t_s: f64) -> TracePoint {
+        let t = t_s as f32;
+        TracePoint {
+            t_s,
+            pos_m: Vec3::new(0.5 * (t / 3.0).sin(), 0.3 * (t / 4.0).cos(), 0.6),
+            rpy_rad: [0.05 * t.sin(), 0.03 * t.cos(), 0.0],
+        }
+    }
+
+    /// The real copter's measurements every 0.1 s from 0 to 40 s along `real`: its sonars as a
+    /// twin there would read them, its IR its height, its AHRS its attitude.
+    fn measured_along(world: &World, real: impl Fn(f64) -> TracePoint) -> Series {
+        let nothing = Series::default();
+        let probe = Scorer::new(world, &nothing, FLIGHT, [0.0; 2], 0.5);
+        let mut s = Series::default();
+        for k in 0..=400 {
+            let p = real(f64::from(k) / 10.0);
+            let rpy_rad = Some(p.rpy_rad);
+            s.sensors.push(Sample { t_s: p.t_s, sonar_m: Some(probe.twin_sonar(&p)), ir_m: Some(p.pos_m.z), rpy_rad });
+            s.attitude.push(Sample { t_s: p.t_s, sonar_m: None, ir_m: None, rpy_rad });
+        }
+        s
+    }
+
+    /// A twin's trace along `twin`, every control step (0.05 s) from 0 to 40 s.
+    fn trace_along(twin: impl Fn(f64) -> TracePoint) -> Vec<TracePoint> {
+        (0..=800).map(|k| twin(f64::from(k) / 20.0)).collect()
+    }
+
+    fn score(real: impl Fn(f64) -> TracePoint, twin: impl Fn(f64) -> TracePoint, crash: Option<&TwinCrash>) -> Metrics {
+        let world = world();
+        let series = measured_along(&world, real);
+        Scorer::new(&world, &series, FLIGHT, [0.0; 2], 0.5).score(&trace_along(twin), crash)
+    }
+
+    fn near(a: f64, b: f64, tol: f64) -> bool {
+        (a - b).abs() <= tol
+    }
+
+    #[test]
+    fn a_twin_that_flies_as_the_real_copter_passes_every_metric() {
+        let m = score(hover, hover, None);
+        assert!(near(m.span_s, 19.0, 1e-9) && near(m.scored_s, 19.0, 1e-9), "{m:?}");
+        assert_eq!((m.inside_share, m.first_outside_s), (1.0, None), "{m:?}");
+        assert!(m.sonar_all_cm.n > 700 && m.sonar_all_cm.p95 < 0.5, "{m:?}");
+        assert!(m.sonar_cm.iter().all(|s| s.n > 180 && s.p95 < 0.5), "{m:?}");
+        // The AHRS every 0.1 s, the twin every 0.05 s: a step's worth of rocking apart.
+        assert!(m.attitude_rms_deg.iter().all(|d| *d < 0.5), "{m:?}");
+        assert!(m.height_rms_cm < 0.5 && m.height_bias_cm.abs() < 0.5, "{m:?}");
+        assert_eq!((m.strayed_s, m.consistent_share), (None, 1.0), "{m:?}");
+        assert!(near(m.consistent_s, 19.0, 1e-9), "{m:?}");
+        assert_eq!(m.crash, None);
+    }
+
+    #[test]
+    fn a_twin_that_leaves_the_arena_is_not_inside_for_that_time() {
+        // From 20 s to 25 s the twin is 0.5 m beyond the +x wall (a scene without walls, or a
+        // trace from elsewhere: V-REP's).
+        let beyond = |t: f64| {
+            let mut p = hover(t);
+            if (20.0..25.0).contains(&t) {
+                p.pos_m.x = 2.5;
+            }
+            p
+        };
+        let m = score(hover, beyond, None);
+        assert!(near(m.inside_share, 281.0 / 381.0, 1e-9), "{m:?}");
+        assert_eq!(m.first_outside_s, Some(10.0), "{m:?}");
+        // A twin whose position is no number is not inside either.
+        let lost = |t: f64| TracePoint { pos_m: Vec3::new(f32::NAN, 0.0, 0.6), ..hover(t) };
+        let m = score(hover, lost, None);
+        assert_eq!((m.inside_share, m.first_outside_s), (0.0, Some(1.0)), "{m:?}");
+    }
+
+    #[test]
+    fn a_twin_whose_sonars_disagree_strays_and_is_not_consistent() {
+        // The twin 0.8 m towards −x of where the real copter is: its front and back sonars
+        // read 1.6 m off, its left and right the same.
+        let shifted =
+            |dx: f32| move |t: f64| TracePoint { pos_m: hover(t).pos_m + Vec3::new(dx, 0.0, 0.0), ..hover(t) };
+        let m = score(shifted(0.8), shifted(-0.8), None);
+        assert_eq!(m.inside_share, 1.0, "it never left the arena: {m:?}");
+        assert!(m.sonar_cm[0].median > 100.0 && m.sonar_cm[2].median > 100.0, "{m:?}");
+        assert!(m.sonar_cm[1].p95 < 20.0 && m.sonar_cm[3].p95 < 20.0, "{m:?}");
+        // It strays as soon as it is judged (after the span's first second) and never returns.
+        assert_eq!(m.strayed_s, Some(2.0), "{m:?}");
+        assert!(near(m.consistent_s, 1.0, 1e-9) && m.consistent_share == 0.0, "{m:?}");
+    }
+
+    #[test]
+    fn a_twin_at_the_wrong_height_fails_the_height_rms() {
+        let high = |t: f64| TracePoint { pos_m: hover(t).pos_m + Vec3::new(0.0, 0.0, 0.3), ..hover(t) };
+        let m = score(hover, high, None);
+        assert!(near(m.height_rms_cm, 30.0, 0.01) && near(m.height_bias_cm, 30.0, 0.01), "{m:?}");
+        assert!(m.attitude_rms_deg.iter().all(|d| *d < 0.5), "only the height: {m:?}");
+    }
+
+    #[test]
+    fn a_twin_at_the_wrong_attitude_fails_the_attitude_rms() {
+        let rolled = |t: f64| {
+            let p = hover(t);
+            TracePoint { rpy_rad: [p.rpy_rad[0] + 10f32.to_radians(), p.rpy_rad[1], p.rpy_rad[2]], ..p }
+        };
+        let m = score(hover, rolled, None);
+        assert!(near(m.attitude_rms_deg[0], 10.0, 0.2), "roll: {m:?}");
+        assert!(m.attitude_rms_deg[1] < 0.5, "pitch: {m:?}");
+        assert!(m.height_rms_cm < 0.5, "{m:?}");
+    }
+
+    #[test]
+    fn a_crash_ends_the_scoring_and_the_time_after_it_is_neither_inside_nor_consistent() {
+        // The twin hits the +x wall at 20 s and lies there, a wreck on the floor on its side,
+        // while the real copter flies on.
+        let wrecked = |t: f64| {
+            if t < 20.0 {
+                hover(t)
+            } else {
+                TracePoint { t_s: t, pos_m: Vec3::new(1.9, 0.0, 0.05), rpy_rad: [1.4, 0.2, 0.0] }
+            }
+        };
+        // Scored on as before, the wreck is "inside" the whole flight, and its errors are the
+        // wreck's.
+        let blind = score(hover, wrecked, None);
+        assert_eq!(blind.inside_share, 1.0, "{blind:?}");
+        assert!(blind.height_rms_cm > 30.0 && blind.attitude_rms_deg[0] > 50.0, "{blind:?}");
+        let crash = TwinCrash { t_s: 20.0, after_take_off_s: 10.0, cause: "Wall".into() };
+        let m = score(hover, wrecked, Some(&crash));
+        assert_eq!(m.crash.as_ref(), Some(&crash));
+        assert!(near(m.scored_s, 8.95, 1e-9) && near(m.span_s, 19.0, 1e-9), "{m:?}");
+        // 180 steps flown (11.00-19.95 s) of the span's 381.
+        assert!(near(m.inside_share, 180.0 / 381.0, 1e-9), "{m:?}");
+        assert_eq!(m.first_outside_s, None, "it never left: it crashed");
+        // The errors are the flying twin's.
+        assert!(m.height_rms_cm < 0.5 && m.attitude_rms_deg.iter().all(|d| *d < 0.5), "{m:?}");
+        assert!(m.sonar_all_cm.n > 0 && m.sonar_all_cm.p95 < 0.5, "{m:?}");
+        // Judged from 12 s: 80 sonar samples before the crash, 101 from it to 30 s.
+        assert!(near(m.consistent_share, 80.0 / 181.0, 1e-9), "{m:?}");
+        assert!(near(m.consistent_s, 9.0, 1e-9) && m.strayed_s.is_none(), "{m:?}");
+        // Crashed before the span: nothing scored, nothing passed.
+        let early = TwinCrash { t_s: 10.5, after_take_off_s: 0.5, cause: "Floor { speed_m_s: 2.0 }".into() };
+        let m = score(hover, hover, Some(&early));
+        assert_eq!((m.inside_share, m.consistent_share, m.consistent_s, m.scored_s), (0.0, 0.0, 0.0, 0.0), "{m:?}");
+        assert!(m.height_rms_cm.is_nan() && m.attitude_rms_deg[0].is_nan() && m.sonar_all_cm.n == 0, "{m:?}");
+    }
+
+    #[test]
+    fn the_report_names_a_crash_with_its_time_and_cause() {
+        let crash = TwinCrash { t_s: 20.0, after_take_off_s: 10.0, cause: "Wall".into() };
+        let synced = score(hover, hover, Some(&crash));
+        let start =
+            StartPose { pos_m: [0.0; 2], yaw_rad: 0.0, heading_offset_rad: 0.0, level_rad: [0.0; 2], samples: 9 };
+        let report = FlightReport {
+            index: 2,
+            flight: FLIGHT,
+            start,
+            sources: "attitude ← FINKEN_SENSOR_MODEL".into(),
+            unsynced: score(hover, hover, None),
+            synced,
+            vrep: None,
+            curves: Curves::default(),
+        };
+        let text = report.to_text(0.5);
+        assert!(text.contains("twin (sync on) crashed: Wall at log 20.0 s (10.0 s after take-off)"), "{text}");
+        assert!(!text.contains("sync off) crashed"), "{text}");
+        let json = serde_json::to_value(&report).expect("json");
+        assert_eq!(json["synced"]["crash"]["cause"], "Wall", "{json}");
+        assert_eq!(json["synced"]["crash"]["t_s"], 20.0, "{json}");
+        assert!(json["unsynced"]["crash"].is_null(), "{json}");
+    }
+}

@@ -95,6 +95,35 @@ fn a_real_flight_imports_as_a_log_that_plot_and_log_info_read() {
     let _ = std::fs::remove_dir_all(&tmp);
 }
 
+/// Every shared log that has its `.log` imports, and `plot --sonar --attitude` draws each import:
+/// the `default` telemetry mode's (`FINKEN_SENSOR_MODEL` at 10 Hz, `FINKEN_IR_ADC` at 1 Hz with
+/// the IR only, no AHRS message) as well as the linked flight's (issue 48).
+#[test]
+fn every_shared_log_imports_as_a_log_whose_sonars_and_attitude_plot() {
+    let shared = shared_or_skip!();
+    let tmp = std::env::temp_dir().join(format!("twinswarm-import-all-{}", std::process::id()));
+    std::fs::create_dir_all(&tmp).expect("tmp");
+    let logs: Vec<_> = common::files_with_extension(&shared.join("finken_flights"), "data")
+        .into_iter()
+        .filter(|data| data.with_extension("log").is_file())
+        .collect();
+    assert!(logs.len() >= 9, "the shared logs with their .log beside: {logs:?}");
+    for (k, data) in logs.iter().enumerate() {
+        let name = data.strip_prefix(&shared).unwrap_or(data.as_path()).display().to_string();
+        let mcap = format!("import-{k}.mcap");
+        let import = twinswarm(&["log", "import", data.to_str().unwrap_or_default(), "-o", mcap.as_str()], &tmp);
+        assert!(import.status.success(), "{name}: log import: {}", String::from_utf8_lossy(&import.stderr));
+        let (sonar, att) = (format!("sonar-{k}.png"), format!("attitude-{k}.png"));
+        let plot = twinswarm(&["plot", mcap.as_str(), "--sonar", sonar.as_str(), "--attitude", att.as_str()], &tmp);
+        assert!(plot.status.success(), "{name}: plot: {}", String::from_utf8_lossy(&plot.stderr));
+        for png in [&sonar, &att] {
+            let bytes = std::fs::read(tmp.join(png)).unwrap_or_else(|e| panic!("{name}: {png}: {e}"));
+            assert!(bytes.starts_with(b"\x89PNG") && bytes.len() > 1000, "{name}: {png}: {} bytes", bytes.len());
+        }
+    }
+    let _ = std::fs::remove_dir_all(&tmp);
+}
+
 #[test]
 fn a_data_file_without_its_log_is_a_clear_error() {
     let shared = shared_or_skip!();
@@ -102,7 +131,10 @@ fn a_data_file_without_its_log_is_a_clear_error() {
     let out = twinswarm(&["validate", lonely.to_str().unwrap_or_default()], &std::env::temp_dir());
     assert_eq!(out.status.code(), Some(2), "{}", String::from_utf8_lossy(&out.stderr));
     let err = String::from_utf8_lossy(&out.stderr);
-    assert!(err.contains("15_12_01__17_48_45.log"), "{err}");
+    assert!(err.contains("15_12_01__17_48_45.log does not exist"), "{err}");
+    // The cause, once.
+    assert_eq!(err.matches("does not exist").count(), 1, "{err}");
+    assert!(!err.contains("os error") && !err.contains("No such file"), "{err}");
 }
 
 /// A small FINken log of the project's own (`tests/fixtures/finken_small.*`: 8 s, aircraft 5,

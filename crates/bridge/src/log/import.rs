@@ -5,8 +5,11 @@
 //!   `/pprz/<sender>/<NAME>/decoded` (its fields, by the log's own definitions), at its recorded
 //!   time: `log_time = time_of_day + t`;
 //! - the aircraft as copter 0 (`kind` `real`): `/copters/sensors` for each sonar or IR message
-//!   (sonars, IR, the AHRS attitude), `/copters/state` for each attitude message. A FINken has
-//!   no positioning: `pos_m` is `[NaN, NaN, IR height]`, and the metadata says so;
+//!   (sonars, IR, the attitude it carries; `sonar_m` empty for a message without sonars, such
+//!   as `FINKEN_IR_ADC`), `/copters/state` for each attitude: the AHRS's (`AHRS_EULER_INT`,
+//!   `ATTITUDE`), or, in a telemetry mode that sends no AHRS message (`default`), the attitude
+//!   `FINKEN_SENSOR_MODEL` carries, as [`Series::of`] reads it. A FINken has no positioning:
+//!   `pos_m` is `[NaN, NaN, IR height]`, and the metadata says so;
 //! - the `twinswarm` metadata record a run has, with the arena its sonars describe
 //!   ([`crate::realflight::derive_arena`]) and a `paparazzi_log` record (source, aircraft,
 //!   unreadable lines).
@@ -48,6 +51,9 @@ pub fn import_flight(log: &FlightLog, ac_id: AcId, out: &Path, command_line: &st
     let file = std::fs::File::create(out).map_err(create)?;
     let mut mcap = McapOut::create(file, 3, 1 << 20).map_err(create)?;
     let series = Series::of(log, ac_id);
+    // Where the attitude comes from: the AHRS messages, or where the log has none (the `default`
+    // telemetry mode), the sensor messages, as `Series::of` reads it.
+    let ahrs = log.from_aircraft(ac_id).any(|r| !Series::of_record(log, r).attitude.is_empty());
     let flights = crate::realflight::flights(&series);
     let whole = log.span_s().map(|(a, b)| vec![Flight { start_s: a, end_s: b }]).unwrap_or_default();
     let offset = sim_core::sensors::SonarSpec::default().mount_offset_m;
@@ -55,7 +61,7 @@ pub fn import_flight(log: &FlightLog, ac_id: AcId, out: &Path, command_line: &st
     let arena_size_m = arena.as_ref().map_or([4.0, 3.0], |a| a.size_m);
     let epoch_ns = log.config.time_of_day.map_or(0, |t| (t * 1e9) as u64);
     let at = |t: f64| epoch_ns.saturating_add((t.max(0.0) * 1e9) as u64);
-    mcap.write_metadata(&metadata(log, ac_id, arena_size_m, epoch_ns, command_line)).map_err(write)?;
+    mcap.write_metadata(&metadata(log, ac_id, arena_size_m, epoch_ns, command_line, ahrs)).map_err(write)?;
     let name = log.config.aircraft(ac_id).map_or_else(|| format!("ac{ac_id}"), |a| a.name.clone());
     let mut stats = ImportStats { flights, arena_size_m, ..ImportStats::default() };
     let mut pprz = PprzChannels::with_messages(log.config.messages.clone());
@@ -87,7 +93,8 @@ pub fn import_flight(log: &FlightLog, ac_id: AcId, out: &Path, command_line: &st
             mcap.write_to_known_channel(&header(sensors_ch, stats.sensors), &msg.encode_to_vec()).map_err(write)?;
             stats.sensors += 1;
         }
-        for s in one.attitude.iter().filter(|s| s.rpy_rad.is_some()) {
+        let attitude = if ahrs { &one.attitude } else { &one.sensors };
+        for s in attitude.iter().filter(|s| s.rpy_rad.is_some()) {
             let msg = CopterState {
                 tick: tick as u64,
                 t_s: r.time_s,
@@ -113,7 +120,7 @@ fn channel(mcap: &mut McapOut, schema: &str, topic: &str) -> std::io::Result<u16
     mcap.add_channel(id, topic, "protobuf", &BTreeMap::new())
 }
 
-fn metadata(log: &FlightLog, ac_id: AcId, arena: [f32; 2], epoch_ns: u64, command_line: &str) -> Metadata {
+fn metadata(log: &FlightLog, ac_id: AcId, arena: [f32; 2], epoch_ns: u64, command_line: &str, ahrs: bool) -> Metadata {
     let a = log.config.aircraft(ac_id);
     let name = a.map_or_else(|| format!("ac{ac_id}"), |a| a.name.clone());
     let copters = serde_json::json!([{ "id": 0, "name": name, "kind": "real", "ac_id": ac_id }]);
@@ -138,6 +145,11 @@ fn metadata(log: &FlightLog, ac_id: AcId, arena: [f32; 2], epoch_ns: u64, comman
          message's index in the log"
             .into(),
     );
+    let attitude = if ahrs {
+        "/copters/state rpy_rad: the AHRS (AHRS_EULER_INT, ATTITUDE)"
+    } else {
+        "/copters/state rpy_rad: FINKEN_SENSOR_MODEL pos_roll, pos_pitch, pos_yaw (the log has no AHRS message)"
+    };
     put(
         "paparazzi_log",
         serde_json::json!({
@@ -150,6 +162,8 @@ fn metadata(log: &FlightLog, ac_id: AcId, arena: [f32; 2], epoch_ns: u64, comman
             "unreadable": log.errors,
             "arena": "derived from the sonars (bridge::realflight::derive_arena)",
             "position": "unknown: a FINken has no positioning; /copters/state pos_m is [NaN, NaN, IR height]",
+            "attitude": attitude,
+            "sonars": "/copters/sensors sonar_m (front, right, back, left); empty: none in the message (FINKEN_IR_ADC)",
         })
         .to_string(),
     );

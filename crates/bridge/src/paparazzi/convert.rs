@@ -10,7 +10,7 @@
 use sim_core::Setpoint;
 
 use crate::paparazzi::codec::{CodecError, Message, Sender, encode};
-use crate::paparazzi::messages::{BaseType, FieldDef, MessageSet};
+use crate::paparazzi::messages::{BaseType, FieldDef, MessageDef, MessageSet};
 use crate::paparazzi::value::Value;
 use crate::wire::{CommandMsg, SensorsMsg, StateMsg};
 
@@ -66,12 +66,45 @@ fn f(msg: &Message<'_>, field: &str) -> Option<f32> {
     msg.get(field).and_then(Value::as_f64).map(|v| v as f32).filter(|v| v.is_finite())
 }
 
+/// The unit of `FINKEN_IR_ADC.ir_distance` where its definition gives none: metres. The FINken
+/// firmware sends metres (`finken_ir_adc.c`: "in meters!", a lookup table of 0.20-1.30 m,
+/// clamped), and every real log shows it: the values agree with `FINKEN_SENSOR_MODEL.pos_z`,
+/// the same height ([`crate::realflight::ir_unit_check`]). The fork's definition says
+/// `alt_unit="cm"`, which is Paparazzi's display unit, not the unit of the value.
+pub const IR_DISTANCE_UNIT: &str = "m";
+
+/// Metres in one `unit` of length (`m`, `dm`, `cm`, `mm`); `None` for any other.
+pub fn metres_per(unit: &str) -> Option<f64> {
+    match unit.trim() {
+        "m" => Some(1.0),
+        "dm" => Some(0.1),
+        "cm" => Some(0.01),
+        "mm" => Some(0.001),
+        _ => None,
+    }
+}
+
+/// The unit a field's transmitted values are in: its definition's `unit` where it gives one,
+/// else `default`. Never its `alt_unit`: that is the unit Paparazzi displays it in, reached by
+/// `alt_unit_coef`.
+pub fn value_unit<'a>(field: Option<&'a FieldDef>, default: &'a str) -> &'a str {
+    field.and_then(|f| f.unit.as_deref()).map(str::trim).filter(|u| !u.is_empty()).unwrap_or(default)
+}
+
+/// Metres per transmitted unit of `FINKEN_IR_ADC.ir_distance` in `def` (a `FINKEN_IR_ADC`):
+/// its `unit`, else [`IR_DISTANCE_UNIT`]; `None` where that unit is not a length (read as
+/// nothing rather than guessed).
+pub fn ir_distance_metres_per(def: &MessageDef) -> Option<f64> {
+    metres_per(value_unit(def.field("ir_distance"), IR_DISTANCE_UNIT))
+}
+
 /// What a real copter's telemetry message says about how to drive its twin, if anything.
 ///
 /// - `FINKEN_ACTUATORS_SET_POINT` (deg, %): attitude targets and throttle;
 /// - `FINKEN_SENSOR_MODEL`: `pos_z` (m, the IR height) the height to hold; where the lab's
 ///   definition has them (the 2015 fork's), `pos_roll`, `pos_pitch`, `pos_yaw` (rad, the AHRS);
-/// - `FINKEN_IR_ADC` `ir_distance` (cm): the height to hold;
+/// - `FINKEN_IR_ADC` `ir_distance` (in its definition's `unit`, else metres: see
+///   [`IR_DISTANCE_UNIT`]): the height to hold;
 /// - `ATTITUDE` (rad) and `AHRS_EULER_INT` (`body_phi`, `body_theta`, `body_psi`, fixed point
 ///   scaled by the definitions' `alt_unit_coef`, deg): the measured attitude;
 /// - `ROTORCRAFT_FP` (fixed point): attitude, the height (`up`) and the throttle (`thrust` out
@@ -100,7 +133,9 @@ pub fn twin_command(msg: &Message<'_>) -> Option<CommandMsg> {
             ..rad_ned(f(msg, "pos_roll"), f(msg, "pos_pitch"), f(msg, "pos_yaw"))
         },
         "FINKEN_IR_ADC" => CommandMsg {
-            height: f(msg, "ir_distance").filter(|cm| *cm > 0.0).map(|cm| cm / 100.0),
+            height: ir_distance_metres_per(msg.def)
+                .and_then(|per| f(msg, "ir_distance").map(|v| (f64::from(v) * per) as f32))
+                .filter(|z| *z > 0.0 && z.is_finite()),
             ..CommandMsg::default()
         },
         "ATTITUDE" => rad_ned(f(msg, "phi"), f(msg, "theta"), f(msg, "psi")),
@@ -358,9 +393,11 @@ fn diff_cm(a: f64, b: f64) -> f64 {
 /// The Ivy text of telemetry message `name` for aircraft `ac_id`, from `src`; `None` for a
 /// message the simulator cannot produce (see [`TELEMETRY_MESSAGES`]).
 ///
-/// Units are the messages' display units (`alt_unit`); frames are converted to Paparazzi's
-/// (see the module docs). What is not modelled is sent as 0: `FINKEN_IR_ADC.ir_measurement`
-/// (the raw ADC count) and the `carrot_*` fields of `ROTORCRAFT_FP`.
+/// Units are the messages' display units (`alt_unit`) but for `FINKEN_IR_ADC.ir_distance`, sent
+/// in its definition's `unit` (else metres, [`IR_DISTANCE_UNIT`]) as the firmware sends it;
+/// frames are converted to Paparazzi's (see the module docs). What is not modelled is sent as
+/// 0: `FINKEN_IR_ADC.ir_measurement` (the raw ADC count) and the `carrot_*` fields of
+/// `ROTORCRAFT_FP`.
 pub fn telemetry_text(
     messages: &MessageSet,
     ac_id: u8,
@@ -379,6 +416,10 @@ pub fn telemetry_text(
     let [vx, vy, vz] = st.vel_m_s.map(f64::from);
     let sonar = [se.sonar_m.front, se.sonar_m.right, se.sonar_m.back, se.sonar_m.left].map(|m| f64::from(cm(m)));
     let ir_m = se.ir_m.map_or(0.0, f64::from);
+    // ir_distance in its own unit, in the display form `wire_value` expects (× alt_unit_coef).
+    let ir_def = messages.by_name("FINKEN_IR_ADC");
+    let ir_per_m = ir_def.and_then(ir_distance_metres_per);
+    let ir_coef = ir_def.and_then(|d| d.field("ir_distance")).and_then(|f| f.alt_unit_coef).unwrap_or(1.0);
     let thrust_n: f32 = st.rotor_thrust_n.iter().sum();
     let [gx, gy, gz] = se.rate_body_rad_s.map(f64::from);
     let [ax, ay, az] = se.accel_body_m_s2.map(f64::from);
@@ -389,7 +430,7 @@ pub fn telemetry_text(
             ("FINKEN_ACTUATORS_SET_POINT", "roll") => f64::from(sp.roll_rad).to_degrees(),
             ("FINKEN_ACTUATORS_SET_POINT", "yaw") => -f64::from(sp.yaw_rad).to_degrees(),
             ("FINKEN_ACTUATORS_SET_POINT", "thrust") => f64::from(sp.throttle) * 100.0,
-            ("FINKEN_IR_ADC", "ir_distance") => ir_m * 100.0,
+            ("FINKEN_IR_ADC", "ir_distance") => ir_m / ir_per_m? * ir_coef,
             ("FINKEN_IR_ADC", "ir_measurement") => 0.0,
             ("SONAR_ARRAY", "sonar_front") | ("FINKEN_SENSOR_MODEL", "distance_d_front") => sonar[0],
             ("SONAR_ARRAY", "sonar_right") | ("FINKEN_SENSOR_MODEL", "distance_d_rigth") => sonar[1],
@@ -515,9 +556,36 @@ mod tests {
         assert!((c.roll.unwrap() + 5f32.to_radians()).abs() < 1e-6);
         assert!((c.yaw.unwrap() + 90f32.to_radians()).abs() < 1e-6, "clockwise psi is negative yaw");
         assert!((c.throttle.unwrap() - 0.55).abs() < 1e-6);
-        let ir = m.decode("7 FINKEN_IR_ADC 80.5 512").unwrap();
+        // ir_distance is metres, as the firmware sends it (the project's definition says
+        // `unit="m"`; its `alt_unit="cm"` is only how Paparazzi displays it).
+        let ir = m.decode("7 FINKEN_IR_ADC 0.805 512").unwrap();
         assert_eq!(twin_command(&ir).unwrap().height, Some(0.805));
         assert!(twin_command(&m.decode("7 SONAR_ARRAY 1 2 3 4").unwrap()).is_none());
+    }
+
+    #[test]
+    fn ir_distance_is_read_in_its_definitions_unit_never_its_alt_unit() {
+        let xml = |unit: &str| {
+            format!(
+                r#"<protocol><msg_class name="telemetry" id="1"><message name="FINKEN_IR_ADC" id="252">
+                <field name="ir_distance" type="float" {unit} alt_unit="cm"/>
+                <field name="ir_measurement" type="uint16"/>
+                </message></msg_class></protocol>"#
+            )
+        };
+        let height = |unit: &str, text: &str| {
+            let m = MessageSet::parse(&xml(unit), "t.xml").unwrap();
+            twin_command(&m.decode(text).unwrap()).and_then(|c| c.height)
+        };
+        // The FINken fork's definition: no `unit`, `alt_unit="cm"`; the firmware sends metres.
+        assert_eq!(height("", "6 FINKEN_IR_ADC 0.5 512"), Some(0.5));
+        // A definition that gives a `unit` is read in it.
+        assert_eq!(height(r#"unit="cm""#, "6 FINKEN_IR_ADC 50 512"), Some(0.5));
+        assert_eq!(height(r#"unit="m""#, "6 FINKEN_IR_ADC 0.5 512"), Some(0.5));
+        // A `unit` that is no length is not guessed at.
+        assert_eq!(height(r#"unit="adc""#, "6 FINKEN_IR_ADC 50 512"), None);
+        assert_eq!(metres_per("mm"), Some(0.001));
+        assert_eq!(value_unit(None, IR_DISTANCE_UNIT), "m");
     }
 
     #[test]

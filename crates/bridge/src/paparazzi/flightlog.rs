@@ -211,14 +211,20 @@ impl LineErrors {
 /// Why a log could not be opened.
 #[derive(Debug, thiserror::Error)]
 pub enum FlightLogError {
-    /// A file could not be read.
-    #[error("cannot read {path}: {source}")]
+    /// One file of the pair is not there.
+    #[error("{path} does not exist: a Paparazzi log is NAME.data with NAME.log beside it")]
+    Missing {
+        /// The file that is not there.
+        path: String,
+    },
+    /// A file could not be read. The cause is in the message, and not also a `source`: printed
+    /// with its chain (`{:#}`, as the command line prints errors), it is named once.
+    #[error("cannot read {path}: {cause}")]
     Io {
         /// The file.
         path: String,
         /// Why.
-        #[source]
-        source: std::io::Error,
+        cause: std::io::Error,
     },
     /// The `.log` is not a Paparazzi server log.
     #[error(transparent)]
@@ -249,7 +255,13 @@ impl FlightLog {
     pub fn open(path: &Path) -> Result<FlightLog, FlightLogError> {
         let (log_path, data_path) = pair_paths(path)?;
         let read = |p: &PathBuf| {
-            std::fs::read(p).map_err(|source| FlightLogError::Io { path: p.display().to_string(), source })
+            std::fs::read(p).map_err(|cause| {
+                let path = p.display().to_string();
+                match cause.kind() {
+                    std::io::ErrorKind::NotFound => FlightLogError::Missing { path },
+                    _ => FlightLogError::Io { path, cause },
+                }
+            })
         };
         let log_bytes = read(&log_path)?;
         let log_text = String::from_utf8_lossy(&log_bytes);
@@ -435,6 +447,27 @@ mod tests {
         assert_eq!(log.errors.first[0].0, 2);
         let m = log.message(&log.records[1]);
         assert_eq!(m.get("z").and_then(Value::as_f64), Some(0.25));
+    }
+
+    #[test]
+    fn a_data_file_without_its_log_names_the_missing_file_and_the_cause_once() {
+        let dir = std::env::temp_dir().join(format!("twinswarm-flightlog-pair-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).expect("tmp");
+        let data = dir.join("lonely.data");
+        std::fs::write(&data, "1.0 5 POS 1 0.5\n").expect("data");
+        let e = FlightLog::open(&data).expect_err("no .log beside it");
+        assert!(matches!(e, FlightLogError::Missing { .. }), "{e:?}");
+        // As the command line prints it: the message and its whole chain of sources.
+        let mut text = e.to_string();
+        let mut source = std::error::Error::source(&e);
+        while let Some(cause) = source {
+            text += &format!(": {cause}");
+            source = std::error::Error::source(cause);
+        }
+        assert!(text.contains("lonely.log does not exist"), "{text}");
+        assert_eq!(text.matches("does not exist").count(), 1, "{text}");
+        assert!(!text.contains("os error"), "the cause once, in words: {text}");
+        let _ = std::fs::remove_dir_all(&dir);
     }
 
     #[test]

@@ -104,7 +104,8 @@ impl VrepTwin {
         let trace = self.trace_in(&scorer.flight);
         let (first, last) = (trace.first()?, trace.last()?);
         Some(VrepScore {
-            metrics: scorer.score(&trace),
+            // Its output says nothing of crashes: scored to the end of what it covers.
+            metrics: scorer.score(&trace, None),
             from_s: first.t_s,
             to_s: last.t_s,
             start_s: self.start_s,
