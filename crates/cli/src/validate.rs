@@ -745,18 +745,23 @@ impl FlightReport {
             rows.push(("v-rep (its own output)", &v.metrics));
         }
         for (label, m) in rows {
-            let d = |x: &Spread| format!("{:.0}/{:.0}", x.median, x.p95);
+            // A twin that crashed before its scoring began has nothing to show: "-", not NaN.
+            let d = |x: &Spread| {
+                if x.median.is_finite() { format!("{:.0}/{:.0}", x.median, x.p95) } else { "-".into() }
+            };
+            let deg = |v: f64| if v.is_finite() { format!("{v:.1}°") } else { "-".into() };
+            let cm = |v: f64| if v.is_finite() { format!("{v:.1} cm") } else { "- cm".into() };
             s += &format!(
-                "    {:<24} {:>7} {:>6} {:>6} {:>6} | {:>8} {:>5.1}° {:>5.1}° {:>5.1} cm {:>6.0} % {:>8} {:>6.1} s ({:.0} %)\n",
+                "    {:<24} {:>7} {:>6} {:>6} {:>6} | {:>8} {:>6} {:>6} {:>8} {:>6.0} % {:>8} {:>6.1} s ({:.0} %)\n",
                 label,
                 d(&m.sonar_cm[0]),
                 d(&m.sonar_cm[1]),
                 d(&m.sonar_cm[2]),
                 d(&m.sonar_cm[3]),
                 d(&m.sonar_all_cm),
-                m.attitude_rms_deg[0],
-                m.attitude_rms_deg[1],
-                m.height_rms_cm,
+                deg(m.attitude_rms_deg[0]),
+                deg(m.attitude_rms_deg[1]),
+                cm(m.height_rms_cm),
                 m.inside_share * 100.0,
                 m.strayed_s.map_or("-".into(), |t| format!("{t:.1} s")),
                 m.consistent_s,
@@ -771,10 +776,14 @@ impl FlightReport {
         }
         for (label, m) in [("sync on", &self.synced), ("sync off", &self.unsynced)] {
             if let Some(c) = &m.crash {
+                let when = match c.after_take_off_s {
+                    a if a < 0.0 => format!("{:.1} s before take-off", -a),
+                    a => format!("{a:.1} s after take-off"),
+                };
                 s += &format!(
-                    "    twin ({label}) crashed: {} at log {:.1} s ({:.1} s after take-off); scored to then ({:.1} of \
-                     {:.1} s), the rest neither inside nor consistent\n",
-                    c.cause, c.t_s, c.after_take_off_s, m.scored_s, m.span_s
+                    "    twin ({label}) crashed: {} at log {:.1} s ({when}); scored to then ({:.1} of {:.1} s), the \
+                     rest neither inside nor consistent\n",
+                    c.cause, c.t_s, m.scored_s, m.span_s
                 );
             }
         }
