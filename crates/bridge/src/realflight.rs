@@ -455,13 +455,21 @@ pub struct StartPose {
     /// The roll and pitch its AHRS read standing on the floor before take-off, rad (zero when
     /// the log has no attitude from then).
     pub level_rad: [f32; 2],
-    /// Samples it was taken from.
+    /// Samples its position was taken from.
     pub samples: usize,
 }
 
-/// The start of `flight` from its first airborne second of sonar readings (medians), square to
-/// the walls: front towards +x when front + back is nearer the long side, towards +y
-/// otherwise.
+/// A sonar sample sees only walls, square to them, when front + back and left + right are the
+/// arena's sides (sum modes) within this, m.
+pub const SQUARE_WITHIN_M: f32 = 0.15;
+
+/// The start of `flight` from its first 1.5 airborne seconds of sonar readings, square to the
+/// walls. Its heading: front towards +x when front + back and left + right (their upper
+/// quartiles) fit the long and the short side better than the other way round (both sums weigh,
+/// so that one sonar on an obstacle does not turn the copter), towards +y otherwise. Its position: the medians of the
+/// samples that see only walls (both sums within [`SQUARE_WITHIN_M`] of those sides; an
+/// obstacle or another copter only shortens a reading), or of all samples where fewer than
+/// three do.
 pub fn start_pose(series: &Series, flight: &Flight, arena: &ArenaEstimate) -> Option<StartPose> {
     let window = |s: &&Sample| s.t_s >= flight.start_s && s.t_s <= flight.start_s + 1.5;
     let picks: Vec<[f32; 4]> = series
@@ -471,11 +479,20 @@ pub fn start_pose(series: &Series, flight: &Flight, arena: &ArenaEstimate) -> Op
         .filter_map(|s| s.sonar_m)
         .filter(|r| r.iter().all(|v| v.is_finite() && *v < REAL_SONAR_MAX_M))
         .collect();
-    let med = |k: usize| median(picks.iter().map(|r| r[k]).collect());
-    let [f, r, b, l] = [med(0)?, med(1)?, med(2)?, med(3)?];
     let [m1, m2] = arena.sum_modes_m;
     let (long, short) = (m1.max(m2), m1.min(m2));
-    let along_x = ((f + b) - long).abs() <= ((f + b) - short).abs();
+    // The upper quartile: an obstacle, another copter or cross-talk only shortens a reading.
+    let fb = quantile(picks.iter().map(|r| r[0] + r[2]).collect(), 0.75)?;
+    let lr = quantile(picks.iter().map(|r| r[1] + r[3]).collect(), 0.75)?;
+    let along_x = (fb - long).abs() + (lr - short).abs() <= (fb - short).abs() + (lr - long).abs();
+    let (side_fb, side_lr) = if along_x { (long, short) } else { (short, long) };
+    let square = |r: &&[f32; 4]| {
+        (r[0] + r[2] - side_fb).abs() <= SQUARE_WITHIN_M && (r[1] + r[3] - side_lr).abs() <= SQUARE_WITHIN_M
+    };
+    let clean: Vec<[f32; 4]> = picks.iter().filter(square).copied().collect();
+    let used = if clean.len() >= 3 { &clean } else { &picks };
+    let med = |k: usize| median(used.iter().map(|r| r[k]).collect());
+    let [f, r, b, l] = [med(0)?, med(1)?, med(2)?, med(3)?];
     let (pos_m, yaw_rad) = if along_x {
         ([(b - f) / 2.0, (r - l) / 2.0], 0.0)
     } else {
@@ -488,8 +505,17 @@ pub fn start_pose(series: &Series, flight: &Flight, arena: &ArenaEstimate) -> Op
         yaw_rad,
         heading_offset_rad: sim_core::math::wrap_angle_rad(yaw_rad - own[2]),
         level_rad: ground_level(series, flight).unwrap_or([0.0, 0.0]),
-        samples: picks.len(),
+        samples: used.len(),
     })
+}
+
+/// The `q` quantile of `v` (the nearest rank).
+fn quantile(mut v: Vec<f32>, q: f32) -> Option<f32> {
+    if v.is_empty() {
+        return None;
+    }
+    v.sort_by(f32::total_cmp);
+    Some(v[((v.len() - 1) as f32 * q).round() as usize])
 }
 
 fn median(mut v: Vec<f32>) -> Option<f32> {
@@ -600,6 +626,29 @@ mod tests {
         assert_eq!(fl.len(), 1, "{fl:?}");
         assert!((fl[0].start_s - 5.0).abs() <= 1.0, "{fl:?}");
         assert!((24.5..25.0).contains(&fl[0].end_s), "the flip at 25 s ends it, and is not bridged: {fl:?}");
+    }
+
+    #[test]
+    fn the_start_heading_weighs_both_sums_and_the_position_the_samples_that_see_only_walls() {
+        // A 4 × 2.8 m room (sums 3.9 and 2.7 with the mount offsets), the copter at
+        // (-0.5, -0.2) facing +x: front 2.45, back 1.45, right 1.15, left 1.55. Its front
+        // sonar meets something 0.8 m ahead in 6 of 10 samples.
+        let arena = ArenaEstimate { size_m: [4.0, 2.8], sum_modes_m: [3.9, 2.7], samples: 100, share_square: 0.8 };
+        let mut s = Series::default();
+        for k in 0..10 {
+            let t = 10.0 + 0.1 * f64::from(k);
+            let front = if k % 5 < 3 { 0.8 } else { 2.45 };
+            s.sensors.push(Sample { t_s: t, sonar_m: Some([front, 1.15, 1.45, 1.55]), ir_m: Some(0.5), rpy_rad: None });
+            s.attitude.push(Sample { t_s: t, sonar_m: None, ir_m: None, rpy_rad: Some([0.0, 0.0, 0.3]) });
+        }
+        let f = Flight { start_s: 10.0, end_s: 30.0 };
+        let p = start_pose(&s, &f, &arena).expect("a start");
+        // The median front + back (2.25) is nearer the short side than the long one: the old
+        // rule turned the copter by 90°. Its upper quartile (3.9) and left + right (2.7) say it
+        // faces the long side.
+        assert_eq!(p.yaw_rad, 0.0, "{p:?}");
+        assert!((p.pos_m[0] + 0.5).abs() < 1e-5 && (p.pos_m[1] + 0.2).abs() < 1e-5, "{p:?}");
+        assert_eq!(p.samples, 4, "the four samples that see only walls");
     }
 
     /// A `.log` with the fork's `FINKEN_IR_ADC` (`ir_distance` with `unit_attr`, if any) and a
