@@ -24,6 +24,9 @@ done
 say "cargo fmt --check"
 cargo fmt --all -- --check
 
+say "import circles (scripts/check-imports.py: none beyond scripts/import-cycles.allow)"
+python3 scripts/check-imports.py
+
 say "cargo clippy --all-targets -- -D warnings"
 cargo clippy --workspace --all-targets --locked -- -D warnings
 
