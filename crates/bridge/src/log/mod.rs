@@ -46,7 +46,9 @@
 //! The stepping thread only copies each copter's numbers into a reused [`StepFrame`] and hands
 //! it to a writer thread over a bounded channel. The writer thread encodes protobuf from
 //! prost messages it refills in place, and writes the file with the `mcap` crate's writer:
-//! zstd chunks at one fixed level, message indexes and every CRC. (The project's own chunk
+//! zstd chunks at one fixed level and every CRC, without message indexes (optional in MCAP:
+//! readers use the chunk indexes and read whole chunks; at 16 bytes a message they were a
+//! fifth of a swarm's file). (The project's own chunk
 //! writer was 1.4× cheaper, not the 2× that would have justified keeping it:
 //! docs/performance.md.) Every simulated second (and at the end of setup) the writer finishes the current
 //! chunk and flushes the file, so a `kill -9` loses at most about one simulated second (plus
