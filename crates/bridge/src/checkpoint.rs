@@ -15,7 +15,7 @@
 //!
 //! # File
 //! `<dir>/<stem>-tick-<tick, 12 digits>.ckpt`, with `<stem>` `shard-K-of-N` or `run`:
-//! - 8 bytes magic and format version, `TWCKPT` `0x00` `0x01`;
+//! - 8 bytes magic and format version, `TWCKPT` `0x00` `0x02` (2: ghosts carry their holder);
 //! - the payload's CRC-32 (little-endian u32) and length (little-endian u64);
 //! - the payload, postcard: a [`RunKey`] first (what run it belongs to), then the tick, the
 //!   state, the inputs, the shard view and the batches.
@@ -34,7 +34,7 @@ use sim_core::{Inputs, State, World};
 use crate::shard::GhostBatch;
 
 /// Magic and format version at the start of every checkpoint file.
-const MAGIC: &[u8; 8] = b"TWCKPT\x00\x01";
+const MAGIC: &[u8; 8] = b"TWCKPT\x00\x02";
 
 /// Header bytes: magic, CRC-32, payload length.
 const HEADER: usize = 8 + 4 + 8;
@@ -307,6 +307,10 @@ pub fn list(dir: &Path, stem: &str) -> Result<Vec<(u64, PathBuf)>, CheckpointErr
 pub fn load(path: &Path, expected: &RunKey) -> Result<Checkpoint, CheckpointError> {
     let bytes = std::fs::read(path).map_err(|source| CheckpointError::Io { path: path.to_owned(), source })?;
     let damaged = |what: String| CheckpointError::Damaged { path: path.to_owned(), what };
+    if bytes.len() >= 8 && bytes[..6] == MAGIC[..6] && bytes[..8] != MAGIC[..] {
+        let what = format!("format version {}, this build reads {}", bytes[7], MAGIC[7]);
+        return Err(CheckpointError::Mismatch { path: path.to_owned(), what });
+    }
     if bytes.len() < HEADER || &bytes[..8] != MAGIC {
         return Err(damaged("not a twinswarm checkpoint (no TWCKPT header)".into()));
     }

@@ -65,8 +65,8 @@ fn shards_resumed_from_their_checkpoints_have_the_uninterrupted_bytes() {
 
 /// Among boxes, copters that Rapier holds from step to step cross borders around the
 /// checkpoint (`sim_core::shard`'s held copters): the resumed shards step on from the Rapier
-/// worlds and holders they saved, with the uninterrupted bytes, and those are the bits of one
-/// process.
+/// worlds they saved (which say who holds what), with the uninterrupted bytes, and those are
+/// the bits of one process.
 #[test]
 fn shards_among_boxes_resumed_from_their_checkpoints_keep_the_one_process_bits() {
     let world = sim_core::compile(&sim_core::scene::boxes_swarm(600, 3)).unwrap();
@@ -92,15 +92,19 @@ fn resume_shards(tag: &str, world: &World, n: usize, half: u64) -> bool {
     let inputs = world.initial_inputs();
     let mut reports = Vec::new();
     let mut straight = make();
+    let mut step = |states: &mut Vec<State>| {
+        step_in_process(world, states, &inputs, &mut reports).unwrap();
+        assert!(reports.iter().all(|r| r.shard_violations == 0), "{tag}: no shard violations");
+    };
     for _ in 0..half {
-        step_in_process(world, &mut straight, &inputs, &mut reports).unwrap();
+        step(&mut straight);
     }
     for (k, s) in straight.iter().enumerate() {
         Checkpointer::new(options(world, &dir, half, Some((k, n)))).write(s, &inputs, &[]).unwrap();
     }
     let roles_then: Vec<_> = straight.iter().map(|s| s.shard_snapshot().unwrap().roles).collect();
     for _ in 0..half {
-        step_in_process(world, &mut straight, &inputs, &mut reports).unwrap();
+        step(&mut straight);
     }
     let mut resumed: Vec<State> = (0..n)
         .map(|k| {
@@ -113,7 +117,7 @@ fn resume_shards(tag: &str, world: &World, n: usize, half: u64) -> bool {
         })
         .collect();
     for _ in 0..half {
-        step_in_process(world, &mut resumed, &inputs, &mut reports).unwrap();
+        step(&mut resumed);
     }
     for (k, (a, b)) in straight.iter().zip(&resumed).enumerate() {
         assert_eq!(bytes(a), bytes(b), "{tag}, shard {k}: the bytes of the uninterrupted run");

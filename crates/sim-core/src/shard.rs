@@ -300,7 +300,8 @@ pub struct ShardView {
 }
 
 /// What a snapshot keeps of a [`ShardView`] (it is not part of a serialised [`State`]): the
-/// roles after the last step, the sleep flags and holders of the last ghosts. The partition is not
+/// roles after the last step and the sleep flags of the last ghosts. (The holders are not
+/// kept: the next ghosts bring theirs, and a shard reads its own from its Rapier world.) The partition is not
 /// kept: it follows from the scene and the shard count.
 #[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
 pub struct ShardSnapshot {
@@ -312,8 +313,6 @@ pub struct ShardSnapshot {
     pub roles: Vec<Role>,
     /// Whether Rapier had each ghost asleep at its owner.
     pub asleep: Vec<bool>,
-    /// The shard whose Rapier world held each ghost ([`Ghost::held_by`]).
-    pub held_by: Vec<Option<ShardId>>,
 }
 
 impl ShardView {
@@ -346,7 +345,17 @@ impl State {
             .map(|c| if partition.region_of(c.motion.pos_m) == me { Role::Owned } else { Role::Ghost })
             .collect();
         let n = self.copters.len();
-        self.shard = Some(ShardView::new(me, partition, roles, vec![false; n], vec![None; n]));
+        // Every shard knows the initial state: a copter whose body Rapier has enabled is held by
+        // its region's shard, as that shard finds from its own Rapier world at the first step.
+        let held_by = self
+            .copters
+            .iter()
+            .map(|c| {
+                let held = self.physics.bodies.get(c.body).is_some_and(held_in_rapier);
+                held.then(|| partition.region_of(c.motion.pos_m))
+            })
+            .collect();
+        self.shard = Some(ShardView::new(me, partition, roles, vec![false; n], held_by));
         Ok(())
     }
 
@@ -354,8 +363,7 @@ impl State {
     pub fn shard_snapshot(&self) -> Option<ShardSnapshot> {
         let v = self.shard.as_ref()?;
         let shards = v.partition.shards() as u16;
-        let (roles, asleep, held_by) = (v.roles.clone(), v.asleep.clone(), v.held_by.clone());
-        Some(ShardSnapshot { me: v.me, shards, roles, asleep, held_by })
+        Some(ShardSnapshot { me: v.me, shards, roles: v.roles.clone(), asleep: v.asleep.clone() })
     }
 
     /// Makes a restored state the shard it was: `partition` must be the split it was made
@@ -366,12 +374,11 @@ impl State {
             return Err(ShardError::Id { shard: usize::from(snap.me), shards });
         }
         let n = self.copters.len();
-        if snap.roles.len() != n || snap.asleep.len() != n || snap.held_by.len() != n {
-            let copter = snap.roles.len().max(snap.asleep.len()).max(snap.held_by.len());
-            return Err(ShardError::Unknown { copter, copters: n });
+        if snap.roles.len() != n || snap.asleep.len() != n {
+            return Err(ShardError::Unknown { copter: snap.roles.len().max(snap.asleep.len()), copters: n });
         }
-        let ShardSnapshot { me, roles, asleep, held_by, .. } = snap;
-        self.shard = Some(ShardView::new(me, partition, roles, asleep, held_by));
+        let ShardSnapshot { me, roles, asleep, .. } = snap;
+        self.shard = Some(ShardView::new(me, partition, roles, asleep, vec![None; n]));
         Ok(())
     }
 
@@ -433,6 +440,11 @@ impl State {
             }
             if view.roles[id] == Role::Owned {
                 return Err(ShardError::Duplicate { copter: id, tick });
+            }
+            // Its holder is its sender, a neighbour: never this shard, never one that is not.
+            if let Some(k) = g.held_by.filter(|&k| k == view.me || usize::from(k) >= view.partition.shards()) {
+                let what = format!("it says shard {k} holds it, which no neighbour of shard {} is", view.me);
+                return Err(ShardError::BadGhost { copter: id, tick, what });
             }
             (view.asleep[id], view.held_by[id]) = (g.asleep, g.held_by);
             let c = &mut self.copters[id];

@@ -774,6 +774,9 @@ fn take_ownership(state: &mut State, view: &mut ShardView) -> u32 {
 /// keeps; another shard would take it over fresh. So it stays with the shard that holds it
 /// (this one's own copters from its Rapier world, ghosts as their owners sent them), and its
 /// cluster with it, while it is within [`crate::shard::HELD_ZONE_M`] of that shard's region.
+/// Not covered, and not counted: a held copter farther out than that, and the second of two
+/// copters held by different shards that come into one cluster, go to the cluster's owner
+/// fresh (docs/sharding.md).
 fn held_clusters(state: &State, view: &mut ShardView) {
     use crate::shard::{HELD_ZONE_M, held_in_rapier, root};
     let n = state.copters.len();

@@ -180,7 +180,7 @@ fn a_crowded_take_off_with_crashes_keeps_the_one_process_bits() {
 #[test]
 fn copters_held_by_rapier_among_boxes_keep_the_one_process_bits_across_borders() {
     let world = scene::compile(&scene::boxes_swarm(600, 3)).unwrap();
-    for shards in [2, 3] {
+    for shards in [2, 3, 4] {
         let run = run_sharded(&world, shards, 200);
         let crashed = run.one.copters.iter().filter(|c| c.crash.is_some()).count();
         assert!(crashed > 20, "{shards} shards: a crowded take-off among boxes ({crashed} crashes)");
