@@ -3,15 +3,12 @@
 use nalgebra::{Matrix2, Vector2};
 
 use crate::error::MedusaError;
-use crate::medusa::{FIT_GOOD, Medusa, MedusaResult, sanitize_unit};
+use crate::medusa::{CONFIDENCE_SPREAD_M, FIT_GOOD, Medusa, MedusaResult, sanitize_unit};
 use crate::rng::Pcg32;
 use crate::sensor::{Observation, YawEstimate, validate_readings};
 
 /// Standard gravity (m/s²) used to turn attitude into acceleration.
 pub const GRAVITY_MPS2: f64 = 9.806_65;
-/// Spread (per-axis standard deviation, m) at which the spread factor of the
-/// confidence falls to `exp(-1)` (for a circular spread).
-pub const CONFIDENCE_SPREAD_M: f64 = 0.1;
 /// Kernel standard deviation of the mean-shift used to pick the dominant
 /// mode of the particle cloud (m).
 const MODE_KERNEL_M: f64 = 0.15;

@@ -116,9 +116,9 @@ mod rng;
 mod sensor;
 
 pub use error::MedusaError;
-pub use filter::{
-    CONFIDENCE_SPREAD_M, FilterConfig, FilterEstimate, GRAVITY_MPS2, MedusaFilter, MotionInput, Particle,
-};
+pub use filter::{FilterConfig, FilterEstimate, GRAVITY_MPS2, MedusaFilter, MotionInput, Particle};
 pub use geometry::{Arena, BoxObstacle, World};
-pub use medusa::{AMBIGUITY_RATIO, Candidate, MAX_CANDIDATES, MODE_RADIUS_M, Medusa, MedusaResult, Mode};
+pub use medusa::{
+    AMBIGUITY_RATIO, CONFIDENCE_SPREAD_M, Candidate, MAX_CANDIDATES, MODE_RADIUS_M, Medusa, MedusaResult, Mode,
+};
 pub use sensor::{MAX_SENSORS, MIN_SENSORS, SensorLayout, SensorModel, SensorSpec, YawEstimate};

@@ -3,7 +3,6 @@
 use nalgebra::Vector2;
 
 use crate::error::MedusaError;
-use crate::filter::CONFIDENCE_SPREAD_M;
 use crate::geometry::{Cone, World};
 use crate::sensor::{Observation, RangeLikelihood, SensorLayout, SensorModel, YawEstimate, validate_readings};
 
@@ -12,6 +11,10 @@ pub const MODE_RADIUS_M: f64 = 0.15;
 /// A second mode holding at least this fraction of the top mode's
 /// probability makes the answer [`MedusaResult::ambiguous`].
 pub const AMBIGUITY_RATIO: f64 = 0.25;
+/// Spread (per-axis standard deviation, m) at which the spread factor of the
+/// confidence falls to `exp(-1)` (for a circular spread), for raw MEDUSA's confidence and the
+/// filter's alike.
+pub const CONFIDENCE_SPREAD_M: f64 = 0.1;
 /// Per-sensor geometric-mean fit at or above which the fit does not reduce
 /// the confidence.
 pub(crate) const FIT_GOOD: f64 = 0.3;
