@@ -223,8 +223,8 @@ pub struct EvalReport {
     pub target_4_sensors_met: bool,
 }
 
-/// Runs the subcommand.
-pub fn run(args: LocalizeArgs) -> anyhow::Result<()> {
+/// The arguments both evaluations check.
+pub fn check(args: &LocalizeArgs) -> anyhow::Result<()> {
     if !args.eval && !args.sync_eval {
         return Err(BadInput(anyhow::anyhow!(
             "localize: give `--eval` (MEDUSA accuracy) or `--sync-eval` (twin synchronisation)"
@@ -234,9 +234,12 @@ pub fn run(args: LocalizeArgs) -> anyhow::Result<()> {
     if !(args.minutes.is_finite() && args.minutes > 0.0 && args.minutes <= 24.0 * 60.0) {
         return Err(BadInput(anyhow::anyhow!("--minutes must be in (0, 1440], got {}", args.minutes)).into());
     }
-    if args.sync_eval {
-        return run_sync_eval(&args);
-    }
+    Ok(())
+}
+
+/// Runs `localize --eval` (`--sync-eval` is [`crate::synceval::run`]).
+pub fn run(args: LocalizeArgs) -> anyhow::Result<()> {
+    check(&args)?;
     let worlds: &[WorldChoice] = match args.world {
         WorldChoice::Both => &[WorldChoice::Empty, WorldChoice::Lab],
         WorldChoice::Empty => &[WorldChoice::Empty],
@@ -248,68 +251,6 @@ pub fn run(args: LocalizeArgs) -> anyhow::Result<()> {
     }
     let walk = eval_scene(WorldChoice::Empty, args.minutes, args.seed, 1)?.sensors.imu.yaw_bias_walk_deg_per_sqrt_s;
     let report = EvalReport::new(flights, f64::from(walk));
-    if args.json {
-        outln!("{}", serde_json::to_string_pretty(&report)?);
-    } else {
-        out!("{}", report.to_text());
-    }
-    Ok(())
-}
-
-fn run_sync_eval(args: &LocalizeArgs) -> anyhow::Result<()> {
-    use crate::synceval::{Link, SyncEvalReport, Variant, run_variant};
-    use bridge::mixed::TwinAttitude;
-    use bridge::sync::SyncOptions;
-    let bad = |m: String| anyhow::Error::new(BadInput(anyhow::anyhow!(m)));
-    if !(0.0..=1.0).contains(&args.loss) || args.jitter_ms.is_some_and(|j| !j.is_finite() || j < 0.0) {
-        return Err(bad("--loss must be in [0, 1] and --jitter-ms >= 0".into()));
-    }
-    let choice = if args.world == WorldChoice::Both { WorldChoice::Empty } else { args.world };
-    if !args.link_load.is_finite() || !(0.0..=10.0).contains(&args.link_load) {
-        return Err(bad(format!("--link-load must be in [0, 10], got {}", args.link_load)));
-    }
-    let timing = match args.jitter_ms {
-        Some(_) => bridge::link::LinkTiming::from_args(args.jitter_ms, u32::from(args.copters)),
-        None => bridge::link::LinkTiming::measured_with_load(u32::from(args.copters), args.link_load),
-    };
-    let link = Link { timing, loss: args.loss };
-    let medusa_only = SyncOptions { tracking: false, ..SyncOptions::default() };
-    let variant = |label: &str, sync: Option<SyncOptions>, attitude| Variant {
-        label: label.into(),
-        sync,
-        tracking: false,
-        tracking_dropout_s: None,
-        attitude,
-    };
-    let mut variants = vec![
-        variant("correction off", None, TwinAttitude::Measured),
-        variant("MEDUSA", Some(medusa_only.clone()), TwinAttitude::Measured),
-        variant("MEDUSA, set-point attitude", Some(medusa_only), TwinAttitude::Setpoint),
-    ];
-    if let Some(d) = &args.tracking_dropout {
-        let v: Vec<f64> = d
-            .split(',')
-            .map(|x| x.trim().parse::<f64>())
-            .collect::<Result<_, _>>()
-            .map_err(|_| bad(format!("--tracking-dropout: expected START,END in seconds, got {d:?}")))?;
-        let [a, b] = v[..] else { return Err(bad(format!("--tracking-dropout: expected START,END, got {d:?}"))) };
-        if !(a.is_finite() && b.is_finite() && 0.0 <= a && a < b) {
-            return Err(bad(format!("--tracking-dropout: expected 0 <= START < END, got {d:?}")));
-        }
-        variants.push(Variant {
-            label: format!("MEDUSA + tracking, off {a}-{b} s"),
-            sync: Some(SyncOptions::default()),
-            tracking: true,
-            tracking_dropout_s: Some([a, b]),
-            attitude: TwinAttitude::Measured,
-        });
-    }
-    let runs = variants
-        .into_iter()
-        .map(|v| run_variant(choice, args.minutes, args.seed, link, v))
-        .collect::<anyhow::Result<Vec<_>>>()?;
-    let seed = eval_scene(choice, args.minutes, args.seed, 1)?.sim.seed;
-    let report = SyncEvalReport { minutes: args.minutes, seed, link, runs };
     if args.json {
         outln!("{}", serde_json::to_string_pretty(&report)?);
     } else {

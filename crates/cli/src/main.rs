@@ -15,7 +15,7 @@ mod standin;
 mod synceval;
 mod validate;
 
-use twinswarm::{BadInput, logcmd, plot, replay};
+use twinswarm::{BadInput, logcmd, plot, replay, replay_pprz};
 
 use std::path::PathBuf;
 use std::process::ExitCode;
@@ -367,11 +367,15 @@ fn main() -> ExitCode {
         Command::Cluster(args) => cluster_cmd(&args),
         Command::Router { listen, connect } => router_cmd(&listen, &connect),
         Command::Inspect { scene, json } => inspect(scene.as_deref(), json),
+        Command::Localize(args) if args.sync_eval => synceval::run(&args),
         Command::Localize(args) => localize::run(args),
         Command::Log(LogCommand::Info { file }) => logcmd::info(&file),
         Command::Log(LogCommand::Recover { broken, fixed }) => logcmd::recover(&broken, &fixed),
         Command::Log(LogCommand::Merge { out, inputs }) => logcmd::merge(&inputs, &out),
         Command::Log(LogCommand::Import { file, out, ac_id }) => logcmd::import(&file, out.as_deref(), ac_id),
+        // A Paparazzi log (NAME.data) replays onto Ivy as `link` delivered it; a run log
+        // onto Zenoh.
+        Command::Replay(args) if bridge::paparazzi::flightlog::is_flight_log(&args.file) => replay_pprz::run(&args),
         Command::Replay(args) => replay::run(args),
         Command::Validate(args) => validate::run(args),
         Command::Plot { file, heatmap, attitude, sonar, copter } => plot::plot(

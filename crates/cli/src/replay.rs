@@ -516,11 +516,8 @@ pub fn replay_in_memory(path: &Path, limit: usize) -> anyhow::Result<Vec<(String
     }
 }
 
-/// `twinswarm replay FILE`.
+/// `twinswarm replay FILE` for a run log (a Paparazzi log goes to [`crate::replay_pprz::run`]).
 pub fn run(args: ReplayArgs) -> anyhow::Result<()> {
-    if bridge::paparazzi::flightlog::is_flight_log(&args.file) {
-        return crate::replay_pprz::run(&args);
-    }
     let bad = bad_input;
     if args.no_bus && args.foxglove.is_none() {
         return Err(bad("--no-bus needs --foxglove for a run log (nothing would be replayed)".into()));
