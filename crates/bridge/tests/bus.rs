@@ -5,8 +5,9 @@ mod common;
 
 use std::sync::{Arc, Mutex};
 
+use bridge::paparazzi::bus::narrow;
 use bridge::paparazzi::codec::{Sender, encode};
-use bridge::paparazzi::narrow::{ChunkPattern, narrow};
+use bridge::paparazzi::narrow::ChunkPattern;
 use bridge::zenoh_net::keyexpr::{key_expr_matches, key_for_text, narrow_key_expr};
 use bridge::{BindId, Bus, BusError, MessageSet};
 use regex::Regex;

@@ -28,7 +28,7 @@
 //! # Speed
 //!
 //! Each binding's regex is narrowed once at bind time
-//! ([`crate::paparazzi::narrow::narrow`]). Bindings whose message name is known
+//! ([`narrow`]). Bindings whose message name is known
 //! exactly are indexed by name, so a text is only matched against the
 //! regexes that can match its name plus the few whose name is not known;
 //! bindings with an exact sender (or [`Bus::bind_from`]) are skipped by a
@@ -48,6 +48,15 @@ pub const REGEX_SIZE_LIMIT_BYTES: usize = 1 << 20;
 
 /// Maximum length of a pattern's text.
 pub const MAX_PATTERN_LEN_BYTES: usize = 4096;
+
+/// Parses `pattern` with `regex-syntax` and narrows it ([`crate::paparazzi::narrow`]).
+pub fn narrow(pattern: &str) -> Result<Narrowing, BusError> {
+    let hir = regex_syntax::ParserBuilder::new()
+        .build()
+        .parse(pattern)
+        .map_err(|e| BusError::BadPattern { pattern: pattern.chars().take(200).collect(), message: e.to_string() })?;
+    Ok(narrow_hir(&hir))
+}
 
 /// Errors of the bus and of key handling.
 #[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]

@@ -21,8 +21,6 @@
 
 use regex_syntax::hir::{Class, Hir, HirKind, Look};
 
-use crate::paparazzi::bus::BusError;
-
 /// Characters that may not appear in a key chunk (Zenoh's special characters): a regex
 /// literal holding one widens to a wildcard.
 pub const KEY_SPECIAL: [char; 5] = ['/', '*', '$', '?', '#'];
@@ -106,15 +104,6 @@ impl Narrowing {
     pub fn any() -> Narrowing {
         Narrowing { sender: ChunkPattern::Any, name: ChunkPattern::Any }
     }
-}
-
-/// Parses `pattern` with `regex-syntax` and narrows it (see module docs).
-pub fn narrow(pattern: &str) -> Result<Narrowing, BusError> {
-    let hir = regex_syntax::ParserBuilder::new()
-        .build()
-        .parse(pattern)
-        .map_err(|e| BusError::BadPattern { pattern: pattern.chars().take(200).collect(), message: e.to_string() })?;
-    Ok(narrow_hir(&hir))
 }
 
 fn flatten<'h>(hir: &'h Hir, out: &mut Vec<&'h Hir>) {

@@ -12,9 +12,9 @@
 //! in-chunk wildcard `$*`, unknown chunks are `*`, and nothing known at all is
 //! `<prefix>/pprz/**`.
 
-use crate::paparazzi::bus::{Bus, BusError};
+use crate::paparazzi::bus::{Bus, BusError, narrow};
 use crate::paparazzi::codec::split_header;
-use crate::paparazzi::narrow::{ChunkPattern, KEY_SPECIAL, Narrowing, narrow};
+use crate::paparazzi::narrow::{ChunkPattern, KEY_SPECIAL, Narrowing};
 
 /// Whether `s` can be used verbatim as one key-expression chunk.
 pub fn is_valid_chunk(s: &str) -> bool {
