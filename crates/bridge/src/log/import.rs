@@ -22,9 +22,10 @@ use prost::Message as _;
 use serde::Serialize;
 
 use super::encode::schema_data;
+use super::mcap_out::McapOut;
 use super::pprz::PprzChannels;
 use super::proto::{CopterSensors, CopterState};
-use super::writer::{LogError, McapOut};
+use super::writer::LogError;
 use crate::AcId;
 use crate::paparazzi::flightlog::FlightLog;
 use crate::realflight::{Flight, Series};

@@ -59,6 +59,7 @@
 mod capture;
 mod encode;
 mod import;
+mod mcap_out;
 mod pprz;
 pub mod proto;
 mod read;

@@ -8,6 +8,7 @@ use mcap::records::MessageHeader;
 use prost::Message as _;
 
 use super::encode::schema_data;
+use super::mcap_out::McapOut;
 use super::proto::{self, PprzDecoded, PprzText};
 use crate::paparazzi::codec::split_header;
 use crate::paparazzi::messages::MessageSet;
@@ -45,7 +46,7 @@ impl PprzChannels {
     #[allow(clippy::too_many_arguments)]
     pub(super) fn write(
         &mut self,
-        out: &mut super::writer::McapOut,
+        out: &mut McapOut,
         tick: u64,
         log_time: u64,
         publish_time: u64,

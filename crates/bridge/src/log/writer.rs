@@ -2,7 +2,6 @@
 
 use std::collections::BTreeMap;
 use std::fs::File;
-use std::io::BufWriter;
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
 use std::sync::atomic::{AtomicUsize, Ordering};
@@ -15,6 +14,7 @@ use sim_core::{Inputs, State, StepReport, World};
 
 use super::capture::StepFrame;
 use super::encode::{Encoder, LogEvent, Topic, schema_data};
+use super::mcap_out::McapOut;
 use super::pprz::PprzChannels;
 use super::time::{format_utc_iso, now_unix_ns, thread_cpu_ns};
 use crate::live::{LiveChannel, LiveServer};
@@ -176,79 +176,6 @@ struct BusJob {
 /// flush): one job per message would hand the loop thread to the writer thread at every
 /// message of a flood (the job queue holds a few steps), and miss real-time deadlines.
 const BUS_BATCH: usize = 1024;
-
-/// The file's MCAP writer: the `mcap` crate's, its errors as I/O errors.
-pub(super) struct McapOut(mcap::Writer<BufWriter<File>>, File);
-
-fn io_error(e: mcap::McapError) -> std::io::Error {
-    match e {
-        mcap::McapError::Io(e) => e,
-        other => std::io::Error::other(other),
-    }
-}
-
-impl McapOut {
-    /// zstd chunks at one `zstd_level`, finished at `chunk_size` bytes or at each flush; every
-    /// CRC; the compression on the writer thread itself (no zstd worker threads).
-    pub(super) fn create(file: File, zstd_level: u32, chunk_size: usize) -> std::io::Result<Self> {
-        let sync_handle = file.try_clone()?;
-        let w = mcap::WriteOptions::new()
-            .compression(Some(mcap::Compression::Zstd))
-            .compression_level(zstd_level)
-            .compression_threads(0)
-            .chunk_size(Some(chunk_size as u64))
-            // Message indexes are optional in MCAP (readers fall back to the chunk indexes and
-            // read whole chunks); at 16 bytes per message, outside the compression, they were
-            // a fifth of a swarm's file.
-            .emit_message_indexes(false)
-            .library(format!("twinswarm {}", env!("CARGO_PKG_VERSION")))
-            .create(BufWriter::with_capacity(1 << 16, file))
-            .map_err(io_error)?;
-        Ok(Self(w, sync_handle))
-    }
-
-    pub(super) fn add_schema(&mut self, name: &str, encoding: &str, data: &[u8]) -> std::io::Result<u16> {
-        self.0.add_schema(name, encoding, data).map_err(io_error)
-    }
-
-    pub(super) fn add_channel(
-        &mut self,
-        schema: u16,
-        topic: &str,
-        encoding: &str,
-        metadata: &BTreeMap<String, String>,
-    ) -> std::io::Result<u16> {
-        self.0.add_channel(schema, topic, encoding, metadata).map_err(io_error)
-    }
-
-    pub(super) fn write_to_known_channel(&mut self, header: &MessageHeader, data: &[u8]) -> std::io::Result<()> {
-        self.0.write_to_known_channel(header, data).map_err(io_error)
-    }
-
-    fn attach(&mut self, a: &Attachment<'_>) -> std::io::Result<()> {
-        self.0.attach(a).map_err(io_error)
-    }
-
-    pub(super) fn write_metadata(&mut self, m: &Metadata) -> std::io::Result<()> {
-        self.0.write_metadata(m).map_err(io_error)
-    }
-
-    /// Finishes the open chunk and flushes the file: what was written is readable.
-    fn flush(&mut self) -> std::io::Result<()> {
-        self.0.flush().map_err(io_error)
-    }
-
-    /// [`McapOut::flush`], then `fsync`: what was written survives the machine.
-    fn sync(&mut self) -> std::io::Result<()> {
-        self.flush()?;
-        self.1.sync_data()
-    }
-
-    /// The summary section and the footer.
-    pub(super) fn finish(&mut self) -> std::io::Result<()> {
-        self.0.finish().map(drop).map_err(io_error)
-    }
-}
 
 /// The MCAP log of one run.
 ///
