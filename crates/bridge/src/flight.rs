@@ -22,9 +22,10 @@ use sim_core::{CopterKind, Inputs, State, StepReport, World, step_into};
 use crate::checkpoint::Checkpointer;
 use crate::failsafe::{Failsafe, FailsafeEvent, FailsafeKind};
 use crate::log::{EventKind, LogError, LogEvent, Logger};
+use crate::loop_io::{Frame, LoopOptions, LoopStats, StepObserver, TwinStats};
 use crate::mixed::{Outbox, PprzOut};
+use crate::request::{BusInput, Request};
 use crate::shard::ShardLink;
-use crate::sim::{BusInput, Frame, LoopOptions, LoopStats, Request, StepObserver, TwinStats};
 use crate::sync::TwinSync;
 use crate::wire::{CommandError, CommandMsg, sensors_msg, state_msg};
 

@@ -38,7 +38,7 @@ use crate::paparazzi::ivy::IvyAgent;
 use crate::paparazzi::messages::MessageSet;
 use crate::paparazzi::pairing::{ResolvedPairing, Route, UnknownAircraftStats};
 use crate::paparazzi::telemetry::Telemetry;
-use crate::sim::{BusInput, Request};
+use crate::request::{BusInput, Request};
 use crate::wire::{CommandMsg, sensors_msg, state_msg};
 use crate::zenoh_net::pprz_bus::{ZenohBus, ZenohBusError};
 
