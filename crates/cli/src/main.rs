@@ -107,7 +107,9 @@ struct SceneArgs {
     /// `dense`: a 1.5 m grid taking off from the floor among 10 pillars, Wall-Avoid at 1 m
     /// (the experiment of `swarm_rt --scene dense`); `cruise`: a 2 m grid in the air, each
     /// copter heading its own way at 0.3 m/s; `hover`: a 2 m grid hovering at 0.8 m; `flock`:
-    /// a 4 m grid in the air drifting 18 m along x in a minute (the sharding tests' scene).
+    /// a 4 m grid in the air drifting 18 m along x in a minute (the sharding tests' scene);
+    /// `boxes`: `dense`'s take-off among ten boxes of several sizes, heights and yaws (the
+    /// sharding checks' scene with boxes).
     #[arg(value_enum)]
     kind: SceneKind,
     /// Number of copters.
@@ -133,6 +135,7 @@ enum SceneKind {
     Cruise,
     Hover,
     Flock,
+    Boxes,
 }
 
 /// `twinswarm scene`: the generated scene as TOML, checked by compiling it back.
@@ -144,6 +147,7 @@ fn scene_cmd(a: &SceneArgs) -> anyhow::Result<()> {
         SceneKind::Cruise => sim_core::scene::cruising_swarm(a.n, 1),
         SceneKind::Hover => sim_core::scene::grid_swarm(a.n, 2.0, 0.8, true),
         SceneKind::Flock => sim_core::scene::flock_swarm(a.n, a.seed),
+        SceneKind::Boxes => sim_core::scene::boxes_swarm(a.n, a.seed),
     };
     spec.sim.seed = a.seed;
     let text = toml::to_string(&spec)?;

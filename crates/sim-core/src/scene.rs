@@ -535,7 +535,7 @@ pub fn compile(spec: &SceneSpec) -> Result<World, SceneError> {
         params,
         arena,
         boxes,
-        wreck_shapes: crate::world::wreck_shapes(&airframes),
+        copter_shapes: crate::world::copter_shapes(&airframes),
         airframes,
         copters,
         sensors,
@@ -718,7 +718,7 @@ impl World {
         let def = cc.compile(id, spec, &occupied)?;
         let mut world = self.clone();
         world.airframes = cc.airframes;
-        world.wreck_shapes = crate::world::wreck_shapes(&world.airframes);
+        world.copter_shapes = crate::world::copter_shapes(&world.airframes);
         world.copters.push(def);
         world.spec.copters.push(spec.clone());
         Ok(world)

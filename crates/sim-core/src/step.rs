@@ -2091,8 +2091,7 @@ fn fix_wreck(
     body.set_enabled(true);
     body.set_translation(lane.pos_m, false);
     body.set_rotation(lane.rot, false);
-    // Its five colliders become one (a compound of the same shapes): thousands of wrecks
-    // would otherwise be most of the leaves Rapier's broad phase refits at every step.
+    // Its collider moves to the fixed body, with the wreck's solver groups.
     while let Some(&collider) = physics.bodies[old].colliders().first() {
         physics.remove_collider(collider);
     }
@@ -2100,7 +2099,7 @@ fn fix_wreck(
         physics.remove_body(old);
     }
     let solver = if falling { FALLING_WRECK } else { InteractionGroups::all() };
-    physics.insert_collider(world.wreck_collider(id).solver_groups(solver), Some(handle));
+    physics.insert_collider(world.copter_collider_of(id).solver_groups(solver), Some(handle));
     handle
 }
 

@@ -158,9 +158,9 @@ pub struct World {
     pub boxes: Vec<StaticBox>,
     /// Derived airframe models.
     pub airframes: Vec<Airframe>,
-    /// Per airframe, a wreck's collision shape (see [`World::wreck_collider`]).
+    /// Per airframe, a copter's collision shape (see [`World::copter_collider_of`]).
     #[serde(skip)]
-    pub(crate) wreck_shapes: Vec<SharedShape>,
+    pub(crate) copter_shapes: Vec<SharedShape>,
     /// Copters, in id order.
     pub copters: Vec<CopterDef>,
     /// Sensor models.
@@ -262,8 +262,10 @@ impl World {
         let t = self.arena.wall_thickness_m;
         let [sx, sy] = self.arena.size_m;
         let h = self.arena.height_m;
-        let ground = physics.insert_body(RigidBodyBuilder::fixed());
+        // Each on a fixed body of its own: a copter's contacts with two of them are then two body
+        // pairs, coloured in body-id order (see `World::copter_collider_of`).
         let add = |physics: &mut PhysicsWorld, half: Vec3, center: Vec3, yaw: Real, tag: ColliderTag| {
+            let ground = physics.insert_body(RigidBodyBuilder::fixed());
             let virtual_only = matches!(tag, ColliderTag::Box(i) if self.boxes[i].virtual_only);
             let collider = ColliderBuilder::cuboid(half.x, half.y, half.z)
                 .translation(center)
@@ -337,19 +339,17 @@ impl World {
             .can_sleep(false)
             .user_data(id as u128);
         let handle = physics.insert_body(body);
-        let [main, discs @ ..] = copter_parts(af);
-        let part = |p: ColliderBuilder| self.copter_collider(id, p.shape).position(p.position);
-        let collider = physics.insert_collider(part(main), Some(handle));
-        for disc in discs {
-            physics.insert_collider(part(disc), Some(handle));
-        }
+        let collider = physics.insert_collider(self.copter_collider_of(id), Some(handle));
         CopterState::new(self, id, handle, collider)
     }
 
-    /// Copter `id`'s wreck as one collider (its parts as one compound shape, built with the
-    /// world): a fifth of the leaves in Rapier's broad phase.
-    pub(crate) fn wreck_collider(&self, id: usize) -> ColliderBuilder {
-        self.copter_collider(id, self.wreck_shapes[self.copters[id].airframe].clone())
+    /// Copter `id`'s one collider, flying or wrecked: its parts (body box and rotor discs) as
+    /// one compound shape, built with the world. One collider per body makes every contact pair
+    /// a pair of bodies: Rapier colours a body pair's contacts in body-id order, while two
+    /// collider pairs of one body pair would go in the order of their contact-graph edges, which
+    /// differs between one process and a shard (docs/sharding.md, "The same bits").
+    pub(crate) fn copter_collider_of(&self, id: usize) -> ColliderBuilder {
+        self.copter_collider(id, self.copter_shapes[self.copters[id].airframe].clone())
     }
 
     /// A collider of copter `id` of `shape`: mass comes from the airframe (set on the body),
@@ -390,8 +390,8 @@ fn copter_parts(af: &Airframe) -> [ColliderBuilder; 5] {
     [ColliderBuilder::cuboid(bx / 2.0, by / 2.0, bz / 2.0), disc(a), disc(b), disc(c), disc(d)]
 }
 
-/// Per airframe, a wreck's shape: the copter's parts as one compound.
-pub(crate) fn wreck_shapes(airframes: &[Airframe]) -> Vec<SharedShape> {
+/// Per airframe, a copter's shape: its parts as one compound.
+pub(crate) fn copter_shapes(airframes: &[Airframe]) -> Vec<SharedShape> {
     airframes.iter().map(|af| SharedShape::compound(copter_parts(af).map(|p| (p.position, p.shape)).to_vec())).collect()
 }
 
