@@ -183,6 +183,9 @@ pub const ROTOR_NAMES: [&str; 4] = ["front_left", "front_right", "back_right", "
 /// Diagonal rotors spin the same way.
 pub const ROTOR_YAW_SIGN: [Real; 4] = [1.0, -1.0, 1.0, -1.0];
 
+/// Half the thickness of a rotor disc collider, m.
+pub(crate) const ROTOR_DISC_HALF_THICKNESS_M: Real = 0.005;
+
 /// The model derived from an [`AirframeSpec`]: everything the step needs, computed once.
 #[derive(Clone, Debug, PartialEq, Serialize)]
 pub struct Airframe {
@@ -300,7 +303,7 @@ impl Airframe {
             radius_m: (s.arm_length_m + s.rotor_diameter_m / 2.0).max(bx.hypot(by) / 2.0),
             sqrt_2_rho_a: (2.0 * s.air_density_kg_m3 * disc_area).sqrt(),
             reach_bound_m: {
-                let disc = (0.5 * s.rotor_diameter_m).hypot(crate::step::ROTOR_DISC_HALF_THICKNESS_M);
+                let disc = (0.5 * s.rotor_diameter_m).hypot(ROTOR_DISC_HALF_THICKNESS_M);
                 (0.5 * bx.hypot(by).hypot(bz)).max(disc + (2.0 * a * a + rotor_z * rotor_z).sqrt()) * 1.001 + 1e-4
             },
         })

@@ -22,7 +22,7 @@
 use serde::Serialize;
 
 use crate::airflow::{Wake, ground_effect_ratio, inflow_thrust_factor};
-use crate::airframe::{Airframe, ParticleNoise, ROTOR_YAW_SIGN};
+use crate::airframe::{Airframe, ParticleNoise, ROTOR_DISC_HALF_THICKNESS_M, ROTOR_YAW_SIGN};
 use crate::control::{self, Command, FlightMode, Inputs, Setpoint, WallAvoidController};
 use crate::geometry::{Cone, OrientedBox, Wedge};
 use crate::lanes::LANES;
@@ -1260,9 +1260,6 @@ fn reach_along(af: &Airframe, rot: Quat, d: Vec3) -> Real {
         0.5 * af.spec.rotor_diameter_m * (1.0 - ez * ez).max(0.0).sqrt() + ROTOR_DISC_HALF_THICKNESS_M * ez.abs();
     af.rotor_pos_in_body_m.iter().fold(body, |far, arm| far.max(reach + (rot * *arm).dot(d)))
 }
-
-/// Half the thickness of a rotor disc collider, m.
-pub(crate) const ROTOR_DISC_HALF_THICKNESS_M: Real = 0.005;
 
 /// A free copter's colliders reached the floor during this substep. Slower than the crash
 /// impact speed (the rule of Rapier's floor contacts: the downward speed before the

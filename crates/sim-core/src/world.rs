@@ -382,7 +382,7 @@ fn copter_parts(af: &Airframe) -> [ColliderBuilder; 5] {
     let [bx, by, bz] = af.spec.body_size_m;
     let rotor_radius = af.spec.rotor_diameter_m / 2.0;
     let disc = |p: Vec3| {
-        ColliderBuilder::cylinder(crate::step::ROTOR_DISC_HALF_THICKNESS_M, rotor_radius)
+        ColliderBuilder::cylinder(crate::airframe::ROTOR_DISC_HALF_THICKNESS_M, rotor_radius)
             .rotation(Vec3::new(std::f32::consts::FRAC_PI_2, 0.0, 0.0))
             .translation(p)
     };
