@@ -35,8 +35,8 @@
 
 use serde::{Deserialize, Serialize};
 
+use crate::error::{FieldPath, PathSeg, SceneError};
 use crate::math::Real;
-use crate::scene::{FieldPath, PathSeg, SceneError};
 
 /// `[airflow]`.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]

@@ -21,10 +21,10 @@
 
 use serde::{Deserialize, Serialize};
 
+use crate::error::{FieldPath, PathSeg, SceneError};
 use crate::math::{Real, wrap_angle_rad};
 use crate::rng::Rng32;
-use crate::scene::{FieldPath, PathSeg, SceneError};
-use crate::sensors::IrSpec;
+use crate::sensors::ir::IrSpec;
 
 /// `[sensors.estimator]`.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]

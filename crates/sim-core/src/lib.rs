@@ -27,6 +27,7 @@ pub mod airflow;
 pub mod airframe;
 pub mod battery;
 pub mod control;
+pub mod error;
 pub mod estimate;
 pub mod finite;
 pub mod geometry;

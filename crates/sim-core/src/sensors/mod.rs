@@ -8,11 +8,14 @@
 
 use serde::{Deserialize, Serialize};
 
+pub mod ir;
+pub use ir::IrSpec;
+
 use crate::control::WallAvoidSpec;
+use crate::error::{FieldPath, PathSeg, SceneError};
 use crate::estimate::EstimatorSpec;
 use crate::geometry::{Cone, OrientedBox, Wedge, cone_box_distance, ray_box};
 use crate::math::{Quat, Real, Vec3};
-use crate::scene::{FieldPath, PathSeg, SceneError};
 
 /// Sonar names in reading order.
 pub const SONAR_NAMES: [&str; 4] = ["front", "right", "back", "left"];
@@ -85,26 +88,6 @@ impl Default for SonarSpec {
             schedule: SonarSchedule::RoundRobin,
             floor_echo: true,
         }
-    }
-}
-
-/// `[sensors.ir]`: the downward IR distance sensor.
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
-#[serde(default, deny_unknown_fields)]
-pub struct IrSpec {
-    /// Shortest valid distance, m.
-    pub min_range_m: Real,
-    /// Longest valid distance, m.
-    pub max_range_m: Real,
-    /// Constant part of the noise standard deviation, m.
-    pub noise_sigma_m: Real,
-    /// Part of the noise standard deviation proportional to the distance.
-    pub noise_sigma_rel: Real,
-}
-
-impl Default for IrSpec {
-    fn default() -> Self {
-        Self { min_range_m: 0.10, max_range_m: 1.50, noise_sigma_m: 0.005, noise_sigma_rel: 0.01 }
     }
 }
 
