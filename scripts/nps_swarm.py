@@ -22,11 +22,13 @@ import argparse
 import json
 import math
 import resource
+import signal
 import os
 import socket
 import statistics
 import subprocess
 import sys
+import threading
 import tempfile
 import time
 from pathlib import Path
@@ -156,6 +158,11 @@ def flight_figures(path, arena, last_s=10.0):
     }
 
 
+def last_fdm_line(path):
+    lines = [l for l in path.read_text(errors="replace").splitlines() if l.startswith("[twinswarm fdm]")]
+    return lines[-1] if lines else ""
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--count", type=int, default=1)
@@ -177,6 +184,11 @@ def main(argv=None):
     ap.add_argument("--out", help="keep the scene, logs and summaries here")
     ap.add_argument("--no-log", action="store_true", help="no MCAP log (speed runs): no flight figures")
     ap.add_argument("--run-arg", action="append", default=[], help="an extra argument for twinswarm run")
+    ap.add_argument("--stranger", type=int, metavar="AC", help="also start aircraft AC, which no copter of the scene flies: "
+                    "the world must refuse it, and it must exit non-zero saying why")
+    ap.add_argument("--stop", metavar="AC:AFTER_S", help="SIGSTOP aircraft AC's NPS AFTER_S wall seconds after it starts, "
+                    "for --stop-for seconds (default 12, past the world's 10 s step timeout), then SIGCONT")
+    ap.add_argument("--stop-for", type=float, default=12.0)
     ap.add_argument("--json", action="store_true")
     a = ap.parse_args(argv)
     if not (PPRZ / "env.sh").exists():
@@ -190,6 +202,13 @@ def main(argv=None):
         if udp and a.count != 1:
             sys.exit("--udp-out/--udp-in: one aircraft only (the ports are compiled in)")
         sims = [build(ac, a.plan, log, udp, a.cruise, a.sighting_hold) for ac in acs]
+        if a.stranger is not None:
+            if a.stranger in acs:
+                sys.exit(f"--stranger {a.stranger}: that aircraft flies a copter of the scene")
+            sims.append(build(a.stranger, a.plan, log, None, a.cruise, a.sighting_hold))
+            acs_started = acs + [a.stranger]
+        else:
+            acs_started = acs
     build_s = time.monotonic() - t0
     boxes = [[s.strip() for s in b.split(";")] for b in a.box]
     size = tuple(float(v) for v in a.arena.split("x")) if a.arena else None
@@ -208,20 +227,31 @@ def main(argv=None):
             if "waiting for" in (out / "run.err").read_text() or world.poll() is not None:
                 break
         npss = []
-        for ac, sim in zip(acs, sims):
+        for ac, sim in zip(acs_started, sims):
             e = dict(env, TWINSWARM_FDM=f"127.0.0.1:{port}")
             f = open(out / f"nps{ac}.log", "w")
             # env.sh: Paparazzi's libraries (libivy) and PAPARAZZI_HOME.
             cmd = f'. "{PPRZ}/env.sh" && exec "{sim}" --norc --time_factor 1e9 --ivy_bus 127.255.255.255:{ivy_port}'
             npss.append(subprocess.Popen(["bash", "-c", cmd], stdout=f, stderr=subprocess.STDOUT, env=e, cwd=out))
+        if a.stop:
+            stop_ac, after = a.stop.split(":")
+            victim = npss[acs_started.index(int(stop_ac))]
+
+            def stop_and_continue():
+                time.sleep(float(after))
+                victim.send_signal(signal.SIGSTOP)
+                time.sleep(a.stop_for)
+                victim.send_signal(signal.SIGCONT)
+
+            threading.Thread(target=stop_and_continue, daemon=True).start()
         world.wait(timeout=600 + a.duration * a.count)
         # CPU time of the children waited for: the world alone here, the autopilots after.
         ru = resource.getrusage(resource.RUSAGE_CHILDREN)
         world_cpu = ru.ru_utime + ru.ru_stime
         nps_exit = {}
-        for ac, p in zip(acs, npss):
+        for ac, p in zip(acs_started, npss):
             try:
-                nps_exit[ac] = p.wait(timeout=10)
+                nps_exit[ac] = p.wait(timeout=10 + (a.stop_for if a.stop else 0))
             except subprocess.TimeoutExpired:
                 p.kill()
                 nps_exit[ac] = "killed after the run"
@@ -250,6 +280,9 @@ def main(argv=None):
         "crashes": summary["crashes"],
         "autopilots_left": [ap_["ac_id"] for ap_ in summary["autopilots"] if ap_["left"]],
         "nps_exit": {ac: c for ac, c in nps_exit.items() if c != 0},
+        # What each NPS's flight-model client said last ("the world refused ...", "closed ...").
+        "nps_said": {ac: last_fdm_line(out / f"nps{ac}.log") for ac in acs_started},
+        "autopilots_refused": summary.get("autopilots_refused", []),
         "digests": {c["name"]: c["digest"] for c in summary["copters"]},
         "out": str(out),
     }

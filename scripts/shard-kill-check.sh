@@ -9,12 +9,23 @@ cd "$(dirname "$0")/.."
 kind=${1:-dense} n=${2:-2000} secs=${3:-60} shards=${4:-2} seed=${5:-5}
 bin=${TWINSWARM_BIN:-target/release/twinswarm}
 [ -x "$bin" ] || cargo build --release -p twinswarm
-work=$(mktemp -d)
-trap 'rm -rf "$work"' EXIT
+work=target/shard-kill-check/$kind-$n-$secs-$shards-$seed
+rm -rf "$work" && mkdir -p "$work"
 "$bin" scene "$kind" --n "$n" --seed "$seed" > "$work/scene.toml"
 every=$(( secs / 4 ))
 
-digests() { python3 -c 'import json,sys; d=json.load(open(sys.argv[1])); print("\n".join(f"{c["id"]} {c["digest"]}" for c in sorted(d["copters"], key=lambda c: c["id"])))' "$1"; }
+# "ID DIGEST" per copter, in id order; fails unless there are as many as the scene has (`boxes`
+# leaves out the copters that would start on a box).
+copters=$(grep -c '^\[\[copter\]\]' "$work/scene.toml")
+digests() {
+    python3 - "$1" "$copters" <<'PY'
+import json, sys
+copters = json.load(open(sys.argv[1]))["copters"]
+assert len(copters) == int(sys.argv[2]), f"{sys.argv[1]}: {len(copters)} copters, expected {sys.argv[2]}"
+for c in sorted(copters, key=lambda c: c["id"]):
+    print(c["id"], c["digest"])
+PY
+}
 
 "$bin" run "$work/scene.toml" --no-bus --no-log --duration "$secs" --json > "$work/one.json"
 "$bin" cluster "$work/scene.toml" --shards "$shards" --no-bus --duration "$secs" --json \
@@ -32,6 +43,8 @@ while kill -0 "$cluster" 2>/dev/null; do
 done
 wait "$cluster" || { cat "$work/cluster.err" >&2; exit 1; }
 restarts=$(python3 -c 'import json,sys; print(len(json.load(open(sys.argv[1])).get("restarts", [])))' "$work/cluster.json")
-differ=$(diff <(digests "$work/one.json") <(digests "$work/cluster.json") | grep -c '^<' || true)
+digests "$work/one.json" > "$work/one.txt"
+digests "$work/cluster.json" > "$work/cluster.txt"
+differ=$(diff "$work/one.txt" "$work/cluster.txt" | grep -c '^<' || true)
 echo "$kind n $n ${secs} s seed $seed: $shards shards, restarts $restarts, copters differing from one process: $differ"
-[ -n "$victim" ] && [ "$restarts" -ge 1 ] && [ "$differ" -eq 0 ]
+[ -n "$victim" ] && [ "$restarts" -ge 1 ] && [ "$differ" -eq 0 ]  # the files stay in $work

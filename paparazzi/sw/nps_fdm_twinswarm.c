@@ -14,6 +14,8 @@
  * Address: env TWINSWARM_FDM="host:port" (default 127.0.0.1:7460).
  * Env TWINSWARM_FDM_CONNECT_TIMEOUT_S (default 30): how long to retry connecting.
  * Env TWINSWARM_FDM_VERBOSE=1: print every 1000th exchanged state.
+ * Env TWINSWARM_NPS_REALTIME=1: let NPS's threads take the real-time policies they ask for
+ * (SCHED_FIFO, which a process run as root gets); by default they stay where they are.
  *
  * Protocol v1, little-endian, fixed-size records, no padding:
  *   hello, NPS -> world, once:  "TWFD" (4 bytes), u32 version = 1, u32 ac_id, f64 dt      (20 B)
@@ -29,7 +31,10 @@
  * Step 0 is sent from nps_fdm_init() with zero commands and launch 0, so that NpsFdm is
  * filled before NPS's sensors initialise (as nps_fdm_pybullet does with a first step);
  * every later call of nps_fdm_run_step() sends step 1, 2, ...
- * The world closing the connection ends NPS (exit status 0).
+ *   refused, world -> NPS:      u32 0x54575330, u16 n, n bytes of UTF-8 (in place of a state;
+ *                               the world then closes): NPS prints why and exits with status 2
+ * The world closing the connection ends NPS (exit status 0); a refusal (an ac_id that flies no
+ * copter of the scene, another step rate, or a drop after a stall, e.g. SIGSTOP) exits with 2.
  *
  * Frames: the world's NED arena frame (origin at the arena centre on the floor, x north,
  * y east, z down) is NPS's LTP frame, placed at the flight plan's origin (NAV_LAT0,
@@ -52,6 +57,8 @@
 #include <netinet/tcp.h>
 #include <arpa/inet.h>
 #include <netdb.h>
+#include <pthread.h>
+#include <sched.h>
 
 #include "math/pprz_geodetic.h"
 #include "math/pprz_geodetic_double.h"
@@ -65,6 +72,7 @@
 #define TWFD_VERSION 1u
 #define TWFD_MAGIC_STEP 0x54575331u   /* "TWS1" */
 #define TWFD_MAGIC_STATE 0x54575332u  /* "TWS2" */
+#define TWFD_MAGIC_REFUSED 0x54575330u  /* "TWS0": u16 n, n bytes of why; then the world closes */
 #define TWFD_N_MOTORS 4
 #define TWFD_HELLO_LEN 20
 #define TWFD_STEP_LEN (4 + 8 + 1 + 1 + 8 * TWFD_N_MOTORS)
@@ -98,6 +106,7 @@ static double ground_hmsl;       ///< height of the arena floor above MSL, m
 static double temperature_c = TWINSWARM_FDM_TEMPERATURE;
 static int sock = -1;
 static uint64_t next_step = 0;
+static bool have_state = false; /* a state has come: the world took this aircraft */
 static bool verbose = false;
 static struct DoubleRates last_rates;
 static bool have_last_rates = false;
@@ -109,6 +118,19 @@ static void put_f64(uint8_t *b, double d) { uint64_t v; memcpy(&v, &d, 8); put_u
 static uint32_t get_u32(const uint8_t *b) { uint32_t v = 0; for (int i = 3; i >= 0; i--) { v = (v << 8) | b[i]; } return v; }
 static uint64_t get_u64(const uint8_t *b) { uint64_t v = 0; for (int i = 7; i >= 0; i--) { v = (v << 8) | b[i]; } return v; }
 static double get_f64(const uint8_t *b) { uint64_t v = get_u64(b); double d; memcpy(&d, &v, 8); return d; }
+
+/* Linked with -Wl,--wrap=pthread_setschedparam (conf/modules/fdm_twinswarm.xml): Paparazzi's
+ * simulated UDP and UART threads ask for SCHED_FIFO; a lockstep simulation has no deadline, and
+ * a real-time thread spinning on a socket can starve the world on the same cores. */
+int __real_pthread_setschedparam(pthread_t thread, int policy, const struct sched_param *param);
+int __wrap_pthread_setschedparam(pthread_t thread, int policy, const struct sched_param *param)
+{
+  const char *rt = getenv("TWINSWARM_NPS_REALTIME");
+  if ((policy == SCHED_FIFO || policy == SCHED_RR) && !(rt && strcmp(rt, "1") == 0)) {
+    return 0;
+  }
+  return __real_pthread_setschedparam(thread, policy, param);
+}
 
 static void write_all(const uint8_t *buf, size_t len)
 {
@@ -128,20 +150,20 @@ static void read_all(uint8_t *buf, size_t len)
 {
   while (len > 0) {
     ssize_t n = recv(sock, buf, len, 0);
-    if (n == 0) {
-      printf("[twinswarm fdm] the world closed the connection after step %llu; stopping NPS\n",
-             (unsigned long long)twinswarm_step);
+    if (n == 0 || (n < 0 && errno == ECONNRESET)) {
+      if (!have_state) {
+        /* an older world, or one that could not say why: it never took this aircraft */
+        fprintf(stderr, "[twinswarm fdm] the world refused aircraft %d: it %s the connection before the first step "
+                "(its log says why)\n", (int)AC_ID, n == 0 ? "closed" : "reset");
+        exit(2);
+      }
+      printf("[twinswarm fdm] the world %s the connection after step %llu; stopping NPS\n",
+             n == 0 ? "closed" : "reset", (unsigned long long)twinswarm_step);
       fflush(stdout);
       exit(0);
     }
     if (n < 0) {
       if (errno == EINTR) { continue; }
-      if (errno == ECONNRESET) {
-        printf("[twinswarm fdm] the world reset the connection after step %llu; stopping NPS\n",
-               (unsigned long long)twinswarm_step);
-        fflush(stdout);
-        exit(0);
-      }
       fprintf(stderr, "[twinswarm fdm] recv failed: %s; stopping NPS\n", strerror(errno));
       exit(1);
     }
@@ -292,9 +314,44 @@ static void init_ltp(void)
 #endif
 }
 
+/* after the refused record's magic: print why and exit 2 */
+static void refused(void)
+{
+  uint8_t n[2];
+  read_all(n, 2);
+  size_t len = (size_t)n[0] | ((size_t)n[1] << 8);
+  char why[1024];
+  if (len > sizeof(why) - 1) { len = sizeof(why) - 1; }
+  read_all((uint8_t *)why, len);
+  why[len] = '\0';
+  fprintf(stderr, "[twinswarm fdm] the world refused aircraft %d at step %llu: %s\n", (int)AC_ID,
+          (unsigned long long)next_step, why);
+  exit(2);
+}
+
+/* In lockstep nothing is pending before a step is sent, unless the world dropped this aircraft
+ * (it stalled: stopped with SIGSTOP, say) and said why: read that before sending into a
+ * connection the world may have closed. One non-blocking peek per step. */
+static void check_dropped(void)
+{
+  uint8_t b[4];
+  ssize_t n = recv(sock, b, sizeof(b), MSG_PEEK | MSG_DONTWAIT);
+  if (n >= 0) {
+    uint8_t magic[4];
+    read_all(magic, 4); /* the end of the stream exits in read_all */
+    if (get_u32(magic) == TWFD_MAGIC_REFUSED) {
+      refused();
+    }
+    fprintf(stderr, "[twinswarm fdm] unexpected record 0x%08x before step %llu\n", get_u32(magic),
+            (unsigned long long)next_step);
+    exit(1);
+  }
+}
+
 /* send one step's commands, receive the state after it, fill NpsFdm */
 static void exchange(bool launch, double *commands, int commands_nb)
 {
+  check_dropped();
   uint8_t out[TWFD_STEP_LEN];
   put_u32(out, TWFD_MAGIC_STEP);
   put_u64(out + 4, next_step);
@@ -306,7 +363,11 @@ static void exchange(bool launch, double *commands, int commands_nb)
   write_all(out, sizeof(out));
 
   uint8_t in[TWFD_STATE_LEN];
-  read_all(in, sizeof(in));
+  read_all(in, 4);
+  if (get_u32(in) == TWFD_MAGIC_REFUSED) {
+    refused();
+  }
+  read_all(in + 4, sizeof(in) - 4);
   uint32_t magic = get_u32(in);
   uint64_t step = get_u64(in + 4);
   if (magic != TWFD_MAGIC_STATE || step != next_step) {
@@ -319,6 +380,7 @@ static void exchange(bool launch, double *commands, int commands_nb)
     f[i] = get_f64(in + 12 + 8 * i);
   }
   uint8_t crashed = in[12 + 8 * TWFD_STATE_NF];
+  have_state = true;
   twinswarm_step = next_step;
   next_step++;
 

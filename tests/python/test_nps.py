@@ -110,3 +110,17 @@ def test_a_virtual_wall_reaches_an_nps_finken_through_the_real_link_and_turns_it
         "--first-ac", 41, "--box", VIRTUAL_WALL])))
     assert not [c for c in blind["crashes"] if c["cause"]["kind"] == "box"], blind
     assert blind["max_x_m"] > 1.0, blind
+
+
+def test_a_stranger_is_refused_and_a_stopped_aircraft_ends_cleanly(tmp_path):
+    # Aircraft 42 flies no copter of this scene: the world refuses it, NPS exits 2 saying why.
+    # Aircraft 41 is stopped (SIGSTOP) for 12 s, past the world's 10 s step timeout: the world
+    # drops it and goes on; continued, it reads why and exits 2 instead of waiting forever.
+    r = fly(tmp_path, "--count", 1, "--plan", "wall_avoid", "--duration", 300, "--first-ac", 41, "--no-log",
+            "--stranger", 42, "--stop", "41:0.5")
+    assert r["nps_exit"].get(42) == 2, r
+    assert "refused aircraft 42" in r["nps_said"][42] and "flies no copter of this scene" in r["nps_said"][42], r
+    assert [x["ac_id"] for x in r["autopilots_refused"]] == [42], r
+    assert r["autopilots_left"] == [41], r
+    assert r["nps_exit"].get(41) == 2, r
+    assert "dropped at step" in r["nps_said"][41] and "step timeout" in r["nps_said"][41], r

@@ -16,6 +16,13 @@
 //! | hello | NPS → world, once | `"TWFD"`, u32 version 1, u32 ac_id, f64 dt (s) | 20 |
 //! | step | NPS → world, every step | u32 `0x54575331`, u64 step, u8 launch, u8 n = 4, f64 commands\[4\] | 46 |
 //! | state | world → NPS, answer to a step | u32 `0x54575332`, u64 step, f64 t (s), pos\[3\], vel\[3\], accel\[3\] (NED), quat ned→body (w, x, y, z), body rates\[3\] (FRD), specific force\[3\] (FRD), agl, sonar\[4\] (front, right, back, left), ir (m; NaN: nothing in range), u8 crashed | 221 |
+//! | refused | world → NPS, in place of a state, then the world closes | u32 `0x54575330`, u16 n, n bytes of UTF-8: why | 6 + n |
+//!
+//! The world refuses an aircraft it cannot fly (no copter of the scene has its `ac_id`, or one
+//! already flown; another step rate; a bad hello) and drops one that stalled past the step
+//! timeout or broke the protocol; either way it says why in a `refused` record and shuts the
+//! connection, so NPS exits non-zero with the reason instead of waiting on a silent socket
+//! (also an NPS stopped with SIGSTOP and continued after the world dropped it).
 //!
 //! Commands are Paparazzi's motor-mixing outputs over `MAX_PPRZ` in the airframe's motor order
 //! (0 front right, 1 back right, 2 back left, 3 front left); −1 means stopped. They become the
@@ -26,6 +33,8 @@
 
 use std::io::{Read, Write};
 use std::net::{SocketAddr, TcpListener, TcpStream};
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
 use serde::Serialize;
@@ -41,6 +50,9 @@ const STEP_LEN: usize = 46;
 const STATE_LEN: usize = 221;
 const STEP_MAGIC: u32 = 0x5457_5331;
 const STATE_MAGIC: u32 = 0x5457_5332;
+const REFUSED_MAGIC: u32 = 0x5457_5330;
+/// A refusal's reason is cut to this many bytes (at a character boundary).
+const REFUSED_MAX: usize = 1000;
 
 /// A record that is not what protocol v1 says.
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
@@ -296,6 +308,17 @@ pub struct AutopilotStats {
     pub left: Option<(u64, String)>,
 }
 
+/// An autopilot the world turned away at its hello.
+#[derive(Debug, Clone, Default, Serialize)]
+pub struct Refusal {
+    /// Where it connected from.
+    pub peer: String,
+    /// The aircraft its hello named, if it sent one.
+    pub ac_id: Option<u8>,
+    /// Why.
+    pub why: String,
+}
+
 struct Conn {
     copter: usize,
     stream: TcpStream,
@@ -307,6 +330,10 @@ struct Conn {
 /// The world's side of its autopilots (see the module docs).
 pub struct Autopilots {
     conns: Vec<Conn>,
+    /// The autopilots turned away, while waiting for all of them and after (by `late`).
+    refused: Arc<Mutex<Vec<Refusal>>>,
+    /// Refuses the autopilots that come once every copter has its own; held for its `Drop`.
+    _late: Option<LateDoor>,
     dt_s: f64,
     /// The step waiting time of all autopilots together, s.
     wait_s: f64,
@@ -343,7 +370,12 @@ impl Autopilots {
             .collect();
         let dt_s = world.params.control_dt_s;
         let start = Instant::now();
-        let mut conns = Vec::new();
+        let (mut conns, mut refused) = (Vec::new(), Vec::new());
+        let mut refuse = |stream: &TcpStream, peer: SocketAddr, ac_id: Option<u8>, why: String| {
+            tracing::warn!("autopilot from {peer} refused: {why}");
+            send_refusal(stream, &why);
+            refused.push(Refusal { peer: peer.to_string(), ac_id, why });
+        };
         while !wanted.is_empty() {
             if start.elapsed() > opts.connect_timeout {
                 let missing = wanted
@@ -364,22 +396,18 @@ impl Autopilots {
             let hello = match read_hello(&stream, opts.step_timeout) {
                 Ok(h) => h,
                 Err(why) => {
-                    tracing::warn!("autopilot from {peer} refused: {why}");
+                    refuse(&stream, peer, None, why);
                     continue;
                 }
             };
             if (hello.dt_s - dt_s).abs() > 1e-9 {
-                return Err(AutopilotError::Rate {
-                    ac_id: hello.ac_id,
-                    autopilot_ms: hello.dt_s * 1e3,
-                    world_ms: dt_s * 1e3,
-                });
+                let e = AutopilotError::Rate { ac_id: hello.ac_id, autopilot_ms: hello.dt_s * 1e3, world_ms: dt_s * 1e3 };
+                send_refusal(&stream, &e.to_string());
+                return Err(e);
             }
             let Some(k) = wanted.iter().position(|&(ac, _)| ac == hello.ac_id) else {
-                tracing::warn!(
-                    "autopilot from {peer} refused: aircraft {} flies no copter of this scene (or one already flown)",
-                    hello.ac_id
-                );
+                let why = format!("aircraft {} flies no copter of this scene (or one already flown)", hello.ac_id);
+                refuse(&stream, peer, Some(hello.ac_id), why);
                 continue;
             };
             let (ac_id, copter) = wanted.swap_remove(k);
@@ -395,7 +423,10 @@ impl Autopilots {
             conns.push(Conn { copter, stream, prev_vel: Vec3::ZERO, gone: false, stats });
         }
         conns.sort_by_key(|c| c.copter);
-        Ok(Self { conns, dt_s, wait_s: 0.0 })
+        let refused = Arc::new(Mutex::new(refused));
+        let flown = conns.iter().map(|c: &Conn| c.stats.ac_id).collect();
+        let late = LateDoor::open(listener, flown, Arc::clone(&refused), opts.step_timeout);
+        Ok(Self { conns, refused, _late: Some(late), dt_s, wait_s: 0.0 })
     }
 
     /// How many autopilots there are.
@@ -430,6 +461,7 @@ impl Autopilots {
                         conn.stats.ac_id,
                         world.copters[conn.copter].name
                     );
+                    send_refusal(&conn.stream, &format!("dropped at step {tick}: {why}"));
                     conn.stats.left = Some((tick, why));
                     conn.gone = true;
                 }
@@ -445,6 +477,7 @@ impl Autopilots {
             match conn.stream.write_all(&encode_state(&s)) {
                 Ok(()) => conn.stats.steps += 1,
                 Err(e) => {
+                    let _ = conn.stream.shutdown(std::net::Shutdown::Both);
                     conn.stats.left = Some((state.tick, format!("cannot send its state: {e}")));
                     conn.gone = true;
                 }
@@ -457,10 +490,81 @@ impl Autopilots {
         self.conns.iter().map(|c| c.stats.clone()).collect()
     }
 
+    /// The autopilots turned away at their hello, in the order they came.
+    pub fn refused(&self) -> Vec<Refusal> {
+        crate::lock(&self.refused).clone()
+    }
+
     /// The wall time all steps waited for the autopilots, s.
     pub fn wait_s(&self) -> f64 {
         self.wait_s
     }
+}
+
+/// The listener after every copter has its autopilot: a thread that tells each newcomer why
+/// it will not fly (instead of leaving it in the backlog or refusing its connection, which
+/// NPS would retry for its whole connect timeout). Closed when the [`Autopilots`] are dropped.
+struct LateDoor {
+    stop: Arc<AtomicBool>,
+    thread: Option<std::thread::JoinHandle<()>>,
+}
+
+impl LateDoor {
+    fn open(listener: TcpListener, flown: Vec<u8>, refused: Arc<Mutex<Vec<Refusal>>>, timeout: Duration) -> Self {
+        let stop = Arc::new(AtomicBool::new(false));
+        let flag = Arc::clone(&stop);
+        let thread = std::thread::Builder::new().name("autopilot-door".into()).spawn(move || {
+            while !flag.load(Ordering::Relaxed) {
+                let Ok((stream, peer)) = listener.accept() else {
+                    std::thread::sleep(Duration::from_millis(20));
+                    continue;
+                };
+                let hello = read_hello(&stream, timeout.min(Duration::from_secs(2)));
+                let ac_id = hello.as_ref().ok().map(|h| h.ac_id);
+                let why = match ac_id {
+                    Some(ac) if flown.contains(&ac) => {
+                        format!("aircraft {ac} came after the run started: its copter already has its autopilot")
+                    }
+                    Some(ac) => format!("aircraft {ac} flies no copter of this scene"),
+                    None => format!("came after the run started ({})", hello.err().unwrap_or_default()),
+                };
+                tracing::warn!("autopilot from {peer} refused: {why}");
+                send_refusal(&stream, &why);
+                crate::lock(&refused).push(Refusal { peer: peer.to_string(), ac_id, why });
+            }
+        });
+        Self { stop, thread: thread.ok() }
+    }
+}
+
+impl Drop for LateDoor {
+    fn drop(&mut self) {
+        self.stop.store(true, Ordering::Relaxed);
+        if let Some(t) = self.thread.take() {
+            let _ = t.join();
+        }
+    }
+}
+
+/// A `refused` record: the reason, cut to [`REFUSED_MAX`] bytes at a character boundary.
+pub fn encode_refusal(why: &str) -> Vec<u8> {
+    let mut end = why.len().min(REFUSED_MAX);
+    while !why.is_char_boundary(end) {
+        end -= 1;
+    }
+    let mut b = Vec::with_capacity(6 + end);
+    b.extend_from_slice(&REFUSED_MAGIC.to_le_bytes());
+    b.extend_from_slice(&(end as u16).to_le_bytes());
+    b.extend_from_slice(&why.as_bytes()[..end]);
+    b
+}
+
+/// Tells an autopilot why the world will not fly it (best effort: it may be gone) and shuts
+/// the connection, so that it reads the end of the stream after the reason.
+fn send_refusal(mut stream: &TcpStream, why: &str) {
+    let _ = stream.set_write_timeout(Some(Duration::from_secs(1)));
+    let _ = stream.write_all(&encode_refusal(why));
+    let _ = stream.shutdown(std::net::Shutdown::Both);
 }
 
 fn read_hello(mut stream: &TcpStream, timeout: Duration) -> Result<Hello, String> {
@@ -607,10 +711,16 @@ start = { pos_m = [0.5, -0.25, 0.0], yaw_deg = 30.0 }
             c.write_all(&step(0, [0.6; 4])).unwrap();
             let mut b = [0u8; STATE_LEN];
             c.read_exact(&mut b).unwrap();
+            // Stalls past the step timeout: the world drops it, says why and closes.
             std::thread::sleep(Duration::from_millis(800));
-            (u64::from_le_bytes(b[4..12].try_into().unwrap()), stranger)
+            (u64::from_le_bytes(b[4..12].try_into().unwrap()), read_refusal(&mut stranger), read_refusal(&mut c))
         });
         let mut aps = Autopilots::accept_on(listener, &world, &opts).unwrap();
+        // One that comes once every copter has its autopilot is told so, not left waiting.
+        let mut late = TcpStream::connect(addr).unwrap();
+        late.write_all(&hello(7, 0.001)).unwrap();
+        let late_told = read_refusal(&mut late);
+        assert!(late_told.contains("aircraft 7 came after the run started: its copter already has"), "{late_told}");
         let mut inputs = world.initial_inputs();
         let mut state = state;
         aps.commands(&world, &state, &mut inputs);
@@ -622,17 +732,43 @@ start = { pos_m = [0.5, -0.25, 0.0], yaw_deg = 30.0 }
         let stats = aps.stats();
         assert_eq!(stats[0].steps, 1);
         assert!(stats[0].left.as_ref().unwrap().1.contains("timeout"), "{:?}", stats[0].left);
-        let (answered, _) = client.join().unwrap();
+        let (answered, stranger_told, staller_told) = client.join().unwrap();
         assert_eq!(answered, 0);
+        assert!(stranger_told.contains("aircraft 9 flies no copter of this scene"), "{stranger_told}");
+        assert!(staller_told.contains("dropped at step 1: no commands within the step timeout"), "{staller_told}");
+        let refused = aps.refused();
+        assert_eq!(refused.iter().map(|r| r.ac_id).collect::<Vec<_>>(), [Some(9), Some(7)], "{refused:?}");
 
         let listener = TcpListener::bind("127.0.0.1:0").unwrap();
         let addr = listener.local_addr().unwrap();
-        std::thread::spawn(move || {
+        let client = std::thread::spawn(move || {
             let mut c = TcpStream::connect(addr).unwrap();
             c.write_all(&hello(7, 0.002)).unwrap();
-            std::thread::sleep(Duration::from_millis(500));
+            read_refusal(&mut c)
         });
         let err = Autopilots::accept_on(listener, &world, &opts).unwrap_err().to_string();
         assert!(err.contains("aircraft 7 steps every 2 ms") && err.contains("control_dt_s is 1 ms"), "{err}");
+        assert_eq!(client.join().unwrap(), err, "the autopilot is told what the world says");
+    }
+
+    /// What an autopilot reads from a world that turned it away: the `refused` record's reason,
+    /// then the end of the stream.
+    fn read_refusal(c: &mut TcpStream) -> String {
+        let mut head = [0u8; 6];
+        c.read_exact(&mut head).unwrap();
+        assert_eq!(u32_at(&head, 0), REFUSED_MAGIC);
+        let mut why = vec![0u8; usize::from(u16::from_le_bytes([head[4], head[5]]))];
+        c.read_exact(&mut why).unwrap();
+        assert_eq!(c.read(&mut [0u8; 1]).unwrap(), 0, "the world closes after the reason");
+        String::from_utf8(why).unwrap()
+    }
+
+    #[test]
+    fn a_long_reason_is_cut_at_a_character_boundary() {
+        let why = "é".repeat(REFUSED_MAX);
+        let b = encode_refusal(&why);
+        let n = usize::from(u16::from_le_bytes([b[4], b[5]]));
+        assert!(n <= REFUSED_MAX && n % 2 == 0 && b.len() == 6 + n, "{n}");
+        assert!(std::str::from_utf8(&b[6..]).is_ok());
     }
 }

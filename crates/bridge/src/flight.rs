@@ -260,6 +260,7 @@ impl<W: StepObserver> Flight<W> {
         if let Some(a) = &c.autopilots {
             let a = crate::lock(a);
             c.stats.autopilots = a.stats();
+            c.stats.autopilots_refused = a.refused();
             c.stats.autopilot_wait_s = a.wait_s();
         }
         if let Some(sync) = &c.sync {

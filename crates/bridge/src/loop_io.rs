@@ -202,6 +202,8 @@ pub struct LoopStats {
     pub lockstep: Option<LockstepStats>,
     /// Outside autopilots, in copter order.
     pub autopilots: Vec<crate::autopilot::AutopilotStats>,
+    /// Autopilots the world turned away at their hello.
+    pub autopilots_refused: Vec<crate::autopilot::Refusal>,
     /// Wall time the steps waited for the outside autopilots, s.
     pub autopilot_wait_s: f64,
 }

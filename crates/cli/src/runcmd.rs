@@ -537,6 +537,7 @@ fn report_run(
         json["inputs"] = inputs_json(&stats);
         json["lockstep"] = serde_json::to_value(&stats.lockstep)?;
         json["autopilots"] = serde_json::to_value(&stats.autopilots)?;
+        json["autopilots_refused"] = serde_json::to_value(&stats.autopilots_refused)?;
         json["autopilot_wait_s"] = stats.autopilot_wait_s.into();
         json["log_error"] = log_error.as_ref().map_or(serde_json::Value::Null, |e| format!("{e:#}").into());
         json["shard"] = serde_json::to_value(shard)?;
@@ -777,6 +778,13 @@ fn print_inputs(stats: &bridge::sim::LoopStats, failsafe_events: &[(u64, String)
 /// the time waited for them, and the first few that left early.
 fn print_autopilots(stats: &bridge::sim::LoopStats) {
     let aps = &stats.autopilots;
+    for r in stats.autopilots_refused.iter().take(5) {
+        let ac = r.ac_id.map_or_else(|| "an autopilot".to_owned(), |a| format!("aircraft {a}"));
+        outln!("  refused {ac} from {}: {}", r.peer, r.why);
+    }
+    if stats.autopilots_refused.len() > 5 {
+        outln!("  … {} more refused in --json", stats.autopilots_refused.len() - 5);
+    }
     if aps.is_empty() {
         return;
     }
