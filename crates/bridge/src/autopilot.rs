@@ -401,7 +401,8 @@ impl Autopilots {
                 }
             };
             if (hello.dt_s - dt_s).abs() > 1e-9 {
-                let e = AutopilotError::Rate { ac_id: hello.ac_id, autopilot_ms: hello.dt_s * 1e3, world_ms: dt_s * 1e3 };
+                let e =
+                    AutopilotError::Rate { ac_id: hello.ac_id, autopilot_ms: hello.dt_s * 1e3, world_ms: dt_s * 1e3 };
                 send_refusal(&stream, &e.to_string());
                 return Err(e);
             }

@@ -220,38 +220,27 @@ impl Estimate {
 
     /// One height update (every control step): predicted over `dt` with the measured
     /// vertical acceleration `az_m_s2` (world frame, gravity removed), then corrected with
-    /// the raw IR distance `ir_raw_m` (noise included, before range checks) at tilt cosine
-    /// `cos_tilt`.
-    pub fn update_height(
-        &mut self,
-        spec: &EstimatorSpec,
-        ir: &IrSpec,
-        ir_raw_m: Real,
-        cos_tilt: Real,
-        az_m_s2: Real,
-        dt: Real,
-    ) {
+    /// the raw IR distance `ir_raw_m` (noise included, before range checks).
+    pub fn update_height(&mut self, spec: &EstimatorSpec, ir: &IrSpec, ir_raw_m: Real, az_m_s2: Real, dt: Real) {
         self.height_m += self.vz_m_s * dt + 0.5 * az_m_s2 * dt * dt;
         self.vz_m_s += az_m_s2 * dt;
-        let cos_tilt = cos_tilt.max(0.1);
+        // As the FINken firmware reads it (`finken_ir_adc.c`, `finken_model_sensors.c`): the
+        // reading clamped to the conversion table's range, the slant range as the height (no
+        // tilt correction), the far end taken as a measurement; no rejection of a jump (a
+        // copter passing below reads as the floor coming up).
         self.ir_in_range = ir_raw_m.is_finite() && (ir.min_range_m..=ir.max_range_m).contains(&ir_raw_m);
-        if self.ir_in_range {
-            let innovation = ir_raw_m * cos_tilt - self.height_m;
+        let reading = if ir_raw_m.is_finite() { ir_raw_m.min(ir.max_range_m) } else { ir.max_range_m };
+        if reading >= ir.min_range_m {
+            let innovation = reading - self.height_m;
             self.height_m += spec.height_alpha * innovation;
             self.vz_m_s += spec.height_beta / dt * innovation;
-        } else if ir_raw_m < ir.min_range_m {
-            self.vz_m_s *= 1.0 - (dt / spec.fallback_leak_s).min(1.0);
-            let cap = ir.min_range_m * cos_tilt;
-            if self.height_m > cap {
-                self.height_m = cap;
-                self.vz_m_s = self.vz_m_s.min(0.0);
-            }
         } else {
+            // Nearer than the table reaches (on the floor, taking off): the estimate stays at
+            // or below its near end, its speed leaking away.
             self.vz_m_s *= 1.0 - (dt / spec.fallback_leak_s).min(1.0);
-            let floor = ir.max_range_m * cos_tilt;
-            if self.height_m < floor {
-                self.height_m = floor;
-                self.vz_m_s = self.vz_m_s.max(0.0);
+            if self.height_m > ir.min_range_m {
+                self.height_m = ir.min_range_m;
+                self.vz_m_s = self.vz_m_s.min(0.0);
             }
         }
         if self.height_m < 0.0 {

@@ -1715,9 +1715,8 @@ fn read_imu_and_estimate(world: &World, p: &SenseParams, i: usize, c: &mut Copte
         est.ideal(rpy, c.yaw_bias_rad, rate_b.into());
         est.ideal_height(pos.z, vel.z);
     } else {
-        let cos_tilt = math::cos(est.attitude_rad[0]) * math::cos(est.attitude_rad[1]);
         let az = (rot * accel).z - GRAVITY_M_S2;
-        est.update_height(&spec.estimator, &spec.ir, ir, cos_tilt, az, p.dt_control);
+        est.update_height(&spec.estimator, &spec.ir, ir, az, p.dt_control);
         if noise {
             est.wander_bias(&spec.estimator, p.dt_control, &mut c.rng);
         }

@@ -339,3 +339,46 @@ fn determinism_holds_with_all_noise_and_crosstalk_on() {
     assert_eq!(a, b, "same seed, different bits");
     assert_ne!(a, c, "a different seed gave identical bits");
 }
+
+/// The FINken firmware takes whatever surface its IR sees below as the floor
+/// (`finken_model_sensors.c`: no jump rejection): sent over another copter, a copter climbs
+/// by the gap and holds its set point above the other's top. 0.8 m over 0.4 m: it settles
+/// about 0.8 m above the lower one (its centre; the top is a few cm higher), not at 0.8 m.
+#[test]
+fn an_ir_over_another_copter_reads_it_and_the_copter_climbs_by_the_gap() {
+    let world = load(
+        r#"
+[sim]
+seed = 7
+[arena]
+size_m = [4.0, 3.0]
+height_m = 2.5
+[[copter]]
+name = "low"
+start = { pos_m = [0.0, 0.0] }
+mode = "target"
+command = { height_m = 0.4, target_m = [0.0, 0.0, 0.4] }
+[[copter]]
+name = "high"
+start = { pos_m = [1.0, 0.0] }
+mode = "target"
+command = { height_m = 0.8, target_m = [0.0, 0.0, 0.8] }
+"#,
+    );
+    let (mut state, inputs) = (world.initial_state(), world.initial_inputs());
+    let (mut gaps, mut highs) = (Vec::new(), Vec::new());
+    for _ in 0..(20.0 / world.params.control_dt_s) as u64 {
+        step(&world, &mut state, &inputs);
+        if state.tick as f64 * world.params.control_dt_s >= 15.0 {
+            let (low, high) = (state.copters[0].motion.pos_m, state.copters[1].motion.pos_m);
+            assert!((high.x - low.x).hypot(high.y - low.y) < 0.15, "over it: {high} {low}");
+            gaps.push(high.z - low.z);
+            highs.push(high.z);
+        }
+    }
+    assert!(state.copters.iter().all(|c| c.crash.is_none()), "no crash");
+    let mean = |v: &[f32]| v.iter().sum::<f32>() / v.len() as f32;
+    let (gap, high) = (mean(&gaps), mean(&highs));
+    assert!((0.75..0.95).contains(&gap), "holds ~0.8 m above the lower copter: gap {gap}");
+    assert!(high > 1.1, "so it is far above its own 0.8 m: {high}");
+}

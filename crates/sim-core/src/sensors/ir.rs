@@ -9,9 +9,11 @@ use crate::math::Real;
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
 pub struct IrSpec {
-    /// Shortest valid distance, m.
+    /// Shortest distance the firmware reports, m: nearer reads this (and the 2015-12
+    /// firmware then holds its last height).
     pub min_range_m: Real,
-    /// Longest valid distance, m.
+    /// Longest distance the firmware reports, m: farther reads this, and the height loop
+    /// takes it as a measurement (so a copter above it is pushed back down).
     pub max_range_m: Real,
     /// Constant part of the noise standard deviation, m.
     pub noise_sigma_m: Real,
@@ -21,6 +23,8 @@ pub struct IrSpec {
 
 impl Default for IrSpec {
     fn default() -> Self {
-        Self { min_range_m: 0.10, max_range_m: 1.50, noise_sigma_m: 0.005, noise_sigma_rel: 0.01 }
+        // The firmware's range: `finken_ir_adc.c` maps ADC counts through a six-point table
+        // onto 0.20–1.30 m and clamps outside it (both the 2015-07 and the 2015-12 firmware).
+        Self { min_range_m: 0.20, max_range_m: 1.30, noise_sigma_m: 0.005, noise_sigma_rel: 0.01 }
     }
 }
