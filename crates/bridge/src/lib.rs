@@ -13,6 +13,8 @@
 //!   back, over Zenoh, over Ivy, or both as a gateway.
 //! * [`realflight`]: a real flight's Paparazzi log as series in the simulator's frame, its
 //!   flights, the arena its sonars describe and where each flight began.
+//! * [`fit`]: system identification of the horizontal flight model from real flights' sonars
+//!   and attitude, and the prediction errors it and the simpler models make.
 //! * [`sync`]: keeping twins where their real copters are (MEDUSA and tracking).
 //! * [`log`]: MCAP logs, their reader and recovery.
 //! * [`checkpoint`]: a run saved between two steps, bit for bit, and restored.
@@ -26,6 +28,7 @@
 pub mod autopilot;
 pub mod checkpoint;
 pub mod failsafe;
+pub mod fit;
 pub mod flight;
 pub mod link;
 pub mod live;

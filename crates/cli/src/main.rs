@@ -5,6 +5,7 @@
 #[macro_use]
 extern crate twinswarm;
 
+mod fitcmd;
 mod ivycmd;
 mod localize;
 mod report;
@@ -83,6 +84,10 @@ enum Command {
     /// driven by the log's telemetry, with and without the sync correction, scored against the
     /// real sonars, AHRS and IR, per flight (and V-REP's twin beside it with `--vrep`).
     Validate(validate::ValidateArgs),
+    /// Identify the horizontal flight model from real flights' Paparazzi logs (NAME.data +
+    /// NAME.log): attitude-to-position delay, damping, signs and trim bias, leave one flight
+    /// out, and the prediction errors 1, 2 and 4 s ahead against Twinswarm's current model.
+    Fit(fitcmd::FitArgs),
     /// Plot a run log: position heat-map, pitch and roll, sonars and y position (PNG).
     Plot {
         /// The MCAP log.
@@ -382,6 +387,7 @@ fn main() -> ExitCode {
         Command::Replay(args) if bridge::paparazzi::flightlog::is_flight_log(&args.file) => replay_pprz::run(&args),
         Command::Replay(args) => replay::run(args),
         Command::Validate(args) => validate::run(args),
+        Command::Fit(args) => fitcmd::run(&args),
         Command::Plot { file, heatmap, attitude, sonar, copter } => plot::plot(
             &file,
             &plot::PlotRequest {

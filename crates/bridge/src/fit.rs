@@ -1,0 +1,1519 @@
+//! System identification of the horizontal flight model from real flights: how well the
+//! recorded attitude, fed open loop through `a = σ·g·tan(θ(t − τ) + b) − k·v` per axis, predicts
+//! where the copter's own sonars put it 1, 2 and 4 s later, against Twinswarm's FINken defaults,
+//! constant velocity and staying put. Pure functions over a [`Series`]: no I/O, no printing.
+//!
+//! **Frames and signs.** Everything is in the body frame the sonars look along, FLU as the
+//! simulator's (front +x, left +y), the copter flying square to the walls:
+//! `x = (back − front) / 2` and `y = (right − left) / 2` ([`crate::realflight::start_pose`]'s
+//! convention: moving left, the right sonar's reading grows). The attitude is the series'
+//! `rpy_rad`, in the simulator's frame ([`crate::paparazzi::convert::twin_command`]: roll as
+//! Paparazzi's `phi`, right side down positive; pitch the negated `theta`, nose down positive),
+//! with the roll and pitch the AHRS read standing on the floor before take-off taken off
+//! ([`crate::realflight::ground_level`]), as `twinswarm validate` drives its twin.
+//! Axis x is driven by the pitch, y by the roll, each with a sign σ ([`Mapping`]): Twinswarm's
+//! own model (`step.rs`, `velocity_tilt`) has `a_x = +g·tan(pitch)` and `a_y = −g·tan(roll)`
+//! ([`Mapping::TWINSWARM`]). The fit does not assume it: it fits both signs per axis and keeps
+//! the one that predicts better ([`Params::sign_evidence`]).
+//!
+//! **The track** ([`sonar_track`]): per axis, a reading needs both opposite sonars echoing within
+//! `[sonar_min_m, sonar_max_m)`; where [`FitOptions::sum_gate_m`] is set, their sum must also be
+//! within it of the arena's side, the most frequent sum over all the flights given of the same
+//! series ([`crate::realflight::derive_arena`]; a sonar on an object or another copter reads
+//! short, and the "position" jumps and stays there, which no median gate removes); a reading more
+//! than `gate_m` from the median of its neighbours within `±gate_window_s` is an outlier. What
+//! is left is resampled to a fixed grid (`grid_dt_s`) by linear interpolation between readings
+//! less than `max_gap_s` apart; NaN marks a gap.
+//!
+//! **The known state at t0** (every `start_every_s` from `first_start_s` after take-off): a
+//! least-squares line through the track's last `velocity_window_s` (causal: nothing after t0).
+//! A line's slope is the velocity at its window's centre `t_c = t0 − window/2` (exactly, under
+//! constant acceleration), so the attitude-driven models start there, with the line's value and
+//! slope at `t_c`, and integrate through the recorded attitude (known up to t0, and recorded
+//! after it: the prediction is open loop in position, not in attitude) to `t0 + H`. Constant
+//! velocity extends the line to `t0 + H`; stay put holds its value at t0. The error is the
+//! horizontal distance to the track at `t0 + H`. With [`FitOptions::centred_state`] the line is
+//! centred on t0 instead (it peeks half a window ahead) and every model starts at t0: a causal
+//! line's slope is the velocity a quarter second ago, and under the braking of Wall-Avoid that
+//! costs constant velocity and the current model several cm at 1 s.
+//!
+//! **The on-line trim bias b**, per axis: an exponentially weighted least-squares estimate
+//! (time constant `bias_time_constant_s`; a prior of b = 0 worth `bias_prior_s` of data at
+//! take-off, forgotten like the data) of the
+//! attitude offset that explains the track's acceleration, `b ≈ σ·(a + k·v)/g − tan θ(s − τ)`
+//! (linearised in the small angles), with `v` and `a` from centred line fits over the track.
+//! For a start at t0 it uses only residuals whose data ends by t0.
+//!
+//! **Identification**: a grid search over the delay τ (`delays_s`) and the damping k
+//! (`dampings_per_s`) minimising the mean horizontal error over all horizons' predictions
+//! (both signs per axis first: each axis keeps the sign whose best mean error along it is
+//! lower). Leave one flight out: each flight is scored with τ, k and signs fitted on the others
+//! (with one flight only, in sample, and the report says so). The longest horizon's errors are
+//! the largest and weigh most in that mean; τ and k trade against each other, and a larger k
+//! pulls long predictions towards staying put, so the damping found depends on the horizons
+//! asked for (the report gives the grid's ends, and says where a fit lies on one).
+//!
+//! **The height loop** ([`height_stats`]): the IR from take-off + `settle_after_take_off_s` to
+//! landing − `settle_before_landing_s`: mean, sd, range, and its noise (sd of the IR less its
+//! centred `ir_noise_window_s` moving average).
+
+use serde::Serialize;
+
+use crate::realflight::{Flight, REAL_SONAR_MAX_M, Series, derive_arena, ground_level};
+
+/// Gravity, m/s², as the simulator has it.
+fn gravity_m_s2() -> f64 {
+    f64::from(sim_core::math::GRAVITY_M_S2)
+}
+
+/// The two signs a mapping may have, in the order the sums keep them.
+const SIGNS: [f64; 2] = [1.0, -1.0];
+
+/// A grid of values `from, from + step, …` up to `to` (inclusive).
+#[derive(Clone, Copy, Debug, PartialEq, Serialize)]
+pub struct Range {
+    /// First value.
+    pub from: f64,
+    /// Last value (inclusive, where the steps reach it).
+    pub to: f64,
+    /// Step.
+    pub step: f64,
+}
+
+impl Range {
+    /// Its values.
+    pub fn values(&self) -> Vec<f64> {
+        let n = ((self.to - self.from) / self.step + 1e-9).floor().max(0.0) as usize;
+        (0..=n).map(|i| self.from + i as f64 * self.step).collect()
+    }
+
+    fn is_valid(&self) -> bool {
+        self.from.is_finite() && self.to.is_finite() && self.step > 0.0 && self.to >= self.from
+    }
+}
+
+/// Which way the attitude drives the position: `a_x = pitch_to_x · g·tan(pitch + b_x) − k·v_x`,
+/// `a_y = roll_to_y · g·tan(roll + b_y) − k·v_y`; each sign +1 or −1.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize)]
+pub struct Mapping {
+    /// Sign of the pitch's push along x (front).
+    pub pitch_to_x: i8,
+    /// Sign of the roll's push along y (left).
+    pub roll_to_y: i8,
+}
+
+impl Mapping {
+    /// Twinswarm's own: nose down (positive pitch) pushes forward, right side down (positive
+    /// roll) pushes right, towards −y.
+    pub const TWINSWARM: Mapping = Mapping { pitch_to_x: 1, roll_to_y: -1 };
+
+    /// The sign of `axis` (0: x ← pitch, 1: y ← roll).
+    pub fn sign(&self, axis: usize) -> f64 {
+        f64::from(if axis == 0 { self.pitch_to_x } else { self.roll_to_y })
+    }
+
+    fn from_signs(s: [usize; 2]) -> Mapping {
+        let sign = |i: usize| if i == 0 { 1 } else { -1 };
+        Mapping { pitch_to_x: sign(s[0]), roll_to_y: sign(s[1]) }
+    }
+
+    fn sign_index(&self, axis: usize) -> usize {
+        usize::from(self.sign(axis) < 0.0)
+    }
+}
+
+impl std::fmt::Display for Mapping {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        let s = |v: i8| if v < 0 { "−" } else { "+" };
+        write!(f, "a_x = {}g·tan(pitch), a_y = {}g·tan(roll)", s(self.pitch_to_x), s(self.roll_to_y))
+    }
+}
+
+/// Everything the identification may be told; [`FitOptions::default`] is what `twinswarm fit`
+/// runs.
+#[derive(Clone, Debug, PartialEq, Serialize)]
+pub struct FitOptions {
+    /// The track's grid, s (20 Hz).
+    pub grid_dt_s: f64,
+    /// Sonar readings below this are dropped, m (the sonar's shortest range).
+    pub sonar_min_m: f64,
+    /// Sonar readings at or above this are no echo, m (the firmware gates at 3 m).
+    pub sonar_max_m: f64,
+    /// Where set, a reading whose two opposite sonars sum to more than this away from the
+    /// arena's side (their most frequent sum) is dropped, m.
+    pub sum_gate_m: Option<f64>,
+    /// A reading further than this from the median of its neighbours is an outlier, m.
+    pub gate_m: f64,
+    /// The neighbours of a reading: within this either side, s.
+    pub gate_window_s: f64,
+    /// Readings further apart than this leave a gap between them, s (the attitude too).
+    pub max_gap_s: f64,
+    /// The delays τ tried, s.
+    pub delays_s: Range,
+    /// The dampings k tried, 1/s.
+    pub dampings_per_s: Range,
+    /// The prediction horizons, s.
+    pub horizons_s: Vec<f64>,
+    /// A prediction starts this often, s.
+    pub start_every_s: f64,
+    /// The first start, after take-off, s.
+    pub first_start_s: f64,
+    /// The known state's window (the last this much of the track before t0), s.
+    pub velocity_window_s: f64,
+    /// The state window centred on t0 instead of ending there: it peeks half a window into the
+    /// future, and the state is the line's at t0 (for comparison with analyses that do).
+    pub centred_state: bool,
+    /// The on-line bias's forgetting time constant, s.
+    pub bias_time_constant_s: f64,
+    /// The bias's prior (b = 0) weighs as much as this much of data at take-off, s.
+    pub bias_prior_s: f64,
+    /// The sign mapping, fixed; `None`: fitted.
+    pub mapping: Option<Mapping>,
+    /// The "current model"'s damping: Twinswarm's FINken default (the airframe's
+    /// `linear_damping`), 1/s.
+    pub current_damping_per_s: f64,
+    /// The height loop's settled span begins this long after take-off, s.
+    pub settle_after_take_off_s: f64,
+    /// And ends this long before landing, s.
+    pub settle_before_landing_s: f64,
+    /// The IR noise is taken against a centred moving average this wide, s.
+    pub ir_noise_window_s: f64,
+}
+
+impl Default for FitOptions {
+    fn default() -> Self {
+        FitOptions {
+            grid_dt_s: 0.05,
+            sonar_min_m: f64::from(sim_core::sensors::SonarSpec::default().min_range_m),
+            sonar_max_m: f64::from(REAL_SONAR_MAX_M),
+            sum_gate_m: Some(0.3),
+            gate_m: 0.3,
+            gate_window_s: 0.5,
+            max_gap_s: 0.3,
+            delays_s: Range { from: 0.0, to: 0.6, step: 0.02 },
+            dampings_per_s: Range { from: 0.0, to: 0.6, step: 0.01 },
+            horizons_s: vec![1.0, 2.0, 4.0],
+            start_every_s: 0.5,
+            first_start_s: 1.0,
+            velocity_window_s: 0.5,
+            centred_state: false,
+            bias_time_constant_s: 3.0,
+            bias_prior_s: 1.0,
+            mapping: None,
+            current_damping_per_s: f64::from(sim_core::AirframeSpec::default().linear_damping),
+            settle_after_take_off_s: 5.0,
+            settle_before_landing_s: 1.0,
+            ir_noise_window_s: 1.0,
+        }
+    }
+}
+
+impl FitOptions {
+    fn check(&self) -> Result<(), FitError> {
+        let bad = |what: &str| Err(FitError::BadOptions(what.to_owned()));
+        let positive = |v: f64| v.is_finite() && v > 0.0;
+        if !positive(self.grid_dt_s) {
+            return bad("grid_dt_s must be a positive number of seconds");
+        }
+        if !self.delays_s.is_valid() || self.delays_s.from < 0.0 {
+            return bad("delays_s must be a non-negative range with a positive step");
+        }
+        if !self.dampings_per_s.is_valid() {
+            return bad("dampings_per_s must be a range with a positive step");
+        }
+        if self.horizons_s.is_empty() || !self.horizons_s.iter().all(|h| positive(*h)) {
+            return bad("horizons_s must be positive numbers of seconds");
+        }
+        let windows = [self.start_every_s, self.velocity_window_s, self.bias_time_constant_s, self.max_gap_s];
+        if !windows.into_iter().all(positive) || !positive(self.ir_noise_window_s) {
+            return bad(
+                "start_every_s, velocity_window_s, bias_time_constant_s, max_gap_s and ir_noise_window_s must be positive",
+            );
+        }
+        if !(self.first_start_s >= self.velocity_window_s && self.bias_prior_s >= 0.0) {
+            return bad("first_start_s must be at least velocity_window_s, and bias_prior_s non-negative");
+        }
+        Ok(())
+    }
+}
+
+/// One flight to identify from: a series and the span of it the copter was airborne.
+#[derive(Clone, Debug)]
+pub struct FlightInput<'a> {
+    /// How reports name it (`15_12_16__13_55_00.data flight 3`).
+    pub label: String,
+    /// The log's series.
+    pub series: &'a Series,
+    /// The flight ([`crate::realflight::flights`]).
+    pub flight: Flight,
+}
+
+/// Why the identification could not run.
+#[derive(Debug, thiserror::Error)]
+pub enum FitError {
+    /// Nothing was given.
+    #[error("no flights to identify from")]
+    NoFlights,
+    /// No flight had a track to predict along.
+    #[error("no flight has a sonar track to predict along: {}", list(.skipped))]
+    NothingToScore {
+        /// Each flight and what it lacks.
+        skipped: Vec<Skipped>,
+    },
+    /// The options contradict themselves.
+    #[error("fit options: {0}")]
+    BadOptions(String),
+}
+
+fn list(skipped: &[Skipped]) -> String {
+    skipped.iter().map(|s| format!("{}: {}", s.label, s.reason)).collect::<Vec<_>>().join("; ")
+}
+
+/// A flight left out, and why.
+#[derive(Clone, Debug, PartialEq, Serialize)]
+pub struct Skipped {
+    /// The flight.
+    pub label: String,
+    /// What it lacks.
+    pub reason: String,
+}
+
+/// What became of one axis's sonar readings.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Serialize)]
+pub struct AxisTrack {
+    /// Readings in the flight with both opposite sonars present.
+    pub readings: usize,
+    /// Of those, dropped for a sonar out of `[sonar_min_m, sonar_max_m)`.
+    pub out_of_range: usize,
+    /// Dropped for a sum of the two sonars off the arena's side ([`FitOptions::sum_gate_m`]).
+    pub off_side: usize,
+    /// Dropped as outliers against their neighbours' median.
+    pub outliers: usize,
+    /// Kept.
+    pub kept: usize,
+    /// Grid points in a gap.
+    pub gap_points: usize,
+    /// The sum of the two sonars the side gate held them to (the arena's side less the mount
+    /// offsets: the most frequent sum over the series' flights), m.
+    pub side_m: Option<f64>,
+}
+
+/// A flight's sonar track on a fixed grid.
+#[derive(Clone, Debug, Default, Serialize)]
+pub struct Track {
+    /// Log time of the grid's first point (take-off), s.
+    pub start_s: f64,
+    /// The grid's step, s.
+    pub dt_s: f64,
+    /// Position (x, y) per grid point, m; NaN in a gap.
+    #[serde(skip)]
+    pub pos_m: [Vec<f64>; 2],
+    /// What became of the readings, per axis.
+    pub axes: [AxisTrack; 2],
+}
+
+impl Track {
+    /// Its grid points.
+    pub fn len(&self) -> usize {
+        self.pos_m[0].len()
+    }
+
+    /// Whether it has none.
+    pub fn is_empty(&self) -> bool {
+        self.len() == 0
+    }
+}
+
+/// The position `flight`'s sonars give, gated and resampled (see the module docs). `sides_m`:
+/// the arena's front + back and left + right sums (e.g. [`derive_arena`]'s `sum_modes_m`);
+/// `None`: the most frequent ones of this flight.
+pub fn sonar_track(series: &Series, flight: &Flight, sides_m: Option<[f64; 2]>, opts: &FitOptions) -> Track {
+    let dt = opts.grid_dt_s;
+    let n =
+        if flight.end_s >= flight.start_s { ((flight.end_s - flight.start_s) / dt).floor() as usize + 1 } else { 0 };
+    let mut track =
+        Track { start_s: flight.start_s, dt_s: dt, pos_m: [vec![f64::NAN; n], vec![f64::NAN; n]], ..Track::default() };
+    // A margin of one gap either side, so that the grid's ends interpolate.
+    let (from, to) = (flight.start_s - opts.max_gap_s, flight.end_s + opts.max_gap_s);
+    let mut pairs: [Vec<(f64, f64, f64)>; 2] = Default::default();
+    for s in series.sensors.iter().filter(|s| s.t_s >= from && s.t_s <= to) {
+        let Some([f, r, b, l]) = s.sonar_m else { continue };
+        // x = (back − front) / 2, y = (right − left) / 2: (minus, plus) per axis.
+        for (axis, (minus, plus)) in [(f, b), (l, r)].into_iter().enumerate() {
+            let (minus, plus) = (f64::from(minus), f64::from(plus));
+            track.axes[axis].readings += 1;
+            let in_range = |v: f64| v.is_finite() && v >= opts.sonar_min_m && v < opts.sonar_max_m;
+            if in_range(minus) && in_range(plus) {
+                pairs[axis].push((s.t_s, (plus - minus) / 2.0, plus + minus));
+            } else {
+                track.axes[axis].out_of_range += 1;
+            }
+        }
+    }
+    for (axis, pairs) in pairs.iter_mut().enumerate() {
+        pairs.sort_by(|a, b| a.0.total_cmp(&b.0));
+        let stats = &mut track.axes[axis];
+        let in_flight: Vec<f64> =
+            pairs.iter().filter(|p| p.0 >= flight.start_s && p.0 <= flight.end_s).map(|p| p.2).collect();
+        stats.side_m = sides_m.map(|s| s[axis]).or_else(|| mode_5cm(&in_flight));
+        let on_side: Vec<(f64, f64)> = match (opts.sum_gate_m, stats.side_m) {
+            (Some(gate), Some(side)) => {
+                pairs.iter().filter(|p| (p.2 - side).abs() <= gate).map(|p| (p.0, p.1)).collect()
+            }
+            _ => pairs.iter().map(|p| (p.0, p.1)).collect(),
+        };
+        stats.off_side = pairs.len() - on_side.len();
+        let kept = gate_outliers(&on_side, opts.gate_m, opts.gate_window_s);
+        stats.outliers = on_side.len() - kept.len();
+        stats.kept = kept.len();
+        for (i, p) in track.pos_m[axis].iter_mut().enumerate() {
+            *p = interp(&kept, flight.start_s + i as f64 * dt, opts.max_gap_s);
+        }
+        stats.gap_points = track.pos_m[axis].iter().filter(|p| p.is_nan()).count();
+    }
+    track
+}
+
+/// The centre of the most populated 5 cm bin (ties: the lower).
+fn mode_5cm(v: &[f64]) -> Option<f64> {
+    let mut bins = std::collections::BTreeMap::<i64, usize>::new();
+    for x in v {
+        *bins.entry((x / 0.05).floor() as i64).or_default() += 1;
+    }
+    let (bin, _) = bins.iter().max_by(|a, b| a.1.cmp(b.1).then(b.0.cmp(a.0)))?;
+    Some((*bin as f64 + 0.5) * 0.05)
+}
+
+/// The readings (time-ordered) within `gate_m` of the median of their neighbours within
+/// `±window_s` (themselves left out); one with fewer than two neighbours is kept.
+fn gate_outliers(v: &[(f64, f64)], gate_m: f64, window_s: f64) -> Vec<(f64, f64)> {
+    let mut out = Vec::with_capacity(v.len());
+    let mut near = Vec::new();
+    let (mut lo, mut hi) = (0, 0);
+    for (i, &(t, x)) in v.iter().enumerate() {
+        while v[lo].0 < t - window_s {
+            lo += 1;
+        }
+        while hi < v.len() && v[hi].0 <= t + window_s {
+            hi += 1;
+        }
+        near.clear();
+        near.extend((lo..hi).filter(|j| *j != i).map(|j| v[j].1));
+        if near.len() < 2 {
+            out.push((t, x));
+            continue;
+        }
+        near.sort_by(f64::total_cmp);
+        let k = near.len() / 2;
+        let median = if near.len() % 2 == 1 { near[k] } else { 0.5 * (near[k - 1] + near[k]) };
+        if (x - median).abs() <= gate_m {
+            out.push((t, x));
+        }
+    }
+    out
+}
+
+/// `v` (time-ordered) at `t`, linear between the samples either side where they are less than
+/// `max_gap_s` apart; NaN otherwise.
+fn interp(v: &[(f64, f64)], t: f64, max_gap_s: f64) -> f64 {
+    let j = v.partition_point(|s| s.0 <= t);
+    let Some(&(ta, a)) = j.checked_sub(1).map(|i| &v[i]) else { return f64::NAN };
+    if ta == t {
+        return a;
+    }
+    let Some(&(tb, b)) = v.get(j) else { return f64::NAN };
+    if tb - ta >= max_gap_s {
+        return f64::NAN;
+    }
+    a + (b - a) * (t - ta) / (tb - ta)
+}
+
+/// The least-squares line through the non-NaN points of `pos[from..=to]` (spacing `dt`): its
+/// value at index `at` and its slope; `None` with fewer than `min_points`.
+fn line_fit(pos: &[f64], from: usize, to: usize, at: usize, dt: f64, min_points: usize) -> Option<(f64, f64)> {
+    let (mut n, mut st, mut sp, mut stt, mut stp) = (0.0, 0.0, 0.0, 0.0, 0.0);
+    for (j, p) in pos.iter().enumerate().take(to + 1).skip(from) {
+        if p.is_nan() {
+            continue;
+        }
+        let t = (j as f64 - at as f64) * dt;
+        n += 1.0;
+        st += t;
+        sp += p;
+        stt += t * t;
+        stp += t * p;
+    }
+    let denom = n * stt - st * st;
+    if n < min_points as f64 || denom <= 0.0 {
+        return None;
+    }
+    let slope = (n * stp - st * sp) / denom;
+    Some(((sp - slope * st) / n, slope))
+}
+
+/// The identified model's parameters.
+#[derive(Clone, Debug, PartialEq, Serialize)]
+pub struct Params {
+    /// Attitude-to-position delay τ, s.
+    pub delay_s: f64,
+    /// Linear damping k, 1/s.
+    pub damping_per_s: f64,
+    /// The sign mapping.
+    pub mapping: Mapping,
+    /// The mean horizontal error it reached on the flights it was fitted on, m.
+    pub mean_error_m: f64,
+    /// Predictions it was fitted on.
+    pub predictions: usize,
+    /// Per axis (x ← pitch, y ← roll), the best mean error along it with each sign.
+    pub sign_evidence: [SignEvidence; 2],
+}
+
+/// The best one axis's predictions reach with each sign.
+#[derive(Clone, Debug, PartialEq, Serialize)]
+pub struct SignEvidence {
+    /// With σ = +1 (`None` where the mapping was fixed to −1): mean |error| along the axis, m,
+    /// at its best (τ, k).
+    pub plus: Option<AxisBest>,
+    /// With σ = −1.
+    pub minus: Option<AxisBest>,
+}
+
+/// An axis's best mean error and where on the grid.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize)]
+pub struct AxisBest {
+    /// Mean |error| along the axis, m.
+    pub mean_error_m: f64,
+    /// At this delay, s.
+    pub delay_s: f64,
+    /// And damping, 1/s.
+    pub damping_per_s: f64,
+}
+
+/// A model's prediction errors at one horizon.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize)]
+pub struct HorizonScore {
+    /// The horizon, s.
+    pub horizon_s: f64,
+    /// Predictions scored.
+    pub n: usize,
+    /// Median horizontal error, m.
+    pub median_m: f64,
+    /// 95th percentile, m.
+    pub p95_m: f64,
+}
+
+/// One model's errors per horizon, over every scored flight.
+#[derive(Clone, Debug, PartialEq, Serialize)]
+pub struct ModelScore {
+    /// Short name (`identified`).
+    pub name: String,
+    /// What it is.
+    pub about: String,
+    /// Per horizon.
+    pub horizons: Vec<HorizonScore>,
+}
+
+/// The IR height over a flight's settled span.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize)]
+pub struct HeightStats {
+    /// IR samples.
+    pub samples: usize,
+    /// Mean, m.
+    pub mean_m: f64,
+    /// Standard deviation, m.
+    pub sd_m: f64,
+    /// Lowest, m.
+    pub min_m: f64,
+    /// Highest, m.
+    pub max_m: f64,
+    /// Highest − lowest, m.
+    pub range_m: f64,
+    /// The IR's noise: sd of its difference from its centred moving average, m.
+    pub noise_sd_m: f64,
+}
+
+/// One flight's part.
+#[derive(Clone, Debug, Serialize)]
+pub struct FlightFit {
+    /// The flight.
+    pub label: String,
+    /// Its span.
+    pub flight: Flight,
+    /// Its track.
+    pub track: Track,
+    /// The roll and pitch its AHRS read on the floor before take-off, taken off its attitude
+    /// (zero where the log has none from then), rad.
+    pub level_rad: [f64; 2],
+    /// Prediction starts with a known state.
+    pub starts: usize,
+    /// Predictions scored (starts × horizons with a target).
+    pub predictions: usize,
+    /// The parameters it was scored with (fitted on the other flights).
+    pub params: Params,
+    /// The on-line bias's range over its starts, per axis (x, y): [lowest, highest], rad.
+    pub bias_rad: [[f64; 2]; 2],
+    /// Its height loop, where its settled span has IR readings.
+    pub height: Option<HeightStats>,
+}
+
+/// The pooled count of what went in.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Serialize)]
+pub struct Samples {
+    /// Sonar readings in the scored flights, per axis.
+    pub readings: [usize; 2],
+    /// Of those, kept, per axis.
+    pub kept: [usize; 2],
+    /// Grid points.
+    pub grid_points: usize,
+    /// Grid points in a gap, per axis.
+    pub gap_points: [usize; 2],
+    /// Prediction starts.
+    pub starts: usize,
+}
+
+/// What `twinswarm fit` reports.
+#[derive(Clone, Debug, Serialize)]
+pub struct FitReport {
+    /// The scored flights.
+    pub flights: Vec<FlightFit>,
+    /// The flights left out, and why.
+    pub skipped: Vec<Skipped>,
+    /// Whether each flight was scored with parameters fitted on the others (false: one flight,
+    /// in sample).
+    pub leave_one_out: bool,
+    /// The parameters fitted on all the scored flights at once (in sample: the identification's
+    /// headline; the scores use the leave-one-out ones).
+    pub all_flights: Params,
+    /// Twinswarm's own sign mapping, which the current model uses.
+    pub twinswarm_mapping: Mapping,
+    /// Per model, per horizon.
+    pub models: Vec<ModelScore>,
+    /// The on-line bias's range over all starts, per axis: [lowest, highest], rad.
+    pub bias_rad: [[f64; 2]; 2],
+    /// What went in.
+    pub samples: Samples,
+    /// The height loop over every flight's settled span together.
+    pub height: Option<HeightStats>,
+    /// The options it ran with.
+    pub options: FitOptions,
+}
+
+/// The models scored, in the report's order.
+pub const MODELS: [(&str, &str); 5] = [
+    ("current", "Twinswarm's FINken defaults: the airframe's linear damping, no delay, no bias, Twinswarm's signs"),
+    ("identified", "leave-one-flight-out delay, damping and signs, on-line trim bias"),
+    ("constant velocity", "the known velocity held"),
+    ("stay put", "the known position held"),
+    ("identified, no bias", "the identified delay, damping and signs without the trim bias"),
+];
+
+/// The grid everything runs on, from the options.
+#[derive(Debug)]
+struct Grid {
+    dt: f64,
+    /// Delays: the searched ones first, then 0 if it is not among them (the current model's).
+    delays_s: Vec<f64>,
+    searched_delays: usize,
+    dampings: Vec<f64>,
+    /// Grid steps of each horizon.
+    horizon_steps: Vec<usize>,
+    /// Half the state window, in grid steps.
+    half: usize,
+    /// Grid steps from the state (the window's centre) to t0: `half`, or 0 with the window
+    /// centred on t0.
+    lead: usize,
+}
+
+impl Grid {
+    fn of(opts: &FitOptions) -> Grid {
+        let dt = opts.grid_dt_s;
+        let mut delays_s = opts.delays_s.values();
+        let searched_delays = delays_s.len();
+        if !delays_s.iter().any(|d| d.abs() < 1e-9) {
+            delays_s.push(0.0);
+        }
+        let half = ((opts.velocity_window_s / dt / 2.0).round() as usize).max(1);
+        Grid {
+            dt,
+            delays_s,
+            searched_delays,
+            dampings: opts.dampings_per_s.values(),
+            horizon_steps: opts.horizons_s.iter().map(|h| (h / dt).round().max(1.0) as usize).collect(),
+            half,
+            lead: if opts.centred_state { 0 } else { half },
+        }
+    }
+
+    fn delay_index(&self, delay_s: f64) -> usize {
+        let d = |i: usize| (self.delays_s[i] - delay_s).abs();
+        (0..self.delays_s.len()).min_by(|a, b| d(*a).total_cmp(&d(*b))).unwrap_or(0)
+    }
+
+    fn cells(&self) -> usize {
+        self.searched_delays * self.dampings.len()
+    }
+}
+
+/// A prediction start.
+#[derive(Clone, Debug)]
+struct Start {
+    /// Grid index of the state window's centre: the attitude-driven rollouts start here.
+    c: usize,
+    /// Position and velocity there (the line's).
+    p_c: [f64; 2],
+    v: [f64; 2],
+    /// Position at t0 (the line's).
+    p0: [f64; 2],
+    /// Per horizon: the track at t0 + H, where it and the attitude up to it are known.
+    targets: Vec<Option<[f64; 2]>>,
+    /// The index of the bias's running means to use (the last residual whose data ends by t0).
+    bias_at: Option<usize>,
+}
+
+/// A flight made ready: its track, attitude and starts on the grid.
+#[derive(Debug)]
+struct Prepared {
+    /// Its index among the inputs.
+    input: usize,
+    label: String,
+    flight: Flight,
+    /// The AHRS's roll and pitch on the floor, taken off the attitude, rad.
+    level_rad: [f64; 2],
+    track: Track,
+    /// Per delay, per axis: tan of the driving angle over the step `[t_j, t_j + dt]`, taken at
+    /// its middle minus the delay; NaN in an attitude gap.
+    drive: Vec<[Vec<f64>; 2]>,
+    /// The bias's running means (normalised, the prior included) per axis and grid index:
+    /// of the acceleration, the velocity, and per delay the tan of the angle.
+    mean_acc: [Vec<f64>; 2],
+    mean_vel: [Vec<f64>; 2],
+    mean_tan: Vec<[Vec<f64>; 2]>,
+    starts: Vec<Start>,
+    /// Predictions (starts × horizons with a target).
+    predictions: usize,
+}
+
+impl Prepared {
+    /// The on-line bias at a start for one axis's (delay, k, σ), rad.
+    fn bias_rad(&self, st: &Start, delay: usize, k: f64, sigma: f64, axis: usize) -> f64 {
+        let Some(j) = st.bias_at else { return 0.0 };
+        sigma * (self.mean_acc[axis][j] + k * self.mean_vel[axis][j]) / gravity_m_s2() - self.mean_tan[delay][axis][j]
+    }
+}
+
+/// The attitude driving each axis (x ← pitch, y ← roll), `level` (roll, pitch) taken off,
+/// time-ordered, over `[from, to]`.
+fn attitude_of(series: &Series, level: [f64; 2], from: f64, to: f64) -> [Vec<(f64, f64)>; 2] {
+    let mut out: [Vec<(f64, f64)>; 2] = Default::default();
+    for s in series.attitude.iter().filter(|s| s.t_s >= from && s.t_s <= to) {
+        let Some([roll, pitch, _]) = s.rpy_rad else { continue };
+        if roll.is_finite() && pitch.is_finite() {
+            out[0].push((s.t_s, f64::from(pitch) - level[1]));
+            out[1].push((s.t_s, f64::from(roll) - level[0]));
+        }
+    }
+    for v in &mut out {
+        v.sort_by(|a, b| a.0.total_cmp(&b.0));
+    }
+    out
+}
+
+fn prepare(
+    index: usize,
+    input: &FlightInput<'_>,
+    sides_m: Option<[f64; 2]>,
+    opts: &FitOptions,
+    grid: &Grid,
+) -> Result<Prepared, String> {
+    let track = sonar_track(input.series, &input.flight, sides_m, opts);
+    for (axis, (name, pair)) in [("x", "front and back"), ("y", "left and right")].into_iter().enumerate() {
+        if track.axes[axis].kept == 0 {
+            return Err(format!(
+                "no sonar readings for {name} ({pair} both echoing within {:.2}-{:.2} m{})",
+                opts.sonar_min_m,
+                opts.sonar_max_m,
+                if track.axes[axis].readings == 0 { "; no sonar message at all" } else { "" }
+            ));
+        }
+    }
+    let (dt, half, n) = (grid.dt, grid.half, track.len());
+    let max_delay = grid.delays_s.iter().copied().fold(0.0, f64::max);
+    let f = &input.flight;
+    let level_rad = ground_level(input.series, f).map_or([0.0; 2], |l| l.map(f64::from));
+    let att = attitude_of(input.series, level_rad, f.start_s - max_delay - 1.0, f.end_s + 1.0);
+    if att[0].is_empty() {
+        return Err("no attitude (AHRS_EULER_INT, ATTITUDE or FINKEN_SENSOR_MODEL) in the flight".into());
+    }
+    let t = |j: f64| f.start_s + j * dt;
+    let tan_at = |axis: usize, at: f64| interp(&att[axis], at, opts.max_gap_s).tan();
+    let drive: Vec<[Vec<f64>; 2]> = grid
+        .delays_s
+        .iter()
+        .map(|d| [0, 1].map(|axis| (0..n).map(|j| tan_at(axis, t(j as f64 + 0.5) - d)).collect()))
+        .collect();
+    let at_point: Vec<[Vec<f64>; 2]> = grid
+        .delays_s
+        .iter()
+        .map(|d| [0, 1].map(|axis| (0..n).map(|j| tan_at(axis, t(j as f64) - d)).collect()))
+        .collect();
+    // Centred velocity (a line over ±half) and acceleration (the change of that velocity over
+    // ±half): the residual at j uses the track over [j − 2·half, j + 2·half].
+    let vel: [Vec<f64>; 2] = [0, 1].map(|axis| {
+        (0..n)
+            .map(|j| {
+                let (from, to) = (j.saturating_sub(half), (j + half).min(n - 1));
+                let ok = j >= half && j + half < n;
+                let fit = if ok { line_fit(&track.pos_m[axis], from, to, j, dt, half + 1) } else { None };
+                fit.map_or(f64::NAN, |l| l.1)
+            })
+            .collect()
+    });
+    let acc: [Vec<f64>; 2] = [0, 1].map(|axis| {
+        let v = &vel[axis];
+        (0..n)
+            .map(|j| {
+                if j >= half && j + half < n { (v[j + half] - v[j - half]) / (2 * half) as f64 / dt } else { f64::NAN }
+            })
+            .collect()
+    });
+    // The exponentially weighted means, with the prior b = 0 worth `bias_prior_s` of data at take-off.
+    let lambda = (-dt / opts.bias_time_constant_s).exp();
+    let prior = opts.bias_prior_s / dt;
+    let mut mean_acc: [Vec<f64>; 2] = [vec![0.0; n], vec![0.0; n]];
+    let mut mean_vel = mean_acc.clone();
+    let mut mean_tan: Vec<[Vec<f64>; 2]> = vec![mean_acc.clone(); grid.delays_s.len()];
+    for axis in 0..2 {
+        // The prior is data at take-off (b = 0, every sum 0), forgotten like the rest: a prior
+        // held at full weight would pull every later estimate towards 0 by prior / (prior + the
+        // data's weight), a quarter with 3 s and 1 s.
+        let (mut w, mut sa, mut sv) = (prior, 0.0, 0.0);
+        let mut st = vec![0.0; grid.delays_s.len()];
+        for j in 0..n {
+            let ok = !acc[axis][j].is_nan() && !vel[axis][j].is_nan() && at_point.iter().all(|a| !a[axis][j].is_nan());
+            let x = if ok { 1.0 } else { 0.0 };
+            w = lambda * w + x;
+            let norm = w;
+            if ok {
+                sa = lambda * sa + acc[axis][j];
+                sv = lambda * sv + vel[axis][j];
+            } else {
+                sa *= lambda;
+                sv *= lambda;
+            }
+            mean_acc[axis][j] = if norm > 0.0 { sa / norm } else { 0.0 };
+            mean_vel[axis][j] = if norm > 0.0 { sv / norm } else { 0.0 };
+            for (d, s) in st.iter_mut().enumerate() {
+                *s = lambda * *s + if ok { at_point[d][axis][j] } else { 0.0 };
+                mean_tan[d][axis][j] = if norm > 0.0 { *s / norm } else { 0.0 };
+            }
+        }
+    }
+    // Where every delay's drive is known on both axes: prefix counts of the unknown.
+    let mut unknown = vec![0usize; n + 1];
+    for j in 0..n {
+        let bad = drive.iter().any(|d| d[0][j].is_nan() || d[1][j].is_nan());
+        unknown[j + 1] = unknown[j] + usize::from(bad);
+    }
+    let mut starts = Vec::new();
+    let stride = ((opts.start_every_s / dt).round() as usize).max(1);
+    let first = ((opts.first_start_s / dt).round() as usize).max(2 * half);
+    let pos = &track.pos_m;
+    for i in (first..n).step_by(stride) {
+        if pos[0][i].is_nan() || pos[1][i].is_nan() {
+            continue;
+        }
+        let c = i - grid.lead;
+        if c + half >= n {
+            continue;
+        }
+        let lines = [0, 1].map(|axis| line_fit(&pos[axis], c - half, c + half, c, dt, half + 1));
+        let [Some((px, vx)), Some((py, vy))] = lines else { continue };
+        let (p_c, v) = ([px, py], [vx, vy]);
+        let lead_s = grid.lead as f64 * dt;
+        let p0 = [px + vx * lead_s, py + vy * lead_s];
+        let targets: Vec<Option<[f64; 2]>> = grid
+            .horizon_steps
+            .iter()
+            .map(|s| {
+                let end = i + s;
+                let known = end < n && !pos[0][end].is_nan() && !pos[1][end].is_nan();
+                (known && unknown[end] == unknown[c]).then(|| [pos[0][end], pos[1][end]])
+            })
+            .collect();
+        if targets.iter().any(Option::is_some) {
+            starts.push(Start { c, p_c, v, p0, targets, bias_at: Some(i - 2 * half) });
+        }
+    }
+    if starts.is_empty() {
+        return Err(format!(
+            "no prediction start: the sonar track never holds {:.1} s before a start with a target {:.0} s later",
+            opts.velocity_window_s,
+            opts.horizons_s.iter().copied().fold(f64::INFINITY, f64::min)
+        ));
+    }
+    let predictions = starts.iter().map(|s| s.targets.iter().flatten().count()).sum();
+    Ok(Prepared {
+        input: index,
+        label: input.label.clone(),
+        flight: input.flight,
+        level_rad,
+        track,
+        drive,
+        mean_acc,
+        mean_vel,
+        mean_tan,
+        starts,
+        predictions,
+    })
+}
+
+/// One axis's attitude-driven model for one rollout.
+#[derive(Clone, Copy, Debug)]
+struct AxisModel {
+    sigma: f64,
+    damping_per_s: f64,
+    tan_bias: f64,
+}
+
+/// The position after each of `steps` (ascending) grid steps of `a = σ·g·tan(θ + b) − k·v` from
+/// `(p, v)` at grid index `from`: the velocity stepped as the simulator steps its free flight,
+/// `v ← (v + a·dt) / (1 + k·dt)` (the angle taken at the step's middle), the position with the
+/// step's mean velocity (the simulator's 5 ms substeps make its own position that exact).
+#[allow(clippy::too_many_arguments)]
+fn roll(drive: &[f64], from: usize, p: f64, v: f64, m: AxisModel, dt: f64, steps: &[usize], out: &mut [f64]) {
+    let g = gravity_m_s2();
+    let damp = 1.0 / (1.0 + m.damping_per_s * dt);
+    let (mut p, mut v) = (p, v);
+    let mut h = 0;
+    let mut n = 0;
+    let last = steps.last().copied().unwrap_or(0);
+    while h < steps.len() && steps[h] == 0 {
+        out[h] = p;
+        h += 1;
+    }
+    for &t in drive.iter().skip(from).take(last) {
+        let a = m.sigma * g * (t + m.tan_bias) / (1.0 - t * m.tan_bias);
+        let v_new = (v + a * dt) * damp;
+        p += 0.5 * (v + v_new) * dt;
+        v = v_new;
+        n += 1;
+        while h < steps.len() && steps[h] == n {
+            out[h] = p;
+            h += 1;
+        }
+    }
+    // Steps past the drive's end.
+    for o in out.iter_mut().skip(h) {
+        *o = f64::NAN;
+    }
+}
+
+/// One flight's summed errors over the grid.
+#[derive(Debug)]
+struct GridSums {
+    /// Per cell (delay × damping): per axis and sign, the summed |error| along the axis.
+    axis: Vec<[[f64; 2]; 2]>,
+    /// Per cell: per (x sign, y sign), the summed horizontal error.
+    horizontal: Vec<[[f64; 2]; 2]>,
+    predictions: usize,
+}
+
+/// Which signs each axis may take.
+fn allowed_signs(opts: &FitOptions) -> [[bool; 2]; 2] {
+    match opts.mapping {
+        None => [[true; 2]; 2],
+        Some(m) => [0, 1].map(|axis| [0, 1].map(|s| m.sign_index(axis) == s)),
+    }
+}
+
+/// The rollout lengths from a start's state (the window's centre) to each horizon.
+fn roll_steps(grid: &Grid) -> Vec<usize> {
+    grid.horizon_steps.iter().map(|s| s + grid.lead).collect()
+}
+
+fn grid_sums(p: &Prepared, grid: &Grid, allowed: &[[bool; 2]; 2]) -> GridSums {
+    let cells = grid.cells();
+    let mut sums = GridSums {
+        axis: vec![[[0.0; 2]; 2]; cells],
+        horizontal: vec![[[0.0; 2]; 2]; cells],
+        predictions: p.predictions,
+    };
+    let steps = roll_steps(grid);
+    let nh = steps.len();
+    let mut pred = [[vec![0.0; nh], vec![0.0; nh]], [vec![0.0; nh], vec![0.0; nh]]];
+    for ti in 0..grid.searched_delays {
+        for (ki, &k) in grid.dampings.iter().enumerate() {
+            let cell = ti * grid.dampings.len() + ki;
+            let (axis_sum, horizontal) = (&mut sums.axis[cell], &mut sums.horizontal[cell]);
+            for st in &p.starts {
+                let last = st.targets.iter().rposition(Option::is_some).unwrap_or(0);
+                for axis in 0..2 {
+                    for (si, &sigma) in SIGNS.iter().enumerate() {
+                        if !allowed[axis][si] {
+                            continue;
+                        }
+                        let b = p.bias_rad(st, ti, k, sigma, axis);
+                        let m = AxisModel { sigma, damping_per_s: k, tan_bias: b.tan() };
+                        let (drive, out) = (&p.drive[ti][axis], &mut pred[axis][si]);
+                        roll(drive, st.c, st.p_c[axis], st.v[axis], m, grid.dt, &steps[..=last], &mut out[..=last]);
+                    }
+                }
+                for (h, target) in st.targets.iter().enumerate() {
+                    let Some(target) = target else { continue };
+                    let mut e = [[0.0; 2]; 2];
+                    for axis in 0..2 {
+                        for si in (0..2).filter(|si| allowed[axis][*si]) {
+                            e[axis][si] = pred[axis][si][h] - target[axis];
+                            axis_sum[axis][si] += e[axis][si].abs();
+                        }
+                    }
+                    for sx in (0..2).filter(|s| allowed[0][*s]) {
+                        for sy in (0..2).filter(|s| allowed[1][*s]) {
+                            horizontal[sx][sy] += e[0][sx].hypot(e[1][sy]);
+                        }
+                    }
+                }
+            }
+        }
+    }
+    sums
+}
+
+/// The parameters the flights `sums` favour: per axis the sign whose best mean error along it is
+/// lower, then the (τ, k) with the lowest mean horizontal error under those signs.
+fn select(sums: &[&GridSums], grid: &Grid, allowed: &[[bool; 2]; 2]) -> Option<Params> {
+    let predictions: usize = sums.iter().map(|s| s.predictions).sum();
+    if predictions == 0 {
+        return None;
+    }
+    let n = predictions as f64;
+    let at = |cell: usize| (grid.delays_s[cell / grid.dampings.len()], grid.dampings[cell % grid.dampings.len()]);
+    let best_cell = |err: &dyn Fn(usize) -> f64| {
+        (0..grid.cells()).map(|c| (c, err(c))).min_by(|a, b| a.1.total_cmp(&b.1).then(a.0.cmp(&b.0)))
+    };
+    let mut signs = [0usize; 2];
+    let mut evidence: [SignEvidence; 2] = [0, 1].map(|_| SignEvidence { plus: None, minus: None });
+    for axis in 0..2 {
+        let mut best: [Option<AxisBest>; 2] = [None, None];
+        for si in (0..2).filter(|s| allowed[axis][*s]) {
+            let err = |c: usize| sums.iter().map(|s| s.axis[c][axis][si]).sum::<f64>() / n;
+            let (c, e) = best_cell(&err)?;
+            let (delay_s, damping_per_s) = at(c);
+            best[si] = Some(AxisBest { mean_error_m: e, delay_s, damping_per_s });
+        }
+        let score = |si: usize| best[si].map_or(f64::INFINITY, |b| b.mean_error_m);
+        signs[axis] = if score(1) < score(0) { 1 } else { 0 };
+        evidence[axis] = SignEvidence { plus: best[0], minus: best[1] };
+    }
+    let err = |c: usize| sums.iter().map(|s| s.horizontal[c][signs[0]][signs[1]]).sum::<f64>() / n;
+    let (c, mean_error_m) = best_cell(&err)?;
+    let (delay_s, damping_per_s) = at(c);
+    Some(Params {
+        delay_s,
+        damping_per_s,
+        mapping: Mapping::from_signs(signs),
+        mean_error_m,
+        predictions,
+        sign_evidence: evidence,
+    })
+}
+
+/// Nearest-rank quantile of sorted `v`.
+fn quantile(sorted: &[f64], q: f64) -> f64 {
+    if sorted.is_empty() {
+        return f64::NAN;
+    }
+    sorted[((sorted.len() - 1) as f64 * q).round() as usize]
+}
+
+/// One flight's errors per model and horizon, and its identified model's bias range.
+struct Scored {
+    errors: Vec<Vec<Vec<f64>>>,
+    bias_rad: [[f64; 2]; 2],
+}
+
+fn score_flight(p: &Prepared, params: &Params, grid: &Grid, opts: &FitOptions) -> Scored {
+    let steps = roll_steps(grid);
+    let nh = steps.len();
+    let mut errors = vec![vec![Vec::new(); nh]; MODELS.len()];
+    let mut bias_rad = [[f64::INFINITY, f64::NEG_INFINITY]; 2];
+    let (ti, t0i) = (grid.delay_index(params.delay_s), grid.delay_index(0.0));
+    let k = params.damping_per_s;
+    let mut out = vec![0.0; nh];
+    for st in &p.starts {
+        let last = st.targets.iter().rposition(Option::is_some).unwrap_or(0);
+        // Per model, per axis, per horizon: the predicted position.
+        let mut pred = vec![[vec![f64::NAN; nh], vec![f64::NAN; nh]]; MODELS.len()];
+        for axis in 0..2 {
+            let sigma = params.mapping.sign(axis);
+            let b = p.bias_rad(st, ti, k, sigma, axis);
+            bias_rad[axis] = [bias_rad[axis][0].min(b), bias_rad[axis][1].max(b)];
+            let current = AxisModel {
+                sigma: Mapping::TWINSWARM.sign(axis),
+                damping_per_s: opts.current_damping_per_s,
+                tan_bias: 0.0,
+            };
+            let runs = [
+                (0, t0i, current),
+                (1, ti, AxisModel { sigma, damping_per_s: k, tan_bias: b.tan() }),
+                (4, ti, AxisModel { sigma, damping_per_s: k, tan_bias: 0.0 }),
+            ];
+            for (model, delay, m) in runs {
+                roll(
+                    &p.drive[delay][axis],
+                    st.c,
+                    st.p_c[axis],
+                    st.v[axis],
+                    m,
+                    grid.dt,
+                    &steps[..=last],
+                    &mut out[..=last],
+                );
+                pred[model][axis][..=last].copy_from_slice(&out[..=last]);
+            }
+            for (h, horizon) in opts.horizons_s.iter().enumerate() {
+                pred[2][axis][h] = st.p0[axis] + st.v[axis] * horizon;
+                pred[3][axis][h] = st.p0[axis];
+            }
+        }
+        for (h, target) in st.targets.iter().enumerate() {
+            let Some(target) = target else { continue };
+            for (model, pr) in pred.iter().enumerate() {
+                errors[model][h].push((pr[0][h] - target[0]).hypot(pr[1][h] - target[1]));
+            }
+        }
+    }
+    Scored { errors, bias_rad }
+}
+
+/// Identifies the horizontal model from `inputs` and scores every model on them (see the module
+/// docs).
+pub fn identify(inputs: &[FlightInput<'_>], opts: &FitOptions) -> Result<FitReport, FitError> {
+    opts.check()?;
+    if inputs.is_empty() {
+        return Err(FitError::NoFlights);
+    }
+    let grid = Grid::of(opts);
+    let mut prepared = Vec::new();
+    let mut skipped = Vec::new();
+    for (index, input) in inputs.iter().enumerate() {
+        // The arena's sides, from every flight given of the same series.
+        let same: Vec<Flight> =
+            inputs.iter().filter(|i| std::ptr::eq(i.series, input.series)).map(|i| i.flight).collect();
+        let sides_m = derive_arena(input.series, &same, 0.0).map(|a| a.sum_modes_m.map(f64::from));
+        match prepare(index, input, sides_m, opts, &grid) {
+            Ok(p) => prepared.push(p),
+            Err(reason) => skipped.push(Skipped { label: input.label.clone(), reason }),
+        }
+    }
+    if prepared.is_empty() {
+        return Err(FitError::NothingToScore { skipped });
+    }
+    let allowed = allowed_signs(opts);
+    let sums: Vec<GridSums> = prepared.iter().map(|p| grid_sums(p, &grid, &allowed)).collect();
+    let all: Vec<&GridSums> = sums.iter().collect();
+    let nothing = || FitError::NothingToScore { skipped: skipped.clone() };
+    let all_flights = select(&all, &grid, &allowed).ok_or_else(nothing)?;
+    let leave_one_out = prepared.len() >= 2;
+    let nh = opts.horizons_s.len();
+    let mut pooled = vec![vec![Vec::new(); nh]; MODELS.len()];
+    let mut flights = Vec::new();
+    let mut bias_all = [[f64::INFINITY, f64::NEG_INFINITY]; 2];
+    // The height loop, per scored flight and over all of them.
+    let (mut heights, mut noise) = (Vec::new(), Vec::new());
+    for (f, p) in prepared.iter().enumerate() {
+        let params = if leave_one_out {
+            let others: Vec<&GridSums> = sums.iter().enumerate().filter(|(g, _)| *g != f).map(|(_, s)| s).collect();
+            select(&others, &grid, &allowed).unwrap_or_else(|| all_flights.clone())
+        } else {
+            all_flights.clone()
+        };
+        let scored = score_flight(p, &params, &grid, opts);
+        let input = &inputs[p.input];
+        let (ir, ir_noise) = settled_ir(input.series, &input.flight, opts);
+        for (model, per_h) in scored.errors.into_iter().enumerate() {
+            for (h, e) in per_h.into_iter().enumerate() {
+                pooled[model][h].extend(e);
+            }
+        }
+        for (all, [lo, hi]) in bias_all.iter_mut().zip(scored.bias_rad) {
+            *all = [all[0].min(lo), all[1].max(hi)];
+        }
+        flights.push(FlightFit {
+            label: p.label.clone(),
+            flight: p.flight,
+            track: p.track.clone(),
+            level_rad: p.level_rad,
+            starts: p.starts.len(),
+            predictions: p.predictions,
+            params,
+            bias_rad: scored.bias_rad,
+            height: height_of(&ir, &ir_noise),
+        });
+        heights.extend(ir);
+        noise.extend(ir_noise);
+    }
+    let models = MODELS
+        .iter()
+        .zip(pooled)
+        .map(|((name, about), per_h)| ModelScore {
+            name: (*name).into(),
+            about: (*about).into(),
+            horizons: opts
+                .horizons_s
+                .iter()
+                .zip(per_h)
+                .map(|(&horizon_s, mut e)| {
+                    e.sort_by(f64::total_cmp);
+                    HorizonScore { horizon_s, n: e.len(), median_m: quantile(&e, 0.5), p95_m: quantile(&e, 0.95) }
+                })
+                .collect(),
+        })
+        .collect();
+    let mut samples = Samples::default();
+    for f in &flights {
+        for axis in 0..2 {
+            samples.readings[axis] += f.track.axes[axis].readings;
+            samples.kept[axis] += f.track.axes[axis].kept;
+            samples.gap_points[axis] += f.track.axes[axis].gap_points;
+        }
+        samples.grid_points += f.track.len();
+        samples.starts += f.starts;
+    }
+    Ok(FitReport {
+        flights,
+        skipped,
+        leave_one_out,
+        all_flights,
+        twinswarm_mapping: Mapping::TWINSWARM,
+        models,
+        bias_rad: bias_all,
+        samples,
+        height: height_of(&heights, &noise),
+        options: opts.clone(),
+    })
+}
+
+/// The IR over `flight`'s settled span (see the module docs), and each sample's difference
+/// from the centred moving average.
+fn settled_ir(series: &Series, flight: &Flight, opts: &FitOptions) -> (Vec<f64>, Vec<f64>) {
+    let (from, to) = (flight.start_s + opts.settle_after_take_off_s, flight.end_s - opts.settle_before_landing_s);
+    let z: Vec<(f64, f64)> = series
+        .sensors
+        .iter()
+        .filter(|s| s.t_s >= from && s.t_s <= to)
+        .filter_map(|s| s.ir_m.filter(|z| z.is_finite()).map(|z| (s.t_s, f64::from(z))))
+        .collect();
+    let w = opts.ir_noise_window_s / 2.0;
+    let (mut lo, mut hi, mut sum) = (0, 0, 0.0);
+    let mut diffs = Vec::with_capacity(z.len());
+    for &(t, v) in &z {
+        while hi < z.len() && z[hi].0 <= t + w {
+            sum += z[hi].1;
+            hi += 1;
+        }
+        while z[lo].0 < t - w {
+            sum -= z[lo].1;
+            lo += 1;
+        }
+        diffs.push(v - sum / (hi - lo) as f64);
+    }
+    (z.into_iter().map(|p| p.1).collect(), diffs)
+}
+
+fn height_of(values: &[f64], diffs: &[f64]) -> Option<HeightStats> {
+    if values.len() < 2 {
+        return None;
+    }
+    let mean = |v: &[f64]| v.iter().sum::<f64>() / v.len() as f64;
+    let sd = |v: &[f64]| {
+        let m = mean(v);
+        (v.iter().map(|x| (x - m) * (x - m)).sum::<f64>() / (v.len() - 1) as f64).sqrt()
+    };
+    let min = values.iter().copied().fold(f64::INFINITY, f64::min);
+    let max = values.iter().copied().fold(f64::NEG_INFINITY, f64::max);
+    Some(HeightStats {
+        samples: values.len(),
+        mean_m: mean(values),
+        sd_m: sd(values),
+        min_m: min,
+        max_m: max,
+        range_m: max - min,
+        noise_sd_m: sd(diffs),
+    })
+}
+
+/// The height loop of one flight: its IR from take-off + `settle_after_take_off_s` to landing −
+/// `settle_before_landing_s`; `None` with fewer than two readings there.
+pub fn height_stats(series: &Series, flight: &Flight, opts: &FitOptions) -> Option<HeightStats> {
+    let (v, d) = settled_ir(series, flight, opts);
+    height_of(&v, &d)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::realflight::Sample;
+
+    /// A deterministic noise in [-1, 1].
+    fn noise(k: u64) -> f64 {
+        let x = k.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
+        ((x >> 33) as f64 / (1u64 << 31) as f64) * 2.0 - 1.0
+    }
+
+    /// Position, velocity and acceleration of a smooth wander, m: `sum A sin(ω t + φ)`.
+    fn wander(terms: &[(f64, f64, f64)], t: f64) -> [f64; 3] {
+        let mut out = [0.0; 3];
+        for &(a, w, ph) in terms {
+            out[0] += a * (w * t + ph).sin();
+            out[1] += a * w * (w * t + ph).cos();
+            out[2] -= a * w * w * (w * t + ph).sin();
+        }
+        out
+    }
+
+    /// The truth the synthetic flights fly.
+    struct Truth {
+        delay_s: f64,
+        damping_per_s: f64,
+        mapping: Mapping,
+        /// The AHRS's trim offset per axis (x, y): the copter flies level when it reads this.
+        trim_rad: [f64; 2],
+    }
+
+    /// A flight of `duration_s` whose position wanders in a 3.8 × 2.7 m arena: its sonars every
+    /// 50 ms (cm, with a few mm of noise), its attitude every 20 ms being exactly what
+    /// `a = σ g tan(θ(t − τ) + b) − k v` needs for that wander (so that b = −trim), its IR
+    /// at 0.5 m ± 1 cm.
+    fn flight_of(truth: &Truth, phase: f64, duration_s: f64, series: &mut Series) -> Flight {
+        let t_start = series.sensors.last().map_or(10.0, |s| s.t_s + 20.0);
+        let xs = [(0.35, 0.6, phase), (0.15, 1.3, 0.5 + phase), (0.05, 2.3, 1.0)];
+        let ys = [(0.3, 0.8, 1.0 + phase), (0.1, 1.7, phase), (0.04, 2.9, 0.3)];
+        let g = gravity_m_s2();
+        let (half_l, half_w) = (1.9, 1.35);
+        let mut k = (phase * 1000.0) as u64;
+        let steps = (duration_s / 0.01).round() as u64;
+        for s in 0..=steps {
+            let t = s as f64 * 0.01;
+            k += 1;
+            if s % 5 == 0 {
+                let [x, ..] = wander(&xs, t);
+                let [y, ..] = wander(&ys, t);
+                let cm = |v: f64| ((v + 0.004 * noise(k * 7 + 3)) * 100.0).round() as f32 / 100.0;
+                // front, right, back, left
+                let sonar = [cm(half_l - x), cm(half_w + y), cm(half_l + x), cm(half_w - y)];
+                let ir = (0.5 + 0.01 * noise(k * 13 + 5)) as f32;
+                series.sensors.push(Sample { t_s: t_start + t, sonar_m: Some(sonar), ir_m: Some(ir), rpy_rad: None });
+            }
+            if s % 2 == 0 {
+                // The attitude at t drives the acceleration at t + τ.
+                let angle = |terms: &[(f64, f64, f64)], axis: usize| {
+                    let [_, v, a] = wander(terms, t + truth.delay_s);
+                    ((a + truth.damping_per_s * v) / g * truth.mapping.sign(axis)).atan() + truth.trim_rad[axis]
+                };
+                let (pitch, roll) = (angle(&xs, 0) as f32, angle(&ys, 1) as f32);
+                series.attitude.push(Sample {
+                    t_s: t_start + t,
+                    sonar_m: None,
+                    ir_m: None,
+                    rpy_rad: Some([roll, pitch, 0.0]),
+                });
+            }
+        }
+        Flight { start_s: t_start, end_s: t_start + duration_s }
+    }
+
+    fn synthetic(truth: &Truth) -> (Series, Vec<Flight>) {
+        let mut series = Series::default();
+        let flights = [0.0, 1.1, 2.3].into_iter().map(|ph| flight_of(truth, ph, 40.0, &mut series)).collect();
+        (series, flights)
+    }
+
+    /// A coarser grid than `twinswarm fit`'s, so that the tests run fast.
+    fn coarse() -> FitOptions {
+        FitOptions {
+            delays_s: Range { from: 0.0, to: 0.6, step: 0.05 },
+            dampings_per_s: Range { from: 0.0, to: 0.5, step: 0.05 },
+            ..FitOptions::default()
+        }
+    }
+
+    fn run(series: &Series, flights: &[Flight], opts: &FitOptions) -> FitReport {
+        let inputs: Vec<FlightInput<'_>> = flights
+            .iter()
+            .enumerate()
+            .map(|(i, f)| FlightInput { label: format!("flight {}", i + 1), series, flight: *f })
+            .collect();
+        identify(&inputs, opts).expect("identifies")
+    }
+
+    fn score<'a>(r: &'a FitReport, model: &str) -> &'a [HorizonScore] {
+        &r.models.iter().find(|m| m.name == model).expect("the model").horizons
+    }
+
+    const TRUTH: Truth =
+        Truth { delay_s: 0.3, damping_per_s: 0.1, mapping: Mapping::TWINSWARM, trim_rad: [0.02, -0.015] };
+
+    #[test]
+    fn the_fit_finds_the_delay_damping_signs_and_trim_a_flight_was_made_with() {
+        let (series, flights) = synthetic(&TRUTH);
+        let r = run(&series, &flights, &coarse());
+        assert!(r.leave_one_out && r.flights.len() == 3 && r.skipped.is_empty(), "{r:?}");
+        let centred = run(&series, &flights, &FitOptions { centred_state: true, ..coarse() });
+        assert!((centred.all_flights.delay_s - 0.3).abs() < 0.06, "{:?}", centred.all_flights);
+        let p = &r.all_flights;
+        assert_eq!(p.mapping, Mapping::TWINSWARM, "{p:?}");
+        assert!((p.delay_s - 0.3).abs() < 0.03, "{p:?}");
+        assert!((p.damping_per_s - 0.1).abs() < 0.06, "{p:?}");
+        for f in &r.flights {
+            assert_eq!(f.params.mapping, Mapping::TWINSWARM, "{f:?}");
+            assert!((f.params.delay_s - 0.3).abs() < 0.06, "{f:?}");
+            // The bias the fit learns goes from its prior (0) to the trim, negated, and no further.
+            for (axis, [lo, hi]) in f.bias_rad.into_iter().enumerate() {
+                let b = -TRUTH.trim_rad[axis];
+                assert!(lo <= b + 0.005 && hi >= b - 0.005, "{axis}: {f:?}");
+                assert!(lo >= b.min(0.0) - 0.01 && hi <= b.max(0.0) + 0.01, "{axis}: {f:?}");
+            }
+        }
+        let identified = score(&r, "identified");
+        let cv = score(&r, "constant velocity");
+        let stay = score(&r, "stay put");
+        let no_bias = score(&r, "identified, no bias");
+        for h in 0..3 {
+            assert!(identified[h].n > 150, "{identified:?}");
+            assert!(identified[h].median_m < 0.5 * cv[h].median_m, "{h}: {identified:?} against {cv:?}");
+            assert!(identified[h].median_m < 0.5 * stay[h].median_m, "{h}: {identified:?} against {stay:?}");
+            assert!(identified[h].median_m < no_bias[h].median_m, "{h}: the trim counts: {no_bias:?}");
+        }
+        assert!(identified[0].median_m < 0.05, "{identified:?}");
+        // The height loop: 0.5 m, 1 cm of uniform noise (sd 0.58 cm).
+        let h = r.height.expect("IR");
+        assert!((h.mean_m - 0.5).abs() < 0.002 && (h.noise_sd_m - 0.0058).abs() < 0.001, "{h:?}");
+        assert!(h.range_m <= 0.0201 && h.samples > 3 * 600, "{h:?}");
+    }
+
+    /// The bias's prior (b = 0) was once held at full weight beside exponentially forgotten
+    /// data: the learnt trim stayed a quarter short (−0.0155 rad for −0.02), 0.4 m at 4 s.
+    #[test]
+    fn a_prior_held_at_full_weight_no_longer_shrinks_the_learnt_trim() {
+        let (series, flights) = synthetic(&TRUTH);
+        let at = |v: f64| Range { from: v, to: v, step: 1.0 };
+        let truth = FitOptions { delays_s: at(0.3), dampings_per_s: at(0.1), ..FitOptions::default() };
+        let r = run(&series, &flights, &truth);
+        for f in &r.flights {
+            // The far end of each axis's range (from the prior, 0, towards the trim) is the trim.
+            let [[x_lo, _], [_, y_hi]] = f.bias_rad;
+            assert!((x_lo + TRUTH.trim_rad[0]).abs() < 0.002, "{f:?}");
+            assert!((y_hi + TRUTH.trim_rad[1]).abs() < 0.002, "{f:?}");
+        }
+        let identified = score(&r, "identified");
+        assert!(identified[0].median_m < 0.03 && identified[2].median_m < 0.15, "{identified:?}");
+    }
+
+    #[test]
+    fn a_flipped_roll_is_found_flipped_and_pinned_the_wrong_way_it_fails() {
+        let flipped = Truth { mapping: Mapping { pitch_to_x: 1, roll_to_y: 1 }, ..TRUTH };
+        let (series, flights) = synthetic(&flipped);
+        let r = run(&series, &flights, &coarse());
+        assert_eq!(r.all_flights.mapping, Mapping { pitch_to_x: 1, roll_to_y: 1 }, "{:?}", r.all_flights);
+        let [x, y] = &r.all_flights.sign_evidence;
+        let (yp, ym) = (y.plus.expect("+").mean_error_m, y.minus.expect("−").mean_error_m);
+        assert!(yp * 3.0 < ym, "y: {y:?}");
+        assert!(x.plus.expect("+").mean_error_m * 3.0 < x.minus.expect("−").mean_error_m, "x: {x:?}");
+        let free = score(&r, "identified")[0].median_m;
+        // Pinned to Twinswarm's signs, the same data predicts far worse.
+        let pinned = run(&series, &flights, &FitOptions { mapping: Some(Mapping::TWINSWARM), ..coarse() });
+        let wrong = score(&pinned, "identified")[0].median_m;
+        assert!(wrong > 3.0 * free, "{wrong} against {free}");
+        assert!(pinned.all_flights.sign_evidence[1].plus.is_none(), "{:?}", pinned.all_flights);
+    }
+
+    #[test]
+    fn the_track_drops_outliers_readings_out_of_range_and_off_the_side_and_marks_gaps() {
+        let mut s = Series::default();
+        // x = 0.1 m, y = -0.2 m in a 3.8 × 2.7 m arena, every 50 ms from 0 to 10 s, but: a spike
+        // at 2 s (x 0.5 m, the sum right), no echo on the left from 4 to 4.5 s, the back sonar on
+        // an object (0.9 m) from 6 to 7 s, and nothing at all from 8 to 8.5 s.
+        for k in 0..=200 {
+            let t = f64::from(k) * 0.05;
+            if (8.0..8.5).contains(&t) {
+                continue;
+            }
+            let front = if k == 40 { 1.4 } else { 1.8 };
+            let back = if k == 40 {
+                2.4
+            } else if (6.0..7.0).contains(&t) {
+                0.9
+            } else {
+                2.0
+            };
+            let left = if (4.0..4.5).contains(&t) { f32::INFINITY } else { 1.55 };
+            s.sensors.push(Sample { t_s: t, sonar_m: Some([front, 1.15, back, left]), ir_m: None, rpy_rad: None });
+        }
+        let f = Flight { start_s: 0.0, end_s: 10.0 };
+        let tr = sonar_track(&s, &f, None, &FitOptions::default());
+        assert_eq!(tr.len(), 201);
+        let [x, y] = &tr.axes;
+        assert_eq!((x.readings, x.out_of_range, x.off_side, x.outliers), (191, 0, 20, 1), "{x:?}");
+        assert_eq!((y.readings, y.out_of_range, y.off_side, y.outliers), (191, 10, 0, 0), "{y:?}");
+        assert!((x.side_m.expect("a side") - 3.8).abs() <= 0.026, "{x:?}");
+        let at = |axis: usize, t: f64| tr.pos_m[axis][(t / 0.05).round() as usize];
+        assert!((at(0, 1.0) - 0.1).abs() < 1e-6 && (at(1, 1.0) + 0.2).abs() < 1e-6);
+        // The spike is gone, the grid interpolates over it.
+        assert!((at(0, 2.0) - 0.1).abs() < 1e-6);
+        // Gaps of 0.3 s or more: the left sonar's silence (0.5 s), the object (1 s), nothing (0.5 s).
+        assert!(at(1, 4.25).is_nan() && at(0, 4.25).is_finite());
+        assert!(at(0, 6.5).is_nan() && at(1, 6.5).is_finite());
+        assert!(at(0, 8.25).is_nan() && at(1, 8.25).is_nan());
+        assert_eq!((x.gap_points, y.gap_points), (20 + 10, 10 + 10), "{x:?} {y:?}");
+        // Without the side gate, the object makes a step in x the median gate keeps after its
+        // first half second.
+        let ungated = sonar_track(&s, &f, None, &FitOptions { sum_gate_m: None, ..FitOptions::default() });
+        // The side given, not the flight's own.
+        let given = sonar_track(&s, &f, Some([2.9, 2.7]), &FitOptions::default());
+        assert_eq!((given.axes[0].side_m, given.axes[0].off_side), (Some(2.9), 191 - 20), "{:?}", given.axes);
+        assert!((ungated.pos_m[0][(6.8 / 0.05) as usize] - (0.9 - 1.8) / 2.0).abs() < 1e-6);
+    }
+
+    #[test]
+    fn a_flight_without_sonars_is_skipped_by_name_and_none_at_all_is_an_error() {
+        let (series, flights) = synthetic(&TRUTH);
+        let mut blind = series.clone();
+        let f2 = flights[1];
+        for s in blind.sensors.iter_mut().filter(|s| s.t_s >= f2.start_s - 1.0 && s.t_s <= f2.end_s + 1.0) {
+            s.sonar_m = None;
+        }
+        let r = run(&blind, &flights, &coarse());
+        assert_eq!(r.skipped.len(), 1, "{:?}", r.skipped);
+        assert_eq!(r.skipped[0].label, "flight 2");
+        assert!(r.skipped[0].reason.contains("no sonar message"), "{:?}", r.skipped);
+        assert_eq!(r.flights.len(), 2);
+        let inputs = [FlightInput { label: "F.data flight 2".into(), series: &blind, flight: f2 }];
+        let e = identify(&inputs, &coarse()).expect_err("nothing to score").to_string();
+        assert!(e.contains("F.data flight 2") && e.contains("no sonar readings for x"), "{e}");
+        assert!(matches!(identify(&[], &coarse()), Err(FitError::NoFlights)));
+        let bad = FitOptions { grid_dt_s: 0.0, ..coarse() };
+        assert!(matches!(identify(&inputs, &bad), Err(FitError::BadOptions(_))));
+    }
+
+    #[test]
+    fn the_rollout_steps_as_the_simulator_and_the_grids_reach_their_ends() {
+        // No tilt, damping 0.5: v ← v / (1 + k dt) per step.
+        let m = AxisModel { sigma: 1.0, damping_per_s: 0.5, tan_bias: 0.0 };
+        let mut out = [0.0; 2];
+        roll(&[0.0; 40], 0, 1.0, 1.0, m, 0.05, &[0, 20], &mut out);
+        let r: f64 = 1.0 / 1.025;
+        let expected = 1.0 + 0.05 * (1..=20).map(|i| 0.5 * (r.powi(i - 1) + r.powi(i))).sum::<f64>();
+        assert_eq!(out[0], 1.0);
+        assert!((out[1] - expected).abs() < 1e-12, "{out:?}");
+        // A constant tilt of 0.1 rad from rest, no damping, 1 s: p = g tan(0.1) t² / 2, exactly.
+        let m = AxisModel { sigma: -1.0, damping_per_s: 0.0, tan_bias: 0.0 };
+        roll(&[0.1f64.tan(); 20], 0, 0.0, 0.0, m, 0.05, &[20], &mut out[..1]);
+        let a = -gravity_m_s2() * 0.1f64.tan();
+        assert!((out[0] - a * 0.5).abs() < 1e-12, "{out:?}");
+        assert_eq!(Range { from: 0.0, to: 0.6, step: 0.02 }.values().len(), 31);
+        assert_eq!(Range { from: 0.0, to: 0.6, step: 0.01 }.values().last().copied(), Some(0.6));
+        assert_eq!(FitOptions::default().current_damping_per_s, 0.3f32 as f64);
+        assert_eq!(Mapping::TWINSWARM.to_string(), "a_x = +g·tan(pitch), a_y = −g·tan(roll)");
+    }
+}
