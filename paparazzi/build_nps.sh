@@ -1,7 +1,8 @@
 #!/usr/bin/env bash
 # Build a FINken NPS aircraft that flies in a Twinswarm world (Paparazzi NPS + the Twinswarm FDM).
 #
-#   paparazzi/build_nps.sh [--name NAME] [--ac-id N] [--periodic HZ] [--flight-plan hover|wall_avoid] [--pprz DIR]
+#   paparazzi/build_nps.sh [--name NAME] [--ac-id N] [--periodic HZ] [--flight-plan hover|wall_avoid]
+#                          [--firmware port|2015-12] [--pprz DIR]
 #
 # Installs this folder's files into the Paparazzi tree built by shared/paparazzi/build.sh
 # (default: <repo>/target/paparazzi), idempotently (a file is copied only when it differs, so
@@ -33,6 +34,15 @@
 # --periodic HZ sets the airframe's PERIODIC_FREQUENCY (default 500); NPS then steps at
 # 2*HZ (SYS_TIME_FREQUENCY): 1000 steps per simulated second (dt 1 ms, which divides Twinswarm's
 # 5 ms physics and 50 ms control steps) at 500 Hz; the FINken's own 512 Hz gives dt = 1/1024 s.
+# --firmware port (default: this project's airframe twinswarm_finken.xml, Paparazzi's guidance,
+# module twinswarm_finken) or 2015-12: the FINken's own firmware of 16 Dec 2015, its modules
+# compiled unchanged from ../shared/paparazzi/finken_firmware/flight_2015-12 (copied verbatim to
+# sw/airborne/finken_fw/2015_12 and conf/finken_fw/2015_12), airframe
+# conf/airframes/finken_fw_2015_12.xml (fink3.xml, aircraft 5), the firmware's own flight plan
+# free_flight.xml (both --flight-plan values; wall_avoid loads finken_wall_avoid in place of
+# finken_rc_passthrough), no AHRS/INS bypass; glue in finken_fw/ (docs/paparazzi.md, "The
+# FINken's own firmware"). --cruise and --sighting-hold belong to the port.
+# --firmware-dir DIR: where the copies are (default <repo>/../shared/paparazzi/finken_firmware).
 set -euo pipefail
 
 here="$(cd "$(dirname "${BASH_SOURCE[0]}")" && pwd)"
@@ -46,6 +56,8 @@ udp_in=4243
 cruise=""
 hold=""
 pprz="$repo/target/paparazzi"
+firmware=port
+fw_dir="$repo/../shared/paparazzi/finken_firmware"
 
 while [ $# -gt 0 ]; do
   case "$1" in
@@ -58,7 +70,9 @@ while [ $# -gt 0 ]; do
     --cruise) cruise="$2"; shift 2 ;;
     --sighting-hold) hold="$2"; shift 2 ;;
     --pprz) pprz="$2"; shift 2 ;;
-    -h|--help) sed -n '2,35p' "$0"; exit 0 ;;
+    --firmware) firmware="$2"; shift 2 ;;
+    --firmware-dir) fw_dir="$2"; shift 2 ;;
+    -h|--help) sed -n '2,44p' "$0"; exit 0 ;;
     *) echo "unknown argument: $1" >&2; exit 2 ;;
   esac
 done
@@ -70,6 +84,14 @@ case "$cruise" in ("") ;; (*[!0-9.,-]*|*,*,*) echo "bad cruise: $cruise (FWD,RIG
 case "$hold" in ("") ;; (*[!0-9.]*) echo "bad sighting hold: $hold (s)" >&2; exit 2 ;; esac
 case "$udp_out$udp_in" in (*[!0-9]*|"") echo "bad UDP port: $udp_out / $udp_in" >&2; exit 2 ;; esac
 case "$flight_plan" in (hover|wall_avoid) ;; (*) echo "bad flight plan: $flight_plan (hover or wall_avoid)" >&2; exit 2 ;; esac
+case "$firmware" in
+  (port) ;;
+  (2015-12)
+    [ -z "$cruise$hold" ] || { echo "--cruise/--sighting-hold: options of the port's module, not of the firmware $firmware" >&2; exit 2; }
+    fw_src="$fw_dir/flight_2015-12"
+    [ -f "$fw_src/sw/airborne/modules/finken_model/finken_model_system.c" ] || { echo "no firmware copy at $fw_src" >&2; exit 1; } ;;
+  (*) echo "bad firmware: $firmware (port or 2015-12)" >&2; exit 2 ;;
+esac
 
 if [ ! -f "$pprz/env.sh" ]; then
   echo "no Paparazzi build at $pprz: run shared/paparazzi/build.sh $pprz first" >&2
@@ -125,13 +147,46 @@ if ! cmp -s "$uc/messages.xml" "$home/var/messages.xml" \
     VALIDATE_XML=FALSE PPRZLINK_LIB_VERSION=2.0 pymessages
   conf_changed=1
 fi
+telemetry_sed="s|<module name=\"telemetry\" type=\"transparent\"/>|<module name=\"telemetry\" type=\"transparent\"><configure name=\"MODEM_PORT_OUT\" value=\"$udp_out\"/><configure name=\"MODEM_PORT_IN\" value=\"$udp_in\"/></module>|"
+if [ "$firmware" = port ]; then
 # (process substitution, not a pipe: install_text must run in this shell to set conf_changed)
 install_text "$home/conf/airframes/twinswarm/$name.xml" < <(
   sed "s/@PERIODIC_FREQUENCY@/$periodic/; s/<airframe name=\"twinswarm_finken\">/<airframe name=\"$name\">/
        ${cruise:+s|<define name=\"WA_CRUISE_FWD\" value=\"[^\"]*\"/>|<define name=\"WA_CRUISE_FWD\" value=\"${cruise%,*}\"/>|; s|<define name=\"WA_CRUISE_RIGHT\" value=\"[^\"]*\"/>|<define name=\"WA_CRUISE_RIGHT\" value=\"${cruise#*,}\"/>|;}
        ${hold:+s|<define name=\"WA_SIGHTING_HOLD\" value=\"[^\"]*\"/>|<define name=\"WA_SIGHTING_HOLD\" value=\"$hold\"/>|;}
-       s|<module name=\"telemetry\" type=\"transparent\"/>|<module name=\"telemetry\" type=\"transparent\"><configure name=\"MODEM_PORT_OUT\" value=\"$udp_out\"/><configure name=\"MODEM_PORT_IN\" value=\"$udp_in\"/></module>|" \
+       $telemetry_sed" \
     "$here/conf/airframes/twinswarm_finken.xml")
+fp="flight_plans/twinswarm/finken_$flight_plan.xml"
+settings_modules="modules/ahrs_float_cmpl_quat.xml modules/guidance_pid_rotorcraft.xml modules/guidance_rotorcraft.xml modules/nav_rotorcraft.xml modules/stabilization_int_quat.xml modules/stabilization_rate.xml modules/twinswarm_finken.xml"
+else
+# The firmware: its files verbatim (sw/airborne/modules/... and conf/...), the project's glue.
+fw_tag="${firmware/-/_}"
+while IFS= read -r -d '' f; do
+  rel="${f#"$fw_src"/}"
+  case "$rel" in
+    (sw/airborne/*) install_file "$f" "$home/sw/airborne/finken_fw/$fw_tag/${rel#sw/airborne/}" ;;
+    (conf/*) install_file "$f" "$home/conf/finken_fw/$fw_tag/$rel" ;;
+  esac
+done < <(find "$fw_src" -type f -print0 | sort -z)
+while IFS= read -r -d '' f; do
+  install_file "$f" "$home/sw/airborne/finken_fw/shim/${f#"$here/finken_fw/shim/"}"
+done < <(find "$here/finken_fw/shim" -type f -print0 | sort -z)
+for f in finken_fw_nps.c finken_fw_nps.h finken_fw_api.h sonar_array_i2c_hw.c; do
+  install_file "$here/finken_fw/sw/$f" "$home/sw/airborne/modules/finken_fw/$f"
+done
+for m in finken_fw_$fw_tag finken_fw_${fw_tag}_rc_passthrough finken_fw_${fw_tag}_wall_avoid; do
+  install_file "$here/conf/modules/$m.xml" "$home/conf/modules/$m.xml"
+done
+wa_sed=""
+[ "$flight_plan" = wall_avoid ] && wa_sed="s|<module name=\"finken_fw_${fw_tag}_rc_passthrough\"/>|<module name=\"finken_fw_${fw_tag}_wall_avoid\"/>|"
+install_text "$home/conf/airframes/twinswarm/$name.xml" < <(
+  sed "s/@PERIODIC_FREQUENCY@/$periodic/; s/<airframe name=\"finken_fw_$fw_tag\">/<airframe name=\"$name\">/
+       $wa_sed
+       $telemetry_sed" \
+    "$here/conf/airframes/finken_fw_$fw_tag.xml")
+fp="finken_fw/$fw_tag/conf/flight_plans/ovgu/free_flight.xml"
+settings_modules="modules/ahrs_float_cmpl_quat.xml modules/guidance_pid_rotorcraft.xml modules/guidance_rotorcraft.xml modules/nav_rotorcraft.xml modules/stabilization_int_quat.xml modules/stabilization_rate.xml"
+fi
 
 # the private conf: one entry per aircraft built with this script, one per ac_id
 for other in "$uc"/aircraft/*.xml; do
@@ -147,9 +202,9 @@ install_text "$uc/aircraft/$name.xml" <<EOF
    airframe="airframes/twinswarm/$name.xml"
    radio="radios/spektrum.xml"
    telemetry="telemetry/twinswarm/finken.xml"
-   flight_plan="flight_plans/twinswarm/finken_$flight_plan.xml"
+   flight_plan="$fp"
    settings="settings/rotorcraft_basic.xml settings/nps.xml"
-   settings_modules="modules/ahrs_float_cmpl_quat.xml modules/guidance_pid_rotorcraft.xml modules/guidance_rotorcraft.xml modules/nav_rotorcraft.xml modules/stabilization_int_quat.xml modules/stabilization_rate.xml modules/twinswarm_finken.xml"
+   settings_modules="$settings_modules"
    gui_color="#ff8000"
   />
 EOF
@@ -163,7 +218,7 @@ if [ "$conf_changed" = 1 ] && [ -d "$home/var/aircrafts/$name" ]; then
   rm -rf "${home:?}/var/aircrafts/$name"
 fi
 
-echo "building $name (ac_id $ac_id, flight plan $flight_plan, PERIODIC_FREQUENCY $periodic Hz, NPS step 1/$((2 * periodic)) s) in $home"
+echo "building $name (firmware $firmware, ac_id $ac_id, flight plan $flight_plan, PERIODIC_FREQUENCY $periodic Hz, NPS step 1/$((2 * periodic)) s) in $home"
 start=$(date +%s%N)
 make -C "$home" AIRCRAFT="$name" CONF_XML="$uc/conf.xml" nps.compile
 end=$(date +%s%N)

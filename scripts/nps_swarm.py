@@ -45,10 +45,13 @@ def free_port():
         return s.getsockname()[1]
 
 
-def build(ac_id, plan, log, udp=None, cruise=None, hold=None):
-    name = f"tw_nps{ac_id}"
+def build(ac_id, plan, log, udp=None, cruise=None, hold=None, firmware="port"):
+    # the port's aircraft keep their names; the firmware's get their own (the ac_id is compiled in)
+    name = f"tw_nps{ac_id}" if firmware == "port" else f"tw_fw{firmware.replace('-', '')}_{ac_id}"
     cmd = ["bash", str(REPO / "paparazzi" / "build_nps.sh"), "--name", name, "--ac-id", str(ac_id),
            "--flight-plan", plan, "--pprz", str(PPRZ)]
+    if firmware != "port":
+        cmd += ["--firmware", firmware]
     if udp:
         cmd += ["--udp-out", str(udp[0]), "--udp-in", str(udp[1])]
     if cruise is not None:
@@ -167,6 +170,10 @@ def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--count", type=int, default=1)
     ap.add_argument("--plan", choices=["hover", "wall_avoid"], default="wall_avoid")
+    ap.add_argument("--firmware", choices=["port", "2015-12"], default="port",
+                    help="port: the project's airframe and module twinswarm_finken (default); 2015-12: the FINken's "
+                    "own firmware of 16 Dec 2015 and its flight plan (hover: finken_rc_passthrough, wall_avoid: "
+                    "finken_wall_avoid; set point 0.6 m), no AHRS/INS bypass (build_nps.sh --firmware)")
     ap.add_argument("--duration", type=float, default=60.0)
     ap.add_argument("--first-ac", type=int, default=40, help="ac_id of the first aircraft (default 40)")
     ap.add_argument("--seed", type=int, default=2016)
@@ -201,11 +208,11 @@ def main(argv=None):
         udp = (a.udp_out, a.udp_in) if a.udp_out else None
         if udp and a.count != 1:
             sys.exit("--udp-out/--udp-in: one aircraft only (the ports are compiled in)")
-        sims = [build(ac, a.plan, log, udp, a.cruise, a.sighting_hold) for ac in acs]
+        sims = [build(ac, a.plan, log, udp, a.cruise, a.sighting_hold, a.firmware) for ac in acs]
         if a.stranger is not None:
             if a.stranger in acs:
                 sys.exit(f"--stranger {a.stranger}: that aircraft flies a copter of the scene")
-            sims.append(build(a.stranger, a.plan, log, None, a.cruise, a.sighting_hold))
+            sims.append(build(a.stranger, a.plan, log, None, a.cruise, a.sighting_hold, a.firmware))
             acs_started = acs + [a.stranger]
         else:
             acs_started = acs
@@ -265,6 +272,7 @@ def main(argv=None):
     report = {
         "count": a.count,
         "plan": a.plan,
+        "firmware": a.firmware,
         "sim_s": summary["sim_time_s"],
         "wall_s": round(wall, 3),
         "sim_s_per_wall_s": round(summary["sim_time_s"] / wall, 3),
