@@ -248,9 +248,9 @@ def test_a_twist_on_cmd_vel_flies_the_copter_where_it_says(twinswarm_bin, tmp_pa
         height_m = 3.0
         [[copter]]
         name = "finken1"
-        start = { pos_m = [-3.0, 0.0], z_m = 1.0, yaw_deg = 0.0 }
+        start = { pos_m = [-3.0, 0.0], z_m = 0.8, yaw_deg = 0.0 }
         mode = "velocity"
-        command = { height_m = 1.0, velocity_m_s = [0.0, 0.0] }
+        command = { height_m = 0.8, velocity_m_s = [0.0, 0.0] }
         """))
     endpoint = f"tcp/127.0.0.1:{free_tcp_port()}"
     proc = start(twinswarm_bin, endpoint, 14, "--prefix", "ros2cmd/hall", scene=scene)
