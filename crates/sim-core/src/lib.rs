@@ -47,5 +47,5 @@ pub use control::{Command, FlightMode, Inputs, Setpoint};
 pub use scene::{SceneError, SceneSpec, compile};
 pub use sensors::SensorReadings;
 pub use state::{CopterPose, CopterState, CrashCause, State};
-pub use step::{Event, StepReport, fresh_sonars, step, step_into};
+pub use step::{Event, Stage, StepReport, fresh_sonars, step, step_into, step_probed};
 pub use world::{CopterKind, World};

@@ -74,6 +74,52 @@ pub struct StepReport {
     pub shard_violations: u32,
 }
 
+/// The stages of a step, in the order [`step_probed`] reports their ends. Some run on every
+/// thread (per copter), some on one (Rapier, the passes over pairs and lists); a profiler
+/// times them from outside (sim-core reads no clock): `examples/stages.rs`.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, PartialOrd, Ord, Serialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Stage {
+    /// The step begins (nothing done yet).
+    Begin,
+    /// Every copter's motion into its lane.
+    Lanes,
+    /// Sensing: sonars, IR, IMU, estimates, cross-talk.
+    Sense,
+    /// The flight modes' setpoints.
+    OuterLoops,
+    /// Downwash and wakes between copters.
+    Airflow,
+    /// Each copter's reachable sphere, and which fly free or on watch.
+    Reserve,
+    /// Ownership (in a shard), watch pairs, falling wrecks, Rapier bodies entering or leaving.
+    RapierSetup,
+    /// A substep: the inner loops of the copters in Rapier (all copters on one thread).
+    InRapierLanes,
+    /// A substep: falling wrecks and the forces onto Rapier's bodies.
+    RapierForces,
+    /// A substep: Rapier's step, beside the free copters' inner loops on the other threads.
+    RapierAndFreeLanes,
+    /// A substep: Rapier's results into the lanes, collision crashes.
+    RapierResults,
+    /// A substep: tilt crashes and take-offs.
+    TiltAndTakeOff,
+    /// The lanes back into the copters' motion.
+    Store,
+}
+
+/// [`step_into`], calling `probe` at the end of each [`Stage`] (physics stages once per
+/// substep): the same bits as [`step_into`].
+pub fn step_probed(
+    world: &World,
+    state: &mut State,
+    inputs: &Inputs,
+    report: &mut StepReport,
+    probe: &mut (dyn FnMut(Stage) + Send),
+) {
+    step_with(world, state, inputs, report, probe);
+}
+
 /// Which copters a step reads and which it moves: all of them, or a shard's.
 #[derive(Clone, Copy)]
 struct Roles<'a>(Option<&'a [Role]>);
@@ -127,6 +173,17 @@ pub fn step(world: &World, state: &mut State, inputs: &Inputs) -> StepReport {
 /// [`step`] into a report the caller keeps: its event list is cleared and refilled, so a
 /// loop that reuses one report does not allocate for events once it has seen its busiest step.
 pub fn step_into(world: &World, state: &mut State, inputs: &Inputs, report: &mut StepReport) {
+    step_with(world, state, inputs, report, &mut |_| {});
+}
+
+fn step_with(
+    world: &World,
+    state: &mut State,
+    inputs: &Inputs,
+    report: &mut StepReport,
+    probe: &mut (dyn FnMut(Stage) + Send),
+) {
+    probe(Stage::Begin);
     report.events.clear();
     // Room for a take-off or a crash of every copter at once, kept from step to step.
     report.events.reserve(2 * world.copters.len());
@@ -134,7 +191,7 @@ pub fn step_into(world: &World, state: &mut State, inputs: &Inputs, report: &mut
     report.shard_violations = 0;
     let threads = world.params.threads.max(1);
     if threads == 1 {
-        return step_on(world, state, inputs, false, report);
+        return step_on(world, state, inputs, false, report, probe);
     }
     let pool = match state.scratch.pool.take() {
         Some(pool) if pool.current_num_threads() == threads => Some(pool),
@@ -142,11 +199,11 @@ pub fn step_into(world: &World, state: &mut State, inputs: &Inputs, report: &mut
     };
     match pool {
         Some(pool) => {
-            pool.install(|| step_on(world, state, inputs, true, report));
+            pool.install(|| step_on(world, state, inputs, true, report, probe));
             state.scratch.pool = Some(pool);
         }
         // No threads to be had: the same step, on this thread.
-        None => step_on(world, state, inputs, false, report),
+        None => step_on(world, state, inputs, false, report, probe),
     }
 }
 
@@ -207,9 +264,16 @@ where
     }
 }
 
-fn step_on(world: &World, state: &mut State, inputs: &Inputs, parallel: bool, report: &mut StepReport) {
+fn step_on(
+    world: &World,
+    state: &mut State,
+    inputs: &Inputs,
+    parallel: bool,
+    report: &mut StepReport,
+    probe: &mut (dyn FnMut(Stage) + Send),
+) {
     let mut view = state.shard.take();
-    step_copters(world, state, inputs, parallel, &mut view, report);
+    step_copters(world, state, inputs, parallel, &mut view, report, probe);
     state.shard = view;
 }
 
@@ -224,6 +288,7 @@ fn step_copters(
     parallel: bool,
     view: &mut Option<ShardView>,
     report: &mut StepReport,
+    probe: &mut (dyn FnMut(Stage) + Send),
 ) {
     let present = &mut state.scratch.present;
     present.clear();
@@ -233,13 +298,18 @@ fn step_copters(
     // Before the ownership of this step is decided: what this shard owned at its start.
     let roles = Roles(view.as_ref().map(|v| &v.roles[..]));
     load_lanes(world, state, parallel);
+    probe(Stage::Lanes);
     let sonar_period = world.sensors.spec.sonar.period_steps.max(1) as u64;
     if world.sensors.spec.enabled {
         sense(world, state, inputs, state.tick.is_multiple_of(sonar_period), parallel, roles);
     }
+    probe(Stage::Sense);
     outer_loops(world, state, inputs, parallel, roles);
+    probe(Stage::OuterLoops);
     report.shard_violations += airflow(world, state, parallel, roles);
-    report.shard_violations += reserve_free_flight(world, state, parallel, view);
+    probe(Stage::Airflow);
+    report.shard_violations += reserve_free_flight(world, state, parallel, view, probe);
+    probe(Stage::RapierSetup);
     // From here on: what this shard owns for this step.
     let roles = Roles(view.as_ref().map(|v| &v.roles[..]));
 
@@ -251,7 +321,7 @@ fn step_copters(
     scratch.motor_alpha.extend(world.airframes.iter().map(|af| motor_alpha(af, dt)));
     let inner = InnerParams::new(world, dt);
     for s in 0..world.params.substeps {
-        physics_substep(world, state, inner, roles, parallel, s, report);
+        physics_substep(world, state, inner, roles, parallel, s, report, probe);
     }
 
     // The step's motion is the copters' (free copters' Rapier bodies stay where they were).
@@ -263,6 +333,7 @@ fn step_copters(
     });
     state.tick += 1;
     report.tick = state.tick;
+    probe(Stage::Store);
 }
 
 /// Every copter's motion at the start of the step, into its lane.
@@ -301,6 +372,7 @@ fn outer_loops(world: &World, state: &mut State, inputs: &Inputs, parallel: bool
 /// Rapier then steps on one thread while the free copters' inner loops run on the others: a
 /// free copter's substep touches nothing of Rapier's, and nothing of it is read before
 /// Rapier's step is done. On one thread, one pass in id order: the same bits.
+#[allow(clippy::too_many_arguments, reason = "the substep's inputs, and the probe of step_probed")]
 fn physics_substep(
     world: &World,
     state: &mut State,
@@ -309,6 +381,7 @@ fn physics_substep(
     parallel: bool,
     s: u32,
     report: &mut StepReport,
+    probe: &mut (dyn FnMut(Stage) + Send),
 ) {
     let dt = world.physics_dt();
     watch_contacts(state, dt);
@@ -317,6 +390,7 @@ fn physics_substep(
     let pass = SubstepPass { world, inner, alphas: &scratch.motor_alpha, cos_tilt: &scratch.crash_cos_tilt, roles, dt };
     let first = pass.closure(s, parallel_rapier.then_some(true));
     for_each_chunk(parallel, &mut state.copters, &mut scratch.lanes, first);
+    probe(Stage::InRapierLanes);
     for k in 0..state.scratch.falling.len() {
         let i = state.scratch.falling[k] as usize;
         fall_wreck(world, state, i, dt);
@@ -327,6 +401,7 @@ fn physics_substep(
     falling.retain(|&i| !copters[i as usize].grounded);
     // The others go through Rapier, in id order.
     let any_near = rapier_forces(state);
+    probe(Stage::RapierForces);
     let scratch = &mut state.scratch;
     let rapier = |physics: &mut PhysicsWorld| {
         if any_near {
@@ -342,12 +417,15 @@ fn physics_substep(
     } else {
         rapier(&mut state.physics);
     }
+    probe(Stage::RapierAndFreeLanes);
     if any_near {
         report.rapier_substeps += 1;
         rapier_results(state);
         detect_collision_crashes(world, state, report);
     }
+    probe(Stage::RapierResults);
     detect_tilt_and_takeoff(world, state, report, roles, parallel, s);
+    probe(Stage::TiltAndTakeOff);
 }
 
 /// The forces and torques of the awake copters in Rapier onto their bodies; whether any is.
@@ -540,10 +618,17 @@ fn substep_lane(
 /// gyroscopic terms). A copter whose sphere meets only other copters' flies free on watch
 /// ([`watch_contacts`]). Wrecks fall and rest in closed form too ([`fall_wreck`]), their
 /// bodies fixed in Rapier where flying copters can hit them.
-fn reserve_free_flight(world: &World, state: &mut State, parallel: bool, view: &mut Option<ShardView>) -> u32 {
+fn reserve_free_flight(
+    world: &World,
+    state: &mut State,
+    parallel: bool,
+    view: &mut Option<ShardView>,
+    probe: &mut (dyn FnMut(Stage) + Send),
+) -> u32 {
     let roles = Roles(view.as_ref().map(|v| &v.roles[..]));
     reserve_spheres(world, state, parallel, roles);
     sort_free_and_watched(world, state, parallel, roles);
+    probe(Stage::Reserve);
     // A shard decides which copters it steps now: the reservations are known.
     let violations = view.as_mut().map_or(0, |v| take_ownership(state, v));
     let roles = Roles(view.as_ref().map(|v| &v.roles[..]));
