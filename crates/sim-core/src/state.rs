@@ -1,10 +1,11 @@
-//! Everything that changes during a run: the [`State`].
+//! Everything that changes during a run: the [`State`], and a fresh one from the
+//! [`World`] ([`World::initial_state`]).
 
 use std::sync::Mutex;
 
 use rapier3d::prelude::{
-    ColliderHandle, ColliderSet, CollisionEvent, ContactPair, EventHandler, PhysicsWorld, RigidBodyHandle,
-    RigidBodySet, SoftBodySet, SoftBodyTearEvent,
+    ColliderBuilder, ColliderHandle, ColliderSet, CollisionEvent, ContactPair, EventHandler, InteractionGroups,
+    MassProperties, PhysicsWorld, RigidBodyBuilder, RigidBodyHandle, RigidBodySet, SoftBodySet, SoftBodyTearEvent,
 };
 use serde::{Deserialize, Serialize};
 
@@ -12,10 +13,116 @@ use crate::battery::BatteryState;
 use crate::control::{PidState, Setpoint, WallAvoidState};
 use crate::estimate::Estimate;
 use crate::geometry::OrientedBox;
-use crate::math::{Quat, Real, Vec3, euler_from_quat};
+use crate::math::{GRAVITY_M_S2, Quat, Real, Vec3, Vector, euler_from_quat};
 use crate::rng::Rng32;
 use crate::sensors::{CopterGrid, SensorReadings, SonarScene};
-use crate::world::World;
+use crate::world::{ColliderTag, VIRTUAL_ONLY_BOX, World};
+
+/// A fresh [`State`] from the [`World`]: its static geometry and copters as Rapier bodies.
+impl World {
+    /// A fresh state at tick 0: static geometry, copters at their start poses, seeded RNGs.
+    pub fn initial_state(&self) -> State {
+        let mut physics = PhysicsWorld::new();
+        physics.gravity = Vector::new(0.0, 0.0, -GRAVITY_M_S2);
+        physics.integration_parameters.dt = self.physics_dt();
+        // No continuous collision detection: at 5 ms a copter moves at most a few cm, less
+        // than the walls' and floor's thickness; CCD's sweeps cost more than the rest of a
+        // wreck's step.
+        physics.integration_parameters.max_ccd_substeps = 0;
+        self.insert_static_geometry(&mut physics);
+        let mut state = State { tick: 0, physics, copters: Vec::new(), scratch: Scratch::default(), shard: None };
+        for id in 0..self.copters.len() {
+            let copter = self.make_copter(&mut state.physics, id);
+            state.copters.push(copter);
+        }
+        state
+    }
+
+    fn insert_static_geometry(&self, physics: &mut PhysicsWorld) {
+        let t = self.arena.wall_thickness_m;
+        let [sx, sy] = self.arena.size_m;
+        let h = self.arena.height_m;
+        // Each on a fixed body of its own: a copter's contacts with two of them are then two body
+        // pairs, coloured in body-id order (see `World::copter_collider_of`).
+        let add = |physics: &mut PhysicsWorld, half: Vec3, center: Vec3, yaw: Real, tag: ColliderTag| {
+            let ground = physics.insert_body(RigidBodyBuilder::fixed());
+            let virtual_only = matches!(tag, ColliderTag::Box(i) if self.boxes[i].virtual_only);
+            let collider = ColliderBuilder::cuboid(half.x, half.y, half.z)
+                .translation(center)
+                .rotation(Vec3::new(0.0, 0.0, yaw))
+                .friction(0.8)
+                .collision_groups(if virtual_only { VIRTUAL_ONLY_BOX } else { InteractionGroups::all() })
+                .user_data(tag.encode());
+            physics.insert_collider(collider, Some(ground));
+        };
+        add(
+            physics,
+            Vec3::new(sx / 2.0 + t, sy / 2.0 + t, t / 2.0),
+            Vec3::new(0.0, 0.0, -t / 2.0),
+            0.0,
+            ColliderTag::Floor,
+        );
+        if self.arena.walls {
+            let hz = h / 2.0;
+            add(
+                physics,
+                Vec3::new(t / 2.0, sy / 2.0 + t, hz),
+                Vec3::new(sx / 2.0 + t / 2.0, 0.0, hz),
+                0.0,
+                ColliderTag::Wall,
+            );
+            add(
+                physics,
+                Vec3::new(t / 2.0, sy / 2.0 + t, hz),
+                Vec3::new(-sx / 2.0 - t / 2.0, 0.0, hz),
+                0.0,
+                ColliderTag::Wall,
+            );
+            add(
+                physics,
+                Vec3::new(sx / 2.0 + t, t / 2.0, hz),
+                Vec3::new(0.0, sy / 2.0 + t / 2.0, hz),
+                0.0,
+                ColliderTag::Wall,
+            );
+            add(
+                physics,
+                Vec3::new(sx / 2.0 + t, t / 2.0, hz),
+                Vec3::new(0.0, -sy / 2.0 - t / 2.0, hz),
+                0.0,
+                ColliderTag::Wall,
+            );
+            add(
+                physics,
+                Vec3::new(sx / 2.0 + t, sy / 2.0 + t, t / 2.0),
+                Vec3::new(0.0, 0.0, h + t / 2.0),
+                0.0,
+                ColliderTag::Ceiling,
+            );
+        }
+        for (i, b) in self.boxes.iter().enumerate() {
+            add(physics, b.half_extents_m, b.center_m, b.yaw_rad, ColliderTag::Box(i));
+        }
+    }
+
+    /// Creates copter `id`'s rigid body and colliders and its initial runtime state.
+    pub(crate) fn make_copter(&self, physics: &mut PhysicsWorld, id: usize) -> CopterState {
+        let def = &self.copters[id];
+        let af = &self.airframes[def.airframe];
+        let [ix, iy, iz] = af.inertia_kg_m2;
+        let body = RigidBodyBuilder::dynamic()
+            .translation(def.start_pos_m)
+            .rotation(Vec3::new(0.0, 0.0, def.start_yaw_rad))
+            .linear_damping(af.spec.linear_damping)
+            .angular_damping(af.spec.angular_damping)
+            .additional_mass_properties(MassProperties::new(Vec3::ZERO, af.mass_kg, Vec3::new(ix, iy, iz)))
+            .can_sleep(false)
+            .user_data(id as u128);
+        let handle = physics.insert_body(body);
+        let collider = physics.insert_collider(self.copter_collider_of(id), Some(handle));
+        CopterState::new(self, id, handle, collider)
+    }
+}
 
 /// The mutable state of a run: physics sets, controller integrators, rotor states, sensor
 /// memory, random streams and the tick.

@@ -1,18 +1,15 @@
-//! The immutable compiled model ([`World`]) and the construction of a fresh [`State`] from it.
+//! The immutable compiled model ([`World`]); a fresh [`crate::State`] is built from it in
+//! `state.rs` ([`World::initial_state`]).
 
-use rapier3d::prelude::{
-    ActiveEvents, ColliderBuilder, Group, InteractionGroups, MassProperties, PhysicsWorld, RigidBodyBuilder,
-    SharedShape,
-};
+use rapier3d::prelude::{ActiveEvents, ColliderBuilder, Group, InteractionGroups, SharedShape};
 use serde::{Deserialize, Serialize};
 
 use crate::airflow::AirflowParams;
 use crate::airframe::Airframe;
 use crate::control::{Command, Inputs};
-use crate::math::{GRAVITY_M_S2, Quat, Real, Vec3, Vector};
+use crate::math::{Quat, Real, Vec3};
 use crate::scene::SceneSpec;
 use crate::sensors::SensorParams;
-use crate::state::{CopterState, Scratch, State};
 
 /// Whether a copter exists only in the simulation or twins a real one.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
@@ -240,109 +237,6 @@ impl World {
         Inputs { commands: self.copters.iter().map(|c| c.initial_command.clone()).collect() }
     }
 
-    /// A fresh state at tick 0: static geometry, copters at their start poses, seeded RNGs.
-    pub fn initial_state(&self) -> State {
-        let mut physics = PhysicsWorld::new();
-        physics.gravity = Vector::new(0.0, 0.0, -GRAVITY_M_S2);
-        physics.integration_parameters.dt = self.physics_dt();
-        // No continuous collision detection: at 5 ms a copter moves at most a few cm, less
-        // than the walls' and floor's thickness; CCD's sweeps cost more than the rest of a
-        // wreck's step.
-        physics.integration_parameters.max_ccd_substeps = 0;
-        self.insert_static_geometry(&mut physics);
-        let mut state = State { tick: 0, physics, copters: Vec::new(), scratch: Scratch::default(), shard: None };
-        for id in 0..self.copters.len() {
-            let copter = self.make_copter(&mut state.physics, id);
-            state.copters.push(copter);
-        }
-        state
-    }
-
-    fn insert_static_geometry(&self, physics: &mut PhysicsWorld) {
-        let t = self.arena.wall_thickness_m;
-        let [sx, sy] = self.arena.size_m;
-        let h = self.arena.height_m;
-        // Each on a fixed body of its own: a copter's contacts with two of them are then two body
-        // pairs, coloured in body-id order (see `World::copter_collider_of`).
-        let add = |physics: &mut PhysicsWorld, half: Vec3, center: Vec3, yaw: Real, tag: ColliderTag| {
-            let ground = physics.insert_body(RigidBodyBuilder::fixed());
-            let virtual_only = matches!(tag, ColliderTag::Box(i) if self.boxes[i].virtual_only);
-            let collider = ColliderBuilder::cuboid(half.x, half.y, half.z)
-                .translation(center)
-                .rotation(Vec3::new(0.0, 0.0, yaw))
-                .friction(0.8)
-                .collision_groups(if virtual_only { VIRTUAL_ONLY_BOX } else { InteractionGroups::all() })
-                .user_data(tag.encode());
-            physics.insert_collider(collider, Some(ground));
-        };
-        add(
-            physics,
-            Vec3::new(sx / 2.0 + t, sy / 2.0 + t, t / 2.0),
-            Vec3::new(0.0, 0.0, -t / 2.0),
-            0.0,
-            ColliderTag::Floor,
-        );
-        if self.arena.walls {
-            let hz = h / 2.0;
-            add(
-                physics,
-                Vec3::new(t / 2.0, sy / 2.0 + t, hz),
-                Vec3::new(sx / 2.0 + t / 2.0, 0.0, hz),
-                0.0,
-                ColliderTag::Wall,
-            );
-            add(
-                physics,
-                Vec3::new(t / 2.0, sy / 2.0 + t, hz),
-                Vec3::new(-sx / 2.0 - t / 2.0, 0.0, hz),
-                0.0,
-                ColliderTag::Wall,
-            );
-            add(
-                physics,
-                Vec3::new(sx / 2.0 + t, t / 2.0, hz),
-                Vec3::new(0.0, sy / 2.0 + t / 2.0, hz),
-                0.0,
-                ColliderTag::Wall,
-            );
-            add(
-                physics,
-                Vec3::new(sx / 2.0 + t, t / 2.0, hz),
-                Vec3::new(0.0, -sy / 2.0 - t / 2.0, hz),
-                0.0,
-                ColliderTag::Wall,
-            );
-            add(
-                physics,
-                Vec3::new(sx / 2.0 + t, sy / 2.0 + t, t / 2.0),
-                Vec3::new(0.0, 0.0, h + t / 2.0),
-                0.0,
-                ColliderTag::Ceiling,
-            );
-        }
-        for (i, b) in self.boxes.iter().enumerate() {
-            add(physics, b.half_extents_m, b.center_m, b.yaw_rad, ColliderTag::Box(i));
-        }
-    }
-
-    /// Creates copter `id`'s rigid body and colliders and its initial runtime state.
-    pub(crate) fn make_copter(&self, physics: &mut PhysicsWorld, id: usize) -> CopterState {
-        let def = &self.copters[id];
-        let af = &self.airframes[def.airframe];
-        let [ix, iy, iz] = af.inertia_kg_m2;
-        let body = RigidBodyBuilder::dynamic()
-            .translation(def.start_pos_m)
-            .rotation(Vec3::new(0.0, 0.0, def.start_yaw_rad))
-            .linear_damping(af.spec.linear_damping)
-            .angular_damping(af.spec.angular_damping)
-            .additional_mass_properties(MassProperties::new(Vec3::ZERO, af.mass_kg, Vec3::new(ix, iy, iz)))
-            .can_sleep(false)
-            .user_data(id as u128);
-        let handle = physics.insert_body(body);
-        let collider = physics.insert_collider(self.copter_collider_of(id), Some(handle));
-        CopterState::new(self, id, handle, collider)
-    }
-
     /// Copter `id`'s one collider, flying or wrecked: its parts (body box and rotor discs) as
     /// one compound shape, built with the world. One collider per body makes every contact pair
     /// a pair of bodies: Rapier colours a body pair's contacts in body-id order, while two
@@ -373,8 +267,8 @@ impl World {
 /// Rapier collision groups: a `virtual_only` box meets everything but the copters flown by an
 /// outside autopilot (their own group); everything else is in every group.
 const AUTOPILOT_GROUP: Group = Group::GROUP_2;
-const AUTOPILOT_COPTER: InteractionGroups = InteractionGroups::all().with_memberships(AUTOPILOT_GROUP);
-const VIRTUAL_ONLY_BOX: InteractionGroups =
+pub(crate) const AUTOPILOT_COPTER: InteractionGroups = InteractionGroups::all().with_memberships(AUTOPILOT_GROUP);
+pub(crate) const VIRTUAL_ONLY_BOX: InteractionGroups =
     InteractionGroups::all().with_filter(Group::ALL.difference(AUTOPILOT_GROUP));
 
 /// A copter's collision shapes in its body frame: the body box and the four rotor discs.
