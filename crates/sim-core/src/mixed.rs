@@ -10,9 +10,9 @@
 //! the sonar's maximum range: `INFINITY` means "nothing virtual in range".
 
 use crate::math::Real;
+use crate::scene::CopterKind;
 use crate::sensors::{SonarScene, sonar_cones};
 use crate::step::{GRID_CELL_M, copter_box};
-use crate::world::CopterKind;
 use crate::{State, World};
 
 /// Scratch for [`VirtualSonar::readings`]: the virtual-only geometry, gathered once per

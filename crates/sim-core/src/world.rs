@@ -2,39 +2,15 @@
 //! `state.rs` ([`World::initial_state`]).
 
 use rapier3d::prelude::{ActiveEvents, ColliderBuilder, Group, InteractionGroups, SharedShape};
-use serde::{Deserialize, Serialize};
+use serde::Serialize;
 
 use crate::airflow::AirflowParams;
 use crate::airframe::Airframe;
 use crate::control::{Command, Inputs};
 use crate::math::{Quat, Real, Vec3};
+pub use crate::scene::CopterKind;
 use crate::scene::SceneSpec;
 use crate::sensors::SensorParams;
-
-/// Whether a copter exists only in the simulation or twins a real one.
-#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
-#[serde(rename_all = "snake_case")]
-pub enum CopterKind {
-    /// Simulated only.
-    #[default]
-    Virtual,
-    /// The virtual twin of a real copter, driven by its telemetry.
-    Real,
-    /// Flown by an autopilot outside the simulation (Paparazzi's, compiled for its simulator
-    /// NPS) that commands its four rotors every step; Twinswarm's physics answers. It belongs to
-    /// the real layer, as a real copter does: its own sonars and IR see the arena, the ordinary
-    /// boxes, twins and other such copters, while virtual copters and `virtual_only` boxes reach
-    /// it only through the virtual-sonar uplink (see [`crate::mixed`]).
-    Autopilot,
-}
-
-impl CopterKind {
-    /// Whether the copter is in the real layer (a twin, or flown by an outside autopilot): its
-    /// sensors do not see what exists only in the simulation.
-    pub fn is_real_layer(self) -> bool {
-        self != CopterKind::Virtual
-    }
-}
 
 /// Stepping parameters.
 #[derive(Clone, Debug, PartialEq, Serialize)]
