@@ -10,7 +10,17 @@ cd "$(dirname "$0")/.."
 export TWINSWARM_SKIP_LOG="$PWD/target/skipped-shared-data.txt"
 mkdir -p target && : > "$TWINSWARM_SKIP_LOG"
 
-say() { printf '\n==> %s\n' "$*"; }
+# Each phase says how long the one before it took, and the end gives the whole, so a CI log
+# shows where its minutes go (docs/testing.md).
+test_start=$(date +%s)
+phase_start=$test_start
+say() {
+  local now
+  now=$(date +%s)
+  if [ "$now" -gt "$test_start" ]; then printf '    (%d s)\n' $((now - phase_start)); fi
+  phase_start=$now
+  printf '\n==> %s\n' "$*"
+}
 
 say "toolchain"
 cargo --version
@@ -64,7 +74,7 @@ say "python package: pip install ./crates/py (the test profile, not release)"
 PATH="$PWD/.venv/bin:$PATH" MATURIN_PEP517_ARGS="--profile dev" \
   .venv/bin/python -m pip install --quiet --disable-pip-version-check --no-build-isolation --force-reinstall --no-deps ./crates/py
 pytest_status=0
-TWINSWARM_BIN="$PWD/target/debug/twinswarm" .venv/bin/python -m pytest -q tests/python || pytest_status=$?
+TWINSWARM_BIN="$PWD/target/debug/twinswarm" .venv/bin/python -m pytest -q --durations=12 tests/python || pytest_status=$?
 if [ "$pytest_status" -eq 5 ]; then
   echo "error: pytest collected no tests in tests/python" >&2
   exit 1
@@ -78,5 +88,5 @@ skip_note=""
 if [ "$skipped" -gt 0 ]; then
   skip_note=" ($skipped shared-data tests skipped: $(cut -f2 "$TWINSWARM_SKIP_LOG" | sort -u | paste -sd, -) absent)"
 fi
-echo
+say "done in $(( $(date +%s) - test_start )) s"
 echo "all checks passed: fmt, clippy, cargo tests, doc tests, python tests (Zenoh client, MCAP reader, replay, Ivy peers, Paparazzi's link and server, the Python package, PettingZoo and Gymnasium conformance, lockstep)$skip_note"
