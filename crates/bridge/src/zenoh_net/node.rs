@@ -337,164 +337,24 @@ impl Node {
             controllers: controllers.clone(),
             limiter: limiter.clone(),
         };
-        let cmd_sub = {
-            let commands = commands.clone();
-            let prefix_len = prefix.len();
-            session
-                .declare_subscriber(format!("{prefix}/copters/*/cmd"))
-                .callback(move |sample| {
-                    let (name, payload, origin) = copter_sample(&sample, prefix_len, "/cmd");
-                    commands.submit(&name, |world| CommandMsg::parse(&payload, world), origin);
-                })
-                .await
-                .map_err(zerr)?
-        };
+        let cmd_sub = declare_command_subscriber(&session, &prefix, commands.clone()).await?;
 
         // Tracking poses of real copters (e.g. a camera system), for twin synchronisation.
-        let tracking_sub = {
-            let (counters, requests, limiter) = (counters.clone(), requests.clone(), limiter.clone());
-            let prefix_len = prefix.len();
-            session
-                .declare_subscriber(format!("{prefix}/copters/*/tracking"))
-                .callback(move |sample| {
-                    let (name, payload, origin) = copter_sample(&sample, prefix_len, "/tracking");
-                    let request = match crate::wire::TrackingMsg::parse(&payload) {
-                        Ok(t) => Request::Tracking { copter: name, pos_m: [t.pos_m[0], t.pos_m[1]], origin },
-                        Err(e) => {
-                            counters.tracking_rejected.fetch_add(1, Ordering::Relaxed);
-                            limiter.warn(&format!("rejected tracking pose on {}: {e}", origin.key));
-                            Request::Rejected { origin, reason: e.to_string() }
-                        }
-                    };
-                    if requests.try_send(request).is_err() {
-                        counters.requests_dropped.fetch_add(1, Ordering::Relaxed);
-                        limiter.warn("tracking pose dropped: the step loop's queue is full");
-                    }
-                })
-                .await
-                .map_err(zerr)?
-        };
+        let tracking_sub =
+            declare_tracking_subscriber(&session, &prefix, counters.clone(), requests.clone(), limiter.clone()).await?;
 
         // Liveliness: our token, and the clients'.
         let token = session.liveliness().declare_token(format!("{prefix}/alive/sim")).await.map_err(zerr)?;
         let clients = Arc::new(Mutex::new(BTreeSet::new()));
-        let alive_sub = {
-            let (clients, counters, commands) = (clients.clone(), counters.clone(), commands.clone());
-            let base = format!("{prefix}/alive/copters/");
-            session
-                .liveliness()
-                .declare_subscriber(format!("{prefix}/alive/copters/**"))
-                .history(true)
-                .callback(move |sample| {
-                    let rest = sample.key_expr().as_str().trim_start_matches(base.as_str()).to_owned();
-                    let put = sample.kind() == SampleKind::Put;
-                    {
-                        let mut c = crate::lock(&clients);
-                        if put {
-                            if c.insert(rest.clone()) {
-                                counters.clients_seen.fetch_add(1, Ordering::Relaxed);
-                                tracing::info!("client attached: {rest}");
-                            }
-                        } else {
-                            c.remove(&rest);
-                            tracing::info!("client left: {rest}");
-                        }
-                    }
-                    // A claim: `<copter>/<client>`.
-                    if let Some((copter, client)) = rest.split_once('/') {
-                        commands.claim(copter, client, put);
-                    }
-                })
-                .await
-                .map_err(zerr)?
-        };
+        let alive_sub =
+            declare_alive_subscriber(&session, &prefix, clients.clone(), counters.clone(), commands.clone()).await?;
 
         // Queryables.
-        let mut queryables = Vec::new();
-        {
-            let (scene_json, counters) = (scene_json.clone(), counters.clone());
-            queryables.push(
-                session
-                    .declare_queryable(format!("{prefix}/scene"))
-                    .callback(move |q| {
-                        let body = crate::lock(&scene_json).clone();
-                        // A reply fails only when the querier is gone or the session is closing:
-                        // nobody is left to tell, so it is counted (the same below).
-                        count_failed(&counters, q.reply(q.key_expr().clone(), body).wait());
-                    })
-                    .await
-                    .map_err(zerr)?,
-            );
-        }
-        {
-            let (world_cell, counters) = (world_cell.clone(), counters.clone());
-            queryables.push(
-                session
-                    .declare_queryable(format!("{prefix}/copters"))
-                    .callback(move |q| {
-                        let list: Vec<CopterListEntry> = crate::lock(&world_cell)
-                            .copters
-                            .iter()
-                            .enumerate()
-                            .map(|(id, c)| CopterListEntry {
-                                id,
-                                name: c.name.clone(),
-                                kind: crate::wire::kind_str(c.kind).into(),
-                                ac_id: c.ac_id,
-                                crashed: false,
-                            })
-                            .collect();
-                        // Strings and numbers: serialising cannot fail.
-                        let body = serde_json::to_string(&list).unwrap_or_default();
-                        count_failed(&counters, q.reply(q.key_expr().clone(), body).wait());
-                    })
-                    .await
-                    .map_err(zerr)?,
-            );
-        }
-        {
-            let (requests, counters, limiter) = (requests.clone(), counters.clone(), limiter.clone());
-            queryables.push(
-                session
-                    .declare_queryable(format!("{prefix}/spawn"))
-                    .callback(move |q| {
-                        // No payload is an empty request: parsing it fails and the querier is told.
-                        let payload = q.payload().map(|p| p.to_bytes().into_owned()).unwrap_or_default();
-                        let spec: CopterSpec = match serde_json::from_slice(&payload) {
-                            Ok(s) => s,
-                            Err(e) => {
-                                counters.spawns_rejected.fetch_add(1, Ordering::Relaxed);
-                                limiter.warn(&format!("rejected a spawn request: {e}"));
-                                count_failed(&counters, q.reply_err(format!("malformed spawn request: {e}")).wait());
-                                return;
-                            }
-                        };
-                        let (tx, rx) = tokio::sync::oneshot::channel();
-                        if requests.try_send(Request::Spawn { spec: Box::new(spec), reply: tx }).is_err() {
-                            counters.spawns_rejected.fetch_add(1, Ordering::Relaxed);
-                            counters.requests_dropped.fetch_add(1, Ordering::Relaxed);
-                            count_failed(&counters, q.reply_err("the step loop is busy or stopped").wait());
-                            return;
-                        }
-                        // Answer from a task: the step loop replies at its next step.
-                        let counters = counters.clone();
-                        tokio::spawn(async move {
-                            let answer = tokio::time::timeout(Duration::from_secs(5), rx).await;
-                            let sent = match answer {
-                                Ok(Ok(Ok(name))) => {
-                                    q.reply(q.key_expr().clone(), serde_json::json!({ "spawned": name }).to_string())
-                                        .await
-                                }
-                                Ok(Ok(Err(e))) => q.reply_err(e).await,
-                                _ => q.reply_err("the step loop did not answer").await,
-                            };
-                            count_failed(&counters, sent);
-                        });
-                    })
-                    .await
-                    .map_err(zerr)?,
-            );
-        }
+        let queryables = vec![
+            declare_scene_queryable(&session, &prefix, scene_json.clone(), counters.clone()).await?,
+            declare_copters_queryable(&session, &prefix, world_cell.clone(), counters.clone()).await?,
+            declare_spawn_queryable(&session, &prefix, requests.clone(), counters.clone(), limiter.clone()).await?,
+        ];
 
         let clock_pub = session.declare_publisher(format!("{prefix}/clock")).await.map_err(zerr)?;
         let mut node = Self {
@@ -587,4 +447,187 @@ impl Node {
         _token.undeclare().await.map_err(zerr)?;
         session.close().await.map_err(zerr)
     }
+}
+
+/// Declares the subscriber on `<prefix>/copters/*/cmd`, which submits each command to `commands`.
+async fn declare_command_subscriber(
+    session: &zenoh::Session,
+    prefix: &str,
+    commands: CommandSink,
+) -> Result<zenoh::pubsub::Subscriber<()>, NodeError> {
+    let prefix_len = prefix.len();
+    session
+        .declare_subscriber(format!("{prefix}/copters/*/cmd"))
+        .callback(move |sample| {
+            let (name, payload, origin) = copter_sample(&sample, prefix_len, "/cmd");
+            commands.submit(&name, |world| CommandMsg::parse(&payload, world), origin);
+        })
+        .await
+        .map_err(zerr)
+}
+
+/// Declares the subscriber on `<prefix>/copters/*/tracking`, which queues each tracking pose
+/// (or its rejection) for the step loop.
+async fn declare_tracking_subscriber(
+    session: &zenoh::Session,
+    prefix: &str,
+    counters: Arc<NodeCounters>,
+    requests: SyncSender<Request>,
+    limiter: Arc<RateLimiter>,
+) -> Result<zenoh::pubsub::Subscriber<()>, NodeError> {
+    let prefix_len = prefix.len();
+    session
+        .declare_subscriber(format!("{prefix}/copters/*/tracking"))
+        .callback(move |sample| {
+            let (name, payload, origin) = copter_sample(&sample, prefix_len, "/tracking");
+            let request = match crate::wire::TrackingMsg::parse(&payload) {
+                Ok(t) => Request::Tracking { copter: name, pos_m: [t.pos_m[0], t.pos_m[1]], origin },
+                Err(e) => {
+                    counters.tracking_rejected.fetch_add(1, Ordering::Relaxed);
+                    limiter.warn(&format!("rejected tracking pose on {}: {e}", origin.key));
+                    Request::Rejected { origin, reason: e.to_string() }
+                }
+            };
+            if requests.try_send(request).is_err() {
+                counters.requests_dropped.fetch_add(1, Ordering::Relaxed);
+                limiter.warn("tracking pose dropped: the step loop's queue is full");
+            }
+        })
+        .await
+        .map_err(zerr)
+}
+
+/// Declares the liveliness subscriber on `<prefix>/alive/copters/**` (with history): it keeps
+/// `clients` and files each `<copter>/<client>` claim with `commands`.
+async fn declare_alive_subscriber(
+    session: &zenoh::Session,
+    prefix: &str,
+    clients: Arc<Mutex<BTreeSet<String>>>,
+    counters: Arc<NodeCounters>,
+    commands: CommandSink,
+) -> Result<zenoh::pubsub::Subscriber<()>, NodeError> {
+    let base = format!("{prefix}/alive/copters/");
+    session
+        .liveliness()
+        .declare_subscriber(format!("{prefix}/alive/copters/**"))
+        .history(true)
+        .callback(move |sample| {
+            let rest = sample.key_expr().as_str().trim_start_matches(base.as_str()).to_owned();
+            let put = sample.kind() == SampleKind::Put;
+            {
+                let mut c = crate::lock(&clients);
+                if put {
+                    if c.insert(rest.clone()) {
+                        counters.clients_seen.fetch_add(1, Ordering::Relaxed);
+                        tracing::info!("client attached: {rest}");
+                    }
+                } else {
+                    c.remove(&rest);
+                    tracing::info!("client left: {rest}");
+                }
+            }
+            // A claim: `<copter>/<client>`.
+            if let Some((copter, client)) = rest.split_once('/') {
+                commands.claim(copter, client, put);
+            }
+        })
+        .await
+        .map_err(zerr)
+}
+
+/// Declares the queryable `<prefix>/scene`, which answers with the scene as JSON.
+async fn declare_scene_queryable(
+    session: &zenoh::Session,
+    prefix: &str,
+    scene_json: Arc<Mutex<String>>,
+    counters: Arc<NodeCounters>,
+) -> Result<zenoh::query::Queryable<()>, NodeError> {
+    session
+        .declare_queryable(format!("{prefix}/scene"))
+        .callback(move |q| {
+            let body = crate::lock(&scene_json).clone();
+            // A reply fails only when the querier is gone or the session is closing:
+            // nobody is left to tell, so it is counted (the same below).
+            count_failed(&counters, q.reply(q.key_expr().clone(), body).wait());
+        })
+        .await
+        .map_err(zerr)
+}
+
+/// Declares the queryable `<prefix>/copters`, which answers with the list of copters as JSON.
+async fn declare_copters_queryable(
+    session: &zenoh::Session,
+    prefix: &str,
+    world_cell: Arc<Mutex<Arc<World>>>,
+    counters: Arc<NodeCounters>,
+) -> Result<zenoh::query::Queryable<()>, NodeError> {
+    session
+        .declare_queryable(format!("{prefix}/copters"))
+        .callback(move |q| {
+            let list: Vec<CopterListEntry> = crate::lock(&world_cell)
+                .copters
+                .iter()
+                .enumerate()
+                .map(|(id, c)| CopterListEntry {
+                    id,
+                    name: c.name.clone(),
+                    kind: crate::wire::kind_str(c.kind).into(),
+                    ac_id: c.ac_id,
+                    crashed: false,
+                })
+                .collect();
+            // Strings and numbers: serialising cannot fail.
+            let body = serde_json::to_string(&list).unwrap_or_default();
+            count_failed(&counters, q.reply(q.key_expr().clone(), body).wait());
+        })
+        .await
+        .map_err(zerr)
+}
+
+/// Declares the queryable `<prefix>/spawn`: a JSON copter table in, queued for the step loop,
+/// and its answer (the name or an error) replied from a task.
+async fn declare_spawn_queryable(
+    session: &zenoh::Session,
+    prefix: &str,
+    requests: SyncSender<Request>,
+    counters: Arc<NodeCounters>,
+    limiter: Arc<RateLimiter>,
+) -> Result<zenoh::query::Queryable<()>, NodeError> {
+    session
+        .declare_queryable(format!("{prefix}/spawn"))
+        .callback(move |q| {
+            // No payload is an empty request: parsing it fails and the querier is told.
+            let payload = q.payload().map(|p| p.to_bytes().into_owned()).unwrap_or_default();
+            let spec: CopterSpec = match serde_json::from_slice(&payload) {
+                Ok(s) => s,
+                Err(e) => {
+                    counters.spawns_rejected.fetch_add(1, Ordering::Relaxed);
+                    limiter.warn(&format!("rejected a spawn request: {e}"));
+                    count_failed(&counters, q.reply_err(format!("malformed spawn request: {e}")).wait());
+                    return;
+                }
+            };
+            let (tx, rx) = tokio::sync::oneshot::channel();
+            if requests.try_send(Request::Spawn { spec: Box::new(spec), reply: tx }).is_err() {
+                counters.spawns_rejected.fetch_add(1, Ordering::Relaxed);
+                counters.requests_dropped.fetch_add(1, Ordering::Relaxed);
+                count_failed(&counters, q.reply_err("the step loop is busy or stopped").wait());
+                return;
+            }
+            // Answer from a task: the step loop replies at its next step.
+            let counters = counters.clone();
+            tokio::spawn(async move {
+                let answer = tokio::time::timeout(Duration::from_secs(5), rx).await;
+                let sent = match answer {
+                    Ok(Ok(Ok(name))) => {
+                        q.reply(q.key_expr().clone(), serde_json::json!({ "spawned": name }).to_string()).await
+                    }
+                    Ok(Ok(Err(e))) => q.reply_err(e).await,
+                    _ => q.reply_err("the step loop did not answer").await,
+                };
+                count_failed(&counters, sent);
+            });
+        })
+        .await
+        .map_err(zerr)
 }
