@@ -35,7 +35,7 @@ use sim_core::math::{Real, Vec3, wrap_angle_rad};
 use sim_core::rng::Rng32;
 use sim_core::scene::{self, SceneSpec};
 use sim_core::sensors::{SonarScene, sonar_reading};
-use sim_core::{State, World, step};
+use sim_core::{CopterState, State, World, step};
 
 use crate::BadInput;
 
@@ -507,26 +507,77 @@ pub fn evaluate(
     let seed = world.params.seed;
     let mut evals = Vec::new();
     for id in 0..world.copters.len() {
+        evals.push(CopterEval::new(&world, id, seed)?);
+    }
+
+    let state = fly(&world, &mut evals, hold_yaw)?;
+
+    let copter_reports = evals.iter().map(|e| e.report(&world, &state)).collect();
+
+    Ok(FlightReport {
+        world: choice,
+        boxes_simulated: world.boxes.iter().map(|b| b.name.clone()).collect(),
+        boxes_known_to_medusa: known.iter().map(|&b| world.boxes[b].name.clone()).collect(),
+        minutes,
+        seed,
+        hold_yaw,
+        wall_s: started.elapsed().as_secs_f64(),
+        copters: copter_reports,
+    })
+}
+
+/// Flies the evaluation scene to its end, each copter steered by its cruise pilot and measured
+/// after every control step; returns the final state.
+fn fly(world: &World, evals: &mut [CopterEval], hold_yaw: bool) -> anyhow::Result<State> {
+    let ticks = world.default_ticks();
+    let dt = world.params.control_dt_s;
+    let mut state = world.initial_state();
+    let mut inputs = world.initial_inputs();
+    let mut scene_buf = SonarScene::default();
+    let cap = f64::from(world.sensors.spec.sonar.cap_m);
+    for _ in 0..ticks {
+        for e in evals.iter_mut() {
+            e.cruise.steer(&mut inputs.commands[e.id], state.tick, dt, hold_yaw);
+        }
+        // Ground truth and the synthetic diagonals at the instant sim-core senses.
+        sonar_scene(world, &state, &mut scene_buf);
+        let truth: Vec<Vector2<f64>> = (0..world.copters.len())
+            .map(|i| {
+                let p = state.pose(i).pos_m;
+                Vector2::new(f64::from(p.x), f64::from(p.y))
+            })
+            .collect();
+        let diagonals: Vec<[Real; 4]> =
+            evals.iter_mut().map(|e| diagonal_readings(world, &state, &scene_buf, e.id, &mut e.diag_rng)).collect();
+        let took_off = |state: &State, i: usize| state.copters[i].took_off_tick;
+        let sense_tick = state.tick;
+        let report = step(world, &mut state, &inputs);
+        let _ = report;
+
+        for (e, diag) in evals.iter_mut().zip(&diagonals) {
+            let c = &state.copters[e.id];
+            if e.stopped {
+                continue;
+            }
+            if c.crash.is_some() {
+                e.stopped = true;
+                continue;
+            }
+            let settled = took_off(&state, e.id).is_some_and(|t| (sense_tick as f64 - t as f64) * dt >= SETTLE_S);
+            e.measure(c, diag, truth[e.id], settled, cap, dt)?;
+        }
+    }
+    Ok(state)
+}
+
+impl CopterEval {
+    /// The harness state of copter `id`: a tracker per sensor set, its seeded diagonals and pilot.
+    fn new(world: &World, id: usize, seed: u64) -> anyhow::Result<Self> {
         let mut trackers = Vec::new();
         for slots in SENSOR_SETS {
-            let medusa = medusa_for(&world, slots)?;
-            let filter = MedusaFilter::new(medusa, bridge::sync::filter_config(&world, id))?;
-            trackers.push(Tracker {
-                slots,
-                filter,
-                raw_err: Vec::new(),
-                refined_err: Vec::new(),
-                filt_err: Vec::new(),
-                conf: Vec::new(),
-                non_finite: 0,
-                filter_s: 0.0,
-                raw_s: 0.0,
-                updates: 0,
-                last: None,
-                readings: vec![None; slots.len()],
-            });
+            trackers.push(Tracker::new(world, id, slots)?);
         }
-        evals.push(CopterEval {
+        Ok(CopterEval {
             id,
             trackers,
             prev_input: MotionInput::zero(),
@@ -539,150 +590,142 @@ pub fn evaluate(
             diag_rng: Rng32::new(seed ^ 0x5eed_d1a6, 1000 + id as u64),
             cruise: Cruise::new(seed, id, world.copters[id].initial_command.yaw_rad),
             stopped: false,
-        });
-    }
-
-    let ticks = world.default_ticks();
-    let dt = world.params.control_dt_s;
-    let mut state = world.initial_state();
-    let mut inputs = world.initial_inputs();
-    let mut scene_buf = SonarScene::default();
-    let cap = f64::from(world.sensors.spec.sonar.cap_m);
-    for _ in 0..ticks {
-        for e in &mut evals {
-            e.cruise.steer(&mut inputs.commands[e.id], state.tick, dt, hold_yaw);
-        }
-        // Ground truth and the synthetic diagonals at the instant sim-core senses.
-        sonar_scene(&world, &state, &mut scene_buf);
-        let truth: Vec<Vector2<f64>> = (0..world.copters.len())
-            .map(|i| {
-                let p = state.pose(i).pos_m;
-                Vector2::new(f64::from(p.x), f64::from(p.y))
-            })
-            .collect();
-        let diagonals: Vec<[Real; 4]> =
-            evals.iter_mut().map(|e| diagonal_readings(&world, &state, &scene_buf, e.id, &mut e.diag_rng)).collect();
-        let took_off = |state: &State, i: usize| state.copters[i].took_off_tick;
-        let sense_tick = state.tick;
-        let report = step(&world, &mut state, &inputs);
-        let _ = report;
-
-        for (e, diag) in evals.iter_mut().zip(&diagonals) {
-            let c = &state.copters[e.id];
-            if e.stopped {
-                continue;
-            }
-            if c.crash.is_some() {
-                e.stopped = true;
-                continue;
-            }
-            let r = &c.sensors;
-            let all: [Real; 8] =
-                [r.sonar_m[0], r.sonar_m[1], r.sonar_m[2], r.sonar_m[3], diag[0], diag[1], diag[2], diag[3]];
-            let yaw = YawEstimate::new(f64::from(r.attitude_rad[2]), f64::from(YAW_NOISE_DEG).to_radians());
-            let input = e.prev_input;
-            let settled = took_off(&state, e.id).is_some_and(|t| (sense_tick as f64 - t as f64) * dt >= SETTLE_S);
-            let t = truth[e.id];
-            if settled {
-                e.samples += 1;
-                if let Some(lp) = e.last_pos {
-                    e.distance_m += (t - lp).norm();
-                }
-                e.last_pos = Some(t);
-                e.x_range = [e.x_range[0].min(t.x), e.x_range[1].max(t.x)];
-                e.y_range = [e.y_range[0].min(t.y), e.y_range[1].max(t.y)];
-                e.max_bias = e.max_bias.max(f64::from(r.yaw_bias_rad).abs());
-            }
-            for tr in &mut e.trackers {
-                for (slot, &k) in tr.readings.iter_mut().zip(tr.slots) {
-                    let v = f64::from(all[k]);
-                    *slot = (v < cap).then_some(v);
-                }
-                let t0 = Instant::now();
-                let est = tr.filter.update(dt, &input, yaw, &tr.readings)?;
-                let t1 = Instant::now();
-                let raw = tr.filter.medusa().locate(yaw, &tr.readings)?;
-                let t2 = Instant::now();
-                tr.filter_s += (t1 - t0).as_secs_f64();
-                tr.raw_s += (t2 - t1).as_secs_f64();
-                tr.updates += 1;
-                tr.last = Some(est);
-                if settled {
-                    let fe = (est.pos_in_world - t).norm();
-                    if !(fe.is_finite() && est.confidence.is_finite()) {
-                        tr.non_finite += 1;
-                    }
-                    tr.filt_err.push(fe);
-                    tr.conf.push(est.confidence);
-                    tr.raw_err.push((raw.best.pos_in_world - t).norm());
-                    tr.refined_err.push((raw.refined.pos_in_world - t).norm());
-                }
-            }
-            let sp = &c.setpoint;
-            e.prev_input = MotionInput::from_attitude(f64::from(sp.pitch_rad), f64::from(sp.roll_rad));
-        }
-    }
-
-    let copter_reports = evals
-        .iter()
-        .map(|e| {
-            let c = &state.copters[e.id];
-            let true_bias = f64::from(c.yaw_bias_rad);
-            CopterReport {
-                name: world.copters[e.id].name.clone(),
-                samples: e.samples,
-                crash: c.crash.map(|x| format!("{x:?}")),
-                distance_m: e.distance_m,
-                x_range_m: e.x_range,
-                y_range_m: e.y_range,
-                max_abs_yaw_bias_deg: e.max_bias.to_degrees(),
-                sets: e
-                    .trackers
-                    .iter()
-                    .map(|tr| {
-                        let mut conf = tr.conf.clone();
-                        conf.sort_by(f64::total_cmp);
-                        let mut bad_conf: Vec<f64> =
-                            tr.filt_err.iter().zip(&tr.conf).filter(|(e, _)| **e > 0.15).map(|(_, c)| *c).collect();
-                        bad_conf.sort_by(f64::total_cmp);
-                        let n = tr.filt_err.len().max(1) as f64;
-                        SensorSetReport {
-                            sensors: tr.slots.len(),
-                            slots: tr.slots.iter().map(|&k| SLOT_NAMES[k]).collect(),
-                            raw: stats(&tr.raw_err),
-                            refined: stats(&tr.refined_err),
-                            filtered: stats(&tr.filt_err),
-                            confidence_median: percentile(&conf, 0.5),
-                            confidence_p05: percentile(&conf, 0.05),
-                            confidence_median_when_err_above_15cm: if bad_conf.is_empty() {
-                                0.0
-                            } else {
-                                percentile(&bad_conf, 0.5)
-                            },
-                            share_filtered_above_15cm: tr.filt_err.iter().filter(|&&e| e > 0.15).count() as f64 / n,
-                            non_finite: tr.non_finite,
-                            filter_us_per_update: tr.filter_s / tr.updates.max(1) as f64 * 1e6,
-                            raw_us_per_locate: tr.raw_s / tr.updates.max(1) as f64 * 1e6,
-                            final_yaw_bias_error_deg: tr
-                                .last
-                                .map_or(f64::NAN, |est| (est.yaw_bias_rad - true_bias).to_degrees()),
-                        }
-                    })
-                    .collect(),
-            }
         })
-        .collect();
+    }
 
-    Ok(FlightReport {
-        world: choice,
-        boxes_simulated: world.boxes.iter().map(|b| b.name.clone()).collect(),
-        boxes_known_to_medusa: known.iter().map(|&b| world.boxes[b].name.clone()).collect(),
-        minutes,
-        seed,
-        hold_yaw,
-        wall_s: started.elapsed().as_secs_f64(),
-        copters: copter_reports,
-    })
+    /// One control step of the copter `c` (after the step; `t` its true position when sensed):
+    /// its flight counted once `settled`, its readings fed to every tracker.
+    fn measure(
+        &mut self,
+        c: &CopterState,
+        diag: &[Real; 4],
+        t: Vector2<f64>,
+        settled: bool,
+        cap: f64,
+        dt: f64,
+    ) -> anyhow::Result<()> {
+        let r = &c.sensors;
+        let all: [Real; 8] =
+            [r.sonar_m[0], r.sonar_m[1], r.sonar_m[2], r.sonar_m[3], diag[0], diag[1], diag[2], diag[3]];
+        let yaw = YawEstimate::new(f64::from(r.attitude_rad[2]), f64::from(YAW_NOISE_DEG).to_radians());
+        let input = self.prev_input;
+        if settled {
+            self.samples += 1;
+            if let Some(lp) = self.last_pos {
+                self.distance_m += (t - lp).norm();
+            }
+            self.last_pos = Some(t);
+            self.x_range = [self.x_range[0].min(t.x), self.x_range[1].max(t.x)];
+            self.y_range = [self.y_range[0].min(t.y), self.y_range[1].max(t.y)];
+            self.max_bias = self.max_bias.max(f64::from(r.yaw_bias_rad).abs());
+        }
+        for tr in &mut self.trackers {
+            tr.update(&all, cap, dt, &input, yaw, settled.then_some(t))?;
+        }
+        let sp = &c.setpoint;
+        self.prev_input = MotionInput::from_attitude(f64::from(sp.pitch_rad), f64::from(sp.roll_rad));
+        Ok(())
+    }
+
+    /// The copter's report, from the measurements and the final `state`.
+    fn report(&self, world: &World, state: &State) -> CopterReport {
+        let c = &state.copters[self.id];
+        let true_bias = f64::from(c.yaw_bias_rad);
+        CopterReport {
+            name: world.copters[self.id].name.clone(),
+            samples: self.samples,
+            crash: c.crash.map(|x| format!("{x:?}")),
+            distance_m: self.distance_m,
+            x_range_m: self.x_range,
+            y_range_m: self.y_range,
+            max_abs_yaw_bias_deg: self.max_bias.to_degrees(),
+            sets: self.trackers.iter().map(|tr| tr.report(true_bias)).collect(),
+        }
+    }
+}
+
+impl Tracker {
+    /// MEDUSA and its filter for the sensor set `slots` of copter `id`, no measurements yet.
+    fn new(world: &World, id: usize, slots: &'static [usize]) -> anyhow::Result<Self> {
+        let medusa = medusa_for(world, slots)?;
+        let filter = MedusaFilter::new(medusa, bridge::sync::filter_config(world, id))?;
+        Ok(Tracker {
+            slots,
+            filter,
+            raw_err: Vec::new(),
+            refined_err: Vec::new(),
+            filt_err: Vec::new(),
+            conf: Vec::new(),
+            non_finite: 0,
+            filter_s: 0.0,
+            raw_s: 0.0,
+            updates: 0,
+            last: None,
+            readings: vec![None; slots.len()],
+        })
+    }
+
+    /// Feeds the set's readings (of `all` eight, those under `cap`) to the filter and to raw
+    /// MEDUSA, timing both; with `truth` (once the copter has settled), records their errors.
+    fn update(
+        &mut self,
+        all: &[Real; 8],
+        cap: f64,
+        dt: f64,
+        input: &MotionInput,
+        yaw: YawEstimate,
+        truth: Option<Vector2<f64>>,
+    ) -> anyhow::Result<()> {
+        for (slot, &k) in self.readings.iter_mut().zip(self.slots) {
+            let v = f64::from(all[k]);
+            *slot = (v < cap).then_some(v);
+        }
+        let t0 = Instant::now();
+        let est = self.filter.update(dt, input, yaw, &self.readings)?;
+        let t1 = Instant::now();
+        let raw = self.filter.medusa().locate(yaw, &self.readings)?;
+        let t2 = Instant::now();
+        self.filter_s += (t1 - t0).as_secs_f64();
+        self.raw_s += (t2 - t1).as_secs_f64();
+        self.updates += 1;
+        self.last = Some(est);
+        if let Some(t) = truth {
+            let fe = (est.pos_in_world - t).norm();
+            if !(fe.is_finite() && est.confidence.is_finite()) {
+                self.non_finite += 1;
+            }
+            self.filt_err.push(fe);
+            self.conf.push(est.confidence);
+            self.raw_err.push((raw.best.pos_in_world - t).norm());
+            self.refined_err.push((raw.refined.pos_in_world - t).norm());
+        }
+        Ok(())
+    }
+
+    /// The sensor set's statistics; `true_bias` is the copter's true yaw bias at the end (rad).
+    fn report(&self, true_bias: f64) -> SensorSetReport {
+        let mut conf = self.conf.clone();
+        conf.sort_by(f64::total_cmp);
+        let mut bad_conf: Vec<f64> =
+            self.filt_err.iter().zip(&self.conf).filter(|(e, _)| **e > 0.15).map(|(_, c)| *c).collect();
+        bad_conf.sort_by(f64::total_cmp);
+        let n = self.filt_err.len().max(1) as f64;
+        SensorSetReport {
+            sensors: self.slots.len(),
+            slots: self.slots.iter().map(|&k| SLOT_NAMES[k]).collect(),
+            raw: stats(&self.raw_err),
+            refined: stats(&self.refined_err),
+            filtered: stats(&self.filt_err),
+            confidence_median: percentile(&conf, 0.5),
+            confidence_p05: percentile(&conf, 0.05),
+            confidence_median_when_err_above_15cm: if bad_conf.is_empty() { 0.0 } else { percentile(&bad_conf, 0.5) },
+            share_filtered_above_15cm: self.filt_err.iter().filter(|&&e| e > 0.15).count() as f64 / n,
+            non_finite: self.non_finite,
+            filter_us_per_update: self.filter_s / self.updates.max(1) as f64 * 1e6,
+            raw_us_per_locate: self.raw_s / self.updates.max(1) as f64 * 1e6,
+            final_yaw_bias_error_deg: self.last.map_or(f64::NAN, |est| (est.yaw_bias_rad - true_bias).to_degrees()),
+        }
+    }
 }
 
 #[cfg(test)]
