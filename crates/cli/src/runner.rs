@@ -270,37 +270,13 @@ pub fn run<W: StepObserver + Send>(
     stop: Arc<AtomicBool>,
 ) -> anyhow::Result<RunOutcome<W>> {
     let (state, inputs, neighbours, early) = start_state(&world, bus, durability.resume)?;
-    let mut opts = LoopOptions {
-        realtime: pace.realtime,
-        ticks: pace.ticks.saturating_sub(state.tick),
-        failsafe: bus.failsafe.clone(),
-        lockstep: pace.lockstep.clone(),
-        checkpoint: durability.checkpoint,
-        ..Default::default()
-    };
-    if let Some(o) = &pace.autopilots {
-        let n = world.copters.iter().filter(|c| c.kind == sim_core::CopterKind::Autopilot).count();
-        eprintln!("waiting for {n} autopilot(s) on {} (at most {:.0} s)", o.listen, o.connect_timeout.as_secs_f64());
-        let aps = bridge::autopilot::Autopilots::accept(&world, o)?;
-        eprintln!("{} autopilot(s) connected, stepping", aps.len());
-        opts.autopilots = Some(Arc::new(Mutex::new(aps)));
-    }
+    let mut opts = loop_options(&world, pace, bus, durability.checkpoint, state.tick)?;
     // Room for 8,192 inputs between two steps: 160,000 per second at 50 ms, five times the
     // flood test's 30,000 (scripts/flood.sh); beyond, inputs are dropped and counted.
     let (req_tx, req_rx) = std::sync::mpsc::sync_channel::<Request>(REQUEST_QUEUE);
     let prefix = bus.prefix.clone().unwrap_or_else(|| node::default_prefix(&world));
     let early = Mutex::new(Some(early));
-    // The shard's link to its neighbours, on `session`; it waits until they are all up.
-    let open_link = |session: zenoh::Session| -> anyhow::Result<Arc<Mutex<ShardLink>>> {
-        let o = bus.shard.as_ref().expect("only for shards");
-        let mut link =
-            ShardLink::on(session, &prefix, o.shard as u16, neighbours.clone(), o.timeout)?.on_lost(o.on_lost);
-        link.preload(bridge::lock(&early).take().unwrap_or_default(), state.tick);
-        link.wait_for_neighbours()?;
-        tracing::info!("shard {}/{}: {} neighbour(s) up, stepping", o.shard, o.shards, neighbours.len());
-        eprintln!("shard {}/{}: {} neighbour(s) up, stepping", o.shard, o.shards, neighbours.len());
-        Ok(Arc::new(Mutex::new(link)))
-    };
+    let open_link = |session: zenoh::Session| open_shard_link(session, bus, &prefix, &neighbours, &early, state.tick);
 
     if bus.no_bus && bus.ivy.is_none() {
         let session = match neighbours.is_empty() {
@@ -320,16 +296,7 @@ pub fn run<W: StepObserver + Send>(
     }
 
     let world_arc = Arc::new(world.clone());
-    let mut node = match bus.no_bus {
-        true => None,
-        false => {
-            let config = zenoh_config(bus)?;
-            Some(
-                rt.block_on(Node::open(config, prefix.clone(), world_arc.clone(), req_tx.clone()))
-                    .with_context(|| format!("cannot start the Zenoh node (prefix {prefix})"))?,
-            )
-        }
-    };
+    let mut node = open_node(rt, bus, &prefix, &world_arc, &req_tx)?;
     let mut ros = match (&bus.ros2, &node) {
         (Some(o), Some(n)) => Some(
             bridge::ros2::Ros2Node::open(n.session(), &world_arc, n.commands(), o.clone())
@@ -344,39 +311,10 @@ pub fn run<W: StepObserver + Send>(
         };
         opts.shard = Some(open_link(session)?);
     }
-    let ivy = match &bus.ivy {
-        None => None,
-        Some(addr) => {
-            let mut o = IvyOptions::new(addr.clone(), IVY_APP_NAME);
-            o.on_die = Some(stop.clone());
-            Some(Arc::new(rt.block_on(IvyAgent::start(o)).context("cannot join the Ivy bus")?))
-        }
-    };
-    let messages = bus.mixed.messages.clone();
-    let links = PprzLinks { zenoh: node.as_ref().map(|n| (n.session().clone(), prefix.clone())), ivy: ivy.clone() };
-    let gateway = rt
-        .block_on(Gateway::start(
-            links,
-            world_arc.clone(),
-            bus.mixed.pairing.clone(),
-            messages.clone(),
-            req_tx.clone(),
-            bus.mixed.twin_attitude,
-        ))
-        .context("cannot bind the Paparazzi telemetry")?;
+    let ivy = join_ivy(rt, bus, &stop)?;
+    let gateway = start_gateway(rt, bus, &node, &ivy, &prefix, &world_arc, &req_tx)?;
     opts.sync = bus.mixed.sync.clone();
-    let outbox = OutboxOptions {
-        prefix: prefix.clone(),
-        messages,
-        plan: bus.mixed.plan.clone(),
-        virtual_sonar_period_s: bus.mixed.virtual_sonar_period_s,
-        uplinks: bus.mixed.uplinks.clone(),
-    };
-    // Stderr, like the other start-up notes: stdout is the summary (and `--json`).
-    for line in outbox.uplink_lines(&world_arc) {
-        eprintln!("twin {line}");
-    }
-    opts.outbox = Some(outbox);
+    opts.outbox = Some(outbox_options(bus, &prefix, &world_arc));
     let (frame_tx, mut frame_rx) = tokio::sync::mpsc::channel(256);
     let opts_link = opts.shard.clone();
     let flight = Flight::new(world, state, inputs, &opts, recorder, watch);
@@ -384,34 +322,189 @@ pub fn run<W: StepObserver + Send>(
     let end = std::thread::scope(|s| -> anyhow::Result<sim::Finished<W>> {
         let stop_loop = stop.clone();
         let h = s.spawn(move || sim::run_loop(flight, req_rx, Some(frame_tx), &stop_loop, &opts));
-        rt.block_on(async {
-            // Publish until the loop ends (its frame sender drops).
-            while let Some(frame) = frame_rx.recv().await {
-                gateway.set_world(&frame.world);
-                gateway.send_ivy(&frame.pprz_out);
-                if let Some(node) = &mut node {
-                    // Each side publishes whatever the other's fate: a ROS controller under
-                    // lockstep waits for its `/clock`.
-                    let mut published = node.publish(&frame).await;
-                    if let Some(ros) = &mut ros {
-                        published = published.and(ros.publish(&frame));
-                    }
-                    if let Err(e) = published {
-                        let n = node.counters.publish_failed.fetch_add(1, Ordering::Relaxed) + 1;
-                        if n.is_power_of_two() {
-                            tracing::warn!("{n} frames not fully published so far: {e}");
-                        }
-                    }
-                }
-            }
-        });
+        rt.block_on(publish_frames(&mut frame_rx, &gateway, &mut node, &mut ros));
         h.join().map_err(|_| anyhow::anyhow!("the step loop panicked"))
     })?;
     drop(req_tx);
+    let report = bus_report(bus, node.as_ref(), prefix, &gateway, ivy.as_ref(), ros.as_ref());
+    if let Some(r) = &mut ros {
+        r.stop_graph();
+    }
+    drop(gateway);
+    if let Some(agent) = ivy {
+        rt.block_on(agent.stop());
+    }
+    if let Some(node) = node {
+        rt.block_on(node.close()).context("closing the Zenoh session")?;
+    }
+    // After the session: its tokens then go with it, not one by one.
+    drop(ros);
+    let link = opts_link.map(|l| bridge::lock(&l).stats().clone());
+    Ok(RunOutcome { end, bus: Some(report), link })
+}
+
+/// The step loop's options for the flight from `tick` on; with `--autopilots`, waits until the
+/// outside autopilots have connected.
+fn loop_options(
+    world: &World,
+    pace: &Pace,
+    bus: &BusOptions,
+    checkpoint: Option<bridge::checkpoint::CheckpointOptions>,
+    tick: u64,
+) -> anyhow::Result<LoopOptions> {
+    let mut opts = LoopOptions {
+        realtime: pace.realtime,
+        ticks: pace.ticks.saturating_sub(tick),
+        failsafe: bus.failsafe.clone(),
+        lockstep: pace.lockstep.clone(),
+        checkpoint,
+        ..Default::default()
+    };
+    if let Some(o) = &pace.autopilots {
+        let n = world.copters.iter().filter(|c| c.kind == sim_core::CopterKind::Autopilot).count();
+        eprintln!("waiting for {n} autopilot(s) on {} (at most {:.0} s)", o.listen, o.connect_timeout.as_secs_f64());
+        let aps = bridge::autopilot::Autopilots::accept(world, o)?;
+        eprintln!("{} autopilot(s) connected, stepping", aps.len());
+        opts.autopilots = Some(Arc::new(Mutex::new(aps)));
+    }
+    Ok(opts)
+}
+
+/// The shard's link to its neighbours, on `session`, preloaded with the batches a checkpoint
+/// kept (`early`, taken once); it waits until they are all up.
+fn open_shard_link(
+    session: zenoh::Session,
+    bus: &BusOptions,
+    prefix: &str,
+    neighbours: &[u16],
+    early: &Mutex<Option<Vec<bridge::shard::GhostBatch>>>,
+    tick: u64,
+) -> anyhow::Result<Arc<Mutex<ShardLink>>> {
+    let o = bus.shard.as_ref().expect("only for shards");
+    let mut link = ShardLink::on(session, prefix, o.shard as u16, neighbours.to_vec(), o.timeout)?.on_lost(o.on_lost);
+    link.preload(bridge::lock(early).take().unwrap_or_default(), tick);
+    link.wait_for_neighbours()?;
+    tracing::info!("shard {}/{}: {} neighbour(s) up, stepping", o.shard, o.shards, neighbours.len());
+    eprintln!("shard {}/{}: {} neighbour(s) up, stepping", o.shard, o.shards, neighbours.len());
+    Ok(Arc::new(Mutex::new(link)))
+}
+
+/// The Zenoh node under `prefix`, feeding `requests`; `None` with `--no-bus`.
+fn open_node(
+    rt: &tokio::runtime::Runtime,
+    bus: &BusOptions,
+    prefix: &str,
+    world: &Arc<World>,
+    requests: &std::sync::mpsc::SyncSender<Request>,
+) -> anyhow::Result<Option<Node>> {
+    match bus.no_bus {
+        true => Ok(None),
+        false => {
+            let config = zenoh_config(bus)?;
+            Ok(Some(
+                rt.block_on(Node::open(config, prefix.to_owned(), world.clone(), requests.clone()))
+                    .with_context(|| format!("cannot start the Zenoh node (prefix {prefix})"))?,
+            ))
+        }
+    }
+}
+
+/// Joins the Ivy bus of `--ivy` (its peers' die message sets `stop`); `None` without one.
+fn join_ivy(
+    rt: &tokio::runtime::Runtime,
+    bus: &BusOptions,
+    stop: &Arc<AtomicBool>,
+) -> anyhow::Result<Option<Arc<IvyAgent>>> {
+    match &bus.ivy {
+        None => Ok(None),
+        Some(addr) => {
+            let mut o = IvyOptions::new(addr.clone(), IVY_APP_NAME);
+            o.on_die = Some(stop.clone());
+            Ok(Some(Arc::new(rt.block_on(IvyAgent::start(o)).context("cannot join the Ivy bus")?)))
+        }
+    }
+}
+
+/// Binds the Paparazzi telemetry on the Zenoh node's session and the Ivy bus, whichever there are.
+fn start_gateway(
+    rt: &tokio::runtime::Runtime,
+    bus: &BusOptions,
+    node: &Option<Node>,
+    ivy: &Option<Arc<IvyAgent>>,
+    prefix: &str,
+    world: &Arc<World>,
+    requests: &std::sync::mpsc::SyncSender<Request>,
+) -> anyhow::Result<Gateway> {
+    let links = PprzLinks { zenoh: node.as_ref().map(|n| (n.session().clone(), prefix.to_owned())), ivy: ivy.clone() };
+    rt.block_on(Gateway::start(
+        links,
+        world.clone(),
+        bus.mixed.pairing.clone(),
+        bus.mixed.messages.clone(),
+        requests.clone(),
+        bus.mixed.twin_attitude,
+    ))
+    .context("cannot bind the Paparazzi telemetry")
+}
+
+/// What the step loop sends Paparazzi (virtual copters' telemetry, twins' virtual sonar);
+/// the twins' uplinks are noted on stderr.
+fn outbox_options(bus: &BusOptions, prefix: &str, world: &World) -> OutboxOptions {
+    let outbox = OutboxOptions {
+        prefix: prefix.to_owned(),
+        messages: bus.mixed.messages.clone(),
+        plan: bus.mixed.plan.clone(),
+        virtual_sonar_period_s: bus.mixed.virtual_sonar_period_s,
+        uplinks: bus.mixed.uplinks.clone(),
+    };
+    // Stderr, like the other start-up notes: stdout is the summary (and `--json`).
+    for line in outbox.uplink_lines(world) {
+        eprintln!("twin {line}");
+    }
+    outbox
+}
+
+/// Publishes the step loop's frames (Ivy, Zenoh, ROS 2) until the loop ends (its frame sender
+/// drops).
+async fn publish_frames(
+    frame_rx: &mut tokio::sync::mpsc::Receiver<sim::Frame>,
+    gateway: &Gateway,
+    node: &mut Option<Node>,
+    ros: &mut Option<bridge::ros2::Ros2Node>,
+) {
+    while let Some(frame) = frame_rx.recv().await {
+        gateway.set_world(&frame.world);
+        gateway.send_ivy(&frame.pprz_out);
+        if let Some(node) = node {
+            // Each side publishes whatever the other's fate: a ROS controller under
+            // lockstep waits for its `/clock`.
+            let mut published = node.publish(&frame).await;
+            if let Some(ros) = ros {
+                published = published.and(ros.publish(&frame));
+            }
+            if let Err(e) = published {
+                let n = node.counters.publish_failed.fetch_add(1, Ordering::Relaxed) + 1;
+                if n.is_power_of_two() {
+                    tracing::warn!("{n} frames not fully published so far: {e}");
+                }
+            }
+        }
+    }
+}
+
+/// The bus side's counters at the end of the run.
+fn bus_report(
+    bus: &BusOptions,
+    node: Option<&Node>,
+    prefix: String,
+    gateway: &Gateway,
+    ivy: Option<&Arc<IvyAgent>>,
+    ros: Option<&bridge::ros2::Ros2Node>,
+) -> BusReport {
     let l = |a: &std::sync::atomic::AtomicU64| a.load(Ordering::Relaxed);
-    let counters = node.as_ref().map(|n| n.counters.clone());
-    let report = BusReport {
-        prefix: node.as_ref().map(|_| prefix),
+    let counters = node.map(|n| n.counters.clone());
+    BusReport {
+        prefix: node.map(|_| prefix),
         commands_accepted: counters.as_ref().map_or(0, |c| l(&c.commands_accepted)),
         commands_rejected: counters.as_ref().map_or(0, |c| l(&c.commands_rejected)),
         published: counters.as_ref().map_or(0, |c| l(&c.published)),
@@ -432,21 +525,7 @@ pub fn run<W: StepObserver + Send>(
                 not_utf8: l(&c.dropped_not_utf8),
             }
         }),
-        ivy: ivy.as_ref().zip(bus.ivy.as_ref()).map(|(a, addr)| IvyReport::of(a, &addr.to_string(), &gateway)),
-        ros2: ros.as_ref().map(|r| r.stats()),
-    };
-    if let Some(r) = &mut ros {
-        r.stop_graph();
+        ivy: ivy.zip(bus.ivy.as_ref()).map(|(a, addr)| IvyReport::of(a, &addr.to_string(), gateway)),
+        ros2: ros.map(|r| r.stats()),
     }
-    drop(gateway);
-    if let Some(agent) = ivy {
-        rt.block_on(agent.stop());
-    }
-    if let Some(node) = node {
-        rt.block_on(node.close()).context("closing the Zenoh session")?;
-    }
-    // After the session: its tokens then go with it, not one by one.
-    drop(ros);
-    let link = opts_link.map(|l| bridge::lock(&l).stats().clone());
-    Ok(RunOutcome { end, bus: Some(report), link })
 }
