@@ -2,7 +2,7 @@
 # Build a FINken NPS aircraft that flies in a Twinswarm world (Paparazzi NPS + the Twinswarm FDM).
 #
 #   paparazzi/build_nps.sh [--name NAME] [--ac-id N] [--periodic HZ] [--flight-plan hover|wall_avoid]
-#                          [--firmware port|2015-12] [--pprz DIR]
+#                          [--firmware port|2015-12|2015-07] [--pprz DIR]
 #
 # Installs this folder's files into the Paparazzi tree built by shared/paparazzi/build.sh
 # (default: <repo>/target/paparazzi), idempotently (a file is copied only when it differs, so
@@ -42,6 +42,11 @@
 # free_flight.xml (both --flight-plan values; wall_avoid loads finken_wall_avoid in place of
 # finken_rc_passthrough), no AHRS/INS bypass; glue in finken_fw/ (docs/paparazzi.md, "The
 # FINken's own firmware"). --cruise and --sighting-hold belong to the port.
+# --firmware 2015-07: the paper's mixed-reality firmware (../shared/paparazzi/finken_firmware/
+# mixed_reality_2015-07: finken_model with the SONAR_UPLINK min() fusion, sonar_array_i2c on i2c2,
+# finken_ir_adc), airframe conf/airframes/finken_fw_2015_07.xml (quadrotor_lia_ovgu.xml), its
+# flight plan ovgu_sonar.xml for both --flight-plan values (the firmware always centres on its
+# sonars; it has no separate Wall-Avoid module).
 # --firmware-dir DIR: where the copies are (default <repo>/../shared/paparazzi/finken_firmware).
 set -euo pipefail
 
@@ -72,7 +77,7 @@ while [ $# -gt 0 ]; do
     --pprz) pprz="$2"; shift 2 ;;
     --firmware) firmware="$2"; shift 2 ;;
     --firmware-dir) fw_dir="$2"; shift 2 ;;
-    -h|--help) sed -n '2,44p' "$0"; exit 0 ;;
+    -h|--help) sed -n '2,49p' "$0"; exit 0 ;;
     *) echo "unknown argument: $1" >&2; exit 2 ;;
   esac
 done
@@ -86,11 +91,11 @@ case "$udp_out$udp_in" in (*[!0-9]*|"") echo "bad UDP port: $udp_out / $udp_in" 
 case "$flight_plan" in (hover|wall_avoid) ;; (*) echo "bad flight plan: $flight_plan (hover or wall_avoid)" >&2; exit 2 ;; esac
 case "$firmware" in
   (port) ;;
-  (2015-12)
+  (2015-12|2015-07)
     [ -z "$cruise$hold" ] || { echo "--cruise/--sighting-hold: options of the port's module, not of the firmware $firmware" >&2; exit 2; }
-    fw_src="$fw_dir/flight_2015-12"
+    if [ "$firmware" = 2015-12 ]; then fw_src="$fw_dir/flight_2015-12"; else fw_src="$fw_dir/mixed_reality_2015-07"; fi
     [ -f "$fw_src/sw/airborne/modules/finken_model/finken_model_system.c" ] || { echo "no firmware copy at $fw_src" >&2; exit 1; } ;;
-  (*) echo "bad firmware: $firmware (port or 2015-12)" >&2; exit 2 ;;
+  (*) echo "bad firmware: $firmware (port, 2015-12 or 2015-07)" >&2; exit 2 ;;
 esac
 
 if [ ! -f "$pprz/env.sh" ]; then
@@ -175,7 +180,7 @@ for f in finken_fw_nps.c finken_fw_nps.h finken_fw_api.h sonar_array_i2c_hw.c; d
   install_file "$here/finken_fw/sw/$f" "$home/sw/airborne/modules/finken_fw/$f"
 done
 for m in finken_fw_$fw_tag finken_fw_${fw_tag}_rc_passthrough finken_fw_${fw_tag}_wall_avoid; do
-  install_file "$here/conf/modules/$m.xml" "$home/conf/modules/$m.xml"
+  if [ -f "$here/conf/modules/$m.xml" ]; then install_file "$here/conf/modules/$m.xml" "$home/conf/modules/$m.xml"; fi
 done
 wa_sed=""
 [ "$flight_plan" = wall_avoid ] && wa_sed="s|<module name=\"finken_fw_${fw_tag}_rc_passthrough\"/>|<module name=\"finken_fw_${fw_tag}_wall_avoid\"/>|"
@@ -184,8 +189,15 @@ install_text "$home/conf/airframes/twinswarm/$name.xml" < <(
        $wa_sed
        $telemetry_sed" \
     "$here/conf/airframes/finken_fw_$fw_tag.xml")
-fp="finken_fw/$fw_tag/conf/flight_plans/ovgu/free_flight.xml"
-settings_modules="modules/ahrs_float_cmpl_quat.xml modules/guidance_pid_rotorcraft.xml modules/guidance_rotorcraft.xml modules/nav_rotorcraft.xml modules/stabilization_int_quat.xml modules/stabilization_rate.xml"
+if [ "$firmware" = 2015-12 ]; then
+  fp="finken_fw/$fw_tag/conf/flight_plans/ovgu/free_flight.xml"
+else
+  # the paper's firmware has no separate Wall-Avoid: finken_model always centres on the sonars
+  fp="finken_fw/$fw_tag/conf/flight_plans/ovgu_sonar.xml"
+fi
+ahrs_settings=modules/ahrs_float_cmpl_quat.xml
+[ "$firmware" = 2015-07 ] && ahrs_settings=modules/ahrs_int_cmpl_quat.xml
+settings_modules="$ahrs_settings modules/guidance_pid_rotorcraft.xml modules/guidance_rotorcraft.xml modules/nav_rotorcraft.xml modules/stabilization_int_quat.xml modules/stabilization_rate.xml"
 fi
 
 # the private conf: one entry per aircraft built with this script, one per ac_id

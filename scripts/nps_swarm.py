@@ -73,7 +73,7 @@ def arena_for(n):
     return 2.0 * side + 1.0, 1.5 * math.ceil(n / side) + 1.5
 
 
-def scene(n, first_ac, duration, seed, boxes, arena=None, gap=None):
+def scene(n, first_ac, duration, seed, boxes, arena=None, gap=None, airframe=None):
     sx, sy = arena or arena_for(n)
     side = math.ceil(math.sqrt(n)) if n > 2 else n
     lines = [
@@ -107,6 +107,8 @@ def scene(n, first_ac, duration, seed, boxes, arena=None, gap=None):
             f"ac_id = {first_ac + k}",
             f"start = {{ pos_m = [{x:.3f}, {y:.3f}], yaw_deg = {yaw} }}",
         ]
+        if airframe:
+            lines.append(f"airframe = {{ {airframe} }}")
     return "\n".join(lines) + "\n", (sx, sy)
 
 
@@ -161,6 +163,53 @@ def flight_figures(path, arena, last_s=10.0):
     }
 
 
+def mean_attitude(path, settle_s=3.0):
+    """Each copter's mean roll and pitch (deg, NED: Paparazzi's) from lift-off + settle_s to the end
+    of the log, the world's truth; None for a copter that never lifted off."""
+    by = {}
+    for r in states(path):
+        by.setdefault(r["copter"], []).append(r)
+    out = {}
+    for c, rs in by.items():
+        up = next((float(r["t_s"]) for r in rs if float(r["pos_m"][2]) > 0.1), None)
+        w = [r for r in rs if up is not None and float(r["t_s"]) >= up + settle_s and not r.get("crashed")]
+        # the world's rpy: x north, y west, z up; NED roll = roll, NED pitch = -pitch
+        out[c] = (statistics.fmean(math.degrees(float(r["rpy_rad"][0])) for r in w),
+                  statistics.fmean(-math.degrees(float(r["rpy_rad"][1])) for r in w)) if w else None
+    return out
+
+
+def trim_flights(a, n, out):
+    """The lab's trim, by flying (docs/paparazzi.md, "The FINken's own firmware"): hover each copter
+    of the scene (same seed, so the same rotors) in a 40 m x 40 m arena, 30 s, and move its IMU
+    calibration (body-to-IMU roll and pitch) by the mean attitude it held; n rounds. Returns the
+    trims, one "PHI,THETA" per copter."""
+    trims = [(0.0, 0.0)] * a.count
+    if a.imu_trim:
+        trims = parse_trims(a.imu_trim, a.count)
+    trim_ac = a.first_ac + 100 if a.first_ac + 100 + a.count <= 255 else a.first_ac - 100
+    for k in range(n):
+        spec = ";".join(f"{p:.3f},{t:.3f}" for p, t in trims)
+        r = main(["--firmware", a.firmware, "--count", str(a.count), "--plan", "hover", "--duration", "30",
+                  "--first-ac", str(trim_ac), "--arena", "40x40", "--seed", str(a.seed), "--twinswarm", a.twinswarm,
+                  "--out", str(out / f"trim{k + 1}"), f"--imu-trim={spec}", "--quiet"]
+                 + ([f"--airframe={a.airframe}"] if a.airframe else []))
+        means = mean_attitude(Path(r["out"]) / "run.mcap")
+        new = []
+        for i, (p, t) in enumerate(trims):
+            m = means.get(f"nps{trim_ac + i}")
+            new.append((p, t) if m is None else (p - m[0], t - m[1]))
+        trims = new
+    return ";".join(f"{p:.3f},{t:.3f}" for p, t in trims)
+
+
+def parse_trims(spec, count):
+    parts = [tuple(float(v) for v in x.split(",")) for x in spec.split(";")]
+    if any(len(p) != 2 for p in parts) or len(parts) not in (1, count):
+        sys.exit(f"--imu-trim {spec}: PHI,THETA (deg) for all copters, or one per copter separated by ';'")
+    return parts * count if len(parts) == 1 else parts
+
+
 def last_fdm_line(path):
     lines = [l for l in path.read_text(errors="replace").splitlines() if l.startswith("[twinswarm fdm]")]
     return lines[-1] if lines else ""
@@ -170,10 +219,12 @@ def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--count", type=int, default=1)
     ap.add_argument("--plan", choices=["hover", "wall_avoid"], default="wall_avoid")
-    ap.add_argument("--firmware", choices=["port", "2015-12"], default="port",
+    ap.add_argument("--firmware", choices=["port", "2015-12", "2015-07"], default="port",
                     help="port: the project's airframe and module twinswarm_finken (default); 2015-12: the FINken's "
                     "own firmware of 16 Dec 2015 and its flight plan (hover: finken_rc_passthrough, wall_avoid: "
-                    "finken_wall_avoid; set point 0.6 m), no AHRS/INS bypass (build_nps.sh --firmware)")
+                    "finken_wall_avoid; set point 0.6 m); 2015-07: the paper's mixed-reality firmware and its flight "
+                    "plan ovgu_sonar.xml (either plan: it centres on its sonars; set point 0.5 m); no AHRS/INS bypass "
+                    "(build_nps.sh --firmware)")
     ap.add_argument("--duration", type=float, default=60.0)
     ap.add_argument("--first-ac", type=int, default=40, help="ac_id of the first aircraft (default 40)")
     ap.add_argument("--seed", type=int, default=2016)
@@ -185,6 +236,15 @@ def main(argv=None):
     ap.add_argument("--arena", help="floor size XxY, m (default: 4x3 for up to two copters, larger for more)")
     ap.add_argument("--box", action="append", default=[], metavar="TOML",
                     help='a [[box]] table body, e.g. \'pos_m = [1.0, 0.0]; size_m = [0.4, 0.4, 2.0]; virtual_only = true\'')
+    ap.add_argument("--airframe", metavar="TOML", help="overrides of the copters' airframe (an inline table's body, "
+                    "docs/scenes.md), e.g. 'rotor_tolerance_sigma = 0'")
+    ap.add_argument("--imu-trim", metavar="PHI,THETA[;...]", help="firmware runs: the copters' IMU calibration, "
+                    "body-to-IMU roll and pitch, deg (one for all, or one per copter separated by ';'), as the lab's "
+                    "calib/$AC_ID_imu_calib.xml gave it (FINKEN_FW_IMU_TRIM); default none")
+    ap.add_argument("--trim-flights", type=int, default=0, metavar="N", help="firmware runs: trim each copter first, as "
+                    "the lab did by flying: N hover flights (30 s, 40 m x 40 m, same seed), each moving the IMU "
+                    "calibration by the mean roll and pitch the copter held (default 0: untrimmed)")
+    ap.add_argument("--quiet", action="store_true", help=argparse.SUPPRESS)
     ap.add_argument("--udp-out", type=int, help="one aircraft: its telemetry's UDP port (link -udp_port)")
     ap.add_argument("--udp-in", type=int, help="one aircraft: its datalink UDP port (link -udp_uplink_port)")
     ap.add_argument("--twinswarm", default=str(REPO / "target" / "debug" / "twinswarm"))
@@ -203,6 +263,13 @@ def main(argv=None):
     out = Path(a.out or tempfile.mkdtemp(prefix="nps_swarm."))
     out.mkdir(parents=True, exist_ok=True)
     acs = [a.first_ac + k for k in range(a.count)]
+    if (a.imu_trim or a.trim_flights) and a.firmware == "port":
+        sys.exit("--imu-trim/--trim-flights: the firmware's aircraft only (the port's AHRS is NPS's bypass)")
+    trims = None
+    if a.trim_flights > 0:
+        a.imu_trim = trim_flights(a, a.trim_flights, out)
+    if a.imu_trim:
+        trims = parse_trims(a.imu_trim, a.count)
     t0 = time.monotonic()
     with open(out / "build.log", "w") as log:
         udp = (a.udp_out, a.udp_in) if a.udp_out else None
@@ -219,7 +286,7 @@ def main(argv=None):
     build_s = time.monotonic() - t0
     boxes = [[s.strip() for s in b.split(";")] for b in a.box]
     size = tuple(float(v) for v in a.arena.split("x")) if a.arena else None
-    text, arena = scene(a.count, a.first_ac, a.duration, a.seed, boxes, size, a.gap)
+    text, arena = scene(a.count, a.first_ac, a.duration, a.seed, boxes, size, a.gap, a.airframe)
     (out / "scene.toml").write_text(text)
     port = free_port()
     ivy_port = free_port()
@@ -234,8 +301,10 @@ def main(argv=None):
             if "waiting for" in (out / "run.err").read_text() or world.poll() is not None:
                 break
         npss = []
-        for ac, sim in zip(acs_started, sims):
+        for k, (ac, sim) in enumerate(zip(acs_started, sims)):
             e = dict(env, TWINSWARM_FDM=f"127.0.0.1:{port}")
+            if trims and k < len(trims):
+                e["FINKEN_FW_IMU_TRIM"] = f"{trims[k][0]:.3f},{trims[k][1]:.3f}"
             f = open(out / f"nps{ac}.log", "w")
             # env.sh: Paparazzi's libraries (libivy) and PAPARAZZI_HOME.
             cmd = f'. "{PPRZ}/env.sh" && exec "{sim}" --norc --time_factor 1e9 --ivy_bus 127.255.255.255:{ivy_port}'
@@ -292,11 +361,14 @@ def main(argv=None):
         "nps_said": {ac: last_fdm_line(out / f"nps{ac}.log") for ac in acs_started},
         "autopilots_refused": summary.get("autopilots_refused", []),
         "digests": {c["name"]: c["digest"] for c in summary["copters"]},
+        "imu_trim": a.imu_trim,
         "out": str(out),
     }
     if not a.no_log:
         report.update(flight_figures(out / "run.mcap", arena))
-    if a.json:
+    if a.quiet:
+        pass
+    elif a.json:
         print(json.dumps(report, indent=2))
     else:
         for k, v in report.items():

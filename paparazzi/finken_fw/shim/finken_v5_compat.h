@@ -10,7 +10,8 @@
  *    numeric id; the firmware's messages (FINKEN_*, HC_DEBUG, SONAR_ARRAY) are not in v6.4's
  *    messages.xml, so the registration is accepted (finken_fw_nps.c) and nothing is sent;
  *  - DOWNLINK_SEND_<firmware message>(...): compiled out (same reason). The callbacks
- *    themselves compile as they are.
+ *    themselves compile as they are;
+ *  - 2015-07: kill_throttle and autopilot_flight_time (v5 globals its flight plan sets).
  */
 #ifndef FINKEN_V5_COMPAT_H
 #define FINKEN_V5_COMPAT_H
@@ -43,6 +44,9 @@ int8_t finken_v5_register_periodic_telemetry(void *pt, const char *name, telemet
 #undef DOWNLINK_SEND_FINKEN_IR_ADC
 #undef DOWNLINK_SEND_SONAR_ARRAY
 #undef DOWNLINK_SEND_FINKEN_WALL_AVOID
+#undef DOWNLINK_SEND_FINKEN_SYSTEM_MODEL
+#undef DOWNLINK_SEND_FINKEN_ENVIRONMENT_MODEL
+#undef DOWNLINK_SEND_SONAR_DEBUG
 #define DOWNLINK_SEND_FINKEN_SENSOR_MODEL(...) {}
 #define DOWNLINK_SEND_HC_DEBUG(...) {}
 #define DOWNLINK_SEND_FINKEN_SYSTEM_SET_POINT(...) {}
@@ -51,5 +55,15 @@ int8_t finken_v5_register_periodic_telemetry(void *pt, const char *name, telemet
 #define DOWNLINK_SEND_FINKEN_IR_ADC(...) {}
 #define DOWNLINK_SEND_SONAR_ARRAY(...) {}
 #define DOWNLINK_SEND_FINKEN_WALL_AVOID(...) {}
+#define DOWNLINK_SEND_FINKEN_SYSTEM_MODEL(...) {}
+#define DOWNLINK_SEND_FINKEN_ENVIRONMENT_MODEL(...) {}
+#define DOWNLINK_SEND_SONAR_DEBUG(...) {}
+
+/* v5 rotorcraft globals that the 2015-07 flight plan (ovgu_sonar.xml) sets at take-off:
+ * kill_throttle (v6.4: autopilot.kill_throttle, which the glue's arming owns) and
+ * autopilot_flight_time (v6.4: autopilot.flight_time). Stand-ins in finken_fw_nps.c: written by
+ * the plan, read by nobody. */
+extern bool kill_throttle;
+extern uint16_t autopilot_flight_time;
 
 #endif

@@ -8,6 +8,8 @@
 #ifndef FINKEN_FW_API_H
 #define FINKEN_FW_API_H
 
+#include <stdint.h>
+
 extern void sonar_array_i2c_init(void);
 extern void sonar_array_i2c_periodic(void);
 extern void finken_sensor_model_init(void);
@@ -21,5 +23,9 @@ extern void finken_ir_adc_periodic(void);
 extern void finken_wall_avoid_init(void);
 extern void finken_wall_avoid_periodic(void);
 extern void finken_rc_passthrough_periodic(void);
+/* 2015-07 */
+extern void finken_environment_model_init(void);
+extern void finken_environment_model_periodic(void);
+extern void finken_fw_nps_sonar_uplink(uint8_t *buf);
 
 #endif

@@ -15,6 +15,15 @@
 #include "modules/energy/electrical.h"
 #include "nps_electrical.h"
 #include "nps_fdm_twinswarm.h"
+#include "nps_fdm.h"
+#include "nps_sensors.h"
+#if FINKEN_FW_VERSION == 201507
+#include "modules/ahrs/ahrs_int_cmpl_quat.h"   /* quadrotor_lia_ovgu.xml: int_cmpl_quat */
+#else
+#include "modules/ahrs/ahrs_float_cmpl.h"      /* fink3.xml: float_cmpl_quat */
+#endif
+#include "modules/actuators/motor_mixing.h"
+#include "firmwares/rotorcraft/stabilization.h"
 /* the v5 names the firmware reads (shim headers); then back to v6.4's imu */
 #include "subsystems/imu.h"
 #include "modules/sensor_filter/sensor_filter.h"
@@ -26,9 +35,18 @@
 #include "modules/finken_model/finken_model_system.h"
 #include "modules/finken_model/finken_model_actuators.h"
 #include "modules/finken_ir_adc/finken_ir_adc.h"
+#if FINKEN_FW_VERSION == 201507
+#include "modules/finken_model/finken_model_environment.h"
+#include "dl_protocol.h"
+#include "modules/nav/common_flight_plan.h"
+#endif
 #include <stdio.h>
+#include <string.h>
 #include <stdlib.h>
 
+#ifndef FINKEN_FW_VERSION
+#error "FINKEN_FW_VERSION: 201512 or 201507, set by the module"
+#endif
 #ifndef SONAR_I2C_DEV
 #error "SONAR_I2C_DEV: the firmware's sonar bus (fink3.xml: i2c1), set by the module"
 #endif
@@ -43,6 +61,8 @@
 #define FINKEN_FW_SRF_RANGE_CM 81
 
 struct finken_v5_imu_s finken_v5_imu;
+bool kill_throttle = false;
+uint16_t autopilot_flight_time = 0;
 struct finken_v5_sensor_filter_s sensor_filtered;
 uint16_t finken_fw_nps_ir_count;
 float finken_fw_nps_ir_m = NAN;
@@ -136,6 +156,18 @@ int8_t finken_v5_register_periodic_telemetry(void *pt __attribute__((unused)),
   return -1;   /* the firmware's messages are not in v6.4's messages.xml */
 }
 
+/* ---- the uplink (2015-07): finken_model.xml's datalink function reads v5's dl_buffer ---- */
+
+void finken_fw_nps_sonar_uplink(uint8_t *buf __attribute__((unused)))
+{
+#if FINKEN_FW_VERSION == 201507
+  if (buf != dl_buffer) {
+    memcpy(dl_buffer, buf, MSG_SIZE);
+  }
+  finken_sensor_model_receive();
+#endif
+}
+
 /* ---- module ---- */
 
 static void hook_bus(void)
@@ -160,10 +192,28 @@ void finken_fw_nps_init(void)
 static void debug_print(void)
 {
   static int on = -1;
-  static uint32_t next_ms = 0;
-  if (on < 0) { on = getenv("FINKEN_FW_DEBUG") != NULL; }
+  static uint32_t next_ms = 0, period_ms = 1000;
+  if (on < 0) {
+    const char *v = getenv("FINKEN_FW_DEBUG");
+    on = v != NULL;
+    if (on && atoi(v) >= 10) { period_ms = (uint32_t)atoi(v); }
+  }
   if (!on || get_sys_time_msec() < next_ms) { return; }
-  next_ms = get_sys_time_msec() + 1000;
+  next_ms = get_sys_time_msec() + period_ms;
+#if FINKEN_FW_VERSION == 201507
+  fprintf(stderr, "[finken_fw] t=%.1f sonar_cm=%u,%u,%u,%u remote_cm=%u,%u,%u,%u fused_cm=%d,%d,%d,%d "
+          "world_m=%.2f,%.2f,%.2f,%.2f ir=%u->%.3f eq %.3f (world %.3f) sp_z=%.2f thrust_sp=%.3f thrust=%.3f "
+          "alpha=%.2f beta=%.2f block=%u stage=%u/%u motors=%d\n",
+          get_sys_time_float(), sonar_values.front, sonar_values.right, sonar_values.back, sonar_values.left,
+          finken_sensor_model.remote_d_front, finken_sensor_model.remote_d_right,
+          finken_sensor_model.remote_d_back, finken_sensor_model.remote_d_left,
+          finken_sensor_model.distance_d_front, finken_sensor_model.distance_d_right,
+          finken_sensor_model.distance_d_back, finken_sensor_model.distance_d_left,
+          twinswarm_sonar_m[0], twinswarm_sonar_m[1], twinswarm_sonar_m[2], twinswarm_sonar_m[3],
+          ir_measurement, ir_distance, ir_distance_equalized, twinswarm_ir_m, finken_system_set_point.distance_z,
+          finken_actuators_set_point.thrust, finken_actuators_model.thrust, finken_actuators_set_point.alpha,
+          finken_actuators_set_point.beta, (unsigned)nav_block, (unsigned)nav_stage, (unsigned)stage_time, autopilot_get_motors_on());
+#else
   fprintf(stderr, "[finken_fw] t=%.1f sonar_cm=%u,%u,%u,%u filt_cm=%d,%d,%d,%d world_m=%.2f,%.2f,%.2f,%.2f "
           "ir=%u->%.3f (world %.3f) z=%.3f sp_z=%.2f ctl=%d thrust=%.3f pitch=%.2f roll=%.2f motors=%d\n",
           get_sys_time_float(), sonar_values.front, sonar_values.right, sonar_values.back, sonar_values.left,
@@ -173,10 +223,50 @@ static void debug_print(void)
           ir_measurement, ir_distance, twinswarm_ir_m, POS_FLOAT_OF_BFP(finken_sensor_model.pos.z),
           finken_system_set_point.z, finken_system_model_control_height, finken_actuators_set_point.thrust,
           finken_actuators_set_point.pitch, finken_actuators_set_point.roll, autopilot_get_motors_on());
+#endif
+  struct FloatEulers *e = stateGetNedToBodyEulers_f();
+#if FINKEN_FW_VERSION == 201507
+  struct FloatRates est_bias;
+  RATES_FLOAT_OF_BFP(est_bias, ahrs_icq.gyro_bias);
+#else
+  struct FloatRates est_bias = ahrs_fc.gyro_bias;
+#endif
+  fprintf(stderr, "[finken_fw_att] t=%.3f est_deg=%.3f,%.3f,%.3f true_deg=%.3f,%.3f,%.3f "
+          "est_bias_dps=%.4f,%.4f,%.4f nps_bias_dps=%.4f,%.4f,%.4f acc=%.3f,%.3f,%.3f vel=%.3f,%.3f pos=%.2f,%.2f agl=%.3f mix=%d,%d,%d,%d cmd=%d,%d,%d,%d\n",
+          get_sys_time_float(), DegOfRad(e->phi), DegOfRad(e->theta), DegOfRad(e->psi),
+          DegOfRad(fdm.ltp_to_body_eulers.phi), DegOfRad(fdm.ltp_to_body_eulers.theta), DegOfRad(fdm.ltp_to_body_eulers.psi),
+          DegOfRad(est_bias.p), DegOfRad(est_bias.q), DegOfRad(est_bias.r),
+          DegOfRad(sensors.gyro.bias_random_walk_value.x), DegOfRad(sensors.gyro.bias_random_walk_value.y),
+          DegOfRad(sensors.gyro.bias_random_walk_value.z),
+          fdm.body_accel.x, fdm.body_accel.y, fdm.body_accel.z, fdm.ltp_ecef_vel.x, fdm.ltp_ecef_vel.y,
+          fdm.ltpprz_pos.x, fdm.ltpprz_pos.y, fdm.agl, motor_mixing.commands[0], motor_mixing.commands[1],
+          motor_mixing.commands[2], motor_mixing.commands[3], stabilization_cmd[COMMAND_ROLL],
+          stabilization_cmd[COMMAND_PITCH], stabilization_cmd[COMMAND_YAW], stabilization_cmd[COMMAND_THRUST]);
+}
+
+/* The copter's IMU calibration (fink3.xml includes calib/$AC_ID_imu_calib.xml, which is not among
+ * the copies): FINKEN_FW_IMU_TRIM="PHI,THETA" (deg) sets the autopilot's body-to-IMU angles, as
+ * the lab's per-copter calibration file did (aircraft 5, Dec 2015: THETA -2.5). Set at run time,
+ * before the AHRS aligns: NPS's simulated IMU keeps its own mounting (the airframe's, 0: the
+ * world's copter has none), so this is a calibration of the autopilot, not of the physics. */
+static void apply_imu_trim(void)
+{
+  const char *v = getenv("FINKEN_FW_IMU_TRIM");
+  float phi = 0.f, theta = 0.f;
+  if (v == NULL || sscanf(v, "%f,%f", &phi, &theta) != 2) { return; }
+  imu_SetBodyToImuPhi(RadOfDeg(phi));
+  imu_SetBodyToImuTheta(RadOfDeg(theta));
+  fprintf(stderr, "[finken_fw] IMU calibration: body to IMU phi %.3f theta %.3f deg (FINKEN_FW_IMU_TRIM)\n",
+          phi, theta);
 }
 
 void finken_fw_nps_periodic(void)
 {
+  static bool trimmed = false;
+  if (!trimmed) {
+    apply_imu_trim();
+    trimmed = true;
+  }
   debug_print();
   hook_bus();   /* cheap; also covers an i2c init that ran after this module's */
   fill_ir();
@@ -185,8 +275,21 @@ void finken_fw_nps_periodic(void)
   finken_v5_imu.mag = imu.mags[0].scaled;
   sensor_filtered.acceleration = imu.accels[0].scaled;
   sensor_filtered.rates = imu.gyros[0].scaled;
+#if FINKEN_FW_VERSION == 201507
+  /* The paper's plan (ovgu_sonar.xml) starts with its Takeoff block (the GCS strip button): the
+   * operator armed once the AHRS had aligned, then pressed Takeoff. NPS starts the plan at once,
+   * so the glue arms when the AHRS is aligned and then restarts the plan's first block. */
+  if (!armed && ahrs_icq.is_aligned && autopilot_get_mode() == AP_MODE_NAV) {
+    autopilot_set_motors_on(true);   /* the pilot's kill switch */
+    armed = autopilot_get_motors_on();
+    if (armed) {
+      nav_goto_block(0);             /* the operator's Takeoff */
+    }
+  }
+#else
   if (!armed && stateIsAttitudeValid() && autopilot_get_mode() == AP_MODE_NAV) {
     autopilot_set_motors_on(true);   /* the pilot's kill switch */
     armed = autopilot_get_motors_on();
   }
+#endif
 }
