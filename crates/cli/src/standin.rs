@@ -219,16 +219,7 @@ pub fn run(args: CopterArgs) -> anyhow::Result<()> {
     let (world, plan) = reality(&args)?;
     let stop = crate::logcmd::install_stop_flag()?;
     let mut track = match &args.track {
-        Some(p) => {
-            let f = std::fs::File::create(p).with_context(|| format!("cannot create {}", p.display()))?;
-            let mut w = std::io::BufWriter::new(f);
-            writeln!(
-                w,
-                "t_s,x_m,y_m,z_m,roll_rad,pitch_rad,yaw_rad,sonar_front_m,sonar_right_m,sonar_back_m,sonar_left_m,\
-                 fused_front_m,fused_right_m,fused_back_m,fused_left_m,virtual_fresh"
-            )?;
-            Some(w)
-        }
+        Some(p) => Some(create_track(p)?),
         None => None,
     };
     let virt: Arc<Mutex<Option<VirtualReading>>> = Arc::new(Mutex::new(None));
@@ -240,105 +231,16 @@ pub fn run(args: CopterArgs) -> anyhow::Result<()> {
     let bus = if args.no_bus { None } else { Some(open_link(&args, &world, &virt, &received)?) };
 
     // Telemetry senders, one task per message of the plan.
-    let sent = Arc::new(AtomicU64::new(0));
-    let send_failed = Arc::new(AtomicU64::new(0));
-    let lost = Arc::new(AtomicU64::new(0));
-    let done = Arc::new(AtomicBool::new(false));
+    let tally = SenderTally::default();
     let mut senders = Vec::new();
     if let Some((rt, link)) = &bus {
-        let messages = crate::load_messages(args.messages.as_deref())?;
-        for (k, (name, period)) in plan.periods.iter().enumerate() {
-            if !TELEMETRY_MESSAGES.contains(&name.as_str()) {
-                tracing::warn!("the stand-in cannot send {name} (not modelled)");
-                continue;
-            }
-            let (link, messages, shared) = (link.clone(), messages.clone(), shared.clone());
-            let (sent, lost, done, send_failed) = (sent.clone(), lost.clone(), done.clone(), send_failed.clone());
-            let (name, period) = (name.clone(), Duration::from_secs_f64(*period));
-            let (ac_id, loss) = (args.ac_id, args.loss as f32);
-            let mut rng = Rng32::new(world.params.seed, 0x7e1e_0000 + k as u64);
-            let timing = match args.jitter_ms {
-                Some(_) => LinkTiming::from_args(args.jitter_ms, args.link_copters),
-                None => LinkTiming::measured_with_load(args.link_copters, args.link_load),
-            };
-            let mut clock =
-                LinkClock::new(period.as_secs_f64(), timing, Rng32::new(world.params.seed, 0x7e1f_0000 + k as u64));
-            senders.push(rt.spawn(async move {
-                let start = tokio::time::Instant::now();
-                while !done.load(Ordering::Relaxed) {
-                    let due = start + Duration::from_secs_f64(clock.next_s());
-                    tokio::time::sleep_until(due).await;
-                    if rng.uniform() < loss {
-                        lost.fetch_add(1, Ordering::Relaxed);
-                        continue;
-                    }
-                    let text = {
-                        let s = bridge::lock(&shared);
-                        let src = TelemetrySource { state: &s.state, sensors: &s.sensors, setpoint: s.setpoint };
-                        telemetry_text(&messages, ac_id, &name, &src)
-                    };
-                    match text {
-                        Some(Ok(text)) => {
-                            if link.send(text).await {
-                                sent.fetch_add(1, Ordering::Relaxed);
-                            } else {
-                                send_failed.fetch_add(1, Ordering::Relaxed);
-                            }
-                        }
-                        Some(Err(e)) => {
-                            tracing::warn!("cannot encode {name}: {e}");
-                            break;
-                        }
-                        None => break,
-                    }
-                }
-            }));
-        }
+        senders = spawn_senders(&args, &world, &plan, rt, link, &shared, &tally)?;
     }
 
     // The flight.
     let realtime = bus.is_some();
-    let dt = Duration::from_secs_f64(world.params.control_dt_s);
-    let ticks = world.default_ticks();
-    let started = Instant::now();
-    let (mut overruns, mut with_virtual) = (0u64, 0u64);
-    for k in 0..ticks {
-        if stop.load(Ordering::Relaxed) {
-            break;
-        }
-        let fresh =
-            (*bridge::lock(&virt)).filter(|(_, at)| at.elapsed().as_secs_f64() <= VIRTUAL_STALE_S).map(|(r, _)| r);
-        inputs.commands[0].virtual_sonar_m = fresh;
-        with_virtual += u64::from(fresh.is_some());
-        sim_core::step(&world, &mut state, &inputs);
-        *bridge::lock(&shared) = snapshot(&world, &state, &inputs);
-        if let Some(w) = &mut track {
-            let p = state.pose(0);
-            let r = &state.copters[0].sensors;
-            let row: Vec<String> = [state.time_s(&world) as f32]
-                .into_iter()
-                .chain(p.pos_m.to_array())
-                .chain(p.rpy_rad)
-                .chain(r.sonar_m)
-                .chain(r.sonar_fused_m)
-                .map(|v| format!("{v:.4}"))
-                .collect();
-            writeln!(w, "{},{}", row.join(","), u8::from(fresh.is_some()))?;
-        }
-        if state.copters[0].crash.is_some() {
-            break;
-        }
-        if realtime {
-            let deadline = started + dt * (k as u32 + 1);
-            let now = Instant::now();
-            if now > deadline {
-                overruns += 1;
-            } else {
-                std::thread::sleep(deadline - now);
-            }
-        }
-    }
-    done.store(true, Ordering::Relaxed);
+    let (overruns, with_virtual) = fly(&world, &mut state, &mut inputs, &virt, &shared, &mut track, &stop, realtime)?;
+    tally.done.store(true, Ordering::Relaxed);
     if let Some(w) = &mut track {
         w.flush()?;
     }
@@ -355,16 +257,178 @@ pub fn run(args: CopterArgs) -> anyhow::Result<()> {
         steps: state.tick,
         crashed: state.copters[0].crash.map(|c| format!("{c:?}")),
         final_pos_m: state.pose(0).pos_m.to_array(),
-        telemetry_sent: sent.load(Ordering::Relaxed),
-        telemetry_lost: lost.load(Ordering::Relaxed),
-        telemetry_send_failed: send_failed.load(Ordering::Relaxed),
+        telemetry_sent: tally.sent.load(Ordering::Relaxed),
+        telemetry_lost: tally.lost.load(Ordering::Relaxed),
+        telemetry_send_failed: tally.send_failed.load(Ordering::Relaxed),
         virtual_sonar_rejected: REJECTED.load(Ordering::Relaxed),
         virtual_sonar_received: received.load(Ordering::Relaxed),
         steps_with_virtual_sonar: with_virtual,
         overruns,
     };
-    if args.json {
-        outln!("{}", serde_json::to_string_pretty(&summary)?);
+    print_summary(&summary, args.json)?;
+    if summary.crashed.is_some() {
+        anyhow::bail!("the stand-in crashed: {}", summary.crashed.unwrap_or_default());
+    }
+    Ok(())
+}
+
+/// Creates the `--track` CSV file and writes its header.
+fn create_track(path: &std::path::Path) -> anyhow::Result<std::io::BufWriter<std::fs::File>> {
+    let f = std::fs::File::create(path).with_context(|| format!("cannot create {}", path.display()))?;
+    let mut w = std::io::BufWriter::new(f);
+    writeln!(
+        w,
+        "t_s,x_m,y_m,z_m,roll_rad,pitch_rad,yaw_rad,sonar_front_m,sonar_right_m,sonar_back_m,sonar_left_m,\
+         fused_front_m,fused_right_m,fused_back_m,fused_left_m,virtual_fresh"
+    )?;
+    Ok(w)
+}
+
+/// What the telemetry senders count, and the flag that tells them the flight is over.
+#[derive(Default)]
+struct SenderTally {
+    sent: Arc<AtomicU64>,
+    send_failed: Arc<AtomicU64>,
+    lost: Arc<AtomicU64>,
+    done: Arc<AtomicBool>,
+}
+
+/// Spawns one telemetry sender on `rt` per message of `plan` the stand-in models: each sends
+/// the latest snapshot at its period, timed by the link and dropped with `--loss`.
+fn spawn_senders(
+    args: &CopterArgs,
+    world: &World,
+    plan: &TelemetryPlan,
+    rt: &tokio::runtime::Runtime,
+    link: &Link,
+    shared: &Arc<Mutex<Snapshot>>,
+    tally: &SenderTally,
+) -> anyhow::Result<Vec<tokio::task::JoinHandle<()>>> {
+    let mut senders = Vec::new();
+    let messages = crate::load_messages(args.messages.as_deref())?;
+    for (k, (name, period)) in plan.periods.iter().enumerate() {
+        if !TELEMETRY_MESSAGES.contains(&name.as_str()) {
+            tracing::warn!("the stand-in cannot send {name} (not modelled)");
+            continue;
+        }
+        let (link, messages, shared) = (link.clone(), messages.clone(), shared.clone());
+        let (sent, lost, done, send_failed) =
+            (tally.sent.clone(), tally.lost.clone(), tally.done.clone(), tally.send_failed.clone());
+        let (name, period) = (name.clone(), Duration::from_secs_f64(*period));
+        let (ac_id, loss) = (args.ac_id, args.loss as f32);
+        let mut rng = Rng32::new(world.params.seed, 0x7e1e_0000 + k as u64);
+        let timing = match args.jitter_ms {
+            Some(_) => LinkTiming::from_args(args.jitter_ms, args.link_copters),
+            None => LinkTiming::measured_with_load(args.link_copters, args.link_load),
+        };
+        let mut clock =
+            LinkClock::new(period.as_secs_f64(), timing, Rng32::new(world.params.seed, 0x7e1f_0000 + k as u64));
+        senders.push(rt.spawn(async move {
+            let start = tokio::time::Instant::now();
+            while !done.load(Ordering::Relaxed) {
+                let due = start + Duration::from_secs_f64(clock.next_s());
+                tokio::time::sleep_until(due).await;
+                if rng.uniform() < loss {
+                    lost.fetch_add(1, Ordering::Relaxed);
+                    continue;
+                }
+                let text = {
+                    let s = bridge::lock(&shared);
+                    let src = TelemetrySource { state: &s.state, sensors: &s.sensors, setpoint: s.setpoint };
+                    telemetry_text(&messages, ac_id, &name, &src)
+                };
+                match text {
+                    Some(Ok(text)) => {
+                        if link.send(text).await {
+                            sent.fetch_add(1, Ordering::Relaxed);
+                        } else {
+                            send_failed.fetch_add(1, Ordering::Relaxed);
+                        }
+                    }
+                    Some(Err(e)) => {
+                        tracing::warn!("cannot encode {name}: {e}");
+                        break;
+                    }
+                    None => break,
+                }
+            }
+        }));
+    }
+    Ok(senders)
+}
+
+/// Flies the reality until its end, a crash or `stop`, fusing the fresh virtual sonar, sharing
+/// each step's snapshot and tracking it; in `realtime`, paced by the wall clock. Returns the
+/// overruns and the steps that had a virtual sonar reading.
+#[allow(clippy::too_many_arguments)]
+fn fly(
+    world: &World,
+    state: &mut State,
+    inputs: &mut sim_core::Inputs,
+    virt: &Mutex<Option<VirtualReading>>,
+    shared: &Mutex<Snapshot>,
+    track: &mut Option<std::io::BufWriter<std::fs::File>>,
+    stop: &AtomicBool,
+    realtime: bool,
+) -> anyhow::Result<(u64, u64)> {
+    let dt = Duration::from_secs_f64(world.params.control_dt_s);
+    let ticks = world.default_ticks();
+    let started = Instant::now();
+    let (mut overruns, mut with_virtual) = (0u64, 0u64);
+    for k in 0..ticks {
+        if stop.load(Ordering::Relaxed) {
+            break;
+        }
+        let fresh =
+            (*bridge::lock(virt)).filter(|(_, at)| at.elapsed().as_secs_f64() <= VIRTUAL_STALE_S).map(|(r, _)| r);
+        inputs.commands[0].virtual_sonar_m = fresh;
+        with_virtual += u64::from(fresh.is_some());
+        sim_core::step(world, state, inputs);
+        *bridge::lock(shared) = snapshot(world, state, inputs);
+        if let Some(w) = track {
+            write_track_row(w, world, state, fresh.is_some())?;
+        }
+        if state.copters[0].crash.is_some() {
+            break;
+        }
+        if realtime {
+            let deadline = started + dt * (k as u32 + 1);
+            let now = Instant::now();
+            if now > deadline {
+                overruns += 1;
+            } else {
+                std::thread::sleep(deadline - now);
+            }
+        }
+    }
+    Ok((overruns, with_virtual))
+}
+
+/// Writes one row of the `--track` CSV: time, pose, raw and fused sonars, whether a fresh
+/// virtual reading was fused.
+fn write_track_row(
+    w: &mut std::io::BufWriter<std::fs::File>,
+    world: &World,
+    state: &State,
+    fresh: bool,
+) -> std::io::Result<()> {
+    let p = state.pose(0);
+    let r = &state.copters[0].sensors;
+    let row: Vec<String> = [state.time_s(world) as f32]
+        .into_iter()
+        .chain(p.pos_m.to_array())
+        .chain(p.rpy_rad)
+        .chain(r.sonar_m)
+        .chain(r.sonar_fused_m)
+        .map(|v| format!("{v:.4}"))
+        .collect();
+    writeln!(w, "{},{}", row.join(","), u8::from(fresh))
+}
+
+/// Prints the summary on stdout: JSON with `--json`, else two lines.
+fn print_summary(summary: &Summary, json: bool) -> anyhow::Result<()> {
+    if json {
+        outln!("{}", serde_json::to_string_pretty(summary)?);
     } else {
         let [x, y, z] = summary.final_pos_m;
         outln!(
@@ -385,9 +449,6 @@ pub fn run(args: CopterArgs) -> anyhow::Result<()> {
             summary.steps_with_virtual_sonar,
             summary.overruns
         );
-    }
-    if summary.crashed.is_some() {
-        anyhow::bail!("the stand-in crashed: {}", summary.crashed.unwrap_or_default());
     }
     Ok(())
 }
