@@ -254,47 +254,21 @@ impl Logger {
         let mut encoder = Encoder::new(world, epoch_ns);
         let unchanged_every = options.unchanged_every_ticks(world.params.control_dt_s);
         encoder.set_unchanged_every(unchanged_every);
-        let mut channels = [0u16; Topic::ALL.len()];
-        let out = match file_path {
-            None => None,
+        let (out, channels) = match file_path {
+            None => (None, [0u16; Topic::ALL.len()]),
             Some(p) => {
                 let file = File::create(p).map_err(|source| LogError::Create { path: path.clone(), source })?;
                 let mut out = McapOut::create(file, options.zstd_level, options.chunk_size).map_err(werr)?;
-                let now = now_unix_ns();
-                for (name, text) in
-                    [("scene.toml", scene_text.to_owned()), ("scene.effective.toml", world.spec.to_toml())]
-                {
-                    out.attach(&Attachment {
-                        log_time: epoch_ns,
-                        create_time: now,
-                        name: name.into(),
-                        media_type: "application/toml".into(),
-                        data: text.into_bytes().into(),
-                    })
-                    .map_err(werr)?;
-                }
+                attach_scene(&mut out, world, scene_text, epoch_ns).map_err(werr)?;
                 let sampling =
                     Sampling { every_ticks: options.every_ticks.max(1), unchanged_every_ticks: unchanged_every };
                 out.write_metadata(&metadata_record(world, &meta, epoch_ns, encoder.control_dt_ns(), sampling))
                     .map_err(werr)?;
-                for topic in Topic::ALL {
-                    if topic == Topic::Bus {
-                        continue; // added on first use
-                    }
-                    channels[topic.index()] = add_channel(&mut out, topic).map_err(werr)?;
-                }
-                Some(out)
+                let channels = add_file_channels(&mut out).map_err(werr)?;
+                (Some(out), channels)
             }
         };
-        let live = options.live.clone().map(|server| {
-            let mut ids = [0u32; Topic::ALL.len()];
-            for topic in Topic::ALL {
-                if topic != Topic::Bus {
-                    ids[topic.index()] = server.add_channel(live_channel(topic));
-                }
-            }
-            LiveOut { server, channels: ids, last: None }
-        });
+        let live = options.live.clone().map(live_out);
         let live_every = std::time::Duration::from_secs_f64(1.0 / options.live_max_hz.max(1e-3));
         let mut state = WriterState {
             out,
@@ -313,92 +287,22 @@ impl Logger {
         let flush_every = ((options.flush_interval_s / world.params.control_dt_s).round() as u64).max(1);
         let (jobs, rx) = sync_channel::<Job>(options.queue_steps.max(1));
         let (free_tx, free) = sync_channel::<Box<StepFrame>>(options.queue_steps.max(1) + 2);
-        let thread_path = path.clone();
         let pending = Arc::new(AtomicUsize::new(0));
-        let backlog = Arc::clone(&pending);
+        let writer = WriterThread {
+            state,
+            encoder,
+            free_tx,
+            backlog: Arc::clone(&pending),
+            path: path.clone(),
+            live_every,
+            flush_every,
+            since_flush: 0,
+            epoch_ns,
+            dt_ns,
+        };
         let thread = std::thread::Builder::new()
             .name("mcap-writer".into())
-            .spawn(move || {
-                let werr = |source| LogError::Write { path: thread_path.clone(), source };
-                let cpu0 = thread_cpu_ns();
-                let mut since_flush = 0u64;
-                for job in rx {
-                    match job {
-                        Job::Step(frame) => {
-                            let now = std::time::Instant::now();
-                            // Without a file the stepping thread has sampled already.
-                            let live_only = state.out.is_none();
-                            state.live_due = state.live.as_ref().is_some_and(|l| {
-                                l.server.active()
-                                    && (live_only || l.last.is_none_or(|t| now.duration_since(t) >= live_every))
-                            });
-                            // The step's time first: a client stamps the step's messages with it.
-                            if let Some(live) = &mut state.live
-                                && state.live_due
-                            {
-                                live.last = Some(now);
-                                live.server.broadcast_time(encoder.log_time(frame.tick));
-                            }
-                            // A live step is whole: a client sees each copter at its rate.
-                            let full = state.live_due;
-                            encoder
-                                .encode_step(&frame, full, &mut |t, lt, d: &[u8]| state.write(t, lt, d))
-                                .map_err(werr)?;
-                            state.stats.held_samples = encoder.held();
-                            state.live_due = true;
-                            backlog.fetch_sub(1, Ordering::Relaxed);
-                            state.stats.last_tick = frame.tick;
-                            // Recycling only: with the pool full (or the Logger gone) the frame
-                            // is freed and `log_step` allocates a new one.
-                            let _ = free_tx.try_send(frame);
-                            since_flush += 1;
-                            if since_flush >= flush_every {
-                                state.flush().map_err(werr)?;
-                                since_flush = 0;
-                            }
-                        }
-                        Job::Event(ev) => {
-                            encoder.encode_event(&ev, &mut |t, lt, d: &[u8]| state.write(t, lt, d)).map_err(werr)?
-                        }
-                        Job::Bus(batch) => {
-                            state.add_bus_channel().map_err(werr)?;
-                            for BusJob { tick, key, direction, text, received_ns } in batch {
-                                state.publish_override = Some(received_ns);
-                                let r = encoder.encode_bus(tick, &key, direction, &text, &mut |t, lt, d: &[u8]| {
-                                    state.write(t, lt, d)
-                                });
-                                state.publish_override = None;
-                                r.map_err(werr)?;
-                                let log_time = epoch_ns + tick * dt_ns;
-                                if let Some(out) = &mut state.out {
-                                    state
-                                        .pprz
-                                        .write(out, tick, log_time, received_ns, &key, direction, &text)
-                                        .map_err(werr)?;
-                                }
-                            }
-                            state.stats.pprz_messages = state.pprz.written;
-                        }
-                        Job::Flush => state.flush().map_err(werr)?,
-                        Job::Sync(done) => {
-                            let r = state.out.as_mut().map_or(Ok(()), McapOut::sync);
-                            let failed = r.as_ref().err().map(|e| std::io::Error::new(e.kind(), e.to_string()));
-                            // The caller may be gone (its run ended); the error is returned below too.
-                            let _ = done.send(r);
-                            if let Some(e) = failed {
-                                return Err(werr(e));
-                            }
-                        }
-                    }
-                }
-                if let Some(out) = &mut state.out {
-                    out.finish().map_err(werr)?;
-                }
-                if let (Some(a), Some(b)) = (cpu0, thread_cpu_ns()) {
-                    state.stats.writer_cpu_s = Some(b.saturating_sub(a) as f64 * 1e-9);
-                }
-                Ok(state.stats.clone())
-            })
+            .spawn(move || writer.run(rx))
             .map_err(|source| LogError::Create { path: path.clone(), source })?;
         Ok(Self {
             live_last: None,
@@ -674,6 +578,157 @@ impl WriterState {
             && self.channels[i] == 0
         {
             self.channels[i] = add_channel(out, Topic::Bus)?;
+        }
+        Ok(())
+    }
+}
+
+/// Attaches the scene to the file: as given (`scene.toml`) and as compiled
+/// (`scene.effective.toml`).
+fn attach_scene(out: &mut McapOut, world: &World, scene_text: &str, epoch_ns: u64) -> std::io::Result<()> {
+    let now = now_unix_ns();
+    for (name, text) in [("scene.toml", scene_text.to_owned()), ("scene.effective.toml", world.spec.to_toml())] {
+        out.attach(&Attachment {
+            log_time: epoch_ns,
+            create_time: now,
+            name: name.into(),
+            media_type: "application/toml".into(),
+            data: text.into_bytes().into(),
+        })?;
+    }
+    Ok(())
+}
+
+/// Adds every topic's schema and channel to the file but `/bus` (added on first use); the
+/// channel ids by topic.
+fn add_file_channels(out: &mut McapOut) -> std::io::Result<[u16; Topic::ALL.len()]> {
+    let mut channels = [0u16; Topic::ALL.len()];
+    for topic in Topic::ALL {
+        if topic == Topic::Bus {
+            continue; // added on first use
+        }
+        channels[topic.index()] = add_channel(out, topic)?;
+    }
+    Ok(channels)
+}
+
+/// The live view's side of the writer on `server`: every topic's channel but `/bus` (added on
+/// first use).
+fn live_out(server: Arc<LiveServer>) -> LiveOut {
+    let mut ids = [0u32; Topic::ALL.len()];
+    for topic in Topic::ALL {
+        if topic != Topic::Bus {
+            ids[topic.index()] = server.add_channel(live_channel(topic));
+        }
+    }
+    LiveOut { server, channels: ids, last: None }
+}
+
+/// The writer thread: encodes the jobs into the file and the live view, in order.
+struct WriterThread {
+    state: WriterState,
+    encoder: Encoder,
+    /// Encoded frames go back to the logger for reuse.
+    free_tx: SyncSender<Box<StepFrame>>,
+    /// The logger's count of steps not yet encoded.
+    backlog: Arc<AtomicUsize>,
+    path: PathBuf,
+    live_every: std::time::Duration,
+    flush_every: u64,
+    since_flush: u64,
+    epoch_ns: u64,
+    dt_ns: u64,
+}
+
+impl WriterThread {
+    /// Encodes every job until the logger hangs up, then finishes the file; the statistics.
+    fn run(mut self, rx: Receiver<Job>) -> Result<LogStats, LogError> {
+        let path = self.path.clone();
+        let werr = |source| LogError::Write { path: path.clone(), source };
+        let cpu0 = thread_cpu_ns();
+        for job in rx {
+            match job {
+                Job::Step(frame) => self.write_step(frame).map_err(werr)?,
+                Job::Event(ev) => {
+                    let state = &mut self.state;
+                    self.encoder.encode_event(&ev, &mut |t, lt, d: &[u8]| state.write(t, lt, d)).map_err(werr)?
+                }
+                Job::Bus(batch) => self.write_bus(batch).map_err(werr)?,
+                Job::Flush => self.state.flush().map_err(werr)?,
+                Job::Sync(done) => self.sync(done).map_err(werr)?,
+            }
+        }
+        if let Some(out) = &mut self.state.out {
+            out.finish().map_err(werr)?;
+        }
+        if let (Some(a), Some(b)) = (cpu0, thread_cpu_ns()) {
+            self.state.stats.writer_cpu_s = Some(b.saturating_sub(a) as f64 * 1e-9);
+        }
+        Ok(self.state.stats.clone())
+    }
+
+    /// Encodes one step (whole, when the live view is due for one), hands its frame back for
+    /// reuse, and flushes every `flush_every` steps.
+    fn write_step(&mut self, frame: Box<StepFrame>) -> std::io::Result<()> {
+        let state = &mut self.state;
+        let now = std::time::Instant::now();
+        // Without a file the stepping thread has sampled already.
+        let live_only = state.out.is_none();
+        state.live_due = state.live.as_ref().is_some_and(|l| {
+            l.server.active() && (live_only || l.last.is_none_or(|t| now.duration_since(t) >= self.live_every))
+        });
+        // The step's time first: a client stamps the step's messages with it.
+        if let Some(live) = &mut state.live
+            && state.live_due
+        {
+            live.last = Some(now);
+            live.server.broadcast_time(self.encoder.log_time(frame.tick));
+        }
+        // A live step is whole: a client sees each copter at its rate.
+        let full = state.live_due;
+        self.encoder.encode_step(&frame, full, &mut |t, lt, d: &[u8]| state.write(t, lt, d))?;
+        state.stats.held_samples = self.encoder.held();
+        state.live_due = true;
+        self.backlog.fetch_sub(1, Ordering::Relaxed);
+        state.stats.last_tick = frame.tick;
+        // Recycling only: with the pool full (or the Logger gone) the frame
+        // is freed and `log_step` allocates a new one.
+        let _ = self.free_tx.try_send(frame);
+        self.since_flush += 1;
+        if self.since_flush >= self.flush_every {
+            state.flush()?;
+            self.since_flush = 0;
+        }
+        Ok(())
+    }
+
+    /// Encodes a batch of bus messages, each also as a Paparazzi text in the file.
+    fn write_bus(&mut self, batch: Vec<BusJob>) -> std::io::Result<()> {
+        let state = &mut self.state;
+        state.add_bus_channel()?;
+        for BusJob { tick, key, direction, text, received_ns } in batch {
+            state.publish_override = Some(received_ns);
+            let r = self.encoder.encode_bus(tick, &key, direction, &text, &mut |t, lt, d: &[u8]| state.write(t, lt, d));
+            state.publish_override = None;
+            r?;
+            let log_time = self.epoch_ns + tick * self.dt_ns;
+            if let Some(out) = &mut state.out {
+                state.pprz.write(out, tick, log_time, received_ns, &key, direction, &text)?;
+            }
+        }
+        state.stats.pprz_messages = state.pprz.written;
+        Ok(())
+    }
+
+    /// Flushes and `fsync`s the file and tells `done` how that went; a failure also ends the
+    /// writer.
+    fn sync(&mut self, done: SyncSender<std::io::Result<()>>) -> std::io::Result<()> {
+        let r = self.state.out.as_mut().map_or(Ok(()), McapOut::sync);
+        let failed = r.as_ref().err().map(|e| std::io::Error::new(e.kind(), e.to_string()));
+        // The caller may be gone (its run ended); the error is returned below too.
+        let _ = done.send(r);
+        if let Some(e) = failed {
+            return Err(e);
         }
         Ok(())
     }
