@@ -455,6 +455,32 @@ impl Encoder {
         let lt = self.log_time(tick);
         let t_s = self.t_s(tick);
         let full = full || tick.is_multiple_of(self.unchanged_every);
+        self.choose_written(frame, full);
+        // Topic by topic (all states, then all sensor readings, …): a chunk's messages of one
+        // topic sit together, which zstd compresses better than copter by copter.
+        self.encode_states(frame, lt, t_s, sink)?;
+        self.encode_sensors(frame, lt, t_s, sink)?;
+        self.encode_commands(frame, lt, t_s, sink)?;
+        self.encode_controls(frame, lt, t_s, sink)?;
+        self.encode_tfs(frame, lt, sink)?;
+        if tick.is_multiple_of(self.scene_every) {
+            self.encode_scene_copters(frame, lt, sink)?;
+        }
+        for e in &frame.events {
+            let copter = match e {
+                Event::TookOff { copter } | Event::Crashed { copter, .. } => *copter,
+            };
+            let name = self.copters.get(copter).map_or("?", |c| c.name.as_str());
+            let ev = LogEvent::from_step_named(name, tick, e);
+            self.encode_event(&ev, sink)?;
+        }
+        Ok(())
+    }
+
+    /// Marks in `self.write` the copters of `frame` this step writes: those this shard owns,
+    /// less (unless `full`) those whose sample equals the one last written, which are counted
+    /// as held.
+    fn choose_written(&mut self, frame: &StepFrame, full: bool) {
         self.write.resize(self.copters.len(), false);
         for ((info, c), w) in self.copters.iter_mut().zip(&frame.copters).zip(&mut self.write) {
             *w = c.owned;
@@ -479,10 +505,12 @@ impl Encoder {
                 None => info.last = Some(c.clone()),
             }
         }
-        let m = &mut self.msg;
-        let b = &mut self.buf;
-        // Topic by topic (all states, then all sensor readings, …): a chunk's messages of one
-        // topic sit together, which zstd compresses better than copter by copter.
+    }
+
+    /// `/copters/state` of each written copter: mode, crash, pose, velocities and rotors.
+    fn encode_states<E>(&mut self, frame: &StepFrame, lt: u64, t_s: f64, sink: &mut impl Sink<E>) -> Result<(), E> {
+        let tick = frame.tick;
+        let (m, b) = (&mut self.msg, &mut self.buf);
         for (id, ((info, c), _)) in
             self.copters.iter_mut().zip(&frame.copters).zip(&self.write).enumerate().filter(|(_, (_, w))| **w)
         {
@@ -514,6 +542,13 @@ impl Encoder {
             set(&mut st.rotor_speed_rad_s, &c.rotor_speed_rad_s);
             Self::emit(b, Topic::State, lt, st, sink)?;
         }
+        Ok(())
+    }
+
+    /// `/copters/sensors` of each written copter: sonars, IR, IMU, estimates and battery.
+    fn encode_sensors<E>(&mut self, frame: &StepFrame, lt: u64, t_s: f64, sink: &mut impl Sink<E>) -> Result<(), E> {
+        let tick = frame.tick;
+        let (m, b) = (&mut self.msg, &mut self.buf);
         for (id, ((info, c), _)) in
             self.copters.iter().zip(&frame.copters).zip(&self.write).enumerate().filter(|(_, (_, w))| **w)
         {
@@ -536,6 +571,13 @@ impl Encoder {
                 (r.height_est_m, r.battery_v, r.battery_charge, r.battery_a);
             Self::emit(b, Topic::Sensors, lt, se, sink)?;
         }
+        Ok(())
+    }
+
+    /// `/copters/command` of each written copter: the command it flew the step with.
+    fn encode_commands<E>(&mut self, frame: &StepFrame, lt: u64, t_s: f64, sink: &mut impl Sink<E>) -> Result<(), E> {
+        let tick = frame.tick;
+        let (m, b) = (&mut self.msg, &mut self.buf);
         for (id, ((info, c), _)) in
             self.copters.iter().zip(&frame.copters).zip(&self.write).enumerate().filter(|(_, (_, w))| **w)
         {
@@ -553,6 +595,13 @@ impl Encoder {
             set(&mut co.virtual_sonar_m, cmd.virtual_sonar_m.as_ref().map_or(&[][..], |v| &v[..]));
             Self::emit(b, Topic::Command, lt, co, sink)?;
         }
+        Ok(())
+    }
+
+    /// `/copters/control` of each written copter: its setpoint and Wall-Avoid's outputs.
+    fn encode_controls<E>(&mut self, frame: &StepFrame, lt: u64, t_s: f64, sink: &mut impl Sink<E>) -> Result<(), E> {
+        let tick = frame.tick;
+        let (m, b) = (&mut self.msg, &mut self.buf);
         for (id, ((info, c), _)) in
             self.copters.iter().zip(&frame.copters).zip(&self.write).enumerate().filter(|(_, (_, w))| **w)
         {
@@ -571,6 +620,12 @@ impl Encoder {
             set(&mut w.rate_m_s, &wa.rate_m_s);
             Self::emit(b, Topic::Control, lt, ct, sink)?;
         }
+        Ok(())
+    }
+
+    /// `/tf` of each written copter: its frame in the world's.
+    fn encode_tfs<E>(&mut self, frame: &StepFrame, lt: u64, sink: &mut impl Sink<E>) -> Result<(), E> {
+        let (m, b) = (&mut self.msg, &mut self.buf);
         for ((info, c), _) in self.copters.iter().zip(&frame.copters).zip(&self.write).filter(|(_, w)| **w) {
             let p = &c.pose;
             let tf = &mut m.tf;
@@ -581,28 +636,22 @@ impl Encoder {
             tf.rotation = Some(quat([x, y, z, w]));
             Self::emit(b, Topic::Tf, lt, tf, sink)?;
         }
-        if tick.is_multiple_of(self.scene_every) {
-            update_copter_entities(&mut m.scene, &self.copters, frame, self.sonar, lt);
-            if frame.copters.iter().all(|c| c.owned) {
-                Self::emit(b, Topic::SceneCopters, lt, &m.scene, sink)?;
-            } else {
-                // A shard updates only its own copters' entities (the others keep theirs).
-                let mut own = fg::SceneUpdate::default();
-                own.entities.extend(
-                    m.scene.entities.iter().zip(&frame.copters).filter(|(_, c)| c.owned).map(|(e, _)| e.clone()),
-                );
-                Self::emit(b, Topic::SceneCopters, lt, &own, sink)?;
-            }
-        }
-        for e in &frame.events {
-            let copter = match e {
-                Event::TookOff { copter } | Event::Crashed { copter, .. } => *copter,
-            };
-            let name = self.copters.get(copter).map_or("?", |c| c.name.as_str());
-            let ev = LogEvent::from_step_named(name, tick, e);
-            self.encode_event(&ev, sink)?;
-        }
         Ok(())
+    }
+
+    /// `/scene/copters`: every copter's entities updated; a shard sends only its own.
+    fn encode_scene_copters<E>(&mut self, frame: &StepFrame, lt: u64, sink: &mut impl Sink<E>) -> Result<(), E> {
+        let (m, b) = (&mut self.msg, &mut self.buf);
+        update_copter_entities(&mut m.scene, &self.copters, frame, self.sonar, lt);
+        if frame.copters.iter().all(|c| c.owned) {
+            Self::emit(b, Topic::SceneCopters, lt, &m.scene, sink)
+        } else {
+            // A shard updates only its own copters' entities (the others keep theirs).
+            let mut own = fg::SceneUpdate::default();
+            own.entities
+                .extend(m.scene.entities.iter().zip(&frame.copters).filter(|(_, c)| c.owned).map(|(e, _)| e.clone()));
+            Self::emit(b, Topic::SceneCopters, lt, &own, sink)
+        }
     }
 
     /// An event, on `/events` and as a line on `/log`.
