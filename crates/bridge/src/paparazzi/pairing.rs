@@ -268,6 +268,181 @@ fn non_empty_name(doc: &Doc, el: &Element, key: &str) -> Result<String, XmlError
     Ok(v.to_owned())
 }
 
+/// Fails if an element that may appear once already has (`first`: the line it first did).
+fn once(doc: &Doc, what: &str, first: Option<u32>, el: &Element) -> Result<(), XmlError> {
+    match first {
+        Some(line) => Err(doc.invalid(el.offset, format!("<{what}> may appear only once (first at line {line})"))),
+        None => Ok(()),
+    }
+}
+
+/// What a pairing file's elements have given so far, each with the line it came from, and the
+/// names and ids they have taken.
+#[derive(Default)]
+struct PairingParts {
+    conf_path: Option<(String, u32)>,
+    twins: Vec<Twin>,
+    virtual_copters: Vec<VirtualCopter>,
+    spawn: Option<(SpawnPoint, u32)>,
+    policy: Option<(UnknownAircraftPolicy, u32)>,
+    /// copter name -> first line, across twins and virtual copters
+    copters: BTreeMap<String, u32>,
+    ac_ids: BTreeMap<AcId, u32>,
+    aircraft_names: BTreeMap<String, u32>,
+}
+
+impl PairingParts {
+    /// `<conf path="..."/>`, once.
+    fn conf(&mut self, doc: &Doc, el: &Element, line: u32) -> Result<(), XmlError> {
+        once(doc, "conf", self.conf_path.as_ref().map(|c| c.1), el)?;
+        doc.only_attrs(el, &["path"])?;
+        let p = doc.req_attr(el, "path")?;
+        if p.value.trim().is_empty() {
+            return Err(doc.bad_attr(el, p, "path is empty"));
+        }
+        self.conf_path = Some((p.value.trim().to_owned(), line));
+        Ok(())
+    }
+
+    /// `<twin>`: a real aircraft (by name or id), its copter's name, pose and who flies it.
+    fn twin(&mut self, doc: &Doc, el: &Element, line: u32) -> Result<(), XmlError> {
+        doc.only_attrs(el, &["aircraft", "ac_id", "copter", "x_m", "y_m", "z_m", "yaw_deg", "flown_by"])?;
+        let autopilot = match doc.attr(el, "flown_by").map(|a| a.value.as_str()) {
+            None | Some("telemetry") => false,
+            Some("autopilot") => true,
+            Some(other) => {
+                return Err(
+                    doc.invalid(el.offset, format!("flown_by must be `telemetry` or `autopilot`, not `{other}`"))
+                );
+            }
+        };
+        let aircraft = self.twinned_aircraft(doc, el, line)?;
+        let copter = non_empty_name(doc, el, "copter")?;
+        if let Some(first) = self.copters.insert(copter.clone(), line) {
+            return Err(XmlError::Duplicate {
+                at: doc.loc(el.offset),
+                what: "copter name",
+                name: copter,
+                first_line: first,
+            });
+        }
+        let pose = parse_pose(doc, el, true)?.ok_or_else(|| doc.invalid(el.offset, "<twin> needs a pose"))?;
+        self.twins.push(Twin { aircraft, copter, pose, autopilot, source_line: line });
+        Ok(())
+    }
+
+    /// A `<twin>`'s aircraft: exactly one of `aircraft` (a name) or `ac_id`, neither taken yet.
+    fn twinned_aircraft(&mut self, doc: &Doc, el: &Element, line: u32) -> Result<AircraftRef, XmlError> {
+        match (doc.attr(el, "aircraft"), doc.attr(el, "ac_id")) {
+            (Some(_), Some(_)) | (None, None) => {
+                Err(doc.invalid(el.offset, "<twin> needs exactly one of `aircraft` (name) or `ac_id`"))
+            }
+            (Some(_), None) => {
+                let n = non_empty_name(doc, el, "aircraft")?;
+                if let Some(first) = self.aircraft_names.insert(n.clone(), line) {
+                    return Err(XmlError::Duplicate {
+                        at: doc.loc(el.offset),
+                        what: "twinned aircraft",
+                        name: n,
+                        first_line: first,
+                    });
+                }
+                Ok(AircraftRef::Name(n))
+            }
+            (None, Some(a)) => {
+                let id: AcId = doc.parse_attr(el, a, "an aircraft id 0..255")?;
+                if let Some(first) = self.ac_ids.insert(id, line) {
+                    return Err(XmlError::Duplicate {
+                        at: doc.loc(a.offset),
+                        what: "ac_id",
+                        name: id.to_string(),
+                        first_line: first,
+                    });
+                }
+                Ok(AircraftRef::AcId(id))
+            }
+        }
+    }
+
+    /// `<virtual>`: a purely virtual copter's name, aircraft id and (optional) pose.
+    fn virtual_copter(&mut self, doc: &Doc, el: &Element, line: u32) -> Result<(), XmlError> {
+        doc.only_attrs(el, &["name", "ac_id", "x_m", "y_m", "z_m", "yaw_deg"])?;
+        let name = non_empty_name(doc, el, "name")?;
+        let a = doc.req_attr(el, "ac_id")?;
+        let ac_id: AcId = doc.parse_attr(el, a, "an aircraft id 0..255")?;
+        if let Some(first) = self.ac_ids.insert(ac_id, line) {
+            return Err(XmlError::Duplicate {
+                at: doc.loc(a.offset),
+                what: "ac_id",
+                name: ac_id.to_string(),
+                first_line: first,
+            });
+        }
+        if let Some(first) = self.copters.insert(name.clone(), line) {
+            return Err(XmlError::Duplicate { at: doc.loc(el.offset), what: "copter name", name, first_line: first });
+        }
+        let pose = parse_pose(doc, el, false)?;
+        self.virtual_copters.push(VirtualCopter { name, ac_id, pose, source_line: line });
+        Ok(())
+    }
+
+    /// `<spawn>`, once: where spawned copters appear, and how far apart (default 0.5 m).
+    fn spawn(&mut self, doc: &Doc, el: &Element, line: u32) -> Result<(), XmlError> {
+        once(doc, "spawn", self.spawn.as_ref().map(|s| s.1), el)?;
+        doc.only_attrs(el, &["x_m", "y_m", "z_m", "yaw_deg", "spacing_m"])?;
+        let pose = parse_pose(doc, el, true)?.ok_or_else(|| doc.invalid(el.offset, "<spawn> needs a pose"))?;
+        let spacing_m = match doc.attr(el, "spacing_m") {
+            Some(a) => {
+                let v = doc.parse_f64_attr(el, a)?;
+                if v < 0.0 {
+                    return Err(doc.bad_attr(el, a, "spacing must not be negative"));
+                }
+                v
+            }
+            None => 0.5,
+        };
+        self.spawn = Some((SpawnPoint { pose, spacing_m }, line));
+        Ok(())
+    }
+
+    /// `<unknown_aircraft policy="ignore|spawn"/>`, once.
+    fn unknown_aircraft(&mut self, doc: &Doc, el: &Element, line: u32) -> Result<(), XmlError> {
+        once(doc, "unknown_aircraft", self.policy.as_ref().map(|p| p.1), el)?;
+        doc.only_attrs(el, &["policy"])?;
+        let a = doc.req_attr(el, "policy")?;
+        let p = match a.value.trim() {
+            "ignore" => UnknownAircraftPolicy::Ignore,
+            "spawn" => UnknownAircraftPolicy::Spawn,
+            _ => return Err(doc.bad_attr(el, a, "expected `ignore` or `spawn`")),
+        };
+        self.policy = Some((p, line));
+        Ok(())
+    }
+
+    /// The pairing, once every element is read: a `<conf>` is required, and a spawn policy or
+    /// a virtual copter without a pose needs a `<spawn>` point.
+    fn finish(self, doc: &Doc, root: &Element, source: &str) -> Result<Pairing, XmlError> {
+        let Some((conf_path, _)) = self.conf_path else {
+            return Err(doc.invalid(root.offset, "<pairing> needs a <conf path=\"...\"/> element"));
+        };
+        let unknown_policy = self.policy.map(|p| p.0).unwrap_or_default();
+        let spawn = self.spawn.map(|s| s.0);
+        if unknown_policy == UnknownAircraftPolicy::Spawn && spawn.is_none() {
+            return Err(doc.invalid(root.offset, "policy=\"spawn\" needs a <spawn> point"));
+        }
+        let virtual_copters = self.virtual_copters;
+        if spawn.is_none()
+            && let Some(v) = virtual_copters.iter().find(|v| v.pose.is_none())
+        {
+            return Err(XmlError::Invalid {
+                at: Box::new(Location { file: source.to_owned(), line: v.source_line, column: 1 }),
+                message: format!("virtual copter `{}` has no pose and there is no <spawn> point", v.name),
+            });
+        }
+        Ok(Pairing { source: source.to_owned(), conf_path, twins: self.twins, virtual_copters, spawn, unknown_policy })
+    }
+}
+
 impl Pairing {
     /// Reads and parses a pairing file.
     pub fn from_file(path: impl AsRef<Path>) -> Result<Pairing, XmlError> {
@@ -285,165 +460,19 @@ impl Pairing {
         if version.value.trim() != "1" {
             return Err(doc.bad_attr(root, version, "only version 1 is supported"));
         }
-        let mut conf_path: Option<(String, u32)> = None;
-        let mut twins: Vec<Twin> = Vec::new();
-        let mut virtual_copters: Vec<VirtualCopter> = Vec::new();
-        let mut spawn: Option<(SpawnPoint, u32)> = None;
-        let mut policy: Option<(UnknownAircraftPolicy, u32)> = None;
-        // copter name -> first line, across twins and virtual copters
-        let mut copters: BTreeMap<String, u32> = BTreeMap::new();
-        let mut ac_ids: BTreeMap<AcId, u32> = BTreeMap::new();
-        let mut aircraft_names: BTreeMap<String, u32> = BTreeMap::new();
-
-        let once = |what: &str, first: Option<u32>, el: &Element| -> Result<(), XmlError> {
-            match first {
-                Some(line) => {
-                    Err(doc.invalid(el.offset, format!("<{what}> may appear only once (first at line {line})")))
-                }
-                None => Ok(()),
-            }
-        };
-
+        let mut parts = PairingParts::default();
         for el in &root.children {
             let line = doc.line(el.offset);
             match el.name.as_str() {
-                "conf" => {
-                    once("conf", conf_path.as_ref().map(|c| c.1), el)?;
-                    doc.only_attrs(el, &["path"])?;
-                    let p = doc.req_attr(el, "path")?;
-                    if p.value.trim().is_empty() {
-                        return Err(doc.bad_attr(el, p, "path is empty"));
-                    }
-                    conf_path = Some((p.value.trim().to_owned(), line));
-                }
-                "twin" => {
-                    doc.only_attrs(el, &["aircraft", "ac_id", "copter", "x_m", "y_m", "z_m", "yaw_deg", "flown_by"])?;
-                    let autopilot = match doc.attr(el, "flown_by").map(|a| a.value.as_str()) {
-                        None | Some("telemetry") => false,
-                        Some("autopilot") => true,
-                        Some(other) => {
-                            return Err(doc.invalid(
-                                el.offset,
-                                format!("flown_by must be `telemetry` or `autopilot`, not `{other}`"),
-                            ));
-                        }
-                    };
-                    let aircraft = match (doc.attr(el, "aircraft"), doc.attr(el, "ac_id")) {
-                        (Some(_), Some(_)) | (None, None) => {
-                            return Err(
-                                doc.invalid(el.offset, "<twin> needs exactly one of `aircraft` (name) or `ac_id`")
-                            );
-                        }
-                        (Some(_), None) => {
-                            let n = non_empty_name(&doc, el, "aircraft")?;
-                            if let Some(first) = aircraft_names.insert(n.clone(), line) {
-                                return Err(XmlError::Duplicate {
-                                    at: doc.loc(el.offset),
-                                    what: "twinned aircraft",
-                                    name: n,
-                                    first_line: first,
-                                });
-                            }
-                            AircraftRef::Name(n)
-                        }
-                        (None, Some(a)) => {
-                            let id: AcId = doc.parse_attr(el, a, "an aircraft id 0..255")?;
-                            if let Some(first) = ac_ids.insert(id, line) {
-                                return Err(XmlError::Duplicate {
-                                    at: doc.loc(a.offset),
-                                    what: "ac_id",
-                                    name: id.to_string(),
-                                    first_line: first,
-                                });
-                            }
-                            AircraftRef::AcId(id)
-                        }
-                    };
-                    let copter = non_empty_name(&doc, el, "copter")?;
-                    if let Some(first) = copters.insert(copter.clone(), line) {
-                        return Err(XmlError::Duplicate {
-                            at: doc.loc(el.offset),
-                            what: "copter name",
-                            name: copter,
-                            first_line: first,
-                        });
-                    }
-                    let pose =
-                        parse_pose(&doc, el, true)?.ok_or_else(|| doc.invalid(el.offset, "<twin> needs a pose"))?;
-                    twins.push(Twin { aircraft, copter, pose, autopilot, source_line: line });
-                }
-                "virtual" => {
-                    doc.only_attrs(el, &["name", "ac_id", "x_m", "y_m", "z_m", "yaw_deg"])?;
-                    let name = non_empty_name(&doc, el, "name")?;
-                    let a = doc.req_attr(el, "ac_id")?;
-                    let ac_id: AcId = doc.parse_attr(el, a, "an aircraft id 0..255")?;
-                    if let Some(first) = ac_ids.insert(ac_id, line) {
-                        return Err(XmlError::Duplicate {
-                            at: doc.loc(a.offset),
-                            what: "ac_id",
-                            name: ac_id.to_string(),
-                            first_line: first,
-                        });
-                    }
-                    if let Some(first) = copters.insert(name.clone(), line) {
-                        return Err(XmlError::Duplicate {
-                            at: doc.loc(el.offset),
-                            what: "copter name",
-                            name,
-                            first_line: first,
-                        });
-                    }
-                    let pose = parse_pose(&doc, el, false)?;
-                    virtual_copters.push(VirtualCopter { name, ac_id, pose, source_line: line });
-                }
-                "spawn" => {
-                    once("spawn", spawn.as_ref().map(|s| s.1), el)?;
-                    doc.only_attrs(el, &["x_m", "y_m", "z_m", "yaw_deg", "spacing_m"])?;
-                    let pose =
-                        parse_pose(&doc, el, true)?.ok_or_else(|| doc.invalid(el.offset, "<spawn> needs a pose"))?;
-                    let spacing_m = match doc.attr(el, "spacing_m") {
-                        Some(a) => {
-                            let v = doc.parse_f64_attr(el, a)?;
-                            if v < 0.0 {
-                                return Err(doc.bad_attr(el, a, "spacing must not be negative"));
-                            }
-                            v
-                        }
-                        None => 0.5,
-                    };
-                    spawn = Some((SpawnPoint { pose, spacing_m }, line));
-                }
-                "unknown_aircraft" => {
-                    once("unknown_aircraft", policy.as_ref().map(|p| p.1), el)?;
-                    doc.only_attrs(el, &["policy"])?;
-                    let a = doc.req_attr(el, "policy")?;
-                    let p = match a.value.trim() {
-                        "ignore" => UnknownAircraftPolicy::Ignore,
-                        "spawn" => UnknownAircraftPolicy::Spawn,
-                        _ => return Err(doc.bad_attr(el, a, "expected `ignore` or `spawn`")),
-                    };
-                    policy = Some((p, line));
-                }
+                "conf" => parts.conf(&doc, el, line)?,
+                "twin" => parts.twin(&doc, el, line)?,
+                "virtual" => parts.virtual_copter(&doc, el, line)?,
+                "spawn" => parts.spawn(&doc, el, line)?,
+                "unknown_aircraft" => parts.unknown_aircraft(&doc, el, line)?,
                 _ => return Err(doc.unexpected(root, el)),
             }
         }
-        let Some((conf_path, _)) = conf_path else {
-            return Err(doc.invalid(root.offset, "<pairing> needs a <conf path=\"...\"/> element"));
-        };
-        let unknown_policy = policy.map(|p| p.0).unwrap_or_default();
-        let spawn = spawn.map(|s| s.0);
-        if unknown_policy == UnknownAircraftPolicy::Spawn && spawn.is_none() {
-            return Err(doc.invalid(root.offset, "policy=\"spawn\" needs a <spawn> point"));
-        }
-        if spawn.is_none()
-            && let Some(v) = virtual_copters.iter().find(|v| v.pose.is_none())
-        {
-            return Err(XmlError::Invalid {
-                at: Box::new(Location { file: source.to_owned(), line: v.source_line, column: 1 }),
-                message: format!("virtual copter `{}` has no pose and there is no <spawn> point", v.name),
-            });
-        }
-        Ok(Pairing { source: source.to_owned(), conf_path, twins, virtual_copters, spawn, unknown_policy })
+        parts.finish(&doc, root, source)
     }
 
     /// The conf.xml path, resolved against the pairing file's directory.
