@@ -64,7 +64,13 @@ pub(super) fn outer_loop(
 /// Wall-Avoid as the FINken firmware flies it: the lead-lag at its own rate on the filtered
 /// sonar differences, plus the pilot's (pitch, roll), each scaled down towards an obstacle
 /// on its side. Returns (pitch, roll), rad.
-pub(super) fn wall_avoid_firmware(world: &World, c: &mut CopterState, pilot: (Real, Real), dt: Real, tick: u64) -> (Real, Real) {
+pub(super) fn wall_avoid_firmware(
+    world: &World,
+    c: &mut CopterState,
+    pilot: (Real, Real),
+    dt: Real,
+    tick: u64,
+) -> (Real, Real) {
     let spec = &world.sensors.spec.wall_avoid;
     let every = ((1.0 / (spec.update_hz * dt)).round() as u64).max(1);
     let st = &mut c.wall_avoid;

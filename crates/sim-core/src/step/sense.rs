@@ -98,7 +98,14 @@ pub fn copter_box(world: &World, copters: &[CopterState], i: usize) -> OrientedB
 /// copter's sonars and IR ([`read_ranges`]), IMU and estimators ([`read_imu_and_estimate`]);
 /// the sonars' cross-talk ([`crosstalk`]); the fused readings into the firmware's sonar
 /// filter ([`fuse_and_filter`]).
-pub(super) fn sense(world: &World, state: &mut State, inputs: &Inputs, sonar_due: bool, parallel: bool, roles: Roles<'_>) {
+pub(super) fn sense(
+    world: &World,
+    state: &mut State,
+    inputs: &Inputs,
+    sonar_due: bool,
+    parallel: bool,
+    roles: Roles<'_>,
+) {
     let scratch = &mut state.scratch;
     let present = roles.0.map(|_| &scratch.present[..]);
     fill_sonar_scene_of(world, &state.copters, present, parallel, &mut scratch.sonar_scene);
@@ -222,7 +229,14 @@ pub(super) fn read_ranges(
 /// the thrust gain) and the readings telemetry sends. A twin's IMU is ideal: it flies by its
 /// real copter's telemetry, and noise or a drifting yaw of its own would only add to its error.
 #[inline]
-pub(super) fn read_imu_and_estimate(world: &World, p: &SenseParams, i: usize, c: &mut CopterState, lane: &Lane, ir: Real) {
+pub(super) fn read_imu_and_estimate(
+    world: &World,
+    p: &SenseParams,
+    i: usize,
+    c: &mut CopterState,
+    lane: &Lane,
+    ir: Real,
+) {
     let spec = &world.sensors.spec;
     let (pos, rot, vel, angvel) = (lane.pos_m, lane.rot, lane.vel_m_s, lane.angvel_rad_s);
     let twin = world.copters[i].kind == CopterKind::Real;

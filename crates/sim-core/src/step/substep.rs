@@ -186,7 +186,14 @@ pub(super) fn inner_loop(
 /// The inner loop's first half: AHRS, height hold and attitude PIDs. Returns the collective
 /// thrust and the torque they command, N and N·m in the body frame.
 #[inline]
-pub(super) fn steer(af: &Airframe, p: &InnerParams, twin: bool, c: &mut CopterState, m: &InnerInput, dt: Real) -> (Real, Vec3) {
+pub(super) fn steer(
+    af: &Airframe,
+    p: &InnerParams,
+    twin: bool,
+    c: &mut CopterState,
+    m: &InnerInput,
+    dt: Real,
+) -> (Real, Vec3) {
     let InnerInput { rot, rpy, rate_body, z_m, vz_m_s, .. } = *m;
     let rate = [rate_body.x, rate_body.y, rate_body.z];
     let truth = twin || p.ideal;
@@ -308,7 +315,14 @@ pub(super) const GROUND_EFFECT_RADII: Real = 12.0;
 /// gyroscopic term; semi-implicit Euler (velocities first, then pose with the new ones).
 /// `rate_body` is its angular velocity in the body frame.
 #[inline(always)]
-pub(super) fn integrate_free(af: &Airframe, lane: &mut Lane, rate_body: Vec3, thrust_n: Real, torque_body_n_m: Vec3, dt: Real) {
+pub(super) fn integrate_free(
+    af: &Airframe,
+    lane: &mut Lane,
+    rate_body: Vec3,
+    thrust_n: Real,
+    torque_body_n_m: Vec3,
+    dt: Real,
+) {
     let rot = lane.rot;
     let acc = rot * Vec3::new(0.0, 0.0, thrust_n / af.mass_kg) + lane.downwash_force_n / af.mass_kg
         - Vec3::new(0.0, 0.0, GRAVITY_M_S2);
