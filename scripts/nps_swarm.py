@@ -211,7 +211,10 @@ def parse_trims(spec, count):
 
 
 def last_fdm_line(path):
-    lines = [l for l in path.read_text(errors="replace").splitlines() if l.startswith("[twinswarm fdm]")]
+    # Another thread's output may share the line (NPS's "udp_thread: select failed!" has no
+    # newline): from the tag on.
+    tag = "[twinswarm fdm]"
+    lines = [l[l.index(tag):] for l in path.read_text(errors="replace").splitlines() if tag in l]
     return lines[-1] if lines else ""
 
 
