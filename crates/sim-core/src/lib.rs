@@ -34,6 +34,7 @@ pub mod geometry;
 mod lanes;
 pub mod math;
 pub mod mixed;
+mod partition;
 pub mod rng;
 pub mod scene;
 pub mod sensors;

@@ -142,7 +142,7 @@ pub struct State {
     pub(crate) scratch: Scratch,
     /// Its place in a sharded run ([`crate::shard`]); `None`: it steps every copter.
     #[serde(skip)]
-    pub(crate) shard: Option<crate::shard::ShardView>,
+    pub(crate) shard: Option<crate::partition::ShardView>,
 }
 
 impl std::fmt::Debug for State {

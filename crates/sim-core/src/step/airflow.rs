@@ -86,7 +86,7 @@ pub(super) fn gather_wakes(world: &World, state: &mut State, parallel: bool, rol
         rotation: Quat::IDENTITY,
         half: Vec3::new(reach(&wakes[i]), 0.0, 0.0),
     });
-    let wake_limit = crate::shard::sense_reach_m(world);
+    let wake_limit = crate::partition::sense_reach_m(world);
     let (mut violations, mut any) = (0, false);
     for (i, w) in scratch.wakes.iter().enumerate() {
         any |= w.length_m > 0.0;

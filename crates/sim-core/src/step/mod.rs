@@ -27,11 +27,11 @@ use crate::control::{self, Command, FlightMode, Inputs, Setpoint, WallAvoidContr
 use crate::geometry::{Cone, OrientedBox, Wedge};
 use crate::lanes::LANES;
 use crate::math::{self, GRAVITY_M_S2, Quat, Real, Vec3, euler_from_quat, wrap_angle_rad};
+use crate::partition::{Role, ShardView};
 use crate::scene::CopterKind;
 use crate::sensors::{
     self, SonarScene, SonarSchedule, crosstalk_eligible, crosstalk_reading, sonar_cones, sonar_reading,
 };
-use crate::shard::{Role, ShardView};
 use crate::state::{CopterState, CrashCause, Lane, Motion, Pinger, State};
 use crate::world::{ColliderTag, World};
 use batch::run_ahead_batch;

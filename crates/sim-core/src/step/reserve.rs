@@ -203,7 +203,7 @@ pub(super) fn enable_rapier_bodies(world: &World, state: &mut State, view: &Opti
 /// Counts the violations: a cluster this shard had or takes a copter of, with a member
 /// beyond the pull zone (its view of that cluster may be incomplete).
 pub(super) fn take_ownership(state: &mut State, view: &mut ShardView) -> u32 {
-    use crate::shard::{PULL_ZONE_M, root, union};
+    use crate::partition::{PULL_ZONE_M, root, union};
     let scratch = &mut state.scratch;
     let n = state.copters.len();
     let parent = &mut view.parent;
@@ -255,12 +255,12 @@ pub(super) fn take_ownership(state: &mut State, view: &mut ShardView) -> u32 {
 /// with the contact memory (speculative contacts, warm starts, the island) that one process
 /// keeps; another shard would take it over fresh. So it stays with the shard that holds it
 /// (this one's own copters from its Rapier world, ghosts as their owners sent them), and its
-/// cluster with it, while it is within [`crate::shard::HELD_ZONE_M`] of that shard's region.
+/// cluster with it, while it is within [`crate::partition::HELD_ZONE_M`] of that shard's region.
 /// Not covered, and not counted: a held copter farther out than that, and the second of two
 /// copters held by different shards that come into one cluster, go to the cluster's owner
 /// fresh (docs/sharding.md).
 pub(super) fn held_clusters(state: &State, view: &mut ShardView) {
-    use crate::shard::{HELD_ZONE_M, held_in_rapier, root};
+    use crate::partition::{HELD_ZONE_M, held_in_rapier, root};
     let n = state.copters.len();
     view.claim.clear();
     view.claim.resize(n, None);
