@@ -36,9 +36,12 @@
 //! `[sim] closed_form` (the default) only flying copters near something are in Rapier's hands,
 //! and a touch is mostly a crash, after which the wreck is closed form (`step::fall_wreck`);
 //! so every copter keeps the one-process bits in `tests/shard.rs` (60 s, 2–4 shards, a crowded
-//! take-off where most copters crash). Several flying copters in one Rapier contact island without a
-//! crash (soft touches below the crash speed) is the case left where they could part; with
-//! `closed_form = false` wrecks settle in Rapier and can part too (docs/sharding.md).
+//! take-off where most copters crash). Rapier colours new contacts in body-id order, which
+//! every shard shares, but two collider pairs of one body pair in contact-graph order, which it
+//! does not: so every body has one collider (`World::copter_collider_of`, one fixed body per
+//! wall and box). What is left to Rapier's history: the sequential overflow of a pair touching
+//! in several places, when one copter has two such pairs in a step; with `closed_form = false`
+//! wrecks settle in Rapier and can part (docs/sharding.md).
 
 use serde::{Deserialize, Serialize};
 
