@@ -256,7 +256,7 @@ def main(argv=None):
     ap.add_argument("--run-arg", action="append", default=[], help="an extra argument for twinswarm run")
     ap.add_argument("--stranger", type=int, metavar="AC", help="also start aircraft AC, which no copter of the scene flies: "
                     "the world must refuse it, and it must exit non-zero saying why")
-    ap.add_argument("--stop", metavar="AC:AFTER_S", help="SIGSTOP aircraft AC's NPS AFTER_S wall seconds after it starts, "
+    ap.add_argument("--stop", metavar="AC:AFTER_S", help="SIGSTOP aircraft AC's NPS AFTER_S wall seconds after it connects, "
                     "for --stop-for seconds (default 12, past the world's 10 s step timeout), then SIGCONT")
     ap.add_argument("--stop-for", type=float, default=12.0)
     ap.add_argument("--json", action="store_true")
@@ -316,7 +316,14 @@ def main(argv=None):
             stop_ac, after = a.stop.split(":")
             victim = npss[acs_started.index(int(stop_ac))]
 
+            victim_log = out / f"nps{stop_ac}.log"
+
             def stop_and_continue():
+                # From its connection on (a slow machine may take longer to start it).
+                for _ in range(600):
+                    if "connected to the world" in victim_log.read_text(errors="replace"):
+                        break
+                    time.sleep(0.05)
                 time.sleep(float(after))
                 victim.send_signal(signal.SIGSTOP)
                 time.sleep(a.stop_for)
