@@ -146,7 +146,7 @@ fn sonar_uplink_is_encoded_as_the_original_bridge_sent_it() {
 
 /// The aircraft that sent the most.
 fn main_aircraft(log: &FlightLog) -> u8 {
-    log.senders().into_iter().max_by_key(|(_, n)| *n).map(|(a, _)| a).expect("an aircraft sent something")
+    log.busiest_sender().expect("an aircraft sent something")
 }
 
 /// A log's IR heights (log time, value) in time order, straight from the decoded fields as the

@@ -43,15 +43,7 @@ struct LoadedLog {
 /// `ac_id` names one, [`Series::of`]), and checks it has flights with sonar readings in them.
 fn load(file: &Path, ac_id: Option<u8>) -> anyhow::Result<LoadedLog> {
     let log = FlightLog::open(file).map_err(|e| BadInput(e.into()))?;
-    let ac_id = match ac_id {
-        Some(a) => a,
-        None => log
-            .senders()
-            .into_iter()
-            .max_by_key(|(_, n)| *n)
-            .map(|(a, _)| a)
-            .ok_or_else(|| BadInput(anyhow::anyhow!("{}: no aircraft sent anything readable", file.display())))?,
-    };
+    let ac_id = twinswarm::logcmd::aircraft_of(&log, ac_id, file)?;
     let series = Series::of(&log, ac_id);
     let flights = bridge::realflight::flights(&series);
     if flights.is_empty() {

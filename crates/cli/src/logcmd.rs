@@ -214,18 +214,25 @@ pub fn summarise(path: &Path) -> anyhow::Result<String> {
     Ok(out)
 }
 
+/// The aircraft a command reads from a Paparazzi log (`log import`, `validate`, `fit`): `ac_id`
+/// if given, else the one that sent the most.
+pub fn aircraft_of(
+    log: &bridge::paparazzi::flightlog::FlightLog,
+    ac_id: Option<u8>,
+    file: &Path,
+) -> anyhow::Result<u8> {
+    match ac_id {
+        Some(a) => Ok(a),
+        None => log
+            .busiest_sender()
+            .ok_or_else(|| BadInput(anyhow::anyhow!("{}: no aircraft sent anything readable", file.display())).into()),
+    }
+}
+
 /// `twinswarm log import`: a Paparazzi log as an MCAP log.
 pub fn import(file: &Path, out: Option<&Path>, ac_id: Option<u8>) -> anyhow::Result<()> {
     let log = bridge::paparazzi::flightlog::FlightLog::open(file).map_err(|e| BadInput(e.into()))?;
-    let ac_id = match ac_id {
-        Some(a) => a,
-        None => log
-            .senders()
-            .into_iter()
-            .max_by_key(|(_, n)| *n)
-            .map(|(a, _)| a)
-            .ok_or_else(|| BadInput(anyhow::anyhow!("{}: no aircraft sent anything readable", file.display())))?,
-    };
+    let ac_id = aircraft_of(&log, ac_id, file)?;
     let default_out;
     let out = match out {
         Some(o) => o,

@@ -229,13 +229,7 @@ pub struct ValidateReport {
 pub fn run(args: ValidateArgs) -> anyhow::Result<()> {
     let started = Instant::now();
     let log = FlightLog::open(&args.file).map_err(|e| BadInput(e.into()))?;
-    let ac_id =
-        match args.ac_id {
-            Some(a) => a,
-            None => log.senders().into_iter().max_by_key(|(_, n)| *n).map(|(a, _)| a).ok_or_else(|| {
-                BadInput(anyhow::anyhow!("{}: no aircraft sent anything readable", args.file.display()))
-            })?,
-        };
+    let ac_id = twinswarm::logcmd::aircraft_of(&log, args.ac_id, &args.file)?;
     // A unit the values contradict is said before anything is read from them (and even where
     // no flight is found); the values are never rescaled to agree.
     let unit_warnings: Vec<UnitWarning> = bridge::realflight::ir_unit_check(&log, ac_id).into_iter().collect();

@@ -343,6 +343,11 @@ impl FlightLog {
         out
     }
 
+    /// The aircraft that sent the most records: the one a log of one flight is about.
+    pub fn busiest_sender(&self) -> Option<AcId> {
+        self.senders().into_iter().max_by_key(|(_, n)| *n).map(|(a, _)| a)
+    }
+
     /// Log time of the first and last record, s.
     pub fn span_s(&self) -> Option<(f64, f64)> {
         Some((self.records.first()?.time_s, self.records.last()?.time_s))
