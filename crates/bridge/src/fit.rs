@@ -1292,6 +1292,12 @@ mod tests {
         let g = gravity_m_s2();
         let (half_l, half_w) = (1.9, 1.35);
         let mut k = (phase * 1000.0) as u64;
+        // Standing level on the floor for 3 s before the take-off: the level is zero.
+        for s in 0..30 {
+            let t = t_start - 3.0 + f64::from(s) * 0.1;
+            series.sensors.push(Sample { t_s: t, sonar_m: None, ir_m: Some(0.2), rpy_rad: None });
+            series.attitude.push(Sample { t_s: t, sonar_m: None, ir_m: None, rpy_rad: Some([0.0; 3]) });
+        }
         let steps = (duration_s / 0.01).round() as u64;
         for s in 0..=steps {
             let t = s as f64 * 0.01;

@@ -434,12 +434,67 @@ fn mode_m(v: &[f32]) -> Option<f32> {
     Some((*bin as f32 + 0.5) * 0.05)
 }
 
-/// The roll and pitch the AHRS read standing on the floor before `flight` (medians over the
-/// 3 s before take-off, up to 0.3 s before it), rad.
+/// The copter stands on the floor while its IR reads within this of its reading on the ground
+/// ([`ground_ir_m`]), m: below [`AIRBORNE_ABOVE_GROUND_M`], so that a hover low in ground
+/// effect before the take-off is not taken for standing.
+pub const ON_FLOOR_WITHIN_M: f32 = 0.04;
+/// The floor's level is sought this far back before a take-off, s.
+pub const LEVEL_LOOKBACK_S: f64 = 30.0;
+/// The level is the median over this much of the last standing before the take-off, s.
+pub const LEVEL_WINDOW_S: f64 = 3.0;
+
+/// The roll and pitch the AHRS read standing on the floor before `flight`, rad: the medians over
+/// the last [`LEVEL_WINDOW_S`] of attitude samples whose latest IR reading (at most 0.5 s
+/// older) says the copter stood on the floor ([`ON_FLOOR_WITHIN_M`]), within
+/// [`LEVEL_LOOKBACK_S`] before the take-off and up to 0.3 s before it. None where it never
+/// stood there then: a copter that hovered low for half a minute before its take-off shows no
+/// level, and the attitude it flew at is not one.
 pub fn ground_level(series: &Series, flight: &Flight) -> Option<[f32; 2]> {
-    let on_floor = |s: &&Sample| s.t_s >= flight.start_s - 3.0 && s.t_s <= flight.start_s - 0.3;
-    let rpy: Vec<[f32; 3]> = series.attitude.iter().filter(on_floor).filter_map(|s| s.rpy_rad).collect();
+    let ground = ground_ir_m(series)?;
+    let (from, to) = (flight.start_s - LEVEL_LOOKBACK_S, flight.start_s - 0.3);
+    let ir: Vec<(f64, f32)> = series
+        .sensors
+        .iter()
+        .filter(|s| s.t_s >= from - 0.5 && s.t_s <= to)
+        .filter_map(|s| Some((s.t_s, s.ir_m?)))
+        .collect();
+    let standing = |t: f64| {
+        let n = ir.partition_point(|(ti, _)| *ti <= t);
+        n.checked_sub(1).is_some_and(|i| t - ir[i].0 <= 0.5 && ir[i].1 <= ground + ON_FLOOR_WITHIN_M)
+    };
+    let on_floor: Vec<(f64, [f32; 3])> = series
+        .attitude
+        .iter()
+        .filter(|s| s.t_s >= from && s.t_s <= to && standing(s.t_s))
+        .filter_map(|s| Some((s.t_s, s.rpy_rad?)))
+        .collect();
+    let last = on_floor.last()?.0;
+    let rpy: Vec<[f32; 3]> = on_floor.iter().filter(|(t, _)| *t >= last - LEVEL_WINDOW_S).map(|(_, r)| *r).collect();
     Some([median(rpy.iter().map(|r| r[0]).collect())?, median(rpy.iter().map(|r| r[1]).collect())?])
+}
+
+/// A copter whose yaw spans more than this in a flight turned: its front + back and
+/// left + right sums mix the arena's two sides, deg.
+pub const TURNED_DEG: f32 = 30.0;
+
+/// How far the copter turned in `flight`: the span of its AHRS yaw about the flight's circular
+/// mean, 5th to 95th percentile, deg (0 without attitude).
+pub fn yaw_span_deg(series: &Series, flight: &Flight) -> f32 {
+    let yaws: Vec<f32> = series
+        .attitude
+        .iter()
+        .filter(|s| s.t_s >= flight.start_s && s.t_s <= flight.end_s)
+        .filter_map(|s| s.rpy_rad.map(|r| r[2]))
+        .filter(|y| y.is_finite())
+        .collect();
+    let (sin, cos) = yaws.iter().fold((0.0f32, 0.0f32), |(s, c), y| (s + y.sin(), c + y.cos()));
+    let mean = sin.atan2(cos);
+    let mut d: Vec<f32> = yaws.iter().map(|y| sim_core::math::wrap_angle_rad(y - mean)).collect();
+    d.sort_by(f32::total_cmp);
+    match (d.get(d.len() / 20), d.get(d.len() * 19 / 20)) {
+        (Some(lo), Some(hi)) => (hi - lo).to_degrees(),
+        _ => 0.0,
+    }
 }
 
 /// Where a flight began, in an arena `[long, short]` centred on the origin with its long side
@@ -595,6 +650,36 @@ mod tests {
         assert!((f.start_s - take_off).abs() <= 1.0, "starts at the take-off ({take_off} s): {f:?}");
         assert!(f.start_s > 18.5, "not at motors-on (2 s) nor at the hops (16 s): {f:?}");
         assert!((39.5..41.0).contains(&f.end_s), "ends at the landing: {f:?}");
+    }
+
+    #[test]
+    fn the_level_is_the_attitude_standing_on_the_floor_not_a_low_hover_before_the_take_off() {
+        // Standing tilted 0.02 rad until 10 s; from 10 s a hover low in ground effect (0.27 m,
+        // under the take-off's 0.3 m) at roll −0.09; the take-off at 19 s.
+        let at = |t: f64| match t {
+            t if t < 10.0 => (floor_m(t), 0.02),
+            t if t < 19.0 => (0.27, -0.09),
+            _ => (0.6, 0.0),
+        };
+        let with_attitude = |mut s: Series| {
+            s.attitude = s.sensors.iter().filter(|x| x.rpy_rad.is_some()).cloned().collect();
+            s
+        };
+        let s = with_attitude(series(40.0, at, |_| true));
+        let fl = flights(&s);
+        assert_eq!(fl.len(), 1, "{fl:?}");
+        let level = ground_level(&s, &fl[0]).expect("a level");
+        assert!((level[0] - 0.02).abs() < 1e-6, "the standing roll, not the hover's: {level:?}");
+        // Hovering low for longer than the look-back: no level at all rather than a wrong one.
+        let at = |t: f64| match t {
+            t if t < 5.0 => (floor_m(t), 0.02),
+            t if t < 5.0 + LEVEL_LOOKBACK_S + 1.0 => (0.27, -0.09),
+            _ => (0.6, 0.0),
+        };
+        let s = with_attitude(series(60.0, at, |_| true));
+        let fl = flights(&s);
+        assert_eq!(fl.len(), 1, "{fl:?}");
+        assert_eq!(ground_level(&s, &fl[0]), None);
     }
 
     #[test]

@@ -82,6 +82,17 @@ pub struct SyncOptions {
     pub trim_gain_rad_per_m_s: f64,
     /// Largest attitude trim, rad.
     pub max_trim_rad: f64,
+    /// The time constant of the hold trim, s (0 turns it off). The trim is the attitude at
+    /// which the real copter holds still, less its level on the floor: over a window,
+    /// mean(a)/g + k·mean(v)/g − mean(attitude target), per axis, with the acceleration and
+    /// velocity from MEDUSA's confident estimates (where there are none, the copter is taken to
+    /// have held its speed: a copter that stays in its arena accelerates little on average).
+    /// An unknown trim of 3° (a copter standing askew, unequal rotors) flies a twin 1.5 m off
+    /// in 2 s.
+    pub hold_trim_time_constant_s: f64,
+    /// The hold trim starts at zero worth this much flight, s: the level taken on the floor
+    /// holds until the flight says otherwise.
+    pub hold_trim_prior_s: f64,
 }
 
 impl Default for SyncOptions {
@@ -97,12 +108,16 @@ impl Default for SyncOptions {
             medusa_outlier_probability: 0.05,
             // A 0.2 s time constant: about four MEDUSA estimates (docs/mixed-reality.md).
             gain_per_s: 5.0,
-            max_speed_m_s: 0.3,
+            // Faster than a twin with half a degree of trim error drifts after 3 s; chosen on
+            // the shared real flights (docs/real-flights.md: 0.3 m/s lost four of them).
+            max_speed_m_s: 0.8,
             min_confidence: 0.3,
             source_timeout_s: 1.0,
             yaw_sigma_rad: 2f64.to_radians(),
             trim_gain_rad_per_m_s: 0.02,
             max_trim_rad: 6f64.to_radians(),
+            hold_trim_time_constant_s: 10.0,
+            hold_trim_prior_s: 2.0,
         }
     }
 }
@@ -110,7 +125,7 @@ impl Default for SyncOptions {
 impl SyncOptions {
     /// No correction at all: the twin is command prediction only.
     pub fn off() -> Self {
-        Self { medusa: false, tracking: false, ..Self::default() }
+        Self { medusa: false, tracking: false, hold_trim_time_constant_s: 0.0, ..Self::default() }
     }
 }
 
@@ -166,7 +181,81 @@ struct TwinTracker {
     attitude_command: Option<[f32; 2]>,
     /// Learnt pitch and roll trim, rad.
     trim: [f64; 2],
+    /// The hold trim's running sums.
+    hold: HoldTrim,
     stats: SyncStats,
+}
+
+/// The hold trim's exponentially weighted sums ([`SyncOptions::hold_trim_time_constant_s`]),
+/// per body axis (forward, left).
+#[derive(Clone, Debug)]
+struct HoldTrim {
+    /// The twin's linear damping, 1/s.
+    damping_per_s: f64,
+    /// Weight, s (the prior included).
+    weight_s: f64,
+    /// Σ dt · (pitch, roll) target, rad·s.
+    target: [f64; 2],
+    /// Σ Δv between confident MEDUSA estimates (at most a second apart), m/s.
+    dv: [f64; 2],
+    /// Σ dt · the latest confident velocity, m.
+    v: [f64; 2],
+    /// The latest confident MEDUSA velocity (forward, left) and when it came, s.
+    last: Option<(f64, [f64; 2])>,
+}
+
+impl HoldTrim {
+    fn new(opts: &SyncOptions, damping_per_s: f64) -> Self {
+        HoldTrim {
+            damping_per_s,
+            weight_s: opts.hold_trim_prior_s,
+            target: [0.0; 2],
+            dv: [0.0; 2],
+            v: [0.0; 2],
+            last: None,
+        }
+    }
+
+    /// (pitch, roll) trim, rad: pitch > 0 flies forward, roll > 0 flies right.
+    fn trim(&self) -> [f64; 2] {
+        if self.weight_s <= 0.0 {
+            return [0.0; 2];
+        }
+        let g = f64::from(sim_core::math::GRAVITY_M_S2);
+        let acc = |k: usize| (self.dv[k] + self.damping_per_s * self.v[k]) / g;
+        [(acc(0) - self.target[0]) / self.weight_s, (-acc(1) - self.target[1]) / self.weight_s]
+    }
+
+    /// One control step while the twin flies its `target` (pitch, roll).
+    fn step(&mut self, tau_s: f64, dt: f64, t: f64, target: [f32; 2]) {
+        let decay = (-dt / tau_s).exp();
+        self.weight_s = decay * self.weight_s + dt;
+        let v = self.last.filter(|(at, _)| t - at <= 1.0).map_or([0.0; 2], |(_, v)| v);
+        for k in 0..2 {
+            self.target[k] = decay * self.target[k] + dt * f64::from(target[k]);
+            self.dv[k] *= decay;
+            self.v[k] = decay * self.v[k] + dt * v[k];
+        }
+    }
+
+    /// A confident MEDUSA velocity (forward, left), m/s, at `t`.
+    fn velocity(&mut self, t: f64, v: [f64; 2]) {
+        if let Some((_, before)) = self.last.filter(|(at, _)| t - at <= 1.0) {
+            for k in 0..2 {
+                self.dv[k] += v[k] - before[k];
+            }
+        }
+        self.last = Some((t, v));
+    }
+}
+
+impl TwinTracker {
+    /// The trim added to the twin's pitch and roll targets: the one learnt from the velocity
+    /// difference plus the hold trim, each axis within `max_rad`, rad.
+    fn total_trim(&self, max_rad: f64) -> [f64; 2] {
+        let hold = self.hold.trim();
+        [0, 1].map(|k| (self.trim[k] + hold[k]).clamp(-max_rad, max_rad))
+    }
 }
 
 /// Synchronisation of every twin of a run. Runs on the loop thread.
@@ -301,6 +390,7 @@ impl TwinSync {
                 yaw_bias: None,
                 attitude_command: None,
                 trim: [0.0; 2],
+                hold: HoldTrim::new(opts, f64::from(world.airframes[world.copters[id].airframe].spec.linear_damping)),
                 stats,
             }
         })
@@ -348,8 +438,9 @@ impl TwinSync {
                 cmd.yaw_rad = sim_core::math::wrap_angle_rad(yaw - bias as f32);
             }
             if let Some([p, r]) = tr.attitude_command {
-                cmd.pitch_rad = p + tr.trim[0] as f32;
-                cmd.roll_rad = r + tr.trim[1] as f32;
+                let trim = tr.total_trim(self.opts.max_trim_rad);
+                cmd.pitch_rad = p + trim[0] as f32;
+                cmd.roll_rad = r + trim[1] as f32;
             }
         }
     }
@@ -415,6 +506,11 @@ impl TwinSync {
             if state.copters[id].crash.is_some() {
                 continue;
             }
+            let c = &state.copters[id];
+            let hold = opts.hold_trim_time_constant_s > 0.0 && c.took_off_tick.is_some() && !c.grounded;
+            if let (true, Some(target)) = (hold, tr.attitude_command) {
+                tr.hold.step(opts.hold_trim_time_constant_s, dt, t, target);
+            }
             let now_xy = xy(state.pose(id).pos_m);
             tr.history.push_back((t, now_xy));
             while tr.history.front().is_some_and(|(ht, _)| t - ht > 3.0) {
@@ -443,10 +539,14 @@ impl TwinSync {
                     // Trim: a steady velocity difference is a tilt difference (at steady state
                     // g·tan(tilt) = damping·v), in the twin's body frame (forward, left);
                     // pitch > 0 flies forward, roll > 0 flies right.
+                    let yaw = f64::from(state.pose(id).rpy_rad[2]);
+                    let (sy, cy) = yaw.sin_cos();
+                    if hold && est.confidence >= opts.min_confidence {
+                        let v = est.vel_in_world_mps;
+                        tr.hold.velocity(t, [cy * v.x + sy * v.y, -sy * v.x + cy * v.y]);
+                    }
                     if est.confidence >= opts.min_confidence && opts.trim_gain_rad_per_m_s > 0.0 {
                         let dv = est.vel_in_world_mps - xy(state.pose(id).vel_m_s);
-                        let yaw = f64::from(state.pose(id).rpy_rad[2]);
-                        let (sy, cy) = yaw.sin_cos();
                         let (fwd, left) = (cy * dv.x + sy * dv.y, -sy * dv.x + cy * dv.y);
                         let k = opts.trim_gain_rad_per_m_s * drag / sim_core::math::GRAVITY_M_S2 as f64;
                         let m = opts.max_trim_rad;
@@ -505,7 +605,10 @@ impl TwinSync {
     pub fn stats(&self) -> BTreeMap<usize, SyncStats> {
         self.twins
             .iter()
-            .map(|(id, t)| (*id, SyncStats { trim_deg: t.trim.map(f64::to_degrees), ..t.stats.clone() }))
+            .map(|(id, t)| {
+                let trim_deg = t.total_trim(self.opts.max_trim_rad).map(f64::to_degrees);
+                (*id, SyncStats { trim_deg, ..t.stats.clone() })
+            })
             .collect()
     }
 }
@@ -577,6 +680,69 @@ mod tests {
         sync.on_command(&world, &state, 0, Some(-0.02), Some(0.04), None);
         sync.adjust_commands(&mut inputs);
         assert_eq!((inputs.commands[0].pitch_rad, inputs.commands[0].roll_rad), (-0.02, 0.04));
+    }
+
+    #[test]
+    fn the_hold_trim_learns_the_attitude_at_which_the_real_copter_holds_still() {
+        let world = one_twin();
+        let opts = SyncOptions { medusa: false, tracking: false, ..SyncOptions::default() };
+        let steps_of = |s: f64| (s / world.params.control_dt_s).round() as usize;
+        // The real copter holds still pitched 3° and rolled −2° from its level on the floor
+        // (unequal rotors): its telemetry says so throughout.
+        let (p, r) = (3f32.to_radians(), -2f32.to_radians());
+        let fly = |opts: SyncOptions, airborne_s: f64| {
+            let (mut state, mut inputs) = (world.initial_state(), world.initial_inputs());
+            let (state, inputs) = (&mut state, &mut inputs);
+            let mut sync = TwinSync::new(&world, opts).unwrap();
+            sync.on_command(&world, state, 0, Some(p), Some(r), None);
+            // On the floor nothing is learnt.
+            for _ in 0..steps_of(2.0) {
+                state.tick += 1;
+                sync.after_step(&world, state, inputs);
+            }
+            state.copters[0].took_off_tick = Some(state.tick);
+            state.copters[0].grounded = false;
+            for _ in 0..steps_of(airborne_s) {
+                state.tick += 1;
+                sync.after_step(&world, state, inputs);
+            }
+            sync.adjust_commands(inputs);
+            [inputs.commands[0].pitch_rad, inputs.commands[0].roll_rad]
+        };
+        assert_eq!(fly(opts.clone(), 0.0), [p, r], "nothing learnt yet");
+        // Three time constants in the air: the twin flies within 0.1° of level.
+        let [tp, tr] = fly(opts.clone(), 30.0);
+        assert!(
+            tp.to_degrees().abs() < 0.1 && tr.to_degrees().abs() < 0.1,
+            "{}° {}°",
+            tp.to_degrees(),
+            tr.to_degrees()
+        );
+        // Turned off, the targets fly as they came.
+        let off = SyncOptions { hold_trim_time_constant_s: 0.0, ..opts };
+        assert_eq!(fly(off, 30.0), [p, r]);
+    }
+
+    #[test]
+    fn the_hold_trim_takes_off_what_the_copters_own_acceleration_explains() {
+        // Pitched just enough to accelerate at 0.3 m/s² for 20 s, MEDUSA's velocity saying so
+        // every 0.1 s: no trim. Without the velocities the whole pitch is taken for trim.
+        let g = f64::from(sim_core::math::GRAVITY_M_S2);
+        let (a, dt) = (0.3, 0.01);
+        let pitch = (a / g) as f32;
+        let opts = SyncOptions::default();
+        let (mut seen, mut blind) = (HoldTrim::new(&opts, 0.0), HoldTrim::new(&opts, 0.0));
+        for i in 0..2000 {
+            let t = f64::from(i) * dt;
+            seen.step(opts.hold_trim_time_constant_s, dt, t, [pitch, 0.0]);
+            blind.step(opts.hold_trim_time_constant_s, dt, t, [pitch, 0.0]);
+            if i % 10 == 0 {
+                seen.velocity(t, [a * t, 0.0]);
+            }
+        }
+        assert!(seen.trim()[0].to_degrees().abs() < 0.1, "{}°", seen.trim()[0].to_degrees());
+        let expect = -f64::from(pitch);
+        assert!((blind.trim()[0] - expect).abs() < 0.1 * expect.abs(), "{} against {expect}", blind.trim()[0]);
     }
 
     #[test]

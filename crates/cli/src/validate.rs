@@ -81,6 +81,10 @@ pub struct ValidateArgs {
     /// The sync correction's largest speed, m/s.
     #[arg(long, value_name = "M_S", default_value_t = bridge::sync::SyncOptions::default().max_speed_m_s)]
     pub sync_max_speed: f64,
+    /// The time constant of the sync's hold trim (the running mean of the attitude targets
+    /// taken off them), s; 0 turns it off.
+    #[arg(long, value_name = "S", default_value_t = bridge::sync::SyncOptions::default().hold_trim_time_constant_s)]
+    pub hold_trim_s: f64,
     /// Which telemetry sets the twin's attitude targets (`measured`: the AHRS, what the copter
     /// did; `setpoint`: what it asked for, where the log has it).
     #[arg(long, value_name = "SOURCE", default_value = "measured", value_parser = crate::parse_twin_attitude)]
@@ -172,6 +176,10 @@ pub struct FlightReport {
     pub start: StartPose,
     /// Which messages drove the twin (`quantity ← messages`).
     pub sources: String,
+    /// How far the copter turned in the flight (its yaw, 5th to 95th percentile), deg.
+    pub turned_deg: f32,
+    /// What the sync correction did for the synced twin.
+    pub sync: Option<bridge::sync::SyncStats>,
     /// The twin with the sync correction (MEDUSA on the real sonars).
     pub synced: Metrics,
     /// The twin predicting from the telemetry alone.
@@ -228,6 +236,16 @@ pub struct ValidateReport {
 /// Runs `twinswarm validate`.
 pub fn run(args: ValidateArgs) -> anyhow::Result<()> {
     let started = Instant::now();
+    for (flag, v) in [
+        ("--stray-m", args.stray_m),
+        ("--sync-gain", args.sync_gain),
+        ("--sync-max-speed", args.sync_max_speed),
+        ("--hold-trim-s", args.hold_trim_s),
+    ] {
+        if !(v.is_finite() && v >= 0.0) {
+            return Err(BadInput(anyhow::anyhow!("{flag} {v}: must be a number at least 0")).into());
+        }
+    }
     let log = FlightLog::open(&args.file).map_err(|e| BadInput(e.into()))?;
     let ac_id = twinswarm::logcmd::aircraft_of(&log, args.ac_id, &args.file)?;
     // A unit the values contradict is said before anything is read from them (and even where
@@ -375,6 +393,7 @@ fn validate_flight(
         tracking: false,
         gain_per_s: args.sync_gain,
         max_speed_m_s: args.sync_max_speed,
+        hold_trim_time_constant_s: args.hold_trim_s,
         ..Default::default()
     };
     for sync in [Some(synced), None] {
@@ -398,7 +417,18 @@ fn validate_flight(
     }
     // The plots' series cost a sonar cone per sample and trace: only when plots are asked for.
     let curves = if args.plots.is_some() { scorer.curves(&traces) } else { Curves::default() };
-    Ok(FlightReport { index, flight, start, sources: runs[0].sources.clone(), synced, unsynced, vrep, curves })
+    Ok(FlightReport {
+        index,
+        flight,
+        start,
+        sources: runs[0].sources.clone(),
+        turned_deg: bridge::realflight::yaw_span_deg(series, &flight),
+        sync: runs[0].sync.clone(),
+        synced,
+        unsynced,
+        vrep,
+        curves,
+    })
 }
 
 /// The arena with the twin at the flight's start, on the floor.
@@ -421,6 +451,8 @@ struct Flown {
     sources: String,
     /// When (log time, s) and why it crashed.
     crash: Option<(f64, String)>,
+    /// What the sync correction did (with it on).
+    sync: Option<bridge::sync::SyncStats>,
 }
 
 /// Plays the log's texts into the step loop at their recorded times and records the twin.
@@ -496,7 +528,7 @@ fn fly_twin(
     };
     let opts = LoopOptions { realtime: false, ticks: world.default_ticks(), sync, ..Default::default() };
     let stop = AtomicBool::new(false);
-    let (world2, state, _stats, player) = bridge::sim::run_watched(
+    let (world2, state, stats, player) = bridge::sim::run_watched(
         world.clone(),
         world.initial_state(),
         world.initial_inputs(),
@@ -513,7 +545,8 @@ fn fly_twin(
     let end_s = player.trace.last().map_or(t0, |p| p.t_s);
     let crash = player.crash.clone().or_else(|| state.copters[0].crash.map(|c| (end_s, format!("{c:?}"))));
     let _ = world2;
-    Ok(Flown { trace: player.trace, sources, crash })
+    let sync = stats.sync.into_iter().next().map(|(_, s)| s);
+    Ok(Flown { trace: player.trace, sources, crash, sync })
 }
 
 /// Holds a twin's trace against the real copter's measurements over one flight.
@@ -762,6 +795,23 @@ impl FlightReport {
                 m.consistent_share * 100.0
             );
         }
+        if let Some(y) = &self.sync {
+            s += &format!(
+                "    sync: {} MEDUSA estimates, {} not used (confidence under {}); trim {:.1}° pitch, {:.1}° roll\n",
+                y.medusa_updates,
+                y.medusa_rejected,
+                bridge::sync::SyncOptions::default().min_confidence,
+                y.trim_deg[0],
+                y.trim_deg[1]
+            );
+        }
+        if self.turned_deg > bridge::realflight::TURNED_DEG {
+            s += &format!(
+                "    the copter turned {:.0}° in this flight: its front + back and left + right sums mix the \
+                 arena's sides, so an arena derived from them or its start may be wrong (give the room with --scene)\n",
+                self.turned_deg
+            );
+        }
         if let Some(v) = &self.vrep {
             s += &format!(
                 "    (v-rep: log {:.1}-{:.1} s; t_log = {:.2} s + {:.4} × its time, {})\n",
@@ -968,6 +1018,13 @@ mod tests {
             flight: FLIGHT,
             start,
             sources: "attitude ← FINKEN_SENSOR_MODEL".into(),
+            turned_deg: 10.0,
+            sync: Some(bridge::sync::SyncStats {
+                medusa_updates: 36,
+                medusa_rejected: 30,
+                trim_deg: [1.5, -0.5],
+                ..Default::default()
+            }),
             unsynced: score(hover, hover, None),
             synced,
             vrep: None,
@@ -976,6 +1033,11 @@ mod tests {
         let text = report.to_text(0.5);
         assert!(text.contains("twin (sync on) crashed: Wall at log 20.0 s (10.0 s after take-off)"), "{text}");
         assert!(!text.contains("sync off) crashed"), "{text}");
+        assert!(text.contains("sync: 36 MEDUSA estimates, 30 not used"), "{text}");
+        assert!(text.contains("trim 1.5° pitch, -0.5° roll"), "{text}");
+        assert!(!text.contains("turned"), "a copter that turned 10° kept its heading: {text}");
+        let turned = FlightReport { turned_deg: 110.0, ..report.clone() };
+        assert!(turned.to_text(0.5).contains("the copter turned 110° in this flight"), "{}", turned.to_text(0.5));
         let json = serde_json::to_value(&report).expect("json");
         assert_eq!(json["synced"]["crash"]["cause"], "Wall", "{json}");
         assert_eq!(json["synced"]["crash"]["t_s"], 20.0, "{json}");

@@ -124,6 +124,56 @@ fn every_shared_log_imports_as_a_log_whose_sonars_and_attitude_plot() {
     let _ = std::fs::remove_dir_all(&tmp);
 }
 
+/// Every flight of 10 s or more of every shared log: the synced twin consistent with the real
+/// sonars for at least 80 % of it, or the report shows why it cannot be: the copter turned in
+/// flight (its sums mix the arena's sides) and MEDUSA found no confident fix for most of its
+/// estimates. Each such flight is named here, so that a newly failing one fails the test
+/// (docs/real-flights.md, "Every shared flight").
+#[test]
+fn every_shared_flight_keeps_its_synced_twin_consistent_or_says_why_not() {
+    const EXCUSED: [&str; 1] = ["FreeFlight_MC32/second"];
+    let shared = shared_or_skip!();
+    let tmp = std::env::temp_dir().join(format!("twinswarm-validate-all-{}", std::process::id()));
+    std::fs::create_dir_all(&tmp).expect("tmp");
+    let logs: Vec<_> = common::files_with_extension(&shared.join("finken_flights"), "data")
+        .into_iter()
+        .filter(|data| data.with_extension("log").is_file())
+        .collect();
+    let (mut scored, mut excused) = (0, Vec::new());
+    for data in &logs {
+        let name = data.strip_prefix(&shared).unwrap_or(data.as_path()).display().to_string();
+        let out = twinswarm(&["validate", data.to_str().unwrap_or_default(), "--json"], &tmp);
+        if !out.status.success() {
+            // Logs in which the copter never flew (turned by hand, motors off) say so.
+            let err = String::from_utf8_lossy(&out.stderr);
+            assert!(err.contains("no flight in the log"), "{name}: {err}");
+            continue;
+        }
+        let r = json_of(&out);
+        for f in r["flights"].as_array().expect("flights") {
+            let synced = &f["synced"];
+            if synced["span_s"].as_f64().is_none_or(|s| s < 10.0) {
+                continue;
+            }
+            scored += 1;
+            let share = synced["consistent_share"].as_f64().unwrap_or(0.0);
+            if share >= 0.8 {
+                continue;
+            }
+            let why = format!("{name} flight {}: consistent {:.0} % ({f})", f["index"], share * 100.0);
+            assert!(EXCUSED.iter().any(|e| name.contains(e)), "{why}");
+            let turned = f["turned_deg"].as_f64().unwrap_or(0.0);
+            let (used, rejected) = (f["sync"]["medusa_updates"].as_u64(), f["sync"]["medusa_rejected"].as_u64());
+            assert!(turned > 30.0, "{why}: it did not turn");
+            assert!(used.zip(rejected).is_some_and(|(u, r)| 2 * r > u), "{why}: MEDUSA was confident");
+            excused.push(name.clone());
+        }
+    }
+    assert!(scored >= 12, "{scored} flights of 10 s or more");
+    assert_eq!(excused.len(), EXCUSED.len(), "an excused flight that passes is no longer excused: {excused:?}");
+    let _ = std::fs::remove_dir_all(&tmp);
+}
+
 #[test]
 fn a_data_file_without_its_log_is_a_clear_error() {
     let shared = shared_or_skip!();
@@ -168,4 +218,16 @@ fn a_small_log_of_our_own_with_a_torn_line_imports_and_validates() {
     assert_eq!(bad.status.code(), Some(2));
     assert!(String::from_utf8_lossy(&bad.stderr).contains("log import"), "{}", String::from_utf8_lossy(&bad.stderr));
     let _ = std::fs::remove_dir_all(&tmp);
+}
+
+#[test]
+fn a_sync_setting_that_is_no_number_is_a_clear_error() {
+    // Checked before the log is read: no shared data needed.
+    for (flag, v) in [("--hold-trim-s", "-1"), ("--sync-max-speed", "NaN"), ("--sync-gain", "inf")] {
+        let arg = format!("{flag}={v}");
+        let out = twinswarm(&["validate", "nowhere.data", arg.as_str()], &std::env::temp_dir());
+        assert_eq!(out.status.code(), Some(2), "{}", String::from_utf8_lossy(&out.stderr));
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert!(err.contains(&format!("{flag} {v}: must be a number at least 0")), "{err}");
+    }
 }
