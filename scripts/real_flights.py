@@ -37,6 +37,7 @@ import json
 import math
 import os
 import pathlib
+import re
 import sys
 import xml.etree.ElementTree as ET
 
@@ -519,29 +520,74 @@ def longest_run(mask, t, max_dip=2.0):
     return max(runs, key=lambda ab: t[ab[1]] - t[ab[0]])
 
 
-def battery_report(path):
+def thrust_compensation(firmware_dir, ac_id):
+    """The firmware's battery compensation for aircraft `ac_id` (`finken_model_actuators.c`,
+    `compensate_battery_drop`): FINKEN_ACTUATORS_MODEL.thrust = FINKEN_ACTUATORS_SET_POINT.thrust
+    + (THRUST_LOW - THRUST_DEFAULT) * (84 - vsupply) / (84 - 65), vsupply in decivolts, the
+    result clamped to [0.2, 1.0]; the two constants from the aircraft's `<ac_id>_param.xml`.
+    Returns (low, default) or None where the firmware copy is absent."""
+    f = firmware_dir / "conf" / "modules" / "finken_model" / f"{ac_id}_param.xml"
+    if not f.is_file():
+        return None
+    text = f.read_text()
+    get = lambda name: float(re.search(rf'name="{name}"\s+value="([^"]+)"', text).group(1))
+    return get("THRUST_LOW"), get("THRUST_DEFAULT")
+
+
+def battery_fit(t, v, thr, a, b):
+    k = (t >= t[a] + 10) & (t <= t[b] - 5)
+    fit = np.polyfit(v[k], thr[k], 1)
+    resid = thr[k] - np.polyval(fit, v[k])
+    first, last = k & (t < t[a] + 20), k & (t > t[b] - 15)
+    # thrust ∝ V^-p: the slope of log thrust against log V.
+    p = -np.polyfit(np.log(v[k]), np.log(thr[k]), 1)[0]
+    return {"thrust_a": r(fit[1], 4), "thrust_b_per_V": r(fit[0], 4),
+            "r": r(np.corrcoef(v[k], thr[k])[0, 1], 3), "resid_std": r(resid.std(), 4),
+            "thrust_start": r(np.median(thr[first]), 3), "thrust_end": r(np.median(thr[last]), 3),
+            "rise_pct": r(100 * (np.median(thr[last]) / np.median(thr[first]) - 1), 0),
+            "power_of_V": r(p, 2)}
+
+
+def battery_report(path, firmware_dir):
+    """Both thrust columns of a battery flight: the one the file carries and the other one
+    worked out by the firmware's own compensation (`thrust_compensation`), each fitted
+    thrust = a + b·V and as a power of V. A plotter export carries one of the two."""
     header, rows = read_csv(path, "\t")
     col = {h: i for i, h in enumerate(header)}
     thrust_col = next(h for h in header if h.endswith(":thrust"))
     t = np.array([float(x[col["Time"]]) for x in rows])
     thr = np.array([float(x[col[thrust_col]]) for x in rows])
-    v = np.array([float(x[col["ROTORCRAFT_STATUS:vsupply"]]) for x in rows]) / 10.0
+    dv = np.array([float(x[col["ROTORCRAFT_STATUS:vsupply"]]) for x in rows])
+    v = dv / 10.0
     z = np.array([float(x[col["FINKEN_SENSOR_MODEL:pos_z"]]) for x in rows])
     a, b = longest_run(z > 0.35, t)
     k = (t >= t[a] + 10) & (t <= t[b] - 5)
-    fit = np.polyfit(v[k], thr[k], 1)
-    resid = thr[k] - np.polyval(fit, v[k])
     first, last = k & (t < t[a] + 20), k & (t > t[b] - 15)
-    return {"file": path.name, "thrust_column": thrust_col, "rate_hz": r(1 / np.median(np.diff(t)), 1),
-            "takeoff": r(t[a], 1), "landing": r(t[b], 1), "duration_s": r(t[b] - t[a], 1),
-            "fit_window": [r(t[a] + 10, 1), r(t[b] - 5, 1)],
-            "thrust_a": r(fit[1], 4), "thrust_b_per_V": r(fit[0], 4),
-            "r": r(np.corrcoef(v[k], thr[k])[0, 1], 3), "resid_std": r(resid.std(), 4),
-            "V_start_loaded": r(np.median(v[first]), 2), "V_end_loaded": r(np.median(v[last]), 2),
-            "thrust_start": r(np.median(thr[first]), 3), "thrust_end": r(np.median(thr[last]), 3),
-            "V_rest_before": r(np.median(v[(t < t[a]) & (t > t[a] - 20)]), 2),
-            "V_rest_after": r(np.median(v[t > t[b] + 2]), 2) if (t > t[b] + 2).any() else None,
-            "height_m": describe(z[k], 3)}
+    ac_id = int(re.search(r"_ac(\d+)", path.name).group(1)) if re.search(r"_ac(\d+)", path.name) else 5
+    out = {"file": path.name, "thrust_column": thrust_col, "rate_hz": r(1 / np.median(np.diff(t)), 1),
+           "takeoff": r(t[a], 1), "landing": r(t[b], 1), "duration_s": r(t[b] - t[a], 1),
+           "fit_window": [r(t[a] + 10, 1), r(t[b] - 5, 1)],
+           "V_start_loaded": r(np.median(v[first]), 2), "V_end_loaded": r(np.median(v[last]), 2),
+           "V_rest_before": r(np.median(v[(t < t[a]) & (t > t[a] - 20)]), 2),
+           "V_rest_after": r(np.median(v[t > t[b] + 2]), 2) if (t > t[b] + 2).any() else None,
+           "height_m": describe(z[k], 3)}
+    comp = thrust_compensation(firmware_dir, ac_id)
+    columns = {thrust_col.split(":")[0]: thr}
+    if comp is not None:
+        low, default = comp
+        shift = (low - default) * (84 - dv) / (84 - 65)
+        if thrust_col.startswith("FINKEN_ACTUATORS_SET_POINT"):
+            columns["FINKEN_ACTUATORS_MODEL"] = np.clip(thr + shift, 0.2, 1.0)
+        else:
+            # Only where the motor command was not clamped can the set point be recovered.
+            columns["FINKEN_ACTUATORS_SET_POINT"] = np.where((thr > 0.2) & (thr < 1.0), thr - shift, np.nan)
+        out["compensation"] = {"ac_id": ac_id, "THRUST_LOW": low, "THRUST_DEFAULT": default,
+                               "model_minus_set_point_at_12V": r((low - default) * (84 - 120) / 19, 4)}
+    for name, values in columns.items():
+        ok = ~np.isnan(values)
+        fit = battery_fit(t[ok], v[ok], values[ok], *np.searchsorted(t[ok], [t[a], t[b]]).clip(0, ok.sum() - 1))
+        out[name] = dict(fit, logged=name == thrust_col.split(":")[0])
+    return out
 
 
 # --------------------------------------------------------------------------- 6 sonar noise
@@ -939,8 +985,9 @@ def run(data_dir):
         report["logs"][res[0]] = res[1]
         if stem.name == "15_12_16__13_55_00":
             rep_log = res[2]
+    firmware = data_dir.parent / "paparazzi" / "finken_firmware" / "flight_2015-12"
     for p in sorted((ff / "battery").glob("*.csv")):
-        report["battery"].append(battery_report(p))
+        report["battery"].append(battery_report(p, firmware))
     rep = report["logs"]["report_2015-12-16/15_12_16__13_55_00"]
     starts = start_positions(rep_log, rep["flights"])
     report["pooled_2015_12_16"] = pooled(rep_log, rep["flights"])
@@ -989,6 +1036,10 @@ def print_report(rep):
     print("\n=== battery")
     for b in rep["battery"]:
         print("  " + fmt(b))
+        for name in ("FINKEN_ACTUATORS_MODEL", "FINKEN_ACTUATORS_SET_POINT"):
+            if name in b:
+                print(f"    {name}{' (logged)' if b[name]['logged'] else ' (by the firmware compensation)'}: "
+                      + fmt(b[name]))
     print("\n=== 2015-12-16 pooled over flights:", json.dumps(rep["pooled_2015_12_16"]))
     print("\n=== arena 2015-12-16")
     print(json.dumps(rep["arena_2015_12_16"], indent=1))
