@@ -13,9 +13,9 @@ use std::sync::Arc;
 use std::sync::atomic::AtomicBool;
 use std::time::{Duration, Instant};
 
+use bridge::engine::{self, Frame, LoopOptions, Request};
 use bridge::mixed::{Gateway, OutboxOptions, Summary, TelemetryPlan, TwinAttitude, paired_copter};
 use bridge::paparazzi::pairing::Pose;
-use bridge::sim::{self, Frame, LoopOptions, Request};
 use bridge::wire::StateMsg;
 use bridge::zenoh_net::node::{self, Node};
 use sim_core::CopterKind;
@@ -76,7 +76,7 @@ fn main() {
     };
     let loop_thread = std::thread::spawn(move || {
         let (state, inputs) = (world.initial_state(), world.initial_inputs());
-        sim::run_watched(world, state, inputs, req_rx, Some(frame_tx), (), &stop_loop, &opts)
+        engine::run_watched(world, state, inputs, req_rx, Some(frame_tx), (), &stop_loop, &opts)
     });
     let publisher = rt.spawn(async move {
         while let Some(frame) = frame_rx.recv().await {

@@ -6,41 +6,44 @@
 //!   telemetry and twin commands, and the real Ivy wire protocol ([`paparazzi::ivy`]).
 //! * [`zenoh_net`]: the Zenoh node (state, sensors, commands, clock, queryables, liveliness),
 //!   Zenoh keys for Paparazzi texts, and the regex bus over Zenoh.
-//! * [`wire`]: the JSON messages of the bus (state, sensors, commands).
-//! * [`sim`]: the step loop on its own thread, bounded channels in and out, real-time pacing
-//!   against absolute deadlines.
+//! * [`ros2`]: ROS 2 over the node's Zenoh session, as rmw_zenoh lays it out.
+//! * [`wire`]: the JSON messages of the bus (state, sensors, commands), which every side speaks.
+//! * [`engine`]: one flight ([`engine::flight::Flight`], the engine every front end drives) and
+//!   the step loop on its own thread (bounded channels in and out, real-time pacing against
+//!   absolute deadlines, lockstep), what it is asked and gives out, the failsafe and
+//!   checkpoints.
 //! * [`mixed`]: mixed reality: real telemetry to twins, virtual sonar and virtual telemetry
 //!   back, over Zenoh, over Ivy, or both as a gateway.
+//! * [`link`]: when a real copter's telemetry arrives (the measured telemetry link).
+//! * [`sync`]: keeping twins where their real copters are (MEDUSA and tracking).
 //! * [`realflight`]: a real flight's Paparazzi log as series in the simulator's frame, its
 //!   flights, the arena its sonars describe and where each flight began.
 //! * [`fit`]: system identification of the horizontal flight model from real flights' sonars
 //!   and attitude, and the prediction errors it and the simpler models make.
-//! * [`sync`]: keeping twins where their real copters are (MEDUSA and tracking).
-//! * [`log`]: MCAP logs, their reader and recovery.
-//! * [`checkpoint`]: a run saved between two steps, bit for bit, and restored.
+//! * [`shard`]: a shard's link to its neighbours over Zenoh (ghosts, liveliness, barrier).
 //! * [`autopilot`]: copters flown by outside autopilots (Paparazzi NPS), in lockstep over TCP.
+//! * [`log`]: MCAP logs, their reader and recovery.
+//! * [`live`]: the live view (a Foxglove WebSocket server).
 //!
 //! **Architecture invariant:** the format modules never do I/O except reading the files they
-//! are asked to parse, and never panic on input. Only [`zenoh_net`] knows Zenoh; only
-//! [`paparazzi::ivy`] opens Ivy sockets; only [`sim`] runs the step loop, and it never blocks
-//! on publishing.
+//! are asked to parse, and never panic on input. Zenoh is spoken by [`zenoh_net`] (the node and
+//! the Paparazzi bus over Zenoh), [`ros2`] (its node, on the same session), [`shard`] (a shard's
+//! own link: publishers, subscribers and liveliness to its neighbours) and [`mixed`]'s gateway
+//! (it hands a session to [`zenoh_net`]'s bus and puts the Ivy texts it bridges); nothing else
+//! names `zenoh`. Only [`paparazzi::ivy`] opens Ivy sockets. Only [`engine`] steps the world
+//! (tests aside), and its loop never blocks on publishing.
 
 pub mod autopilot;
-pub mod checkpoint;
-pub mod failsafe;
+pub mod engine;
 pub mod fit;
-pub mod flight;
 pub mod link;
 pub mod live;
 pub mod log;
-mod loop_io;
 pub mod mixed;
 pub mod paparazzi;
 pub mod realflight;
-mod request;
 pub mod ros2;
 pub mod shard;
-pub mod sim;
 pub mod sync;
 pub mod wire;
 pub mod zenoh_net;

@@ -32,13 +32,13 @@ use sim_core::scene::{CommandSpec, CopterSpec, StartSpec};
 use sim_core::{CopterKind, FlightMode, SceneSpec, State, World};
 
 use crate::AcId;
+use crate::engine::request::{BusInput, Request};
 use crate::paparazzi::conf::AircraftKind;
 use crate::paparazzi::convert::{TelemetrySource, Uplink, telemetry_text, twin_command, uplink_text};
 use crate::paparazzi::ivy::IvyAgent;
 use crate::paparazzi::messages::MessageSet;
 use crate::paparazzi::pairing::{ResolvedPairing, Route, UnknownAircraftStats};
 use crate::paparazzi::telemetry::Telemetry;
-use crate::request::{BusInput, Request};
 use crate::wire::{CommandMsg, sensors_msg, state_msg};
 use crate::zenoh_net::pprz_bus::{ZenohBus, ZenohBusError};
 

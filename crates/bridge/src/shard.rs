@@ -94,7 +94,7 @@ pub enum OnLost {
     Stop,
     /// Hold at the barrier until it is back (its token and its batch), up to the barrier
     /// timeout: for a link that drops and returns. A shard process that died cannot return
-    /// (it is restarted from a checkpoint, with all the others: [`crate::checkpoint`]), and the
+    /// (it is restarted from a checkpoint, with all the others: [`crate::engine::checkpoint`]), and the
     /// hold ends at the timeout.
     Hold,
 }

@@ -3,9 +3,9 @@
 
 use std::path::PathBuf;
 
-use bridge::checkpoint::{self, CheckpointError, CheckpointOptions, Checkpointer, RunKey};
-use bridge::flight::{Flight, Recorder};
-use bridge::sim::LoopOptions;
+use bridge::engine::LoopOptions;
+use bridge::engine::checkpoint::{self, CheckpointError, CheckpointOptions, Checkpointer, RunKey};
+use bridge::engine::flight::{Flight, Recorder};
 use sim_core::shard::{Partition, step_in_process};
 use sim_core::{State, World};
 

@@ -8,8 +8,8 @@ use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
-use bridge::failsafe::{ClientLostAction, FailsafeEvent, FailsafeKind, FailsafeOptions};
-use bridge::sim::{self, BusInput, Frame, LoopOptions, Request, StepObserver};
+use bridge::engine::failsafe::{ClientLostAction, FailsafeEvent, FailsafeKind, FailsafeOptions};
+use bridge::engine::{self, BusInput, Frame, LoopOptions, Request, StepObserver};
 use bridge::wire::CommandMsg;
 use bridge::zenoh_net::node::{self, Node};
 use net::{eventually, free_port, within};
@@ -105,7 +105,7 @@ fn a_silent_twin_holds_then_lands_and_follows_again_when_telemetry_returns() {
     let looper = std::thread::spawn(move || {
         let obs = recorder;
         let (state, inputs) = (world.initial_state(), world.initial_inputs());
-        sim::run_watched(world, state, inputs, rx, None, obs, &loop_stop, &opts)
+        engine::run_watched(world, state, inputs, rx, None, obs, &loop_stop, &opts)
     });
     // Telemetry at 50 Hz for 3 s: the twin climbs to 1 m.
     // Returns when the last one was sent.
@@ -187,7 +187,7 @@ async fn only_its_controller_commands_a_claimed_copter_and_losing_it_lands_the_c
     let looper = std::thread::spawn(move || {
         let obs = recorder;
         let (state, inputs) = (world.initial_state(), world.initial_inputs());
-        sim::run_watched(world, state, inputs, req_rx, Some(frame_tx), obs, &loop_stop, &opts)
+        engine::run_watched(world, state, inputs, req_rx, Some(frame_tx), obs, &loop_stop, &opts)
     });
     let publisher = tokio::spawn(async move {
         while let Some(frame) = frame_rx.recv().await {

@@ -11,12 +11,12 @@ mod common;
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
+use bridge::engine::{BusInput, Request};
 use bridge::mixed::{Interpreter, Quantity, TwinAttitude};
 use bridge::paparazzi::convert::{Uplink, uplink_readings, uplink_text};
 use bridge::paparazzi::flightlog::FlightLog;
 use bridge::paparazzi::messages::MessageSet;
 use bridge::realflight::{Series, derive_arena, flights, ground_ir_m, ir_unit_check, ir_unit_comparison, start_pose};
-use bridge::sim::{BusInput, Request};
 
 const LINKED: &str = "finken_flights/report_2015-12-16/15_12_16__13_55_00.data";
 

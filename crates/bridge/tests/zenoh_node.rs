@@ -6,7 +6,7 @@ mod net;
 use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, Ordering};
 
-use bridge::sim::{self, Frame, LoopOptions, Request};
+use bridge::engine::{self, Frame, LoopOptions, Request};
 use bridge::wire::{CopterListEntry, StateMsg};
 use bridge::zenoh_net::node::{self, Node};
 use net::{eventually, free_port, within};
@@ -32,7 +32,7 @@ async fn commands_queryables_spawn_liveliness_and_bad_payloads() {
         let state = world.initial_state();
         let inputs = world.initial_inputs();
         let opts = LoopOptions { realtime: true, ticks: 20 * 120, ..LoopOptions::default() };
-        sim::run_watched(world, state, inputs, req_rx, Some(frame_tx), (), &stop2, &opts)
+        engine::run_watched(world, state, inputs, req_rx, Some(frame_tx), (), &stop2, &opts)
     });
     let publisher = tokio::spawn(async move {
         while let Some(frame) = frame_rx.recv().await {

@@ -1,6 +1,6 @@
 //! `twinswarm run`: a short composition of the engine's parts. Arguments become a world, bus
 //! options and a pace; a [`Recorder`] (log, live view) and a [`RunWatch`] (summary, progress)
-//! follow the [`bridge::flight::Flight`] that [`runner::run`] flies; the summary is printed
+//! follow the [`bridge::engine::flight::Flight`] that [`runner::run`] flies; the summary is printed
 //! last.
 
 use std::io::IsTerminal;
@@ -9,11 +9,11 @@ use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 use anyhow::Context;
-use bridge::checkpoint::{self, Checkpoint, CheckpointError, CheckpointOptions, RunKey};
-use bridge::failsafe::{ClientLostAction, FailsafeOptions};
-use bridge::flight::Recorder;
+use bridge::engine::checkpoint::{self, Checkpoint, CheckpointError, CheckpointOptions, RunKey};
+use bridge::engine::failsafe::{ClientLostAction, FailsafeOptions};
+use bridge::engine::flight::Recorder;
+use bridge::engine::{Finished, LockstepOptions};
 use bridge::live::LiveServer;
-use bridge::sim::{Finished, LockstepOptions};
 use sim_core::World;
 use sim_core::scene::{self, SceneSpec};
 use twinswarm::{BadInput, logcmd};
@@ -576,7 +576,7 @@ fn report_run(
 }
 
 /// `--json`'s `checkpoints`: written, the last one, and the one this run went on from.
-fn checkpoints_json(args: &RunArgs, stats: &bridge::sim::LoopStats) -> serde_json::Value {
+fn checkpoints_json(args: &RunArgs, stats: &bridge::engine::LoopStats) -> serde_json::Value {
     serde_json::json!({
         "written": stats.checkpoints_written,
         "last": stats.last_checkpoint.as_ref().map(|p| p.display().to_string()),
@@ -603,7 +603,7 @@ fn print_live(live_stats: Option<&bridge::live::LiveStats>) {
 }
 
 /// The bus's lines of the text summary: Zenoh, Ivy, Paparazzi, synchronisation, twins.
-fn print_bus(bus: Option<&runner::BusReport>, stats: &bridge::sim::LoopStats) {
+fn print_bus(bus: Option<&runner::BusReport>, stats: &bridge::engine::LoopStats) {
     match bus.map(|b| (b, &b.prefix)) {
         Some((b, Some(prefix))) => {
             outln!(
@@ -734,7 +734,7 @@ fn print_bus(bus: Option<&runner::BusReport>, stats: &bridge::sim::LoopStats) {
 }
 
 /// Inputs, failsafe and lockstep lines of the text summary.
-fn print_inputs(stats: &bridge::sim::LoopStats, failsafe_events: &[(u64, String)]) {
+fn print_inputs(stats: &bridge::engine::LoopStats, failsafe_events: &[(u64, String)]) {
     let st = stats;
     if st.inputs_rejected + st.inputs_ignored + st.inputs_after_end + st.frames_dropped + st.spawns_failed > 0 {
         outln!(
@@ -776,7 +776,7 @@ fn print_inputs(stats: &bridge::sim::LoopStats, failsafe_events: &[(u64, String)
 
 /// The outside autopilots in a few lines, whatever their number: how many flew, their steps,
 /// the time waited for them, and the first few that left early.
-fn print_autopilots(stats: &bridge::sim::LoopStats) {
+fn print_autopilots(stats: &bridge::engine::LoopStats) {
     let aps = &stats.autopilots;
     for r in stats.autopilots_refused.iter().take(5) {
         let ac = r.ac_id.map_or_else(|| "an autopilot".to_owned(), |a| format!("aircraft {a}"));
@@ -808,7 +808,7 @@ fn print_autopilots(stats: &bridge::sim::LoopStats) {
 }
 
 /// What became of the inputs that reached the loop, for `--json` and the log's `bus_report`.
-fn inputs_json(st: &bridge::sim::LoopStats) -> serde_json::Value {
+fn inputs_json(st: &bridge::engine::LoopStats) -> serde_json::Value {
     serde_json::json!({
         "commands_applied": st.commands_applied,
         "commands_unknown_copter": st.commands_unknown_copter,
@@ -836,7 +836,7 @@ impl RunWatch {
     }
 }
 
-impl bridge::sim::StepObserver for RunWatch {
+impl bridge::engine::StepObserver for RunWatch {
     fn after_step(
         &mut self,
         world: &sim_core::World,
@@ -852,7 +852,7 @@ impl bridge::sim::StepObserver for RunWatch {
         }
     }
 
-    fn failsafe(&mut self, tick: u64, world: &sim_core::World, event: &bridge::failsafe::FailsafeEvent) {
+    fn failsafe(&mut self, tick: u64, world: &sim_core::World, event: &bridge::engine::failsafe::FailsafeEvent) {
         if self.failsafe_events.len() < MAX_SUMMARY_EVENTS {
             self.failsafe_events.push((tick, event.message(world)));
         }

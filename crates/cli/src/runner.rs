@@ -8,13 +8,13 @@ use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, Ordering};
 
 use anyhow::Context;
-use bridge::failsafe::FailsafeOptions;
-use bridge::flight::{Flight, Recorder};
+use bridge::engine::failsafe::FailsafeOptions;
+use bridge::engine::flight::{Flight, Recorder};
+use bridge::engine::{self, LoopOptions, Request, StepObserver};
 use bridge::mixed::{Gateway, GatewayReport, OutboxOptions, PprzLinks, TelemetryPlan, TwinAttitude};
 use bridge::paparazzi::ivy::{IvyAgent, IvyOptions};
 use bridge::paparazzi::pairing::ResolvedPairing;
 use bridge::shard::ShardLink;
-use bridge::sim::{self, LoopOptions, Request, StepObserver};
 use bridge::sync::SyncOptions;
 use bridge::zenoh_net::node::{self, Node};
 use sim_core::World;
@@ -96,7 +96,7 @@ impl Default for MixedOptions {
 #[derive(Debug)]
 pub struct RunOutcome<W> {
     /// The flight at its end.
-    pub end: sim::Finished<W>,
+    pub end: engine::Finished<W>,
     pub bus: Option<BusReport>,
     /// A shard: what its barrier cost.
     pub link: Option<bridge::shard::LinkStats>,
@@ -213,7 +213,7 @@ pub struct Pace {
     /// Against the wall clock.
     pub realtime: bool,
     /// Hold each step for the claimed copters' controllers.
-    pub lockstep: Option<bridge::sim::LockstepOptions>,
+    pub lockstep: Option<bridge::engine::LockstepOptions>,
     /// Wait for the outside autopilots of the `autopilot` copters, and step with them.
     pub autopilots: Option<bridge::autopilot::AutopilotOptions>,
 }
@@ -222,8 +222,8 @@ pub struct Pace {
 /// checkpoints to write (`--checkpoint-every`).
 #[derive(Debug, Default)]
 pub struct Durability {
-    pub resume: Option<bridge::checkpoint::Checkpoint>,
-    pub checkpoint: Option<bridge::checkpoint::CheckpointOptions>,
+    pub resume: Option<bridge::engine::checkpoint::Checkpoint>,
+    pub checkpoint: Option<bridge::engine::checkpoint::CheckpointOptions>,
 }
 
 /// The first state, its inputs, a shard's neighbours and the batches a checkpoint kept:
@@ -231,7 +231,7 @@ pub struct Durability {
 fn start_state(
     world: &World,
     bus: &BusOptions,
-    resume: Option<bridge::checkpoint::Checkpoint>,
+    resume: Option<bridge::engine::checkpoint::Checkpoint>,
 ) -> anyhow::Result<(sim_core::State, sim_core::Inputs, Vec<u16>, Vec<bridge::shard::GhostBatch>)> {
     let (mut state, inputs, snapshot, early) = match resume {
         Some(c) => (c.state, c.inputs, c.shard, c.early),
@@ -285,7 +285,7 @@ pub fn run<W: StepObserver + Send>(
         };
         opts.shard = session.clone().map(&open_link).transpose()?;
         let flight = Flight::new(world, state, inputs, &opts, recorder, watch);
-        let end = sim::run_loop(flight, req_rx, None, &stop, &opts);
+        let end = engine::run_loop(flight, req_rx, None, &stop, &opts);
         drop(req_tx);
         let link_stats = opts.shard.take().map(|l| bridge::lock(&l).stats().clone());
         if let Some(s) = session {
@@ -319,9 +319,9 @@ pub fn run<W: StepObserver + Send>(
     let opts_link = opts.shard.clone();
     let flight = Flight::new(world, state, inputs, &opts, recorder, watch);
 
-    let end = std::thread::scope(|s| -> anyhow::Result<sim::Finished<W>> {
+    let end = std::thread::scope(|s| -> anyhow::Result<engine::Finished<W>> {
         let stop_loop = stop.clone();
-        let h = s.spawn(move || sim::run_loop(flight, req_rx, Some(frame_tx), &stop_loop, &opts));
+        let h = s.spawn(move || engine::run_loop(flight, req_rx, Some(frame_tx), &stop_loop, &opts));
         rt.block_on(publish_frames(&mut frame_rx, &gateway, &mut node, &mut ros));
         h.join().map_err(|_| anyhow::anyhow!("the step loop panicked"))
     })?;
@@ -349,7 +349,7 @@ fn loop_options(
     world: &World,
     pace: &Pace,
     bus: &BusOptions,
-    checkpoint: Option<bridge::checkpoint::CheckpointOptions>,
+    checkpoint: Option<bridge::engine::checkpoint::CheckpointOptions>,
     tick: u64,
 ) -> anyhow::Result<LoopOptions> {
     let mut opts = LoopOptions {
@@ -467,7 +467,7 @@ fn outbox_options(bus: &BusOptions, prefix: &str, world: &World) -> OutboxOption
 /// Publishes the step loop's frames (Ivy, Zenoh, ROS 2) until the loop ends (its frame sender
 /// drops).
 async fn publish_frames(
-    frame_rx: &mut tokio::sync::mpsc::Receiver<sim::Frame>,
+    frame_rx: &mut tokio::sync::mpsc::Receiver<engine::Frame>,
     gateway: &Gateway,
     node: &mut Option<Node>,
     ros: &mut Option<bridge::ros2::Ros2Node>,

@@ -10,8 +10,8 @@ use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::{Duration, Instant};
 
 use anyhow::Context;
+use bridge::engine::LoopStats;
 use bridge::shard::LinkStats;
-use bridge::sim::LoopStats;
 use serde::{Deserialize, Serialize};
 use sim_core::shard::Role;
 use sim_core::{CopterState, State};
@@ -428,8 +428,8 @@ impl Segment {
 fn restart_point(dir: &Path, shards: usize) -> anyhow::Result<Option<(u64, Vec<PathBuf>)>> {
     let mut per_shard = Vec::new();
     for k in 0..shards {
-        let stem = bridge::checkpoint::RunKey { shard: Some((k as u16, shards as u16)), ..key_stub() }.stem();
-        per_shard.push(bridge::checkpoint::list(dir, &stem)?);
+        let stem = bridge::engine::checkpoint::RunKey { shard: Some((k as u16, shards as u16)), ..key_stub() }.stem();
+        per_shard.push(bridge::engine::checkpoint::list(dir, &stem)?);
     }
     let common =
         per_shard[0].iter().rev().map(|(t, _)| *t).find(|t| per_shard.iter().all(|l| l.iter().any(|(u, _)| u == t)));
@@ -444,8 +444,8 @@ fn restart_point(dir: &Path, shards: usize) -> anyhow::Result<Option<(u64, Vec<P
 /// only find this run's.
 fn clear_checkpoints(dir: &Path, shards: usize) -> anyhow::Result<()> {
     for k in 0..shards {
-        let stem = bridge::checkpoint::RunKey { shard: Some((k as u16, shards as u16)), ..key_stub() }.stem();
-        for (_, path) in bridge::checkpoint::list(dir, &stem)? {
+        let stem = bridge::engine::checkpoint::RunKey { shard: Some((k as u16, shards as u16)), ..key_stub() }.stem();
+        for (_, path) in bridge::engine::checkpoint::list(dir, &stem)? {
             std::fs::remove_file(&path)
                 .with_context(|| format!("cannot remove the old checkpoint {}", path.display()))?;
         }
@@ -453,9 +453,9 @@ fn clear_checkpoints(dir: &Path, shards: usize) -> anyhow::Result<()> {
     Ok(())
 }
 
-/// A key whose only use is its [`bridge::checkpoint::RunKey::stem`].
-fn key_stub() -> bridge::checkpoint::RunKey {
-    bridge::checkpoint::RunKey { version: String::new(), scene: 0, seed: 0, copters: 0, shard: None }
+/// A key whose only use is its [`bridge::engine::checkpoint::RunKey::stem`].
+fn key_stub() -> bridge::engine::checkpoint::RunKey {
+    bridge::engine::checkpoint::RunKey { version: String::new(), scene: 0, seed: 0, copters: 0, shard: None }
 }
 
 /// The logs of shards that were killed are torn: each is made whole again (`log recover`) in

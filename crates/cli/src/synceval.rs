@@ -10,7 +10,7 @@
 //!   `FINKEN_ACTUATORS_SET_POINT` and `ATTITUDE`, 50 ms for `SONAR_ARRAY`, …), timed by the
 //!   paper's measured link ([`bridge::link`]) or a uniform jitter, lost with a probability,
 //!   encoded to Ivy text and decoded again;
-//! - the **simulation**: `bridge::sim::run_loop` with the twin, fed by the gateway's
+//! - the **simulation**: `bridge::engine::run_loop` with the twin, fed by the gateway's
 //!   [`Interpreter`] through the loop's request queue, with [`TwinSync`](bridge::sync::TwinSync)
 //!   on or off, and optionally a tracking pose that lags and drops out.
 //!
@@ -23,11 +23,11 @@ use std::sync::mpsc::SyncSender;
 use std::time::{Duration, Instant};
 
 use anyhow::Context;
+use bridge::engine::{BusInput, LoopOptions, Request, StepObserver};
 use bridge::link::{LinkClock, LinkTiming};
 use bridge::mixed::{Interpreter, TelemetryPlan, TwinAttitude};
 use bridge::paparazzi::convert::{TelemetrySource, telemetry_text};
 use bridge::paparazzi::messages::MessageSet;
-use bridge::sim::{BusInput, LoopOptions, Request, StepObserver};
 use bridge::sync::{SyncOptions, SyncStats};
 use bridge::wire::{sensors_msg, state_msg};
 use serde::Serialize;
@@ -410,7 +410,7 @@ pub fn run_variant(
     let stop = AtomicBool::new(false);
     let (state, inputs) = (world.initial_state(), world.initial_inputs());
     let (world, state, stats, harness) =
-        bridge::sim::run_watched(world, state, inputs, rx, None, harness, &stop, &opts);
+        bridge::engine::run_watched(world, state, inputs, rx, None, harness, &stop, &opts);
     anyhow::ensure!(
         harness.queue_full == 0,
         "{} inputs did not fit the loop's queue: the evaluation would be biased",

@@ -24,11 +24,11 @@ use std::sync::mpsc::SyncSender;
 use std::time::{Duration, Instant};
 
 use anyhow::Context;
+use bridge::engine::{BusInput, LoopOptions, Request, StepObserver};
 use bridge::mixed::{Interpreter, TwinAttitude};
 use bridge::paparazzi::flightlog::{FlightLog, LineErrors};
 use bridge::paparazzi::messages::MessageSet;
 use bridge::realflight::{ArenaEstimate, Flight, REAL_SONAR_MAX_M, Series, StartPose, UnitWarning};
-use bridge::sim::{BusInput, LoopOptions, Request, StepObserver};
 use serde::Serialize;
 use sim_core::math::{Quat, Vec3, quat_from_euler};
 use sim_core::sensors::{SonarScene, sonar_cones};
@@ -528,7 +528,7 @@ fn fly_twin(
     };
     let opts = LoopOptions { realtime: false, ticks: world.default_ticks(), sync, ..Default::default() };
     let stop = AtomicBool::new(false);
-    let (world2, state, stats, player) = bridge::sim::run_watched(
+    let (world2, state, stats, player) = bridge::engine::run_watched(
         world.clone(),
         world.initial_state(),
         world.initial_inputs(),

@@ -121,7 +121,7 @@ fn a_cluster_survives_a_killed_shard_with_the_uninterrupted_bits_and_one_log() {
     });
     let victim = pid_rx.recv_timeout(Duration::from_secs(30)).expect("the cluster printed shard 1's pid");
     let deadline = Instant::now() + Duration::from_secs(30);
-    while bridge::checkpoint::list(&ckpt_dir, "shard-1-of-3").unwrap().is_empty() {
+    while bridge::engine::checkpoint::list(&ckpt_dir, "shard-1-of-3").unwrap().is_empty() {
         assert!(Instant::now() < deadline, "no checkpoint of shard 1 within 30 s");
         std::thread::sleep(Duration::from_millis(5));
     }

@@ -1,5 +1,5 @@
 //! `twinswarm._native`: the simulator as a Python extension, on the CLI's engine
-//! ([`bridge::flight::Flight`]). The Python half (`python/twinswarm/__init__.py`) checks
+//! ([`bridge::engine::flight::Flight`]). The Python half (`python/twinswarm/__init__.py`) checks
 //! arguments, shapes arrays and wraps these calls; what it hands over here is already typed.
 //!
 //! Observations leave as one `bytearray` of little-endian `f32`, row-major (copter, column),
@@ -11,10 +11,10 @@
 use std::path::PathBuf;
 use std::sync::{Arc, Mutex, MutexGuard};
 
-use bridge::flight::{Flight, Halt, Recorder};
+use bridge::engine::LoopOptions;
+use bridge::engine::flight::{Flight, Halt, Recorder};
 use bridge::live::LiveServer;
 use bridge::log::{LogMeta, LogOptions, Logger};
-use bridge::sim::LoopOptions;
 use bridge::wire::CommandMsg;
 use pyo3::exceptions::{PyRuntimeError, PyValueError};
 use pyo3::prelude::*;

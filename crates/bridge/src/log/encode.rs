@@ -111,7 +111,7 @@ pub enum EventKind {
     StepOverrun,
     /// The run was interrupted (SIGINT/SIGTERM) and the log finished cleanly.
     Interrupted,
-    /// A lost link or a controller change (see `bridge::failsafe`).
+    /// A lost link or a controller change (see `bridge::engine::failsafe`).
     Failsafe,
     /// A step's frame was not published (the publisher was behind).
     FrameDropped,

@@ -31,7 +31,8 @@ use zenoh_ext::{AdvancedPublisher, AdvancedPublisherBuilderExt, CacheConfig, Mis
 
 use super::msgs::{self, Cube, Pose, RangeSensor, Stamp};
 use super::types::{dds_name, type_hash};
-use crate::sim::{BusInput, Frame};
+use crate::engine::loop_io::Frame;
+use crate::engine::request::BusInput;
 use crate::wire::{CommandError, CommandMsg, SensorsMsg, StateMsg};
 use crate::zenoh_net::node::{CommandSink, NodeError};
 
@@ -958,7 +959,7 @@ mod tests {
         let controllers = || -> Vec<Option<String>> {
             rx.try_iter()
                 .filter_map(|r| match r {
-                    crate::sim::Request::Controller { client, .. } => Some(client),
+                    crate::engine::request::Request::Controller { client, .. } => Some(client),
                     _ => None,
                 })
                 .collect()

@@ -7,7 +7,8 @@
 //! * [`pprz_bus`]: the Ivy-style regex bus over Zenoh ([`pprz_bus::ZenohBus`]).
 //!
 //! **May use:** Zenoh, tokio, [`crate::paparazzi`] (formats and the regex bus) and
-//! [`crate::wire`] and [`crate::sim`] (the payloads and the loop's channels).
+//! [`crate::wire`] and the engine's `request.rs` and `loop_io.rs` ([`crate::engine::Request`],
+//! [`crate::engine::Frame`]: the payloads and the loop's channels).
 
 pub mod keyexpr;
 pub mod node;

@@ -25,7 +25,7 @@
 //! ([`NodeCounters::commands_not_controller`]) and logged. Claims queue in the order they
 //! arrive; when the controller's token disappears (it left, or its process or link died) the
 //! next claim takes over, or, if there is none, the copter's lost-client failsafe applies
-//! (see [`crate::failsafe`]). This keeps two well-meaning clients from fighting over a copter;
+//! (see [`crate::engine::failsafe`]). This keeps two well-meaning clients from fighting over a copter;
 //! against a hostile client, lock the bus with Zenoh's access control (`docs/security.md`).
 
 use std::collections::{BTreeMap, BTreeSet};
@@ -39,7 +39,8 @@ use sim_core::scene::CopterSpec;
 use zenoh::Wait;
 use zenoh::sample::SampleKind;
 
-use crate::sim::{Frame, Request};
+use crate::engine::loop_io::Frame;
+use crate::engine::request::Request;
 use crate::wire::{ClockMsg, CommandMsg, CopterListEntry};
 
 /// The default Zenoh endpoint the simulator listens on.
@@ -215,7 +216,7 @@ impl CommandSink {
         &self,
         name: &str,
         make: impl FnOnce(&World) -> Result<CommandMsg, crate::wire::CommandError>,
-        origin: crate::sim::BusInput,
+        origin: crate::engine::request::BusInput,
     ) {
         let (counters, requests, limiter) = (&self.counters, &self.requests, &self.limiter);
         let world = self.world();
@@ -297,11 +298,11 @@ fn copter_sample(
     sample: &zenoh::sample::Sample,
     prefix_len: usize,
     suffix: &str,
-) -> (String, Vec<u8>, crate::sim::BusInput) {
+) -> (String, Vec<u8>, crate::engine::request::BusInput) {
     let key = sample.key_expr().as_str();
     let name = key[prefix_len..].trim_start_matches("/copters/").trim_end_matches(suffix).to_owned();
     let payload = sample.payload().to_bytes().into_owned();
-    let origin = crate::sim::BusInput {
+    let origin = crate::engine::request::BusInput {
         key: key.to_owned(),
         text: String::from_utf8_lossy(&payload).into_owned(),
         received_unix_ns: crate::log::now_unix_ns(),

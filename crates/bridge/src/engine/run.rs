@@ -20,10 +20,9 @@ use std::time::{Duration, Instant};
 
 use sim_core::{CopterKind, Inputs, State, World};
 
-use crate::flight::{Flight, Halt, Recorder};
-
-pub use crate::loop_io::{Frame, LockstepOptions, LockstepStats, LoopOptions, LoopStats, StepObserver, TwinStats};
-pub use crate::request::{BusInput, Request};
+use crate::engine::flight::{Flight, Halt, Recorder};
+use crate::engine::loop_io::{Frame, LockstepOptions, LockstepStats, LoopOptions, LoopStats, StepObserver};
+use crate::engine::request::Request;
 
 /// What a flight leaves when its loop ends.
 #[derive(Debug)]

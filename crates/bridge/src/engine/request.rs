@@ -1,6 +1,6 @@
 //! What the step loop is asked ([`Request`]): commands, twins' telemetry, spawns, claims, stop,
 //! each with the bus message it came from ([`BusInput`]). The gateways and the Zenoh node
-//! make them; [`crate::sim::run_loop`] applies them at the start of the next control step.
+//! make them; [`crate::engine::run_loop`] applies them at the start of the next control step.
 
 use sim_core::scene::CopterSpec;
 

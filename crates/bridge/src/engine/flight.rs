@@ -4,7 +4,7 @@
 //! inputs, the machinery that runs between two steps (requests, failsafe, twin
 //! synchronisation, Paparazzi output, a shard's link), the counters, and its [`Recorder`] (the
 //! MCAP log and the live view). Front ends only drive it:
-//! - [`crate::sim::run_loop`] feeds it bus requests and publishes its frames (the CLI's `run`,
+//! - [`crate::engine::run_loop`] feeds it bus requests and publishes its frames (the CLI's `run`,
 //!   free running, real time or lockstep);
 //! - the Python package (`crates/py`) writes commands and steps it directly.
 //!
@@ -19,12 +19,12 @@ use std::time::Instant;
 use sim_core::scene::CopterSpec;
 use sim_core::{CopterKind, Inputs, State, StepReport, World, step_into};
 
-use crate::checkpoint::Checkpointer;
-use crate::failsafe::{Failsafe, FailsafeEvent, FailsafeKind};
+use crate::engine::checkpoint::Checkpointer;
+use crate::engine::failsafe::{Failsafe, FailsafeEvent, FailsafeKind};
+use crate::engine::loop_io::{Frame, LoopOptions, LoopStats, StepObserver, TwinStats};
+use crate::engine::request::{BusInput, Request};
 use crate::log::{EventKind, LogError, LogEvent, Logger};
-use crate::loop_io::{Frame, LoopOptions, LoopStats, StepObserver, TwinStats};
 use crate::mixed::{Outbox, PprzOut};
-use crate::request::{BusInput, Request};
 use crate::shard::ShardLink;
 use crate::sync::TwinSync;
 use crate::wire::{CommandError, CommandMsg, sensors_msg, state_msg};

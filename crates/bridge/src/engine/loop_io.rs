@@ -1,7 +1,7 @@
 //! What goes into and comes out of the step loop besides its requests: how it runs
 //! ([`LoopOptions`], [`LockstepOptions`]), what each step produced for publishing ([`Frame`]),
 //! what it reports ([`LoopStats`], [`TwinStats`], [`LockstepStats`]), and the observer that
-//! sees every step ([`StepObserver`]). [`crate::flight`] produces them, [`crate::sim`] paces
+//! sees every step ([`StepObserver`]). [`crate::engine::flight`] produces them, [`crate::engine::run_loop`] paces
 //! and routes them.
 
 use std::collections::BTreeMap;
@@ -10,9 +10,9 @@ use std::time::{Duration, Instant};
 
 use sim_core::{Inputs, State, StepReport, World};
 
-use crate::failsafe::{FailsafeEvent, FailsafeOptions};
+use crate::engine::failsafe::{FailsafeEvent, FailsafeOptions};
+use crate::engine::request::BusInput;
 use crate::mixed::{OutboxOptions, PprzOut, Sample, Summary};
-use crate::request::BusInput;
 use crate::sync::{SyncOptions, SyncStats};
 use crate::wire::{SensorsMsg, StateMsg};
 
@@ -50,15 +50,15 @@ pub struct LoopOptions {
     pub outbox: Option<OutboxOptions>,
     /// Keep twins where their real copters are (see [`crate::sync`]).
     pub sync: Option<SyncOptions>,
-    /// Lost links: twins' telemetry, virtual copters' controllers (see [`crate::failsafe`]).
+    /// Lost links: twins' telemetry, virtual copters' controllers (see [`crate::engine::failsafe`]).
     pub failsafe: FailsafeOptions,
     /// A shard's link to its neighbours (see [`crate::shard`]): the state must be a shard's;
     /// every step first trades ghosts through it.
     pub shard: Option<Arc<std::sync::Mutex<crate::shard::ShardLink>>>,
     /// Hold each step for the claimed copters' controllers (needs a frame channel).
     pub lockstep: Option<LockstepOptions>,
-    /// Write a checkpoint every so many steps (see [`crate::checkpoint`]).
-    pub checkpoint: Option<crate::checkpoint::CheckpointOptions>,
+    /// Write a checkpoint every so many steps (see [`crate::engine::checkpoint`]).
+    pub checkpoint: Option<crate::engine::checkpoint::CheckpointOptions>,
     /// Outside autopilots flying copters of kind `autopilot` (see [`crate::autopilot`]): every
     /// step first takes their motor commands and answers them after.
     pub autopilots: Option<Arc<std::sync::Mutex<crate::autopilot::Autopilots>>>,
@@ -166,7 +166,7 @@ pub struct LoopStats {
     /// Inputs refused before they reached the loop (malformed, out of range, not from the
     /// copter's controller), logged as rejected.
     pub inputs_rejected: u64,
-    /// Texts logged that drive nothing (see [`Request::Ignored`]).
+    /// Texts logged that drive nothing (see [`crate::engine::Request::Ignored`]).
     pub inputs_ignored: u64,
     /// Requests still queued when the loop ended, logged as rejected.
     pub inputs_after_end: u64,
