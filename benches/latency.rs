@@ -14,7 +14,12 @@ use std::sync::atomic::AtomicBool;
 use std::time::{Duration, Instant};
 
 use bridge::engine::{self, Frame, LoopOptions, Request};
-use bridge::mixed::{Gateway, OutboxOptions, Summary, TelemetryPlan, TwinAttitude, paired_copter};
+use bridge::mixed::gateway::Gateway;
+use bridge::mixed::interpreter::TwinAttitude;
+use bridge::mixed::outbox::OutboxOptions;
+use bridge::mixed::plan::TelemetryPlan;
+use bridge::mixed::router::paired_copter;
+use bridge::mixed::stats::Summary;
 use bridge::paparazzi::pairing::Pose;
 use bridge::wire::StateMsg;
 use bridge::zenoh_net::node::{self, Node};
@@ -51,7 +56,8 @@ fn main() {
     let (mut node, gateway) = rt.block_on(async {
         let config = node::default_config(std::slice::from_ref(&endpoint), &[]).unwrap();
         let node = Node::open(config, prefix.clone(), world_arc.clone(), req_tx.clone()).await.unwrap();
-        let links = bridge::mixed::PprzLinks { zenoh: Some((node.session().clone(), prefix.clone())), ivy: None };
+        let links =
+            bridge::mixed::gateway::PprzLinks { zenoh: Some((node.session().clone(), prefix.clone())), ivy: None };
         let gateway =
             Gateway::start(links, world_arc.clone(), None, messages.clone(), req_tx.clone(), TwinAttitude::Setpoint)
                 .await
@@ -71,7 +77,7 @@ fn main() {
             virtual_sonar_period_s: 0.0,
             uplinks: Default::default(),
         }),
-        sync: Some(bridge::sync::SyncOptions::default()),
+        sync: Some(bridge::mixed::sync::SyncOptions::default()),
         ..LoopOptions::default()
     };
     let loop_thread = std::thread::spawn(move || {

@@ -12,10 +12,10 @@
 //!   the step loop on its own thread (bounded channels in and out, real-time pacing against
 //!   absolute deadlines, lockstep), what it is asked and gives out, the failsafe and
 //!   checkpoints.
-//! * [`mixed`]: mixed reality: real telemetry to twins, virtual sonar and virtual telemetry
-//!   back, over Zenoh, over Ivy, or both as a gateway.
-//! * [`link`]: when a real copter's telemetry arrives (the measured telemetry link).
-//! * [`sync`]: keeping twins where their real copters are (MEDUSA and tracking).
+//! * [`mixed`]: mixed reality: real telemetry to twins (the gateway, the interpreter, the
+//!   router), virtual sonar and virtual telemetry back (the outbox), over Zenoh, over Ivy, or
+//!   both; keeping twins where their real copters are ([`mixed::sync`]: MEDUSA and tracking);
+//!   when a real copter's telemetry arrives ([`mixed::link`]).
 //! * [`realflight`]: a real flight's Paparazzi log as series in the simulator's frame, its
 //!   flights, the arena its sonars describe and where each flight began.
 //! * [`fit`]: system identification of the horizontal flight model from real flights' sonars
@@ -28,7 +28,7 @@
 //! **Architecture invariant:** the format modules never do I/O except reading the files they
 //! are asked to parse, and never panic on input. Zenoh is spoken by [`zenoh_net`] (the node and
 //! the Paparazzi bus over Zenoh), [`ros2`] (its node, on the same session), [`shard`] (a shard's
-//! own link: publishers, subscribers and liveliness to its neighbours) and [`mixed`]'s gateway
+//! own link: publishers, subscribers and liveliness to its neighbours) and [`mixed::gateway`]
 //! (it hands a session to [`zenoh_net`]'s bus and puts the Ivy texts it bridges); nothing else
 //! names `zenoh`. Only [`paparazzi::ivy`] opens Ivy sockets. Only [`engine`] steps the world
 //! (tests aside), and its loop never blocks on publishing.
@@ -36,7 +36,6 @@
 pub mod autopilot;
 pub mod engine;
 pub mod fit;
-pub mod link;
 pub mod live;
 pub mod log;
 pub mod mixed;
@@ -44,7 +43,6 @@ pub mod paparazzi;
 pub mod realflight;
 pub mod ros2;
 pub mod shard;
-pub mod sync;
 pub mod wire;
 pub mod zenoh_net;
 

@@ -405,7 +405,7 @@ impl CommandMsg {
 }
 
 /// `…/copters/<name>/tracking`: an external pose of a twin's real copter (e.g. from a camera
-/// system), world frame. It describes the copter a configured lag ago (see [`crate::sync`]).
+/// system), world frame. It describes the copter a configured lag ago (see [`crate::mixed::sync`]).
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct TrackingMsg {

@@ -185,7 +185,7 @@ fn a_twin_flown_by_its_autopilot_becomes_an_autopilot_copter() {
     let r = p.resolve(&conf).unwrap_or_else(|e| panic!("{e}"));
     let scene = "name = \"s\"\n[arena]\nsize_m = [4.0, 3.0]\nheight_m = 2.5\n";
     let mut spec = sim_core::SceneSpec::from_toml("s.toml", scene).unwrap();
-    bridge::mixed::apply_pairing(&mut spec, &r).unwrap();
+    bridge::mixed::router::apply_pairing(&mut spec, &r).unwrap();
     let kinds: Vec<_> = spec.copters.iter().map(|c| (c.name.as_str(), c.kind, c.ac_id)).collect();
     assert!(kinds.contains(&("nps", sim_core::CopterKind::Autopilot, Some(7))), "{kinds:?}");
     assert!(kinds.contains(&("real", sim_core::CopterKind::Real, Some(5))), "{kinds:?}");
@@ -193,8 +193,8 @@ fn a_twin_flown_by_its_autopilot_becomes_an_autopilot_copter() {
     let nps = world.copter_id("nps").unwrap();
     assert_eq!(world.copters[nps].initial_command.mode, sim_core::FlightMode::Rotors);
     // Its telemetry reaches the ground station, not the copter.
-    let mut router = bridge::mixed::Router::new(&world, Some(r));
-    assert_eq!(router.route(7), bridge::mixed::Decision::Autopilot);
+    let mut router = bridge::mixed::router::Router::new(&world, Some(r));
+    assert_eq!(router.route(7), bridge::mixed::router::Decision::Autopilot);
 
     let e = pairing_err(
         r#"<pairing version="1"><conf path="c.xml"/>

@@ -12,7 +12,7 @@ use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 use bridge::engine::{BusInput, Request};
-use bridge::mixed::{Interpreter, Quantity, TwinAttitude};
+use bridge::mixed::interpreter::{Interpreter, Quantity, TwinAttitude};
 use bridge::paparazzi::convert::{Uplink, uplink_readings, uplink_text};
 use bridge::paparazzi::flightlog::FlightLog;
 use bridge::paparazzi::messages::MessageSet;

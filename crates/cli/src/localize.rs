@@ -98,7 +98,7 @@ pub struct LocalizeArgs {
     /// and a tracking pose that drops out.
     #[arg(long, conflicts_with = "eval")]
     pub sync_eval: bool,
-    /// `--sync-eval`: a uniform telemetry link instead of the measured one (`bridge::link`):
+    /// `--sync-eval`: a uniform telemetry link instead of the measured one (`bridge::mixed::link`):
     /// every message on time, up to this late, ms.
     #[arg(long, value_name = "MS")]
     pub jitter_ms: Option<f64>,
@@ -446,10 +446,10 @@ impl Cruise {
 }
 
 /// MEDUSA for one sensor set (slot indices into [`SLOT_ANGLES_DEG`]), over the lab's real
-/// geometry ([`bridge::sync::medusa_for`]).
+/// geometry ([`bridge::mixed::sync::medusa_for`]).
 fn medusa_for(world: &World, slots: &[usize]) -> anyhow::Result<Medusa> {
     let angles: Vec<f64> = slots.iter().map(|&k| SLOT_ANGLES_DEG[k].to_radians()).collect();
-    Ok(bridge::sync::medusa_for(world, &angles)?)
+    Ok(bridge::mixed::sync::medusa_for(world, &angles)?)
 }
 
 /// The sonar scene exactly as sim-core's `sense` builds it, from the current state.
@@ -501,8 +501,9 @@ pub fn evaluate(
     let spec = eval_scene(choice, minutes, seed, copters)?;
     let world = scene::compile(&spec).context("compiling the evaluation scene")?;
     let started = Instant::now();
-    // The boxes MEDUSA knows: those whose top reaches the sonars (see `bridge::sync::real_boxes`).
-    let known: Vec<usize> = (0..world.boxes.len()).filter(|&b| bridge::sync::is_real_box(&world.boxes[b])).collect();
+    // The boxes MEDUSA knows: those whose top reaches the sonars (see `bridge::mixed::sync::real_boxes`).
+    let known: Vec<usize> =
+        (0..world.boxes.len()).filter(|&b| bridge::mixed::sync::is_real_box(&world.boxes[b])).collect();
 
     let seed = world.params.seed;
     let mut evals = Vec::new();
@@ -648,7 +649,7 @@ impl Tracker {
     /// MEDUSA and its filter for the sensor set `slots` of copter `id`, no measurements yet.
     fn new(world: &World, id: usize, slots: &'static [usize]) -> anyhow::Result<Self> {
         let medusa = medusa_for(world, slots)?;
-        let filter = MedusaFilter::new(medusa, bridge::sync::filter_config(world, id))?;
+        let filter = MedusaFilter::new(medusa, bridge::mixed::sync::filter_config(world, id))?;
         Ok(Tracker {
             slots,
             filter,

@@ -251,12 +251,15 @@ struct ClusterArgs {
 }
 
 /// `--sync` and `--tracking-lag` as options (`None`: off).
-pub(crate) fn parse_sync(sources: &str, tracking_lag_s: f64) -> anyhow::Result<Option<bridge::sync::SyncOptions>> {
+pub(crate) fn parse_sync(
+    sources: &str,
+    tracking_lag_s: f64,
+) -> anyhow::Result<Option<bridge::mixed::sync::SyncOptions>> {
     let bad = |m: String| anyhow::Error::new(BadInput(anyhow::anyhow!(m)));
     if !tracking_lag_s.is_finite() || !(0.0..=2.5).contains(&tracking_lag_s) {
         return Err(bad(format!("--tracking-lag must be in [0, 2.5] s, got {tracking_lag_s}")));
     }
-    let mut o = bridge::sync::SyncOptions { tracking_lag_s, ..bridge::sync::SyncOptions::off() };
+    let mut o = bridge::mixed::sync::SyncOptions { tracking_lag_s, ..bridge::mixed::sync::SyncOptions::off() };
     for part in sources.split(',').map(str::trim) {
         match part {
             "medusa" => o.medusa = true,
@@ -294,10 +297,10 @@ pub(crate) fn load_messages(
     Ok(Arc::new(set.map_err(|e| BadInput(e.into()))?))
 }
 
-pub(crate) fn parse_twin_attitude(s: &str) -> Result<bridge::mixed::TwinAttitude, String> {
+pub(crate) fn parse_twin_attitude(s: &str) -> Result<bridge::mixed::interpreter::TwinAttitude, String> {
     match s {
-        "setpoint" => Ok(bridge::mixed::TwinAttitude::Setpoint),
-        "measured" => Ok(bridge::mixed::TwinAttitude::Measured),
+        "setpoint" => Ok(bridge::mixed::interpreter::TwinAttitude::Setpoint),
+        "measured" => Ok(bridge::mixed::interpreter::TwinAttitude::Measured),
         _ => Err(format!("expected `setpoint` or `measured`, got `{s}`")),
     }
 }
@@ -325,14 +328,14 @@ pub(crate) fn load_mixed(
         }
     };
     let plan = match telemetry {
-        None if mode.is_none() => bridge::mixed::TelemetryPlan::project_default(),
+        None if mode.is_none() => bridge::mixed::plan::TelemetryPlan::project_default(),
         None => {
-            let t = bridge::Telemetry::parse(bridge::mixed::TELEMETRY_XML, "assets/paparazzi/telemetry.xml")?;
-            bridge::mixed::TelemetryPlan::from_telemetry(&t, None, mode).map_err(|e| bad(anyhow::anyhow!(e)))?
+            let t = bridge::Telemetry::parse(bridge::mixed::plan::TELEMETRY_XML, "assets/paparazzi/telemetry.xml")?;
+            bridge::mixed::plan::TelemetryPlan::from_telemetry(&t, None, mode).map_err(|e| bad(anyhow::anyhow!(e)))?
         }
         Some(path) => {
             let t = bridge::Telemetry::from_file(path).map_err(|e| bad(e.into()))?;
-            bridge::mixed::TelemetryPlan::from_telemetry(&t, None, mode).map_err(|e| bad(anyhow::anyhow!(e)))?
+            bridge::mixed::plan::TelemetryPlan::from_telemetry(&t, None, mode).map_err(|e| bad(anyhow::anyhow!(e)))?
         }
     };
     Ok(runner::MixedOptions { pairing, plan, virtual_sonar_period_s, ..Default::default() })

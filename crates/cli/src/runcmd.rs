@@ -165,7 +165,7 @@ pub(crate) struct RunArgs {
     /// what the real copter asks for) or `measured` (ATTITUDE, AHRS_EULER_INT, what it does).
     /// Either way a twin falls back, source by source, on what its aircraft sends.
     #[arg(long, value_name = "SOURCE", default_value = "setpoint", value_parser = crate::parse_twin_attitude)]
-    twin_attitude: bridge::mixed::TwinAttitude,
+    twin_attitude: bridge::mixed::interpreter::TwinAttitude,
     /// How twins are kept where their real copters are: `medusa` (the real copter's sonars and
     /// yaw), `tracking` (poses on …/copters/<name>/tracking), both, or `off` (command
     /// prediction only).
@@ -290,7 +290,8 @@ fn prepare_world(args: &RunArgs) -> anyhow::Result<(String, World, runner::Mixed
         ..mixed
     };
     if let (Some(p), Some(path)) = (&mixed.pairing, &args.pairing) {
-        bridge::mixed::apply_pairing(&mut spec, p).map_err(|e| BadInput(anyhow::anyhow!("{}: {e}", path.display())))?;
+        bridge::mixed::router::apply_pairing(&mut spec, p)
+            .map_err(|e| BadInput(anyhow::anyhow!("{}: {e}", path.display())))?;
     }
     let world = scene::compile(&spec).map_err(|e| {
         let e = anyhow::Error::new(e);

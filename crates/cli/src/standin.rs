@@ -6,7 +6,7 @@
 //! firmware, it
 //! - publishes its telemetry on the bus as aircraft `--ac-id`, at the periods of a telemetry
 //!   plan (default: the embedded `Main/mixed` mode, 22 ms for what drives a twin), timed by
-//!   the paper's measured link ([`bridge::link`]; `--jitter-ms`: every slot, a uniform delay)
+//!   the paper's measured link ([`bridge::mixed::link`]; `--jitter-ms`: every slot, a uniform delay)
 //!   and dropped with a loss probability;
 //! - receives `SONAR_UPLINK` (the 2015 FINken firmware's) or `VIRTUAL_SONAR`, whichever its
 //!   `--messages` defines, for its `ac_id` and fuses it as `min(real, virtual)` into its
@@ -21,8 +21,8 @@ use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
 use anyhow::Context;
-use bridge::link::{LinkClock, LinkTiming};
-use bridge::mixed::TelemetryPlan;
+use bridge::mixed::link::{LinkClock, LinkTiming};
+use bridge::mixed::plan::TelemetryPlan;
 use bridge::paparazzi::convert::{TELEMETRY_MESSAGES, TelemetrySource, telemetry_text, uplink_readings};
 use bridge::wire::{SensorsMsg, StateMsg, sensors_msg, state_msg};
 use sim_core::rng::Rng32;

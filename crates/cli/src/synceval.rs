@@ -8,10 +8,10 @@
 //!   plus the yaw-bias random walk, its own seed);
 //! - its **telemetry**: every message of the telemetry plan (22 ms for
 //!   `FINKEN_ACTUATORS_SET_POINT` and `ATTITUDE`, 50 ms for `SONAR_ARRAY`, …), timed by the
-//!   paper's measured link ([`bridge::link`]) or a uniform jitter, lost with a probability,
+//!   paper's measured link ([`bridge::mixed::link`]) or a uniform jitter, lost with a probability,
 //!   encoded to Ivy text and decoded again;
 //! - the **simulation**: `bridge::engine::run_loop` with the twin, fed by the gateway's
-//!   [`Interpreter`] through the loop's request queue, with [`TwinSync`](bridge::sync::TwinSync)
+//!   [`Interpreter`] through the loop's request queue, with [`TwinSync`](bridge::mixed::sync::TwinSync)
 //!   on or off, and optionally a tracking pose that lags and drops out.
 //!
 //! After every control step the twin's position is compared with the real copter's at the same
@@ -24,11 +24,12 @@ use std::time::{Duration, Instant};
 
 use anyhow::Context;
 use bridge::engine::{BusInput, LoopOptions, Request, StepObserver};
-use bridge::link::{LinkClock, LinkTiming};
-use bridge::mixed::{Interpreter, TelemetryPlan, TwinAttitude};
+use bridge::mixed::interpreter::{Interpreter, TwinAttitude};
+use bridge::mixed::link::{LinkClock, LinkTiming};
+use bridge::mixed::plan::TelemetryPlan;
+use bridge::mixed::sync::{SyncOptions, SyncStats};
 use bridge::paparazzi::convert::{TelemetrySource, telemetry_text};
 use bridge::paparazzi::messages::MessageSet;
-use bridge::sync::{SyncOptions, SyncStats};
 use bridge::wire::{sensors_msg, state_msg};
 use serde::Serialize;
 use sim_core::rng::Rng32;
@@ -50,8 +51,8 @@ pub fn run(args: &LocalizeArgs) -> anyhow::Result<()> {
         return Err(bad(format!("--link-load must be in [0, 10], got {}", args.link_load)));
     }
     let timing = match args.jitter_ms {
-        Some(_) => bridge::link::LinkTiming::from_args(args.jitter_ms, u32::from(args.copters)),
-        None => bridge::link::LinkTiming::measured_with_load(u32::from(args.copters), args.link_load),
+        Some(_) => bridge::mixed::link::LinkTiming::from_args(args.jitter_ms, u32::from(args.copters)),
+        None => bridge::mixed::link::LinkTiming::measured_with_load(u32::from(args.copters), args.link_load),
     };
     let link = Link { timing, loss: args.loss };
     let medusa_only = SyncOptions { tracking: false, ..SyncOptions::default() };

@@ -25,7 +25,7 @@ use std::time::{Duration, Instant};
 
 use anyhow::Context;
 use bridge::engine::{BusInput, LoopOptions, Request, StepObserver};
-use bridge::mixed::{Interpreter, TwinAttitude};
+use bridge::mixed::interpreter::{Interpreter, TwinAttitude};
 use bridge::paparazzi::flightlog::{FlightLog, LineErrors};
 use bridge::paparazzi::messages::MessageSet;
 use bridge::realflight::{ArenaEstimate, Flight, REAL_SONAR_MAX_M, Series, StartPose, UnitWarning};
@@ -76,14 +76,14 @@ pub struct ValidateArgs {
     #[arg(long, value_name = "M", default_value_t = 0.5)]
     pub stray_m: f64,
     /// The sync correction's gain: the fraction of the error corrected per second.
-    #[arg(long, value_name = "PER_S", default_value_t = bridge::sync::SyncOptions::default().gain_per_s)]
+    #[arg(long, value_name = "PER_S", default_value_t = bridge::mixed::sync::SyncOptions::default().gain_per_s)]
     pub sync_gain: f64,
     /// The sync correction's largest speed, m/s.
-    #[arg(long, value_name = "M_S", default_value_t = bridge::sync::SyncOptions::default().max_speed_m_s)]
+    #[arg(long, value_name = "M_S", default_value_t = bridge::mixed::sync::SyncOptions::default().max_speed_m_s)]
     pub sync_max_speed: f64,
     /// The time constant of the sync's hold trim (the running mean of the attitude targets
     /// taken off them), s; 0 turns it off.
-    #[arg(long, value_name = "S", default_value_t = bridge::sync::SyncOptions::default().hold_trim_time_constant_s)]
+    #[arg(long, value_name = "S", default_value_t = bridge::mixed::sync::SyncOptions::default().hold_trim_time_constant_s)]
     pub hold_trim_s: f64,
     /// Which telemetry sets the twin's attitude targets (`measured`: the AHRS, what the copter
     /// did; `setpoint`: what it asked for, where the log has it).
@@ -179,7 +179,7 @@ pub struct FlightReport {
     /// How far the copter turned in the flight (its yaw, 5th to 95th percentile), deg.
     pub turned_deg: f32,
     /// What the sync correction did for the synced twin.
-    pub sync: Option<bridge::sync::SyncStats>,
+    pub sync: Option<bridge::mixed::sync::SyncStats>,
     /// The twin with the sync correction (MEDUSA on the real sonars).
     pub synced: Metrics,
     /// The twin predicting from the telemetry alone.
@@ -389,7 +389,7 @@ fn validate_flight(
     let world = twin_world(base, &start, ac_id, flight.duration_s() + LEAD_S)?;
     let t0 = flight.start_s - LEAD_S;
     let mut runs = Vec::new();
-    let synced = bridge::sync::SyncOptions {
+    let synced = bridge::mixed::sync::SyncOptions {
         tracking: false,
         gain_per_s: args.sync_gain,
         max_speed_m_s: args.sync_max_speed,
@@ -441,7 +441,7 @@ fn twin_world(base: &Base, start: &StartPose, ac_id: u8, duration_s: f64) -> any
         z_m: 0.0,
         yaw_rad: f64::from(start.yaw_rad),
     };
-    spec.copters.push(bridge::mixed::paired_copter("twin", sim_core::CopterKind::Real, ac_id, &pose));
+    spec.copters.push(bridge::mixed::router::paired_copter("twin", sim_core::CopterKind::Real, ac_id, &pose));
     sim_core::scene::compile(&spec).context("the twin's world")
 }
 
@@ -452,7 +452,7 @@ struct Flown {
     /// When (log time, s) and why it crashed.
     crash: Option<(f64, String)>,
     /// What the sync correction did (with it on).
-    sync: Option<bridge::sync::SyncStats>,
+    sync: Option<bridge::mixed::sync::SyncStats>,
 }
 
 /// Plays the log's texts into the step loop at their recorded times and records the twin.
@@ -506,7 +506,7 @@ fn fly_twin(
     start: &StartPose,
     ac_id: u8,
     attitude: TwinAttitude,
-    sync: Option<bridge::sync::SyncOptions>,
+    sync: Option<bridge::mixed::sync::SyncOptions>,
 ) -> anyhow::Result<Flown> {
     let (tx, rx) = std::sync::mpsc::sync_channel::<Request>(8192);
     let end = t0 + world.params.duration_s;
@@ -800,7 +800,7 @@ impl FlightReport {
                 "    sync: {} MEDUSA estimates, {} not used (confidence under {}); trim {:.1}° pitch, {:.1}° roll\n",
                 y.medusa_updates,
                 y.medusa_rejected,
-                bridge::sync::SyncOptions::default().min_confidence,
+                bridge::mixed::sync::SyncOptions::default().min_confidence,
                 y.trim_deg[0],
                 y.trim_deg[1]
             );
@@ -1019,7 +1019,7 @@ mod tests {
             start,
             sources: "attitude ← FINKEN_SENSOR_MODEL".into(),
             turned_deg: 10.0,
-            sync: Some(bridge::sync::SyncStats {
+            sync: Some(bridge::mixed::sync::SyncStats {
                 medusa_updates: 36,
                 medusa_rejected: 30,
                 trim_deg: [1.5, -0.5],

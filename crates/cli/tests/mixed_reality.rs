@@ -172,7 +172,7 @@ fn a_stand_in_turns_away_from_a_virtual_box_and_its_twin_follows_it() {
         *counts.entry(msg.def.name.clone()).or_default() += 1;
     }
     println!("virtual copter telemetry in 3 s: {counts:?}");
-    let plan = bridge::mixed::TelemetryPlan::project_default();
+    let plan = bridge::mixed::plan::TelemetryPlan::project_default();
     for (name, period) in &plan.periods {
         // INS_REF (5.1 s) may fall outside a 3 s window; the registration messages' order and
         // content are tested in the bridge (mixed.rs) and against ivy-python (test_ivy.py).

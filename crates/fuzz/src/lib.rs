@@ -131,7 +131,7 @@ pub fn pairing_xml(data: &[u8]) {
 pub fn telemetry_xml(data: &[u8]) {
     let Some(text) = text(data) else { return };
     if let Ok(t) = Telemetry::parse(text, "fuzz/telemetry.xml") {
-        let _ = bridge::mixed::TelemetryPlan::from_telemetry(&t, None, None);
+        let _ = bridge::mixed::plan::TelemetryPlan::from_telemetry(&t, None, None);
     }
 }
 

@@ -24,9 +24,9 @@ use crate::engine::failsafe::{Failsafe, FailsafeEvent, FailsafeKind};
 use crate::engine::loop_io::{Frame, LoopOptions, LoopStats, StepObserver, TwinStats};
 use crate::engine::request::{BusInput, Request};
 use crate::log::{EventKind, LogError, LogEvent, Logger};
-use crate::mixed::{Outbox, PprzOut};
+use crate::mixed::outbox::{Outbox, PprzOut};
+use crate::mixed::sync::TwinSync;
 use crate::shard::ShardLink;
-use crate::sync::TwinSync;
 use crate::wire::{CommandError, CommandMsg, sensors_msg, state_msg};
 
 /// Why a step did not happen.

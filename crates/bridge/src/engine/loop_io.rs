@@ -12,8 +12,9 @@ use sim_core::{Inputs, State, StepReport, World};
 
 use crate::engine::failsafe::{FailsafeEvent, FailsafeOptions};
 use crate::engine::request::BusInput;
-use crate::mixed::{OutboxOptions, PprzOut, Sample, Summary};
-use crate::sync::{SyncOptions, SyncStats};
+use crate::mixed::outbox::{OutboxOptions, PprzOut};
+use crate::mixed::stats::{Sample, Summary};
+use crate::mixed::sync::{SyncOptions, SyncStats};
 use crate::wire::{SensorsMsg, StateMsg};
 
 /// What one control step produced, for publishing.
@@ -46,9 +47,9 @@ pub struct LoopOptions {
     pub realtime: bool,
     /// Stop after this many control steps.
     pub ticks: u64,
-    /// Mixed reality: send virtual sonar and virtual telemetry (see [`crate::mixed`]).
+    /// Mixed reality: send virtual sonar and virtual telemetry (see [`crate::mixed::outbox`]).
     pub outbox: Option<OutboxOptions>,
-    /// Keep twins where their real copters are (see [`crate::sync`]).
+    /// Keep twins where their real copters are (see [`crate::mixed::sync`]).
     pub sync: Option<SyncOptions>,
     /// Lost links: twins' telemetry, virtual copters' controllers (see [`crate::engine::failsafe`]).
     pub failsafe: FailsafeOptions,

@@ -40,7 +40,7 @@ pub enum Request {
         /// Where the answer goes.
         reply: tokio::sync::oneshot::Sender<Result<String, String>>,
     },
-    /// Telemetry of a real copter for its twin (see [`crate::mixed`]).
+    /// Telemetry of a real copter for its twin (see [`crate::mixed::interpreter`]).
     Twin {
         /// The twin's name.
         copter: String,
@@ -57,7 +57,7 @@ pub enum Request {
         /// The telemetry text, its key and arrival time.
         origin: BusInput,
     },
-    /// An external tracking pose of a twin's real copter (see [`crate::sync`]).
+    /// An external tracking pose of a twin's real copter (see [`crate::mixed::sync`]).
     Tracking {
         /// The twin's name.
         copter: String,

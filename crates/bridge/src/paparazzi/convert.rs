@@ -111,7 +111,7 @@ pub fn ir_distance_metres_per(def: &MessageDef) -> Option<f64> {
 ///   of Paparazzi's `MAX_PPRZ`, 9600).
 ///
 /// Which of them drives the twin when several speak is the gateway's choice
-/// ([`crate::mixed::Interpreter`]).
+/// ([`crate::mixed::interpreter::Interpreter`]).
 pub fn twin_command(msg: &Message<'_>) -> Option<CommandMsg> {
     let rad_ned = |roll: Option<f32>, pitch: Option<f32>, yaw: Option<f32>| CommandMsg {
         roll,

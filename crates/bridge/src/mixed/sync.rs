@@ -1,7 +1,7 @@
 //! Keeping a twin where its real copter is: the original paper's hybrid approach.
 //!
 //! - **Command prediction.** The twin's physics is driven by the real copter's telemetry
-//!   ([`crate::mixed`]): it flies what the real one flies, and drifts as open-loop
+//!   ([`crate::mixed::interpreter`]): it flies what the real one flies, and drifts as open-loop
 //!   prediction does.
 //! - **MEDUSA correction.** The real copter's own sonar readings (`SONAR_ARRAY`, or
 //!   `FINKEN_SENSOR_MODEL` as fallback) and yaw (`ATTITUDE`, `FINKEN_SENSOR_MODEL.pos_yaw`) feed
