@@ -15,7 +15,9 @@ wall second, the time the world waited for the autopilots, crashes, each copter'
 the last 10 s, the closest approach to a wall and between copters, and the digests.
 
 Needs the Paparazzi tree of shared/paparazzi/build.sh at target/paparazzi (scripts/test.sh
-builds it) and a twinswarm binary (--twinswarm, default target/debug/twinswarm).
+builds it) and a twinswarm binary: --twinswarm PATH, default the release build
+target/release/twinswarm (`cargo build --release --bin twinswarm`), else target/debug/twinswarm
+with a note on stderr (the debug world is several times slower per step).
 """
 
 import argparse
@@ -37,6 +39,19 @@ REPO = Path(__file__).resolve().parents[1]
 PPRZ = Path(os.environ.get("TWINSWARM_PAPARAZZI_BUILD", REPO / "target" / "paparazzi"))
 # The FINken's rotor-disc square as the sonars see it: arm 0.1 m at 45°, 5" rotors.
 HALF_WIDTH_M = 0.1 / math.sqrt(2) + 0.0635
+
+
+def default_twinswarm(quiet=False):
+    """The release build of twinswarm, else the debug build (with a note: slower), else exit."""
+    release, debug = REPO / "target" / "release" / "twinswarm", REPO / "target" / "debug" / "twinswarm"
+    if release.exists():
+        return str(release)
+    if debug.exists():
+        if not quiet:
+            print(f"nps_swarm.py: no {release.relative_to(REPO)}, using {debug.relative_to(REPO)} "
+                  "(slower; `cargo build --release --bin twinswarm`, or pass --twinswarm)", file=sys.stderr)
+        return str(debug)
+    sys.exit("nps_swarm.py: no twinswarm binary in target/release or target/debug: build one, or pass --twinswarm")
 
 
 def free_port():
@@ -250,7 +265,8 @@ def main(argv=None):
     ap.add_argument("--quiet", action="store_true", help=argparse.SUPPRESS)
     ap.add_argument("--udp-out", type=int, help="one aircraft: its telemetry's UDP port (link -udp_port)")
     ap.add_argument("--udp-in", type=int, help="one aircraft: its datalink UDP port (link -udp_uplink_port)")
-    ap.add_argument("--twinswarm", default=str(REPO / "target" / "debug" / "twinswarm"))
+    ap.add_argument("--twinswarm", help="the twinswarm binary (default target/release/twinswarm, else "
+                    "target/debug/twinswarm)")
     ap.add_argument("--out", help="keep the scene, logs and summaries here")
     ap.add_argument("--no-log", action="store_true", help="no MCAP log (speed runs): no flight figures")
     ap.add_argument("--run-arg", action="append", default=[], help="an extra argument for twinswarm run")
@@ -261,6 +277,8 @@ def main(argv=None):
     ap.add_argument("--stop-for", type=float, default=12.0)
     ap.add_argument("--json", action="store_true")
     a = ap.parse_args(argv)
+    if a.twinswarm is None:
+        a.twinswarm = default_twinswarm(quiet=a.quiet)
     if not (PPRZ / "env.sh").exists():
         sys.exit(f"no Paparazzi tree at {PPRZ}: run shared/paparazzi/build.sh {PPRZ} (scripts/test.sh does)")
     out = Path(a.out or tempfile.mkdtemp(prefix="nps_swarm."))
