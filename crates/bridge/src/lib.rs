@@ -17,9 +17,9 @@
 //!   both; keeping twins where their real copters are ([`mixed::sync`]: MEDUSA and tracking);
 //!   when a real copter's telemetry arrives ([`mixed::link`]).
 //! * [`realflight`]: a real flight's Paparazzi log as series in the simulator's frame, its
-//!   flights, the arena its sonars describe and where each flight began.
-//! * [`fit`]: system identification of the horizontal flight model from real flights' sonars
-//!   and attitude, and the prediction errors it and the simpler models make.
+//!   flights, the arena its sonars describe and where each flight began; and
+//!   [`realflight::fit`], system identification of the horizontal flight model from real
+//!   flights' sonars and attitude, and the prediction errors it and the simpler models make.
 //! * [`shard`]: a shard's link to its neighbours over Zenoh (ghosts, liveliness, barrier).
 //! * [`autopilot`]: copters flown by outside autopilots (Paparazzi NPS), in lockstep over TCP.
 //! * [`log`]: MCAP logs, their reader and recovery.
@@ -35,7 +35,6 @@
 
 pub mod autopilot;
 pub mod engine;
-pub mod fit;
 pub mod live;
 pub mod log;
 pub mod mixed;

@@ -1,5 +1,5 @@
 //! `twinswarm fit LOG.data [LOG.data …]`: system identification of the horizontal flight model
-//! from real flights ([`bridge::fit`]): the attitude-to-position delay, the linear damping, the
+//! from real flights ([`bridge::realflight::fit`]): the attitude-to-position delay, the linear damping, the
 //! sign mapping and an on-line trim bias, fitted leave-one-flight-out on every flight of the
 //! logs ([`bridge::realflight::flights`]), and the prediction errors 1, 2 and 4 s ahead of
 //! Twinswarm's current model, the identified one, constant velocity and staying put; and the
@@ -7,8 +7,8 @@
 
 use std::path::{Path, PathBuf};
 
-use bridge::fit::{FitOptions, FitReport, FlightInput};
 use bridge::paparazzi::flightlog::FlightLog;
+use bridge::realflight::fit::{FitOptions, FitReport, FlightInput};
 use bridge::realflight::{Flight, Series};
 
 use crate::BadInput;
@@ -81,7 +81,7 @@ pub fn run(args: &FitArgs) -> anyhow::Result<()> {
         })
         .collect();
     let opts = FitOptions { centred_state: args.centred_state, ..FitOptions::default() };
-    let report = bridge::fit::identify(&inputs, &opts).map_err(|e| {
+    let report = bridge::realflight::fit::identify(&inputs, &opts).map_err(|e| {
         let files: Vec<String> = args.files.iter().map(|f| f.display().to_string()).collect();
         BadInput(anyhow::Error::new(e).context(files.join(", ")))
     })?;
@@ -121,7 +121,7 @@ fn to_text(r: &FitReport, files: &[PathBuf]) -> String {
         s += &format!(" {:>6}\n", m.horizons.iter().map(|h| h.n.to_string()).collect::<Vec<_>>().join("/"));
     }
     let folds = &r.flights;
-    let fold = |f: fn(&bridge::fit::Params) -> f64| {
+    let fold = |f: fn(&bridge::realflight::fit::Params) -> f64| {
         let lo = folds.iter().map(|x| f(&x.params)).fold(f64::INFINITY, f64::min);
         let hi = folds.iter().map(|x| f(&x.params)).fold(f64::NEG_INFINITY, f64::max);
         (lo, hi)
@@ -129,7 +129,8 @@ fn to_text(r: &FitReport, files: &[PathBuf]) -> String {
     let (tau, k) = (fold(|p| p.delay_s), fold(|p| p.damping_per_s));
     let a = &r.all_flights;
     let (delays, dampings) = (&r.options.delays_s, &r.options.dampings_per_s);
-    let edge = |v: f64, g: &bridge::fit::Range| (v - g.from).abs() < 1e-9 || (g.to - v).abs() < g.step / 2.0;
+    let edge =
+        |v: f64, g: &bridge::realflight::fit::Range| (v - g.from).abs() < 1e-9 || (g.to - v).abs() < g.step / 2.0;
     let edges: Vec<&str> = [
         (folds.iter().any(|f| edge(f.params.delay_s, delays)) || edge(a.delay_s, delays)).then_some("τ"),
         (folds.iter().any(|f| edge(f.params.damping_per_s, dampings)) || edge(a.damping_per_s, dampings))
@@ -170,8 +171,10 @@ fn to_text(r: &FitReport, files: &[PathBuf]) -> String {
     let agrees = if a.mapping == r.twinswarm_mapping { "Twinswarm's" } else { "NOT Twinswarm's" };
     s +=
         &format!("  signs: {} ({agrees}; per fold: {})\n", a.mapping, maps.into_iter().collect::<Vec<_>>().join(" | "));
-    let ev = |e: &bridge::fit::SignEvidence| {
-        let m = |b: Option<bridge::fit::AxisBest>| b.map_or("-".to_owned(), |b| format!("{:.3} m", b.mean_error_m));
+    let ev = |e: &bridge::realflight::fit::SignEvidence| {
+        let m = |b: Option<bridge::realflight::fit::AxisBest>| {
+            b.map_or("-".to_owned(), |b| format!("{:.3} m", b.mean_error_m))
+        };
         format!("+ {} / − {}", m(e.plus), m(e.minus))
     };
     s += &format!(
@@ -197,7 +200,7 @@ fn to_text(r: &FitReport, files: &[PathBuf]) -> String {
         "  height (IR, take-off + {:.0} s to landing − {:.0} s)      mean     sd   range  noise sd\n",
         r.options.settle_after_take_off_s, r.options.settle_before_landing_s
     );
-    let row = |label: &str, h: Option<bridge::fit::HeightStats>| match h {
+    let row = |label: &str, h: Option<bridge::realflight::fit::HeightStats>| match h {
         Some(h) => format!(
             "    {label:<50} {:>5.2} m {:>4.1} cm {:>4.1} cm {:>5.2} cm\n",
             h.mean_m,

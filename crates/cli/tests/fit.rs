@@ -10,9 +10,9 @@ mod common;
 use std::path::Path;
 use std::process::Command;
 
-use bridge::fit::{FitOptions, FitReport, FlightInput, Mapping};
 use bridge::paparazzi::flightlog::FlightLog;
 use bridge::realflight::Series;
+use bridge::realflight::fit::{FitOptions, FitReport, FlightInput, Mapping};
 
 const LINKED: &str = "finken_flights/report_2015-12-16/15_12_16__13_55_00.data";
 
@@ -85,7 +85,7 @@ fn fit(series: &Series, flights: &[bridge::realflight::Flight], opts: &FitOption
         .enumerate()
         .map(|(k, f)| FlightInput { label: format!("flight {}", k + 1), series, flight: *f })
         .collect();
-    bridge::fit::identify(&inputs, opts).expect("identifies")
+    bridge::realflight::fit::identify(&inputs, opts).expect("identifies")
 }
 
 fn median_1s(r: &FitReport, model: &str) -> f64 {

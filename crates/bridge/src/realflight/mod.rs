@@ -16,6 +16,16 @@
 //! ([`crate::paparazzi::convert::IR_DISTANCE_UNIT`]). That is checked against each log: the
 //! same log carries the same height as `FINKEN_SENSOR_MODEL.pos_z`, and [`ir_unit_check`]
 //! names any disagreement ([`UnitWarning`]). No factor is ever applied to make them agree.
+//!
+//! This file holds the series, the flights, the arena and the start poses; [`fit`] identifies
+//! the horizontal flight model from the same series (`twinswarm fit`).
+//!
+//! **May use:** [`crate::paparazzi`] (the log read by `flightlog`, the telemetry conversions of
+//! `convert`), `sim-core`'s constants and angle arithmetic, serde. Pure functions over a log
+//! already read: no I/O, no printing. Used by [`crate::log`]'s `import` and the CLI's
+//! `validate`, `fit` and `log import`.
+
+pub mod fit;
 
 use serde::Serialize;
 
