@@ -24,6 +24,7 @@
 //! * [`autopilot`]: copters flown by outside autopilots (Paparazzi NPS), in lockstep over TCP.
 //! * [`log`]: MCAP logs, their reader and recovery.
 //! * [`live`]: the live view (a Foxglove WebSocket server).
+//! * `ids.rs`: [`AcId`], at the bottom: every room that names an aircraft imports it from there.
 //!
 //! **Architecture invariant:** the format modules never do I/O except reading the files they
 //! are asked to parse, and never panic on input. Zenoh is spoken by [`zenoh_net`] (the node and
@@ -35,6 +36,7 @@
 
 pub mod autopilot;
 pub mod engine;
+mod ids;
 pub mod live;
 pub mod log;
 pub mod mixed;
@@ -45,8 +47,7 @@ pub mod shard;
 pub mod wire;
 pub mod zenoh_net;
 
-/// Paparazzi aircraft id (one byte on the link, the Ivy sender of telemetry).
-pub type AcId = u8;
+pub use ids::AcId;
 
 /// Locks `m`, also after a panic elsewhere poisoned it. A poisoned lock still guards usable
 /// data (counters, bindings, the world), and an input path never drops what arrives because an

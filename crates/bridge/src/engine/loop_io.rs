@@ -1,8 +1,8 @@
 //! What goes into and comes out of the step loop besides its requests: how it runs
 //! ([`LoopOptions`], [`LockstepOptions`]), what each step produced for publishing ([`Frame`]),
 //! what it reports ([`LoopStats`], [`TwinStats`], [`LockstepStats`]), and the observer that
-//! sees every step ([`StepObserver`]). [`crate::engine::flight`] produces them, [`crate::engine::run_loop`] paces
-//! and routes them.
+//! sees every step ([`StepObserver`]). [`crate::engine::flight`] produces them,
+//! [`crate::engine::run_loop`] paces and routes them.
 
 use std::collections::BTreeMap;
 use std::sync::Arc;

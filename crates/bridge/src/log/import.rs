@@ -26,7 +26,7 @@ use super::mcap_out::McapOut;
 use super::pprz::PprzChannels;
 use super::proto::{CopterSensors, CopterState};
 use super::writer::LogError;
-use crate::AcId;
+use crate::ids::AcId;
 use crate::paparazzi::flightlog::FlightLog;
 use crate::realflight::{Flight, Series};
 

@@ -55,6 +55,12 @@
 //! the few frames queued): `twinswarm log recover` reads every complete chunk of a truncated
 //! file and writes a complete one.
 //! [`Logger::finish`] (or dropping the [`Logger`]) writes the summary section.
+//!
+//! **May use:** `mcap`, `prost`, `foxglove`, `sim-core`, [`crate::paparazzi`] (the Paparazzi
+//! channels, the import's log), [`crate::zenoh_net::keyexpr`] (what a key's sender chunk may
+//! hold), [`crate::realflight`] (the import's series, flights and arena), [`crate::live`] (the
+//! writer thread feeds the live view) and [`crate::AcId`]. Never the engine: its recorder uses
+//! this room.
 
 mod capture;
 mod encode;

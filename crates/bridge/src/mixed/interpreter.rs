@@ -20,8 +20,8 @@ use std::time::Instant;
 use sim_core::World;
 use sim_core::scene::CopterSpec;
 
-use crate::AcId;
 use crate::engine::request::{BusInput, Request};
+use crate::ids::AcId;
 use crate::mixed::router::{Decision, Router};
 use crate::mixed::stats::{Sample, Summary};
 use crate::paparazzi::convert::twin_command;

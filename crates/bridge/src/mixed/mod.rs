@@ -17,12 +17,12 @@
 //! Beside them, [`link`] models when a real copter's telemetry arrives (the stand-in and the
 //! sync evaluation draw from it).
 //!
-//! **May use:** `sim-core`, `medusa` (in [`sync`]), [`crate::paparazzi`] (formats, the
-//! telemetry ⇄ command conversions, the Ivy agent), [`crate::wire`], the engine's `request.rs`
-//! (the requests the interpreter makes), [`crate::zenoh_net`]'s Paparazzi bus and keys (the
-//! gateway only; with [`crate::log`]'s clock and tokio, the gateway is the only file here that
-//! does I/O). Never the engine's loop or flight: the engine uses this room ([`outbox`],
-//! [`sync`], [`stats`]), not the other way round.
+//! **May use:** `sim-core`, `medusa` (in [`sync`]), [`crate::AcId`], [`crate::paparazzi`]
+//! (formats, the telemetry ⇄ command conversions, the Ivy agent), [`crate::wire`], the
+//! engine's `request.rs` (the requests the interpreter makes), [`crate::zenoh_net`]'s
+//! Paparazzi bus and keys (the gateway only; with [`crate::log`]'s clock and tokio, the gateway
+//! is the only file here that does I/O). Never the engine's loop or flight: the engine uses
+//! this room ([`outbox`], [`sync`], [`stats`]), not the other way round.
 
 pub mod gateway;
 pub mod interpreter;

@@ -11,7 +11,7 @@ use std::sync::Arc;
 use sim_core::mixed::VirtualSonar;
 use sim_core::{CopterKind, State, World};
 
-use crate::AcId;
+use crate::ids::AcId;
 use crate::mixed::plan::TelemetryPlan;
 use crate::paparazzi::convert::{TelemetrySource, Uplink, telemetry_text, uplink_text};
 use crate::paparazzi::messages::MessageSet;

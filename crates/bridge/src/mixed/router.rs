@@ -8,7 +8,7 @@ use std::collections::BTreeMap;
 use sim_core::scene::{CommandSpec, CopterSpec, StartSpec};
 use sim_core::{CopterKind, FlightMode, SceneSpec, World};
 
-use crate::AcId;
+use crate::ids::AcId;
 use crate::paparazzi::conf::AircraftKind;
 use crate::paparazzi::pairing::{ResolvedPairing, Route, UnknownAircraftStats};
 

@@ -39,7 +39,7 @@ use std::collections::HashMap;
 
 use regex::{CaptureLocations, Regex, RegexBuilder};
 
-use crate::AcId;
+use crate::ids::AcId;
 use crate::paparazzi::codec::split_header;
 use crate::paparazzi::narrow::{ChunkPattern, Narrowing, narrow_hir};
 

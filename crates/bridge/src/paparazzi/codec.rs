@@ -48,7 +48,7 @@ use std::fmt::Write as _;
 use serde::ser::SerializeMap;
 use serde::{Serialize, Serializer};
 
-use crate::AcId;
+use crate::ids::AcId;
 use crate::paparazzi::messages::{BaseType, FieldType, MessageDef, MessageSet};
 use crate::paparazzi::value::Value;
 

@@ -29,7 +29,7 @@ use std::path::Path;
 
 use serde::Serialize;
 
-use crate::AcId;
+use crate::ids::AcId;
 use crate::paparazzi::xml::{Doc, XmlError};
 
 /// Whether an aircraft exists physically or only in the simulation.

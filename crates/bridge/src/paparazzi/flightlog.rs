@@ -25,7 +25,7 @@ use std::path::{Path, PathBuf};
 
 use serde::Serialize;
 
-use crate::AcId;
+use crate::ids::AcId;
 use crate::paparazzi::codec::{CodecError, Message, Sender, decode_payload, split_header};
 use crate::paparazzi::messages::{MessageDef, MessageRef, MessageSet};
 use crate::paparazzi::telemetry::Telemetry;

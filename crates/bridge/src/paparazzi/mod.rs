@@ -21,7 +21,9 @@
 //!   Paparazzi Ivy bus beside `link`, `server` and the GCS.
 //!
 //! **May use:** `sim-core` (for the conversions), `regex`, `quick-xml`, std and tokio (only
-//! in [`ivy`]). Never Zenoh: the Zenoh side ([`crate::zenoh_net`]) uses this room, not the
+//! in [`ivy`]), and the crate's bottom: [`crate::AcId`] (`ids.rs`), [`crate::wire`] (the
+//! commands and states [`convert`] turns telemetry into and out of) and [`crate::lock`]. Never
+//! Zenoh: the Zenoh side ([`crate::zenoh_net`]) uses this room, not the
 //! other way round.
 
 pub mod bus;

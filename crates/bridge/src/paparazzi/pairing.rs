@@ -60,7 +60,7 @@ use std::path::{Path, PathBuf};
 
 use serde::Serialize;
 
-use crate::AcId;
+use crate::ids::AcId;
 use crate::paparazzi::conf::{AircraftKind, ConfXml};
 use crate::paparazzi::xml::{Doc, Element, Location, XmlError};
 

@@ -21,15 +21,15 @@
 //! the horizontal flight model from the same series (`twinswarm fit`).
 //!
 //! **May use:** [`crate::paparazzi`] (the log read by `flightlog`, the telemetry conversions of
-//! `convert`), `sim-core`'s constants and angle arithmetic, serde. Pure functions over a log
-//! already read: no I/O, no printing. Used by [`crate::log`]'s `import` and the CLI's
-//! `validate`, `fit` and `log import`.
+//! `convert`), [`crate::AcId`], `sim-core`'s constants and angle arithmetic, serde. Pure
+//! functions over a log already read: no I/O, no printing. Used by [`crate::log`]'s `import`
+//! and the CLI's `validate`, `fit` and `log import`.
 
 pub mod fit;
 
 use serde::Serialize;
 
-use crate::AcId;
+use crate::ids::AcId;
 use crate::paparazzi::convert::{IR_DISTANCE_UNIT, real_sonar, twin_command, value_unit};
 use crate::paparazzi::flightlog::FlightLog;
 

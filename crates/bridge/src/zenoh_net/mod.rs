@@ -8,7 +8,8 @@
 //!
 //! **May use:** Zenoh, tokio, [`crate::paparazzi`] (formats and the regex bus) and
 //! [`crate::wire`] and the engine's `request.rs` and `loop_io.rs` ([`crate::engine::Request`],
-//! [`crate::engine::Frame`]: the payloads and the loop's channels).
+//! [`crate::engine::Frame`]: the payloads and the loop's channels), [`crate::AcId`] and
+//! [`crate::log`]'s clock (a command's receive time).
 
 pub mod keyexpr;
 pub mod node;

@@ -23,7 +23,7 @@ use std::sync::{Arc, Mutex};
 
 use zenoh::sample::Locality;
 
-use crate::AcId;
+use crate::ids::AcId;
 use crate::paparazzi::bus::{BindId, Bus, BusError, Control, Delivery};
 use crate::zenoh_net::keyexpr::key_for_text;
 
