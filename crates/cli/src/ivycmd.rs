@@ -17,7 +17,7 @@ use crate::BadInput;
 
 /// Arguments of `twinswarm ivy`.
 #[derive(Debug, clap::Args)]
-pub struct IvyArgs {
+pub struct IvyToolArgs {
     #[command(subcommand)]
     command: IvyCommand,
     /// The Ivy bus (`127.255.255.255:2010`, `127:2010`); default: `IVYBUS`, else
@@ -75,7 +75,7 @@ fn seconds(s: f64, what: &str) -> anyhow::Result<Duration> {
 }
 
 /// Runs `twinswarm ivy`.
-pub fn run(args: IvyArgs) -> anyhow::Result<()> {
+pub fn run(args: IvyToolArgs) -> anyhow::Result<()> {
     let addr = BusAddr::from_env_or(args.bus.as_deref()).map_err(|e| BadInput(e.into()))?;
     let stop = crate::logcmd::install_stop_flag()?;
     let rt = tokio::runtime::Builder::new_multi_thread().worker_threads(2).enable_all().build()?;

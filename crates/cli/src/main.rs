@@ -56,7 +56,7 @@ enum Command {
     /// Stand in for a real FINken: fly its own "reality", send telemetry, fuse virtual sonar.
     Copter(standin::CopterArgs),
     /// Ivy bus tools: probe (like ivyprobe), send, peers.
-    Ivy(ivycmd::IvyArgs),
+    Ivy(ivycmd::IvyToolArgs),
     /// Validate a scene file and explain what it contains.
     Check {
         /// The scene file (TOML).

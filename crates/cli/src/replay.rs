@@ -40,28 +40,21 @@ use zenoh::qos::CongestionControl;
 
 use crate::BadInput;
 use crate::logcmd::read_error;
+use crate::transport::{self, IvyArgs, ZenohArgs, ZenohRole};
 
 /// `twinswarm replay` arguments.
 #[derive(Debug, clap::Args)]
+#[command(mut_arg("prefix", |a| a.help("Key-expression prefix (default: the one recorded in the log, else twinswarm/<world>)")))]
+#[command(mut_arg("ivy", |a| a.help(transport::ivy_help("A Paparazzi log: also play it onto a Paparazzi Ivy bus"))))]
 pub struct ReplayArgs {
     /// The MCAP log of a run.
     pub file: PathBuf,
     /// Playback speed: 2 plays twice as fast, 0.5 half as fast (> 0).
     #[arg(long, value_name = "X", default_value_t = 1.0, allow_negative_numbers = true)]
     pub speed: f64,
-    /// A full Zenoh configuration file (JSON5), instead of the embedded default (peer mode,
-    /// listen on tcp/127.0.0.1:7447, multicast scouting off).
-    #[arg(long, value_name = "FILE.json5")]
-    pub zenoh_config: Option<PathBuf>,
-    /// Zenoh endpoint to listen on (repeatable; overrides the config).
-    #[arg(long, value_name = "ENDPOINT")]
-    pub listen: Vec<String>,
-    /// Zenoh endpoint to connect to (repeatable; overrides the config).
-    #[arg(long, value_name = "ENDPOINT")]
-    pub connect: Vec<String>,
-    /// Key-expression prefix (default: the one recorded in the log, else twinswarm/<world>).
-    #[arg(long, value_name = "KEY")]
-    pub prefix: Option<String>,
+    /// `--zenoh-config`, `--listen`, `--connect`, `--prefix`.
+    #[command(flatten)]
+    pub zenoh: ZenohArgs,
     /// Before sending, wait up to S seconds for a subscriber to the clock, state or sensors
     /// keys (then start anyway).
     #[arg(long, value_name = "S")]
@@ -78,13 +71,9 @@ pub struct ReplayArgs {
     /// on Ivy only).
     #[arg(long)]
     pub no_bus: bool,
-    /// A Paparazzi log: also play it onto a Paparazzi Ivy bus (BUS as in Paparazzi; default
-    /// `--ivy-bus`, else `IVYBUS`, else 127.255.255.255:2010).
-    #[arg(long, value_name = "BUS", num_args = 0..=1, default_missing_value = "")]
-    pub ivy: Option<String>,
-    /// The Ivy bus address for `--ivy`.
-    #[arg(long, value_name = "ADDR:PORT")]
-    pub ivy_bus: Option<String>,
+    /// `--ivy`, `--ivy-bus`: a Paparazzi log only.
+    #[command(flatten)]
+    pub ivy: IvyArgs,
     /// A Paparazzi log: start at this log time, s.
     #[arg(long, value_name = "S", allow_negative_numbers = true)]
     pub from: Option<f64>,
@@ -522,7 +511,7 @@ pub fn run(args: ReplayArgs) -> anyhow::Result<()> {
     if args.no_bus && args.foxglove.is_none() {
         return Err(bad("--no-bus needs --foxglove for a run log (nothing would be replayed)".into()));
     }
-    if args.ivy.is_some() || args.from.is_some() || args.to.is_some() || args.ac_id.is_some() {
+    if args.ivy.ivy.is_some() || args.from.is_some() || args.to.is_some() || args.ac_id.is_some() {
         return Err(bad("--ivy, --from, --to and --ac-id replay Paparazzi logs (NAME.data)".into()));
     }
     if !args.speed.is_finite() || args.speed <= 0.0 {
@@ -535,7 +524,7 @@ pub fn run(args: ReplayArgs) -> anyhow::Result<()> {
     }
     let path = args.file.as_path();
     let file = LogFile::open(path).map_err(read_error)?;
-    let plan = plan(&file, args.prefix.as_deref(), args.foxglove.is_some())?;
+    let plan = plan(&file, args.zenoh.prefix.as_deref(), args.foxglove.is_some())?;
     let prefix = plan.prefix.clone();
     let span_s = (plan.t1_ns - plan.t0_ns) as f64 / 1e9;
     if !plan.unreadable.is_empty() {
@@ -574,13 +563,10 @@ pub fn run(args: ReplayArgs) -> anyhow::Result<()> {
     let session = match args.no_bus {
         true => None,
         false => Some(
-            zenoh::open(match &args.zenoh_config {
-                Some(file) => crate::zenoh_config_file(file, &args.listen, &args.connect)?,
-                None => bridge::zenoh_net::node::default_config(&args.listen, &args.connect)?,
-            })
-            .wait()
-            .map_err(|e| anyhow::anyhow!("{e}"))
-            .context("cannot open the Zenoh session")?,
+            zenoh::open(args.zenoh.config(ZenohRole::Peer)?)
+                .wait()
+                .map_err(|e| anyhow::anyhow!("{e}"))
+                .context("cannot open the Zenoh session")?,
         ),
     };
     let out = match &session {

@@ -13,7 +13,7 @@ use std::time::{Duration, Instant};
 
 use anyhow::Context;
 use bridge::paparazzi::flightlog::FlightLog;
-use bridge::paparazzi::ivy::{BusAddr, IvyAgent, IvyOptions};
+use bridge::paparazzi::ivy::{IvyAgent, IvyOptions};
 use zenoh::Wait;
 
 use crate::BadInput;
@@ -52,11 +52,9 @@ pub fn run(args: &ReplayArgs) -> anyhow::Result<()> {
     let stop = crate::logcmd::install_stop_flag()?;
     let rt = tokio::runtime::Builder::new_multi_thread().worker_threads(1).enable_all().build()?;
     let mut bus_name = String::new();
-    let ivy = match &args.ivy {
+    let ivy = match args.ivy.bus()? {
         None => None,
-        Some(b) => {
-            let explicit = if b.is_empty() { args.ivy_bus.as_deref() } else { Some(b.as_str()) };
-            let addr = BusAddr::from_env_or(explicit).map_err(|e| BadInput(e.into()))?;
+        Some(addr) => {
             bus_name =
                 format!("{}:{}", addr.domains.iter().map(ToString::to_string).collect::<Vec<_>>().join(","), addr.port);
             let agent = rt.block_on(IvyAgent::start(IvyOptions::new(addr, "twinswarm-replay")))?;
@@ -66,13 +64,10 @@ pub fn run(args: &ReplayArgs) -> anyhow::Result<()> {
     let session = if args.no_bus {
         None
     } else {
-        let config = match &args.zenoh_config {
-            Some(file) => crate::zenoh_config_file(file, &args.listen, &args.connect)?,
-            None => bridge::zenoh_net::node::default_config(&args.listen, &args.connect)?,
-        };
+        let config = args.zenoh.config(crate::transport::ZenohRole::Peer)?;
         Some(zenoh::open(config).wait().map_err(|e| anyhow::anyhow!("{e}")).context("cannot open the Zenoh session")?)
     };
-    let prefix = args.prefix.clone().unwrap_or_else(|| "twinswarm/paparazzi-log".to_owned());
+    let prefix = args.zenoh.prefix.clone().unwrap_or_else(|| "twinswarm/paparazzi-log".to_owned());
     if let Some(agent) = &ivy
         && let Some(w) = args.wait_for_subscriber
     {

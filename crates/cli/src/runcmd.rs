@@ -16,12 +16,14 @@ use bridge::engine::{Finished, LockstepOptions};
 use bridge::live::LiveServer;
 use sim_core::World;
 use sim_core::scene::{self, SceneSpec};
+use twinswarm::transport::{self, IvyArgs, ZenohArgs};
 use twinswarm::{BadInput, logcmd};
 
 use crate::runner::{self, Pace, RunOutcome};
 use crate::{report, shardcmd};
 
 #[derive(Debug, clap::Args)]
+#[command(mut_arg("ivy", |a| a.help(transport::ivy_help(IVY_PURPOSE))))]
 pub(crate) struct RunArgs {
     /// Step only shard K of N of the swarm (a region of the arena), trading ghosts with the
     /// other shards over Zenoh (`--connect` to their router). Each shard logs its own copters
@@ -115,28 +117,12 @@ pub(crate) struct RunArgs {
     /// Run without Zenoh (with `--ivy`, on the Ivy bus alone).
     #[arg(long)]
     no_bus: bool,
-    /// Join a Paparazzi Ivy bus as agent `Twinswarm`: real aircraft's telemetry from `link`
-    /// drives their twins, VIRTUAL_SONAR goes back, virtual copters send telemetry. BUS as in
-    /// Paparazzi (`127.255.255.255:2010`, `127:2010`); default: `--ivy-bus`, else `IVYBUS`,
-    /// else 127.255.255.255:2010. With Zenoh on, texts are bridged both ways.
-    #[arg(long, value_name = "BUS", num_args = 0..=1, default_missing_value = "")]
-    ivy: Option<String>,
-    /// The Ivy bus address (same syntax as Paparazzi's `-b`); implies nothing without `--ivy`.
-    #[arg(long, value_name = "ADDR:PORT")]
-    ivy_bus: Option<String>,
-    /// A full Zenoh configuration file (JSON5), instead of the embedded default (peer mode,
-    /// listen on tcp/127.0.0.1:7447, multicast scouting off).
-    #[arg(long, value_name = "FILE.json5")]
-    zenoh_config: Option<PathBuf>,
-    /// Zenoh endpoint to listen on, e.g. tcp/127.0.0.1:7448 (repeatable; overrides the config).
-    #[arg(long, value_name = "ENDPOINT")]
-    listen: Vec<String>,
-    /// Zenoh endpoint to connect to (repeatable; overrides the config).
-    #[arg(long, value_name = "ENDPOINT")]
-    connect: Vec<String>,
-    /// Key-expression prefix (default: twinswarm/<world name>).
-    #[arg(long, value_name = "KEY")]
-    prefix: Option<String>,
+    /// `--ivy`, `--ivy-bus`: Paparazzi's ground segment, with or without Zenoh.
+    #[command(flatten)]
+    ivy: IvyArgs,
+    /// `--zenoh-config`, `--listen`, `--connect`, `--prefix`.
+    #[command(flatten)]
+    zenoh: ZenohArgs,
     /// Pairing file (XML): real aircraft and their twins, virtual aircraft, spawn rules.
     #[arg(long, value_name = "FILE.xml")]
     pairing: Option<PathBuf>,
@@ -217,7 +203,11 @@ pub(crate) struct RunArgs {
     foxglove: Option<String>,
 }
 
-/// `--on-log-error`.
+/// What `run --ivy` does on the bus.
+const IVY_PURPOSE: &str = "Join a Paparazzi Ivy bus as agent `Twinswarm`: real aircraft's telemetry from `link` drives \
+                           their twins, VIRTUAL_SONAR goes back, virtual copters send telemetry; with Zenoh on, texts \
+                           are bridged both ways";
+
 /// `--on-shard-lost`.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
 enum OnShardLost {
@@ -227,6 +217,7 @@ enum OnShardLost {
     Hold,
 }
 
+/// `--on-log-error`.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
 enum OnLogError {
     Stop,
@@ -313,13 +304,7 @@ fn bus_options(args: &RunArgs, mixed: runner::MixedOptions) -> anyhow::Result<ru
         client_lost: args.on_client_lost,
     };
     failsafe.validate().map_err(|e| BadInput(anyhow::anyhow!("--link-hold/--link-land/--descent: {e}")))?;
-    let ivy = match &args.ivy {
-        None => None,
-        Some(b) => {
-            let explicit = if b.is_empty() { args.ivy_bus.as_deref() } else { Some(b.as_str()) };
-            Some(bridge::paparazzi::ivy::BusAddr::from_env_or(explicit).map_err(|e| BadInput(e.into()))?)
-        }
-    };
+    let ivy = args.ivy.bus()?;
     if args.ros2 && args.no_bus {
         return Err(BadInput(anyhow::anyhow!(
             "--ros2 needs the Zenoh bus: ROS 2 nodes reach it over Zenoh (drop --no-bus)"
@@ -345,10 +330,7 @@ fn bus_options(args: &RunArgs, mixed: runner::MixedOptions) -> anyhow::Result<ru
         ros2: args.ros2.then_some(bridge::ros2::Ros2Options { domain: args.ros_domain, max_rate_hz: args.ros2_rate }),
         ivy,
         no_bus: args.no_bus,
-        zenoh_config: args.zenoh_config.clone(),
-        listen: args.listen.clone(),
-        connect: args.connect.clone(),
-        prefix: args.prefix.clone(),
+        zenoh: args.zenoh.clone(),
         mixed,
         failsafe,
         shard: args.shard.map(|(shard, shards)| runner::ShardOptions {
@@ -913,7 +895,7 @@ fn check_checkpointable(args: &RunArgs, spec: &SceneSpec) -> anyhow::Result<()> 
         (false, false) => return Ok(()),
     };
     let twins = spec.copters.iter().any(|c| c.kind == sim_core::CopterKind::Real);
-    let unsaved = [(args.ivy.is_some(), "--ivy"), (args.pairing.is_some(), "--pairing"), (twins, "twins")];
+    let unsaved = [(args.ivy.ivy.is_some(), "--ivy"), (args.pairing.is_some(), "--pairing"), (twins, "twins")];
     match unsaved.iter().find(|(on, _)| *on) {
         Some((_, what)) => {
             Err(BadInput(anyhow::anyhow!("{flag}: not available with {what} (their state between steps is not saved)"))
@@ -925,7 +907,7 @@ fn check_checkpointable(args: &RunArgs, spec: &SceneSpec) -> anyhow::Result<()> 
 
 /// What a shard cannot do yet.
 fn check_shardable(args: &RunArgs, spec: &SceneSpec) -> anyhow::Result<()> {
-    let unsharded = [(args.ivy.is_some(), "--ivy"), (args.pairing.is_some(), "--pairing"), (args.ros2, "--ros2")];
+    let unsharded = [(args.ivy.ivy.is_some(), "--ivy"), (args.pairing.is_some(), "--pairing"), (args.ros2, "--ros2")];
     if let Some((_, flag)) = unsharded.iter().find(|(on, _)| *on) {
         return Err(BadInput(anyhow::anyhow!("--shard: {flag} is not available for a shard yet")).into());
     }

@@ -3,7 +3,6 @@
 //! flag (set by SIGINT/SIGTERM) ends the loop after the current step; the session is then
 //! closed explicitly.
 
-use std::path::PathBuf;
 use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, Ordering};
 
@@ -24,6 +23,7 @@ use sim_core::World;
 use sim_core::shard::Partition;
 use std::sync::Mutex;
 use twinswarm::BadInput;
+use twinswarm::transport::{ZenohArgs, ZenohRole};
 use zenoh::Wait;
 
 /// Bus options from the command line.
@@ -31,14 +31,9 @@ use zenoh::Wait;
 pub struct BusOptions {
     /// Run without Zenoh.
     pub no_bus: bool,
-    /// A full Zenoh configuration file (JSON5).
-    pub zenoh_config: Option<PathBuf>,
-    /// Endpoints to listen on (override).
-    pub listen: Vec<String>,
-    /// Endpoints to connect to (override).
-    pub connect: Vec<String>,
-    /// Key-expression prefix (default `twinswarm/<world>`).
-    pub prefix: Option<String>,
+    /// The Zenoh flags: configuration, endpoints, key-expression prefix (default
+    /// `twinswarm/<world>`).
+    pub zenoh: ZenohArgs,
     /// Mixed reality: pairing, telemetry plan, virtual sonar rate.
     pub mixed: MixedOptions,
     /// Join this Ivy bus (Paparazzi's ground segment) as well, or instead of Zenoh with
@@ -196,16 +191,9 @@ pub const REQUEST_QUEUE: usize = 8192;
 /// The simulator's app name on an Ivy bus.
 pub const IVY_APP_NAME: &str = "Twinswarm";
 
-/// Builds the Zenoh configuration: the file if given (with `--listen`/`--connect` applied on
-/// top), else the embedded default (peer, `tcp/127.0.0.1:7447`, multicast scouting off).
-pub fn zenoh_config(opts: &BusOptions) -> anyhow::Result<zenoh::Config> {
-    match &opts.zenoh_config {
-        // Shards on one machine must not all listen on the default port: without `--listen`,
-        // a shard is a client of the router it connects to.
-        None if opts.shard.is_some() && opts.listen.is_empty() => Ok(node::config("client", &[], &opts.connect)?),
-        None => Ok(node::default_config(&opts.listen, &opts.connect)?),
-        Some(path) => twinswarm::zenoh_config_file(path, &opts.listen, &opts.connect),
-    }
+/// The Zenoh configuration of `run`: a peer's, or a shard's with `--shard`.
+fn zenoh_config(opts: &BusOptions) -> anyhow::Result<zenoh::Config> {
+    opts.zenoh.config(if opts.shard.is_some() { ZenohRole::Shard } else { ZenohRole::Peer })
 }
 
 /// How `run` paces the flight.
@@ -248,7 +236,7 @@ fn start_state(
         None => state.make_shard(partition, o.shard),
     }
     .map_err(|e| BadInput(e.into()))?;
-    if !neighbours.is_empty() && bus.connect.is_empty() && bus.listen.is_empty() && bus.zenoh_config.is_none() {
+    if !neighbours.is_empty() && !bus.zenoh.names_endpoints() {
         return Err(BadInput(anyhow::anyhow!(
             "--shard {}/{}: a shard with neighbours needs --connect (a Zenoh router) or --listen",
             o.shard,
@@ -277,7 +265,7 @@ pub fn run<W: StepObserver + Send>(
     // Room for 8,192 inputs between two steps: 160,000 per second at 50 ms, five times the
     // flood test's 30,000 (scripts/flood.sh); beyond, inputs are dropped and counted.
     let (req_tx, req_rx) = std::sync::mpsc::sync_channel::<Request>(REQUEST_QUEUE);
-    let prefix = bus.prefix.clone().unwrap_or_else(|| node::default_prefix(&world));
+    let prefix = bus.zenoh.prefix.clone().unwrap_or_else(|| node::default_prefix(&world));
     let early = Mutex::new(Some(early));
     let open_link = |session: zenoh::Session| open_shard_link(session, bus, &prefix, &neighbours, &early, state.tick);
 

@@ -28,6 +28,7 @@ use bridge::wire::{SensorsMsg, StateMsg, sensors_msg, state_msg};
 use sim_core::rng::Rng32;
 use sim_core::scene::{self, CommandSpec, CopterSpec, StartSpec};
 use sim_core::{CopterKind, FlightMode, Setpoint, State, World};
+use twinswarm::transport::{self, IvyArgs, NoListen, ZenohArgs, ZenohRole};
 
 use crate::BadInput;
 
@@ -36,6 +37,8 @@ pub const VIRTUAL_STALE_S: f64 = 0.5;
 
 /// Arguments of `twinswarm copter`.
 #[derive(Debug, clap::Args)]
+#[command(mut_arg("ivy", |a| a.help(transport::ivy_help(IVY_PURPOSE))))]
+#[command(mut_arg("zenoh_config", |a| a.help(transport::zenoh_config_help(ZenohRole::StandIn))))]
 pub struct CopterArgs {
     /// The scene whose arena and (non-virtual) boxes are the reality; default: the embedded
     /// FINken lab.
@@ -88,26 +91,14 @@ pub struct CopterArgs {
     #[arg(long, value_name = "NAME")]
     telemetry_mode: Option<String>,
     /// Fly alone, as fast as possible, without Zenoh (a control run).
-    #[arg(long)]
+    #[arg(long, conflicts_with = "ivy")]
     no_bus: bool,
-    /// Speak Ivy instead of Zenoh, as a real copter behind Paparazzi's `link` would: telemetry
-    /// as `<ac_id> <NAME> ...`, VIRTUAL_SONAR bound with link's own regex. BUS as in Paparazzi;
-    /// default: `--ivy-bus`, else `IVYBUS`, else 127.255.255.255:2010.
-    #[arg(long, value_name = "BUS", num_args = 0..=1, default_missing_value = "", conflicts_with = "no_bus")]
-    ivy: Option<String>,
-    /// The Ivy bus address (same syntax as Paparazzi's `-b`).
-    #[arg(long, value_name = "ADDR:PORT")]
-    ivy_bus: Option<String>,
-    /// A full Zenoh configuration file (JSON5); default: connect to tcp/127.0.0.1:7447,
-    /// listen nowhere, multicast scouting off.
-    #[arg(long, value_name = "FILE.json5")]
-    zenoh_config: Option<PathBuf>,
-    /// Zenoh endpoint to connect to (repeatable).
-    #[arg(long, value_name = "ENDPOINT")]
-    connect: Vec<String>,
-    /// Key-expression prefix (default: twinswarm/<world name>).
-    #[arg(long, value_name = "KEY")]
-    prefix: Option<String>,
+    /// `--ivy`, `--ivy-bus`: Ivy instead of Zenoh.
+    #[command(flatten)]
+    ivy: IvyArgs,
+    /// `--zenoh-config`, `--connect`, `--prefix`: the stand-in only connects.
+    #[command(flatten)]
+    zenoh: ZenohArgs<NoListen>,
     /// Write the flown trajectory as CSV (one row per control step).
     #[arg(long, value_name = "FILE.csv")]
     track: Option<PathBuf>,
@@ -115,6 +106,10 @@ pub struct CopterArgs {
     #[arg(long)]
     json: bool,
 }
+
+/// What `copter --ivy` does on the bus.
+const IVY_PURPOSE: &str = "Speak Ivy instead of Zenoh, as a real copter behind Paparazzi's `link` would: telemetry as \
+                           `<ac_id> <NAME> ...`, VIRTUAL_SONAR bound with link's own regex";
 
 /// The latest virtual sonar readings (front, right, back, left; m) and when they came.
 type VirtualReading = ([f32; 4], Instant);
@@ -527,9 +522,7 @@ fn open_link(
     let rt = tokio::runtime::Builder::new_multi_thread().worker_threads(2).enable_all().build()?;
     let messages = crate::load_messages(args.messages.as_deref())?;
     let (virt, received, ac_id) = (virt.clone(), received.clone(), args.ac_id);
-    if let Some(b) = &args.ivy {
-        let explicit = if b.is_empty() { args.ivy_bus.as_deref() } else { Some(b.as_str()) };
-        let addr = bridge::paparazzi::ivy::BusAddr::from_env_or(explicit).map_err(|e| BadInput(e.into()))?;
+    if let Some(addr) = args.ivy.bus()? {
         let opts = bridge::paparazzi::ivy::IvyOptions::new(addr, format!("twinswarm-copter-{ac_id}"));
         let agent = rt.block_on(bridge::paparazzi::ivy::IvyAgent::start(opts)).context("cannot join the Ivy bus")?;
         // Exactly what Paparazzi's link binds for a datalink message it forwards
@@ -546,22 +539,8 @@ fn open_link(
         }
         return Ok((rt, Link::Ivy(Arc::new(agent))));
     }
-    let config = match &args.zenoh_config {
-        Some(_) => crate::runner::zenoh_config(&crate::runner::BusOptions {
-            zenoh_config: args.zenoh_config.clone(),
-            connect: args.connect.clone(),
-            ..Default::default()
-        })?,
-        None => {
-            let connect = if args.connect.is_empty() {
-                vec![bridge::zenoh_net::node::DEFAULT_LISTEN.to_owned()]
-            } else {
-                args.connect.clone()
-            };
-            bridge::zenoh_net::node::client_config(&connect)?
-        }
-    };
-    let prefix = args.prefix.clone().unwrap_or_else(|| bridge::zenoh_net::node::default_prefix(world));
+    let config = args.zenoh.config(ZenohRole::StandIn)?;
+    let prefix = args.zenoh.prefix.clone().unwrap_or_else(|| bridge::zenoh_net::node::default_prefix(world));
     let session = rt
         .block_on(async { zenoh::open(config).await })
         .map_err(|e| anyhow::anyhow!("{e}"))
