@@ -467,6 +467,13 @@ fn plan(file: &LogFile, prefix: Option<&str>, everything: bool) -> anyhow::Resul
     })
 }
 
+impl Plan {
+    /// The log's span, s.
+    fn span_s(&self) -> f64 {
+        (self.t1_ns - self.t0_ns) as f64 / 1e9
+    }
+}
+
 impl<'a> Replayer<'a> {
     fn new(plan: &Plan, out: Out<'a>, live: Option<LiveReplay>, speed: f64, stop: Arc<AtomicBool>) -> Self {
         Replayer {
@@ -507,26 +514,11 @@ pub fn replay_in_memory(path: &Path, limit: usize) -> anyhow::Result<Vec<(String
 
 /// `twinswarm replay FILE` for a run log (a Paparazzi log goes to [`crate::replay_pprz::run`]).
 pub fn run(args: ReplayArgs) -> anyhow::Result<()> {
-    let bad = bad_input;
-    if args.no_bus && args.foxglove.is_none() {
-        return Err(bad("--no-bus needs --foxglove for a run log (nothing would be replayed)".into()));
-    }
-    if args.ivy.ivy.is_some() || args.from.is_some() || args.to.is_some() || args.ac_id.is_some() {
-        return Err(bad("--ivy, --from, --to and --ac-id replay Paparazzi logs (NAME.data)".into()));
-    }
-    if !args.speed.is_finite() || args.speed <= 0.0 {
-        return Err(bad(format!("--speed must be a positive finite number, got {}", args.speed)));
-    }
-    if let Some(w) = args.wait_for_subscriber
-        && (!w.is_finite() || w < 0.0)
-    {
-        return Err(bad(format!("--wait-for-subscriber must be a non-negative number of seconds, got {w}")));
-    }
+    check_args(&args)?;
     let path = args.file.as_path();
     let file = LogFile::open(path).map_err(read_error)?;
     let plan = plan(&file, args.zenoh.prefix.as_deref(), args.foxglove.is_some())?;
-    let prefix = plan.prefix.clone();
-    let span_s = (plan.t1_ns - plan.t0_ns) as f64 / 1e9;
+    let span_s = plan.span_s();
     if !plan.unreadable.is_empty() {
         eprintln!(
             "replay: {}: {} unreadable `twinswarm` metadata entries ({}); replaying with their defaults",
@@ -540,25 +532,7 @@ pub fn run(args: ReplayArgs) -> anyhow::Result<()> {
     let rt = tokio::runtime::Builder::new_multi_thread().worker_threads(1).enable_all().build()?;
     let live = match &args.foxglove {
         None => None,
-        Some(a) => {
-            let addr: std::net::SocketAddr =
-                a.parse().map_err(|e| bad(format!("--foxglove: {a:?} is not an address like 127.0.0.1:8765: {e}")))?;
-            let server = bridge::live::LiveServer::start(addr, "twinswarm replay", rt.handle())
-                .with_context(|| format!("--foxglove: cannot listen on {addr}"))?;
-            let mut channels = HashMap::new();
-            for c in file.channel_defs() {
-                let def = bridge::live::LiveChannel::from_schema_bytes(
-                    &c.topic,
-                    &c.encoding,
-                    &c.schema_name,
-                    &c.schema_encoding,
-                    &c.schema,
-                );
-                channels.insert(c.topic.clone(), server.add_channel(def));
-            }
-            outln!("  live view: ws://{} ({} channels)", server.local_addr(), channels.len());
-            Some(LiveReplay { server: Arc::new(server), channels, last_time: None, sent: 0 })
-        }
+        Some(addr) => Some(start_live(addr, &file, &rt)?),
     };
     let session = match args.no_bus {
         true => None,
@@ -575,11 +549,12 @@ pub fn run(args: ReplayArgs) -> anyhow::Result<()> {
     };
     let mut r = Replayer::new(&plan, out, live, args.speed, stop.clone());
     outln!(
-        "replay {}: {:.2} s of log at speed {} ({:.2} s), prefix {prefix}",
+        "replay {}: {:.2} s of log at speed {} ({:.2} s), prefix {}",
         path.display(),
         span_s,
         args.speed,
-        span_s / args.speed
+        span_s / args.speed,
+        plan.prefix
     );
     let result = replay(&mut r, &file, &plan.copters, &args);
     let wall_s = r.start.elapsed().as_secs_f64();
@@ -600,7 +575,55 @@ pub fn run(args: ReplayArgs) -> anyhow::Result<()> {
     };
     let interrupted = result?;
     closed?;
-    if let Some(l) = &live {
+    print_report(&plan, live.as_ref(), &counts, args.speed, wall_s, interrupted);
+    Ok(())
+}
+
+/// The flags a run log's replay refuses.
+fn check_args(args: &ReplayArgs) -> anyhow::Result<()> {
+    let bad = bad_input;
+    if args.no_bus && args.foxglove.is_none() {
+        return Err(bad("--no-bus needs --foxglove for a run log (nothing would be replayed)".into()));
+    }
+    if args.ivy.ivy.is_some() || args.from.is_some() || args.to.is_some() || args.ac_id.is_some() {
+        return Err(bad("--ivy, --from, --to and --ac-id replay Paparazzi logs (NAME.data)".into()));
+    }
+    if !args.speed.is_finite() || args.speed <= 0.0 {
+        return Err(bad(format!("--speed must be a positive finite number, got {}", args.speed)));
+    }
+    if let Some(w) = args.wait_for_subscriber
+        && (!w.is_finite() || w < 0.0)
+    {
+        return Err(bad(format!("--wait-for-subscriber must be a non-negative number of seconds, got {w}")));
+    }
+    Ok(())
+}
+
+/// `--foxglove ADDR`: the live view, with a channel for each of the file's.
+fn start_live(addr: &str, file: &LogFile, rt: &tokio::runtime::Runtime) -> anyhow::Result<LiveReplay> {
+    let addr: std::net::SocketAddr = addr
+        .parse()
+        .map_err(|e| bad_input(format!("--foxglove: {addr:?} is not an address like 127.0.0.1:8765: {e}")))?;
+    let server = bridge::live::LiveServer::start(addr, "twinswarm replay", rt.handle())
+        .with_context(|| format!("--foxglove: cannot listen on {addr}"))?;
+    let mut channels = HashMap::new();
+    for c in file.channel_defs() {
+        let def = bridge::live::LiveChannel::from_schema_bytes(
+            &c.topic,
+            &c.encoding,
+            &c.schema_name,
+            &c.schema_encoding,
+            &c.schema,
+        );
+        channels.insert(c.topic.clone(), server.add_channel(def));
+    }
+    outln!("  live view: ws://{} ({} channels)", server.local_addr(), channels.len());
+    Ok(LiveReplay { server: Arc::new(server), channels, last_time: None, sent: 0 })
+}
+
+/// The replay's summary: the live view's, what went out, and how fast.
+fn print_report(plan: &Plan, live: Option<&LiveReplay>, counts: &Counts, speed: f64, wall_s: f64, interrupted: bool) {
+    if let Some(l) = live {
         let st = l.server.stats();
         outln!(
             "  live view: {} messages published; {} clients, {} subscriptions, {} messages sent, {} dropped (slow clients), {} protocol errors",
@@ -633,20 +656,17 @@ pub fn run(args: ReplayArgs) -> anyhow::Result<()> {
         );
     }
     if interrupted {
-        outln!(
-            "  interrupted by a signal after {wall_s:.2} s wall (speed {}); the session was closed cleanly",
-            args.speed
-        );
+        outln!("  interrupted by a signal after {wall_s:.2} s wall (speed {speed}); the session was closed cleanly");
     } else {
+        let span_s = plan.span_s();
         outln!(
             "  {:.2} s of log in {:.2} s wall at speed {} ({:.2}x effective)",
             span_s,
             wall_s,
-            args.speed,
+            speed,
             if wall_s > 0.0 { span_s / wall_s } else { 0.0 }
         );
     }
-    Ok(())
 }
 
 /// Waits for subscribers, then replays. `Ok(true)`: interrupted by a signal.

@@ -585,7 +585,7 @@ fn print_live(live_stats: Option<&bridge::live::LiveStats>) {
     }
 }
 
-/// The bus's lines of the text summary: Zenoh, Ivy, Paparazzi, synchronisation, twins.
+/// The bus's lines of the text summary: Zenoh, ROS 2, Ivy, Paparazzi, synchronisation, twins.
 fn print_bus(bus: Option<&runner::BusReport>, stats: &bridge::engine::LoopStats) {
     match bus.map(|b| (b, &b.prefix)) {
         Some((b, Some(prefix))) => {
@@ -620,68 +620,83 @@ fn print_bus(bus: Option<&runner::BusReport>, stats: &bridge::engine::LoopStats)
         );
     }
     if let Some(i) = bus.and_then(|b| b.ivy.as_ref()) {
-        outln!(
-            "  ivy: {} as {}; {} peers joined, {} left, at the end: {}; {} texts sent ({} msgs to peers), {} received, {} delivered",
-            i.bus,
-            i.app_name,
-            i.peers_joined,
-            i.peers_left,
-            if i.peers_at_end.is_empty() { "none".to_owned() } else { i.peers_at_end.join(", ") },
-            i.texts_sent,
-            i.msgs_sent,
-            i.msgs_received,
-            i.delivered
-        );
-        if i.bridged_ivy_to_zenoh + i.bridged_zenoh_to_ivy + i.bridge_dropped > 0 {
-            outln!(
-                "    bridged: {} ivy -> zenoh, {} zenoh -> ivy, {} dropped",
-                i.bridged_ivy_to_zenoh,
-                i.bridged_zenoh_to_ivy,
-                i.bridge_dropped
-            );
-        }
-        for (why, n) in &i.dropped {
-            outln!("    dropped {n}: {why}");
-        }
+        print_ivy(i);
     }
     if let Some(b) = bus {
-        outln!("  paparazzi: {} messages sent (virtual sonar, virtual telemetry)", stats.pprz_sent);
-        for a in &b.telemetry.arrivals {
-            outln!(
-                "    from ac_id {:<3} {:<27} {:>6} received, every {:.1} ms (p50 {:.1}, p99 {:.1})",
-                a.ac_id,
-                a.message,
-                a.count,
-                a.gap_ms.mean,
-                a.gap_ms.p50,
-                a.gap_ms.p99
-            );
-        }
-        let t = &b.telemetry;
-        for (ac, line) in t.source_lines() {
-            outln!("    aircraft {ac} drove its twin: {line}");
-        }
-        if !t.unknown_dropped.is_empty()
-            || t.own_virtual_dropped > 0
-            || t.decode_errors > 0
-            || t.rejected > 0
-            || t.queue_full > 0
-        {
-            outln!(
-                "    not used (logged): unknown aircraft {:?}, as our virtual aircraft {}, undecodable {}, out of range {}; dropped (queue full) {}",
-                t.unknown_dropped,
-                t.own_virtual_dropped,
-                t.decode_errors,
-                t.rejected,
-                t.queue_full
-            );
-        }
-        if let Some(z) = &b.zenoh_texts
-            && z.unmatched + z.not_utf8 > 0
-        {
-            outln!("    zenoh: {} texts matched no binding, {} payloads not UTF-8 (dropped)", z.unmatched, z.not_utf8);
-        }
+        print_paparazzi(b, stats);
     }
+    print_twins(stats);
+}
+
+/// The Ivy lines of the text summary.
+fn print_ivy(i: &runner::IvyReport) {
+    outln!(
+        "  ivy: {} as {}; {} peers joined, {} left, at the end: {}; {} texts sent ({} msgs to peers), {} received, {} delivered",
+        i.bus,
+        i.app_name,
+        i.peers_joined,
+        i.peers_left,
+        if i.peers_at_end.is_empty() { "none".to_owned() } else { i.peers_at_end.join(", ") },
+        i.texts_sent,
+        i.msgs_sent,
+        i.msgs_received,
+        i.delivered
+    );
+    if i.bridged_ivy_to_zenoh + i.bridged_zenoh_to_ivy + i.bridge_dropped > 0 {
+        outln!(
+            "    bridged: {} ivy -> zenoh, {} zenoh -> ivy, {} dropped",
+            i.bridged_ivy_to_zenoh,
+            i.bridged_zenoh_to_ivy,
+            i.bridge_dropped
+        );
+    }
+    for (why, n) in &i.dropped {
+        outln!("    dropped {n}: {why}");
+    }
+}
+
+/// The Paparazzi lines of the text summary: what went out, what came in from each aircraft.
+fn print_paparazzi(b: &runner::BusReport, stats: &bridge::engine::LoopStats) {
+    outln!("  paparazzi: {} messages sent (virtual sonar, virtual telemetry)", stats.pprz_sent);
+    for a in &b.telemetry.arrivals {
+        outln!(
+            "    from ac_id {:<3} {:<27} {:>6} received, every {:.1} ms (p50 {:.1}, p99 {:.1})",
+            a.ac_id,
+            a.message,
+            a.count,
+            a.gap_ms.mean,
+            a.gap_ms.p50,
+            a.gap_ms.p99
+        );
+    }
+    let t = &b.telemetry;
+    for (ac, line) in t.source_lines() {
+        outln!("    aircraft {ac} drove its twin: {line}");
+    }
+    if !t.unknown_dropped.is_empty()
+        || t.own_virtual_dropped > 0
+        || t.decode_errors > 0
+        || t.rejected > 0
+        || t.queue_full > 0
+    {
+        outln!(
+            "    not used (logged): unknown aircraft {:?}, as our virtual aircraft {}, undecodable {}, out of range {}; dropped (queue full) {}",
+            t.unknown_dropped,
+            t.own_virtual_dropped,
+            t.decode_errors,
+            t.rejected,
+            t.queue_full
+        );
+    }
+    if let Some(z) = &b.zenoh_texts
+        && z.unmatched + z.not_utf8 > 0
+    {
+        outln!("    zenoh: {} texts matched no binding, {} payloads not UTF-8 (dropped)", z.unmatched, z.not_utf8);
+    }
+}
+
+/// The synchronisation and twin lines of the text summary.
+fn print_twins(stats: &bridge::engine::LoopStats) {
     for (name, s) in &stats.sync {
         outln!(
             "  sync {name}: {} MEDUSA updates ({} not used), {} tracking poses; moved {:.2} m in {} steps",
