@@ -37,6 +37,9 @@ cargo fmt --all -- --check
 say "import circles (scripts/check-imports.py: none beyond scripts/import-cycles.allow)"
 python3 scripts/check-imports.py
 
+say "no function over 150 lines outside tests (scripts/long-functions.py)"
+python3 scripts/long-functions.py --max 150 > /dev/null
+
 say "cargo clippy --all-targets -- -D warnings"
 cargo clippy --workspace --all-targets --locked -- -D warnings
 
