@@ -1,15 +1,15 @@
 #!/usr/bin/env python3
 """A stand-in Twinswarm world for bringing up Paparazzi NPS with the Twinswarm FDM.
 
-Speaks protocol v1 of paparazzi/sw/nps_fdm_twinswarm.c as the server, over TCP on loopback,
-in lockstep (each NPS step is answered at once; no wall clock), and integrates a plain rigid-body
-quadrotor: mass 0.4 kg, X-frame with a 0.2 m motor diagonal, thrust per motor k*cmd^2 (3 N at
-full command), yaw torque d*T per motor, first-order motor lag, linear drag, gravity, a floor at
-z = 0 and the walls of a rectangular arena (--arena 6 or 4x3: x "north" by y "east", m), which
-the four sonars see as horizontal rays along the body axes (front, right, back, left; NaN beyond
---sonar-range) and which end the flight as a crash when the copter's centre reaches one. The
-summary reports the closest the copter's centre came to a wall. It is a bring-up tool, not
-Twinswarm's model.
+Speaks protocol v2 (and v1) of paparazzi/sw/nps_fdm_twinswarm.c as the server (it counts no
+uplink), over TCP on loopback, in lockstep (each NPS step is answered at once; no wall clock), and
+integrates a plain rigid-body quadrotor: mass 0.4 kg, X-frame with a 0.2 m motor diagonal, thrust
+per motor k*cmd^2 (3 N at full command), yaw torque d*T per motor, first-order motor lag, linear
+drag, gravity, a floor at z = 0 and the walls of a rectangular arena (--arena 6 or 4x3: x "north"
+by y "east", m), which the four sonars see as horizontal rays along the body axes (front, right,
+back, left; NaN beyond --sonar-range) and which end the flight as a crash when the copter's centre
+reaches one. The summary reports the closest the copter's centre came to a wall. It is a bring-up
+tool, not Twinswarm's model.
 
 Motor order is the FINken airframe's (twinswarm_finken.xml): 0 front right (CW seen from above),
 1 back right (CCW), 2 back left (CW), 3 front left (CCW).
@@ -30,7 +30,8 @@ import time
 
 HELLO = struct.Struct("<4sIId")                 # 20 B
 STEP = struct.Struct("<IQBB4d")                 # 46 B
-STATE = struct.Struct("<IQ" + "d" * 26 + "B")   # 221 B
+STATE = struct.Struct("<IQ" + "d" * 26 + "B")   # 221 B (v1; v2 appends u32 uplinks)
+UPLINKS_NOT_COUNTED = struct.pack("<I", 0xFFFFFFFF)  # v2: this world counts no uplink
 MAGIC_STEP = 0x54575331
 MAGIC_STATE = 0x54575332
 G = 9.81
@@ -255,7 +256,7 @@ def main():
     conn.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
     hello = recv_exact(conn, HELLO.size)
     magic, version, ac_id, dt = HELLO.unpack(hello)
-    if magic != b"TWFD" or version != 1:
+    if magic != b"TWFD" or version not in (1, 2):
         sys.exit(f"fake world: bad hello {hello!r}")
     print(f"fake world: NPS ac_id {ac_id} connected from {peer}, dt {dt:.6f} s ({1 / dt:.1f} steps/s)", flush=True)
 
@@ -298,6 +299,8 @@ def main():
         body_acc, agl, sonar, ir = quad.sensors()
         out = STATE.pack(MAGIC_STATE, step, quad.t, *quad.pos, *quad.vel, *quad.acc, *quad.q,
                          *quad.w, *body_acc, agl, *sonar, ir, 1 if quad.crashed else 0)
+        if version == 2:
+            out += UPLINKS_NOT_COUNTED
         conn.sendall(out)
         steps += 1
         if steps % every == 0:

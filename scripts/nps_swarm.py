@@ -388,6 +388,10 @@ def main(argv=None):
         # What each NPS's flight-model client said last ("the world refused ...", "closed ...").
         "nps_said": {ac: last_fdm_line(out / f"nps{ac}.log") for ac in acs_started},
         "autopilots_refused": summary.get("autopilots_refused", []),
+        # Each aircraft's uplink in the lockstep (crates/bridge/src/autopilot.rs): "counted" or why
+        # not, and how many the world sent it through link; its NPS's side is in nps_said.
+        "uplinks": {ap_["ac_id"]: {"uplink": ap_.get("uplink"), "counted": ap_.get("uplinks_counted")}
+                    for ap_ in summary["autopilots"]},
         "digests": {c["name"]: c["digest"] for c in summary["copters"]},
         "imu_trim": a.imu_trim,
         "out": str(out),

@@ -17,8 +17,12 @@
  * Env TWINSWARM_NPS_REALTIME=1: let NPS's threads take the real-time policies they ask for
  * (SCHED_FIFO, which a process run as root gets); by default they stay where they are.
  *
- * Protocol v1, little-endian, fixed-size records, no padding:
- *   hello, NPS -> world, once:  "TWFD" (4 bytes), u32 version = 1, u32 ac_id, f64 dt      (20 B)
+ * Env TWINSWARM_FDM_UPLINK_TIMEOUT_S (default 5): how long an autopilot step waits for uplink
+ * messages the world has counted (below) before NPS gives up with an error (exit status 3).
+ *
+ * Protocol v2, little-endian, fixed-size records, no padding (the world also takes v1 clients:
+ * their state records end after `crashed`):
+ *   hello, NPS -> world, once:  "TWFD" (4 bytes), u32 version = 2, u32 ac_id, f64 dt      (20 B)
  *   step,  NPS -> world:        u32 0x54575331, u64 step, u8 launch, u8 n = 4,
  *                               f64 commands[n] (motor_mixing.commands / MAX_PPRZ:
  *                               0..1 with motors on, -1 with motors stopped)           (46 B)
@@ -27,7 +31,8 @@
  *                               quat_ned_to_body[4] (w,x,y,z), body_rates[3] (p,q,r),
  *                               body_accel[3] (specific force, as an accelerometer reads),
  *                               agl_m, sonar_m[4] (front,right,back,left; NaN none),
- *                               ir_m (NaN none), u8 crashed                            (221 B)
+ *                               ir_m (NaN none), u8 crashed,
+ *                               u32 uplinks (v2; see "The uplink in the lockstep")     (225 B)
  * Step 0 is sent from nps_fdm_init() with zero commands and launch 0, so that NpsFdm is
  * filled before NPS's sensors initialise (as nps_fdm_pybullet does with a first step);
  * every later call of nps_fdm_run_step() sends step 1, 2, ...
@@ -35,6 +40,21 @@
  *                               the world then closes): NPS prints why and exits with status 2
  * The world closing the connection ends NPS (exit status 0); a refusal (an ac_id that flies no
  * copter of the scene, another step rate, or a drop after a stall, e.g. SIGSTOP) exits with 2.
+ *
+ * The uplink in the lockstep (v2): the world sends the virtual-sonar uplink (SONAR_UPLINK, or
+ * VIRTUAL_SONAR) over Ivy to Paparazzi's `link`, which forwards it over UDP to this aircraft's
+ * datalink, at wall-clock times. `uplinks` in a state record is how many such messages for this
+ * aircraft the world sent before that state; 0xFFFFFFFF: none are counted (no link in the run,
+ * or an uplink the world does not send), the datalink runs as Paparazzi made it. Linked with
+ * -Wl,--wrap=pprz_check_and_parse (conf/modules/fdm_twinswarm.xml, nps target), this file
+ * stands between the datalink's UDP device and Paparazzi's own parsing (pprz_dl_event ->
+ * DlCheckAndParse -> dl_parse_msg -> the modules' datalink functions): it takes every complete
+ * frame out of the device into its own queue, and gives the autopilot, one per datalink event
+ * as Paparazzi does, the counted ones only up to the count of the last state: at an event whose
+ * count its datalink has not reached yet, it waits (TWINSWARM_FDM_UPLINK_TIMEOUT_S) until it
+ * has; a counted message beyond the count is held for a later step. Counted first, then the
+ * others (link's PING, a GCS's messages: not counted, given as they come). So each uplink
+ * reaches the autopilot at the step the world named, whatever the wall clock did.
  *
  * Frames: the world's NED arena frame (origin at the arena centre on the floor, x north,
  * y east, z down) is NPS's LTP frame, placed at the flight plan's origin (NAV_LAT0,
@@ -69,7 +89,7 @@
 #include "generated/airframe.h"
 #include "generated/flight_plan.h"
 
-#define TWFD_VERSION 1u
+#define TWFD_VERSION 2u
 #define TWFD_MAGIC_STEP 0x54575331u   /* "TWS1" */
 #define TWFD_MAGIC_STATE 0x54575332u  /* "TWS2" */
 #define TWFD_MAGIC_REFUSED 0x54575330u  /* "TWS0": u16 n, n bytes of why; then the world closes */
@@ -77,7 +97,8 @@
 #define TWFD_HELLO_LEN 20
 #define TWFD_STEP_LEN (4 + 8 + 1 + 1 + 8 * TWFD_N_MOTORS)
 #define TWFD_STATE_NF 26
-#define TWFD_STATE_LEN (4 + 8 + 8 * TWFD_STATE_NF + 1)
+#define TWFD_STATE_LEN (4 + 8 + 8 * TWFD_STATE_NF + 1 + 4)
+#define TWFD_UPLINKS_NOT_COUNTED 0xFFFFFFFFu
 
 #ifndef AC_ID
 #define AC_ID 0
@@ -110,6 +131,10 @@ static bool have_state = false; /* a state has come: the world took this aircraf
 static bool verbose = false;
 static struct DoubleRates last_rates;
 static bool have_last_rates = false;
+/* the uplink in the lockstep: the count of the last state record */
+static uint32_t uplinks_named = TWFD_UPLINKS_NOT_COUNTED;
+static void datalink_drain(void);
+static void datalink_report(char *buf, size_t len);
 
 /* little-endian encoding, independent of the host's byte order */
 static void put_u32(uint8_t *b, uint32_t v) { for (int i = 0; i < 4; i++) { b[i] = (uint8_t)(v >> (8 * i)); } }
@@ -157,8 +182,10 @@ static void read_all(uint8_t *buf, size_t len)
                 "(its log says why)\n", (int)AC_ID, n == 0 ? "closed" : "reset");
         exit(2);
       }
-      printf("[twinswarm fdm] the world %s the connection after step %llu; stopping NPS\n",
-             n == 0 ? "closed" : "reset", (unsigned long long)twinswarm_step);
+      char dl[160];
+      datalink_report(dl, sizeof(dl));
+      printf("[twinswarm fdm] the world %s the connection after step %llu%s; stopping NPS\n",
+             n == 0 ? "closed" : "reset", (unsigned long long)twinswarm_step, dl);
       fflush(stdout);
       exit(0);
     }
@@ -380,6 +407,7 @@ static void exchange(bool launch, double *commands, int commands_nb)
     f[i] = get_f64(in + 12 + 8 * i);
   }
   uint8_t crashed = in[12 + 8 * TWFD_STATE_NF];
+  uplinks_named = get_u32(in + 12 + 8 * TWFD_STATE_NF + 1);
   have_state = true;
   twinswarm_step = next_step;
   next_step++;
@@ -475,6 +503,11 @@ static void exchange(bool launch, double *commands, int commands_nb)
   fdm.aoa = 0.;
   fdm.sideslip = 0.;
 
+  /* counted: take what the datalink's device holds now, every step (its own buffer is small) */
+  if (uplinks_named != TWFD_UPLINKS_NOT_COUNTED) {
+    datalink_drain();
+  }
+
   if (verbose && (twinswarm_step % 1000 == 0)) {
     printf("[twinswarm fdm] step %llu t %.3f pos %.3f %.3f %.3f cmd %.3f %.3f %.3f %.3f\n",
            (unsigned long long)twinswarm_step, *t_s, pos[0], pos[1], pos[2],
@@ -535,3 +568,199 @@ void nps_fdm_set_temperature(double temp, double h __attribute__((unused)))
 {
   temperature_c = temp;
 }
+
+/*
+ * The uplink in the lockstep (see the top of this file). TWINSWARM_FDM_UPLINK is defined for
+ * the nps target, which links -Wl,--wrap=pprz_check_and_parse (conf/modules/fdm_twinswarm.xml).
+ * Everything here runs in NPS's main-loop thread (the flight model's step and the autopilot's
+ * datalink events); the device is filled by Paparazzi's UDP thread under its own lock.
+ */
+#if TWINSWARM_FDM_UPLINK
+
+#include "pprzlink/pprz_transport.h"
+#include "pprzlink/dl_protocol.h"
+
+#define DL_QUEUE_LEN 128
+
+struct dl_frame {
+  uint8_t len;
+  bool counted;                       /* an uplink message the world counts */
+  uint8_t payload[TRANSPORT_PAYLOAD_LEN];
+};
+
+void __real_pprz_check_and_parse(struct link_device *dev, struct pprz_transport *trans, uint8_t *buf,
+                                 bool *msg_available);
+void __wrap_pprz_check_and_parse(struct link_device *dev, struct pprz_transport *trans, uint8_t *buf,
+                                 bool *msg_available);
+
+static struct link_device *dl_dev = NULL;    /* the datalink's device and transport (the first seen) */
+static struct pprz_transport *dl_trans = NULL;
+static struct dl_frame dl_queue[DL_QUEUE_LEN]; /* in arrival order */
+static int dl_queued = 0;
+static uint64_t uplinks_received = 0;        /* counted messages taken from the device */
+static uint64_t uplinks_given = 0;           /* counted messages given to the autopilot */
+static uint64_t others_given = 0;            /* the rest (link's PING, a GCS's messages) */
+static double uplink_wait_s = 0.;            /* wall time the autopilot waited for counted ones */
+static double uplink_timeout_s = -1.;
+
+/* An uplink message for this aircraft, the kind the world counts: SONAR_UPLINK or VIRTUAL_SONAR
+ * (whichever this aircraft's messages define), its ac_id field this aircraft's. */
+static bool dl_counted(uint8_t *p, uint8_t len)
+{
+  if (len < 5 || pprzlink_get_msg_class_id(p) != DL_datalink_CLASS_ID) {
+    return false;
+  }
+  uint8_t id __attribute__((unused)) = pprzlink_get_msg_id(p);
+#ifdef DL_SONAR_UPLINK
+  if (id == DL_SONAR_UPLINK && DL_SONAR_UPLINK_ac_id(p) == AC_ID) {
+    return true;
+  }
+#endif
+#ifdef DL_VIRTUAL_SONAR
+  if (id == DL_VIRTUAL_SONAR && DL_VIRTUAL_SONAR_ac_id(p) == AC_ID) {
+    return true;
+  }
+#endif
+  return false;
+}
+
+/* every complete frame the device holds, through pprzlink's own parser, into the queue */
+static void datalink_drain(void)
+{
+  if (dl_dev == NULL) {
+    return;
+  }
+  static uint8_t scratch[TRANSPORT_PAYLOAD_LEN];
+  while (dl_dev->char_available(dl_dev->periph)) {
+    bool got = false;
+    __real_pprz_check_and_parse(dl_dev, dl_trans, scratch, &got);
+    if (!got) {
+      continue; /* a partial frame or noise: the parser took the bytes */
+    }
+    if (dl_queued == DL_QUEUE_LEN) {
+      fprintf(stderr, "[twinswarm fdm] aircraft %d: %d datalink messages waiting for the autopilot at step %llu "
+              "(the world named %u uplinks, %llu received): stopping NPS\n", (int)AC_ID, DL_QUEUE_LEN,
+              (unsigned long long)twinswarm_step, uplinks_named, (unsigned long long)uplinks_received);
+      exit(3);
+    }
+    struct dl_frame *f = &dl_queue[dl_queued++];
+    f->len = dl_trans->trans_rx.payload_len;
+    memcpy(f->payload, scratch, f->len);
+    f->counted = dl_counted(f->payload, f->len);
+    if (f->counted) {
+      uplinks_received++;
+    }
+  }
+}
+
+static double now_s(void)
+{
+  struct timespec t;
+  clock_gettime(CLOCK_MONOTONIC, &t);
+  return t.tv_sec + 1e-9 * t.tv_nsec;
+}
+
+/* Until the datalink has received the counted messages the last state named. The wall clock
+ * bounds the wait only: what the autopilot is given does not depend on it. */
+static void datalink_wait_for_named(void)
+{
+  if (uplink_timeout_s < 0) {
+    const char *to = getenv("TWINSWARM_FDM_UPLINK_TIMEOUT_S");
+    uplink_timeout_s = (to && *to) ? atof(to) : 5.;
+  }
+  datalink_drain();
+  if (uplinks_received >= uplinks_named) {
+    return;
+  }
+  double t0 = now_s();
+  while (uplinks_received < uplinks_named) {
+    if (now_s() - t0 > uplink_timeout_s) {
+      fprintf(stderr, "[twinswarm fdm] aircraft %d, step %llu: the world sent %u uplink messages to it through "
+              "Paparazzi's link, its datalink received %llu within %.1f s: one was lost on the way (is link "
+              "running with -udp and this aircraft's ports, and does this aircraft's messages.xml define the "
+              "uplink the world sends, SONAR_UPLINK or VIRTUAL_SONAR? TWINSWARM_FDM_UPLINK_TIMEOUT_S sets the "
+              "wait); stopping NPS\n", (int)AC_ID,
+              (unsigned long long)twinswarm_step, uplinks_named, (unsigned long long)uplinks_received,
+              uplink_timeout_s);
+      exit(3);
+    }
+    struct timespec pause = {0, 20 * 1000};
+    nanosleep(&pause, NULL);
+    datalink_drain();
+  }
+  uplink_wait_s += now_s() - t0;
+}
+
+/* Linked with -Wl,--wrap=pprz_check_and_parse: Paparazzi's datalink event (pprz_dl_event) asks
+ * for the next message here. Counted messages up to the named count first, in order; then the
+ * others; a counted message beyond the count stays queued. */
+void __wrap_pprz_check_and_parse(struct link_device *dev, struct pprz_transport *trans, uint8_t *buf,
+                                 bool *msg_available)
+{
+  if (dl_dev == NULL) {
+    dl_dev = dev;
+    dl_trans = trans;
+  }
+  if (dev != dl_dev || trans != dl_trans) {
+    __real_pprz_check_and_parse(dev, trans, buf, msg_available); /* another device: not ours */
+    return;
+  }
+  bool counting = uplinks_named != TWFD_UPLINKS_NOT_COUNTED;
+  if (!counting && dl_queued == 0) {
+    __real_pprz_check_and_parse(dev, trans, buf, msg_available); /* Paparazzi's own datalink */
+    return;
+  }
+  if (counting) {
+    datalink_wait_for_named();
+  } else {
+    datalink_drain();
+  }
+  int pick = counting ? -1 : 0; /* not counted (any more): what is left, in arrival order */
+  for (int k = 0; counting && k < dl_queued; k++) {
+    if (dl_queue[k].counted) {
+      if (uplinks_given < uplinks_named) {
+        pick = k;
+      }
+      break; /* counted messages go in order: the first one decides */
+    }
+  }
+  if (pick < 0) {
+    for (int k = 0; k < dl_queued; k++) {
+      if (!dl_queue[k].counted) {
+        pick = k;
+        break;
+      }
+    }
+  }
+  if (pick < 0 || pick >= dl_queued) {
+    return;
+  }
+  struct dl_frame *f = &dl_queue[pick];
+  memcpy(buf, f->payload, f->len);
+  *msg_available = true;
+  if (f->counted) {
+    uplinks_given++;
+  } else {
+    others_given++;
+  }
+  memmove(&dl_queue[pick], &dl_queue[pick + 1], (size_t)(dl_queued - pick - 1) * sizeof(dl_queue[0]));
+  dl_queued--;
+}
+
+static void datalink_report(char *buf, size_t len)
+{
+  if (uplinks_named == TWFD_UPLINKS_NOT_COUNTED && uplinks_given == 0) {
+    snprintf(buf, len, " (uplink not counted by the world)");
+    return;
+  }
+  snprintf(buf, len, " (uplink in the lockstep: %u named, %llu given to the autopilot, waited %.3f s for them; "
+           "%llu other datalink messages)", uplinks_named == TWFD_UPLINKS_NOT_COUNTED ? 0u : uplinks_named,
+           (unsigned long long)uplinks_given, uplink_wait_s, (unsigned long long)others_given);
+}
+
+#else /* !TWINSWARM_FDM_UPLINK: HITL, no autopilot datalink in this process */
+
+static void datalink_drain(void) {}
+static void datalink_report(char *buf, size_t len) { if (len > 0) { buf[0] = '\0'; } }
+
+#endif

@@ -9,6 +9,7 @@ Run by scripts/test.sh with TWINSWARM_BIN pointing at the debug binary.
 
 import importlib.util
 import os
+import re
 
 from conftest import ROOT
 from pprz_ground import paparazzi_or_skip
@@ -110,6 +111,71 @@ def test_a_virtual_wall_reaches_an_nps_finken_through_the_real_link_and_turns_it
         "--first-ac", 41, "--box", VIRTUAL_WALL])))
     assert not [c for c in blind["crashes"] if c["cause"]["kind"] == "box"], blind
     assert blind["max_x_m"] > 1.0, blind
+
+
+def uplink_runs(tmp_path, g, merged, first_ac, *args, runs=("a", "b")):
+    """Flies the same run with the uplink through `link` (g) once per name in `runs`."""
+    bin_ = os.environ.get("TWINSWARM_BIN", str(ROOT / "target" / "debug" / "twinswarm"))
+    return [nps_swarm.main(list(map(str, [
+        "--twinswarm", bin_, "--out", tmp_path / k, "--first-ac", first_ac, "--udp-out", g.link_port,
+        "--udp-in", g.uplink_port, f"--run-arg=--ivy={g.bus}", f"--run-arg=--messages={merged}", *args])))
+        for k in runs]
+
+
+def assert_uplink_in_the_lockstep(r, ac):
+    """The world counted the aircraft's uplink, and its NPS gave its autopilot what was named."""
+    up = r["uplinks"][ac]
+    assert up["uplink"] == "counted", r
+    said = r["nps_said"][ac]
+    assert "uplink in the lockstep" in said, said
+    named, given = (int(v) for v in re.search(r"(\d+) named, (\d+) given", said).groups())
+    # The uplink after the last step is named in no state; the last state may name one the
+    # autopilot had no datalink event left to take.
+    assert up["counted"] - 1 <= named <= up["counted"] and named - 1 <= given <= named, (said, up)
+    return named
+
+
+def test_the_uplink_through_link_takes_effect_at_the_step_the_world_names(tmp_path, paparazzi_ground):
+    """The virtual-only wall's run above (SONAR_UPLINK over Ivy to Paparazzi's real `link`, over
+    UDP to the aircraft), twice: the world counts the uplink messages it sends the aircraft and
+    names the count in every state record (protocol v2); NPS gives its datalink parsing exactly
+    those, waiting for any still on the way. So the two runs give the same bits, and the copter
+    still turns away from the wall it was told of (docs/paparazzi.md, "Reproducible runs").
+    `link` pings the aircraft every 0.1 s of wall time here (its default is 5 s): a datalink
+    message the world does not count passes as it comes and moves none of the counted ones."""
+    pprz = paparazzi_or_skip()
+    merged = pprz.home / "conf" / "userconf" / "twinswarm" / "messages.xml"
+    g = paparazzi_ground(messages_xml=merged if merged.exists() else None, server=False,
+                         link_args=("-ping_period", "100"))
+    g.uplink.close()
+    a, b = uplink_runs(tmp_path, g, merged, 45, "--count", 1, "--plan", "wall_avoid", "--duration", 30,
+                       "--box", VIRTUAL_WALL)
+    for r in (a, b):
+        assert r["autopilots_left"] == [] and r["crashes"] == [] and r["nps_exit"] == {}, r
+        assert r["max_x_m"] < 1.0 - nps_swarm.HALF_WIDTH_M, r
+        # From 0.5 s on, one per sonar update (20 Hz): 590 in 30 s.
+        assert assert_uplink_in_the_lockstep(r, 45) > 550, r
+    pings = [int(re.search(r"(\d+) other datalink messages", r["nps_said"][45]).group(1)) for r in (a, b)]
+    assert sum(pings) > 0, pings
+    assert a["digests"] == b["digests"], (a, b)
+
+
+def test_the_papers_2015_07_firmware_takes_the_uplink_at_the_named_steps_too(tmp_path, paparazzi_ground):
+    """The same for the paper's firmware, which parses SONAR_UPLINK with its own datalink function
+    (finken_model_sensors.c, through v6.4's datalink parsing): the uplink in the lockstep is the
+    flight model's (fdm_twinswarm), below every firmware's datalink. Its take-off is open loop
+    into the ceiling (above), before its sonar centring runs: the test shows the uplink reaching
+    it at the same steps, not the uplink steering it."""
+    pprz = paparazzi_or_skip()
+    merged = pprz.home / "conf" / "userconf" / "twinswarm" / "messages.xml"
+    g = paparazzi_ground(messages_xml=merged if merged.exists() else None, server=False)
+    g.uplink.close()
+    a, b = uplink_runs(tmp_path, g, merged, 67, "--firmware", "2015-07", "--count", 1, "--plan", "hover",
+                       "--duration", 10, "--box", VIRTUAL_WALL, "--no-log")
+    for r in (a, b):
+        assert r["autopilots_left"] == [] and r["nps_exit"] == {}, r
+        assert assert_uplink_in_the_lockstep(r, 67) > 180, r
+    assert a["digests"] == b["digests"], (a, b)
 
 
 def test_a_stranger_is_refused_and_a_stopped_aircraft_ends_cleanly(tmp_path):

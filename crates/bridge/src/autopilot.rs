@@ -9,14 +9,40 @@
 //! waits for the slowest autopilot) and [`Autopilots::answer`] sends every aircraft its copter's
 //! state after the step. Nothing waits on the wall clock.
 //!
-//! # Protocol v1 (little-endian, fixed records, no padding; NPS connects and speaks first)
+//! # Protocol v2 (little-endian, fixed records, no padding; NPS connects and speaks first)
 //!
 //! | record | direction | layout | size |
 //! |---|---|---|---|
-//! | hello | NPS → world, once | `"TWFD"`, u32 version 1, u32 ac_id, f64 dt (s) | 20 |
+//! | hello | NPS → world, once | `"TWFD"`, u32 version (2; 1 is still taken), u32 ac_id, f64 dt (s) | 20 |
 //! | step | NPS → world, every step | u32 `0x54575331`, u64 step, u8 launch, u8 n = 4, f64 commands\[4\] | 46 |
-//! | state | world → NPS, answer to a step | u32 `0x54575332`, u64 step, f64 t (s), pos\[3\], vel\[3\], accel\[3\] (NED), quat ned→body (w, x, y, z), body rates\[3\] (FRD), specific force\[3\] (FRD), agl, sonar\[4\] (front, right, back, left), ir (m; NaN: nothing in range), u8 crashed | 221 |
+//! | state | world → NPS, answer to a step | u32 `0x54575332`, u64 step, f64 t (s), pos\[3\], vel\[3\], accel\[3\] (NED), quat ned→body (w, x, y, z), body rates\[3\] (FRD), specific force\[3\] (FRD), agl, sonar\[4\] (front, right, back, left), ir (m; NaN: nothing in range), u8 crashed, u32 uplinks (v2 only) | 225 (v1: 221) |
 //! | refused | world → NPS, in place of a state, then the world closes | u32 `0x54575330`, u16 n, n bytes of UTF-8: why | 6 + n |
+//!
+//! v2 added `uplinks`, the uplink in the lockstep (below); a v1 client (an aircraft built
+//! before) is still flown, with v1's state records, and its uplink is not counted.
+//!
+//! # The uplink in the lockstep
+//!
+//! The run's outbox sends each autopilot aircraft the virtual-sonar uplink (`SONAR_UPLINK`, or
+//! `VIRTUAL_SONAR`) as it sends a real FINken, over Ivy to Paparazzi's real `link`, which
+//! forwards it over UDP to the aircraft's datalink whenever it gets it. To make such a run
+//! reproducible, the world counts, per aircraft, the uplink messages it has handed to its Ivy
+//! agent, and tells the aircraft that count in each state record (`uplinks`: sent before this
+//! state). NPS (`nps_fdm_twinswarm.c`) holds the datalink's frames in its own queue and gives
+//! its autopilot's datalink parsing the counted ones only up to that count, waiting (bounded)
+//! for any still on the way: each uplink reaches the autopilot at the step the world named.
+//!
+//! `link` forwards an uplink only to an aircraft it has heard from (its telemetry gives link
+//! the aircraft's address). So the counted uplink to an aircraft starts with the first uplink at
+//! or after [`UPLINK_START_S`] of simulated time: the world sends none before, and waits at that
+//! step (at most [`LINK_HEARD_TIMEOUT`]) until `link` has relayed a telemetry message of the
+//! aircraft on the bus, and checks that a peer takes the uplink message at all. A real FINken
+//! too gets no uplink before `link` has heard it. Without either (no `link` on the bus, or one
+//! whose messages.xml lacks the message) the aircraft's uplink is sent as before, not counted
+//! (`uplinks` `0xFFFFFFFF`: NPS takes its datalink as it comes), and its stats say why. The count is only
+//! kept where the run sends the uplink on a real Ivy bus ([`Autopilots::count_uplinks`]); a
+//! run on Zenoh alone does not count it either. The world must be the only sender of that
+//! message to the aircraft; a message lost on the way ends the aircraft's NPS with an error.
 //!
 //! The world refuses an aircraft it cannot fly (no copter of the scene has its `ac_id`, or one
 //! already flown; another step rate; a bad hello) and drops one that stalled past the step
@@ -31,6 +57,7 @@
 //! 2 gives). Frames: the world's x is north, so NED = (x, −y, −z) and body FRD = FLU with y and
 //! z negated.
 
+use std::collections::{BTreeMap, BTreeSet};
 use std::io::{Read, Write};
 use std::net::{SocketAddr, TcpListener, TcpStream};
 use std::sync::atomic::{AtomicBool, Ordering};
@@ -41,27 +68,38 @@ use serde::Serialize;
 use sim_core::math::{GRAVITY_M_S2, Vec3};
 use sim_core::{CopterKind, FlightMode, Inputs, State, World};
 
+use crate::ids::AcId;
+use crate::paparazzi::ivy::IvyAgent;
+
 /// Where the world listens by default (`nps_fdm_twinswarm.c`'s default `TWINSWARM_FDM`).
 pub const DEFAULT_LISTEN: &str = "127.0.0.1:7460";
-/// The protocol version this side speaks.
-pub const VERSION: u32 = 1;
+/// The protocol version this side speaks (it also takes version 1 clients).
+pub const VERSION: u32 = 2;
 const HELLO_LEN: usize = 20;
 const STEP_LEN: usize = 46;
-const STATE_LEN: usize = 221;
+const STATE_LEN: usize = 225;
+const STATE_LEN_V1: usize = 221;
+/// A state record's `uplinks` when the world does not count the aircraft's uplink.
+pub const UPLINKS_NOT_COUNTED: u32 = u32::MAX;
+/// The counted uplink to an aircraft starts with its first uplink at or after this simulated
+/// time, s: by then its telemetry (4 Hz and faster) has reached `link`.
+pub const UPLINK_START_S: f64 = 0.5;
+/// How long the world waits, there, for `link` to relay a telemetry message of the aircraft.
+pub const LINK_HEARD_TIMEOUT: Duration = Duration::from_secs(10);
 const STEP_MAGIC: u32 = 0x5457_5331;
 const STATE_MAGIC: u32 = 0x5457_5332;
 const REFUSED_MAGIC: u32 = 0x5457_5330;
 /// A refusal's reason is cut to this many bytes (at a character boundary).
 const REFUSED_MAX: usize = 1000;
 
-/// A record that is not what protocol v1 says.
+/// A record that is not what the protocol says.
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
 pub enum ProtocolError {
     /// The hello does not start with `TWFD`.
     #[error("not a Twinswarm flight-model client (hello starts with {0:02x?}, not \"TWFD\")")]
     NotHello([u8; 4]),
     /// Another protocol version.
-    #[error("protocol version {0}, this Twinswarm speaks {VERSION}")]
+    #[error("protocol version {0}, this Twinswarm speaks {VERSION} (and 1)")]
     Version(u32),
     /// An aircraft id that does not fit Paparazzi's `uint8`.
     #[error("ac_id {0} is not a Paparazzi aircraft id (0-255)")]
@@ -100,6 +138,8 @@ pub struct Hello {
     pub ac_id: u8,
     /// The autopilot's step, s.
     pub dt_s: f64,
+    /// The protocol version it speaks (1 or 2).
+    pub version: u32,
 }
 
 /// Decodes a hello record.
@@ -109,7 +149,7 @@ pub fn decode_hello(b: &[u8; HELLO_LEN]) -> Result<Hello, ProtocolError> {
         return Err(ProtocolError::NotHello(magic));
     }
     let version = u32_at(b, 4);
-    if version != VERSION {
+    if !(1..=VERSION).contains(&version) {
         return Err(ProtocolError::Version(version));
     }
     let ac_id = u32_at(b, 8);
@@ -118,7 +158,7 @@ pub fn decode_hello(b: &[u8; HELLO_LEN]) -> Result<Hello, ProtocolError> {
     if !(dt_s.is_finite() && dt_s > 0.0) {
         return Err(ProtocolError::Dt(dt_s));
     }
-    Ok(Hello { ac_id, dt_s })
+    Ok(Hello { ac_id, dt_s, version })
 }
 
 /// One step's motor commands.
@@ -180,9 +220,12 @@ pub struct FdmState {
     pub ir_m: f64,
     /// Whether the copter crashed.
     pub crashed: bool,
+    /// The uplink messages the world sent the aircraft through `link` before this state
+    /// ([`UPLINKS_NOT_COUNTED`]: not counted). Not part of a v1 record.
+    pub uplinks: u32,
 }
 
-/// Encodes a state record.
+/// Encodes a state record (v2; a v1 record is its first 221 bytes).
 pub fn encode_state(s: &FdmState) -> [u8; STATE_LEN] {
     let mut b = [0u8; STATE_LEN];
     b[0..4].copy_from_slice(&STATE_MAGIC.to_le_bytes());
@@ -200,7 +243,8 @@ pub fn encode_state(s: &FdmState) -> [u8; STATE_LEN] {
     for (k, v) in floats.enumerate() {
         b[12 + 8 * k..20 + 8 * k].copy_from_slice(&v.to_le_bytes());
     }
-    b[STATE_LEN - 1] = u8::from(s.crashed);
+    b[STATE_LEN_V1 - 1] = u8::from(s.crashed);
+    b[STATE_LEN_V1..STATE_LEN].copy_from_slice(&s.uplinks.to_le_bytes());
     b
 }
 
@@ -230,6 +274,7 @@ pub fn fdm_state(world: &World, state: &State, id: usize, prev_vel: Vec3, dt: f6
         sonar_m: sonar,
         ir_m: r.ir_m.map_or(f64::NAN, f64::from),
         crashed: c.crash.is_some(),
+        uplinks: UPLINKS_NOT_COUNTED,
     }
 }
 
@@ -306,6 +351,13 @@ pub struct AutopilotStats {
     pub wait_s: f64,
     /// The tick at which it left, and why, if it did before the end.
     pub left: Option<(u64, String)>,
+    /// The protocol version it spoke.
+    pub protocol: u32,
+    /// Its uplink in the lockstep: `"counted"` (from [`UPLINK_START_S`] on), `"not counted"`
+    /// (none through `link`, or a v1 client), or why it stopped being counted.
+    pub uplink: String,
+    /// Uplink messages the world sent it through `link`, counted in the lockstep.
+    pub uplinks_counted: u64,
 }
 
 /// An autopilot the world turned away at its hello.
@@ -325,6 +377,36 @@ struct Conn {
     prev_vel: Vec3,
     gone: bool,
     stats: AutopilotStats,
+    counting: Counting,
+}
+
+/// Where an aircraft's uplink stands (see the module docs).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Counting {
+    /// Not counted.
+    Off,
+    /// Counted, none sent yet: before [`UPLINK_START_S`].
+    Before,
+    /// Counted: this many sent.
+    Sent(u32),
+}
+
+impl Counting {
+    fn field(self) -> u32 {
+        match self {
+            Counting::Off => UPLINKS_NOT_COUNTED,
+            Counting::Before => 0,
+            Counting::Sent(n) => n,
+        }
+    }
+}
+
+/// Which aircraft Paparazzi's `link` has relayed telemetry of, as seen on the Ivy bus.
+struct LinkWatch {
+    ivy: Option<Arc<IvyAgent>>,
+    heard: Arc<Mutex<BTreeSet<u8>>>,
+    /// The binding per aircraft, until it is heard.
+    binds: BTreeMap<u8, u32>,
 }
 
 /// The world's side of its autopilots (see the module docs).
@@ -337,6 +419,8 @@ pub struct Autopilots {
     dt_s: f64,
     /// The step waiting time of all autopilots together, s.
     wait_s: f64,
+    /// Where the uplink goes through `link` ([`Autopilots::count_uplinks`]).
+    link: Option<LinkWatch>,
 }
 
 impl std::fmt::Debug for Autopilots {
@@ -419,15 +503,18 @@ impl Autopilots {
                 ac_id,
                 copter: world.copters[copter].name.clone(),
                 peer: peer.to_string(),
+                protocol: hello.version,
+                uplink: "not counted".to_owned(),
                 ..Default::default()
             };
-            conns.push(Conn { copter, stream, prev_vel: Vec3::ZERO, gone: false, stats });
+            let counting = Counting::Off;
+            conns.push(Conn { copter, stream, prev_vel: Vec3::ZERO, gone: false, stats, counting });
         }
         conns.sort_by_key(|c| c.copter);
         let refused = Arc::new(Mutex::new(refused));
         let flown = conns.iter().map(|c: &Conn| c.stats.ac_id).collect();
         let late = LateDoor::open(listener, flown, Arc::clone(&refused), opts.step_timeout);
-        Ok(Self { conns, refused, _late: Some(late), dt_s, wait_s: 0.0 })
+        Ok(Self { conns, refused, _late: Some(late), dt_s, wait_s: 0.0, link: None })
     }
 
     /// How many autopilots there are.
@@ -474,14 +561,113 @@ impl Autopilots {
     /// Sends every autopilot its copter's state after the step.
     pub fn answer(&mut self, world: &World, state: &State) {
         for conn in self.conns.iter_mut().filter(|c| !c.gone) {
-            let s = fdm_state(world, state, conn.copter, conn.prev_vel, self.dt_s);
-            match conn.stream.write_all(&encode_state(&s)) {
+            let mut s = fdm_state(world, state, conn.copter, conn.prev_vel, self.dt_s);
+            s.uplinks = conn.counting.field();
+            let b = encode_state(&s);
+            let b = if conn.stats.protocol == 1 { &b[..STATE_LEN_V1] } else { &b[..] };
+            match conn.stream.write_all(b) {
                 Ok(()) => conn.stats.steps += 1,
                 Err(e) => {
                     let _ = conn.stream.shutdown(std::net::Shutdown::Both);
                     conn.stats.left = Some((state.tick, format!("cannot send its state: {e}")));
                     conn.gone = true;
                 }
+            }
+        }
+    }
+
+    /// Counts the uplink of each aircraft for which `sends_uplink` holds in the lockstep (see
+    /// the module docs): the run sends it on the Ivy bus of `ivy`, where Paparazzi's `link`
+    /// forwards it. Binds, per such aircraft, its telemetry as `link` relays it, until heard.
+    /// A v1 client's uplink stays uncounted.
+    pub fn count_uplinks(
+        &mut self,
+        ivy: &Arc<IvyAgent>,
+        sends_uplink: impl Fn(AcId) -> bool,
+    ) -> Result<(), crate::paparazzi::ivy::IvyError> {
+        let heard = Arc::new(Mutex::new(BTreeSet::new()));
+        let mut binds = BTreeMap::new();
+        for ac in self.start_counting(sends_uplink) {
+            let h = Arc::clone(&heard);
+            let id = ivy.bind(&format!("^{ac} "), move |_, _| {
+                crate::lock(&h).insert(ac);
+            })?;
+            binds.insert(ac, id);
+        }
+        if !binds.is_empty() {
+            self.link = Some(LinkWatch { ivy: Some(Arc::clone(ivy)), heard, binds });
+        }
+        Ok(())
+    }
+
+    /// Counts the uplink of the v2 clients among the aircraft for which `sends_uplink` holds;
+    /// returns their ids.
+    fn start_counting(&mut self, sends_uplink: impl Fn(AcId) -> bool) -> Vec<u8> {
+        let mut counted = Vec::new();
+        for conn in self.conns.iter_mut().filter(|c| sends_uplink(c.stats.ac_id)) {
+            let ac = conn.stats.ac_id;
+            if conn.stats.protocol < 2 {
+                conn.stats.uplink = "not counted: its NPS speaks protocol v1 (rebuild the aircraft)".to_owned();
+                tracing::warn!("aircraft {ac}: its uplink is not in the lockstep: {}", conn.stats.uplink);
+                continue;
+            }
+            conn.counting = Counting::Before;
+            conn.stats.uplink = "counted".to_owned();
+            counted.push(ac);
+        }
+        counted
+    }
+
+    /// Whether an aircraft's uplink is counted (then the run must not lose a frame).
+    pub fn counts_uplinks(&self) -> bool {
+        self.conns.iter().any(|c| c.counting != Counting::Off)
+    }
+
+    /// Whether the run sends the uplink `text` the outbox made for aircraft `ac_id` after the
+    /// step to `t_s`, and counts it (an aircraft no autopilot flies: sent, not counted). A
+    /// counted uplink before [`UPLINK_START_S`] is not sent; at the first one after, the world
+    /// waits until `link` has relayed the aircraft's telemetry (at most [`LINK_HEARD_TIMEOUT`])
+    /// and checks that a peer on the bus takes the text; without either, the aircraft's uplink
+    /// is sent uncounted from then on.
+    pub fn uplink(&mut self, ac_id: AcId, text: &str, t_s: f64) -> bool {
+        let Some(conn) = self.conns.iter_mut().find(|c| c.stats.ac_id == ac_id) else { return true };
+        match conn.counting {
+            Counting::Off => true,
+            Counting::Before if t_s + 1e-9 < UPLINK_START_S => false,
+            Counting::Before => {
+                let watch = self.link.as_mut().expect("a counted uplink has its link watch");
+                let heard = conn.gone || watch.wait_heard(ac_id, LINK_HEARD_TIMEOUT);
+                if let (Some(id), Some(ivy)) = (watch.binds.remove(&ac_id), &watch.ivy) {
+                    ivy.unbind(id);
+                }
+                let name = text.split(' ').nth(1).unwrap_or("?");
+                let why = match &watch.ivy {
+                    _ if !heard => Some(format!(
+                        "link relayed no telemetry of the aircraft within {} s",
+                        LINK_HEARD_TIMEOUT.as_secs()
+                    )),
+                    Some(ivy) if ivy.takers(text) == 0 => {
+                        Some(format!("no peer on the Ivy bus takes {name} (is it in link's messages.xml?)"))
+                    }
+                    _ => None,
+                };
+                match why {
+                    None => {
+                        conn.counting = Counting::Sent(1);
+                        conn.stats.uplinks_counted = 1;
+                    }
+                    Some(why) => {
+                        conn.counting = Counting::Off;
+                        conn.stats.uplink = format!("not counted from {t_s:.3} s: {why}");
+                        tracing::warn!("aircraft {ac_id}: its uplink is not in the lockstep: {}", conn.stats.uplink);
+                    }
+                }
+                true
+            }
+            Counting::Sent(n) => {
+                conn.counting = Counting::Sent(n.saturating_add(1).min(UPLINKS_NOT_COUNTED - 1));
+                conn.stats.uplinks_counted += 1;
+                true
             }
         }
     }
@@ -499,6 +685,22 @@ impl Autopilots {
     /// The wall time all steps waited for the autopilots, s.
     pub fn wait_s(&self) -> f64 {
         self.wait_s
+    }
+}
+
+impl LinkWatch {
+    /// Whether `link` has relayed a telemetry message of `ac_id`, waiting up to `timeout`.
+    fn wait_heard(&self, ac_id: u8, timeout: Duration) -> bool {
+        let start = Instant::now();
+        loop {
+            if crate::lock(&self.heard).contains(&ac_id) {
+                return true;
+            }
+            if start.elapsed() > timeout {
+                return false;
+            }
+            std::thread::sleep(Duration::from_millis(1));
+        }
     }
 }
 
@@ -605,9 +807,13 @@ mod tests {
     use super::*;
 
     fn hello(ac: u32, dt: f64) -> [u8; HELLO_LEN] {
+        hello_v(ac, dt, VERSION)
+    }
+
+    fn hello_v(ac: u32, dt: f64, version: u32) -> [u8; HELLO_LEN] {
         let mut b = [0u8; HELLO_LEN];
         b[0..4].copy_from_slice(b"TWFD");
-        b[4..8].copy_from_slice(&1u32.to_le_bytes());
+        b[4..8].copy_from_slice(&version.to_le_bytes());
         b[8..12].copy_from_slice(&ac.to_le_bytes());
         b[12..20].copy_from_slice(&dt.to_le_bytes());
         b
@@ -627,7 +833,10 @@ mod tests {
 
     #[test]
     fn records_decode_and_bad_ones_are_named() {
-        assert_eq!(decode_hello(&hello(7, 0.001)), Ok(Hello { ac_id: 7, dt_s: 0.001 }));
+        assert_eq!(decode_hello(&hello(7, 0.001)), Ok(Hello { ac_id: 7, dt_s: 0.001, version: 2 }));
+        assert_eq!(decode_hello(&hello_v(7, 0.001, 1)), Ok(Hello { ac_id: 7, dt_s: 0.001, version: 1 }));
+        assert_eq!(decode_hello(&hello_v(7, 0.001, 3)), Err(ProtocolError::Version(3)));
+        assert_eq!(decode_hello(&hello_v(7, 0.001, 0)), Err(ProtocolError::Version(0)));
         assert_eq!(decode_hello(&hello(300, 0.001)), Err(ProtocolError::AcId(300)));
         assert!(matches!(decode_hello(&hello(7, f64::NAN)), Err(ProtocolError::Dt(_))));
         let mut b = hello(7, 0.001);
@@ -690,6 +899,7 @@ start = { pos_m = [0.5, -0.25, 0.0], yaw_deg = 30.0 }
         assert_eq!(u32_at(&b, 0), STATE_MAGIC);
         assert_eq!(f64_at(&b, 20), s.pos_ned[0]);
         assert_eq!(f64_at(&b, 212).to_bits(), s.ir_m.to_bits());
+        assert_eq!(u32_at(&b, 221), UPLINKS_NOT_COUNTED, "no uplink counted outside a run");
         // The arena's walls are in range of every sonar.
         assert!(s.sonar_m.iter().all(|v| v.is_finite()), "{:?}", s.sonar_m);
     }
@@ -762,6 +972,87 @@ start = { pos_m = [0.5, -0.25, 0.0], yaw_deg = 30.0 }
         c.read_exact(&mut why).unwrap();
         assert_eq!(c.read(&mut [0u8; 1]).unwrap(), 0, "the world closes after the reason");
         String::from_utf8(why).unwrap()
+    }
+
+    /// A client's next state record: its `uplinks` field (v2) or none (v1, 221 bytes).
+    fn state_uplinks(c: &mut TcpStream, version: u32, step: u64) -> Option<u32> {
+        let mut b = [0u8; STATE_LEN];
+        let n = if version == 1 { STATE_LEN_V1 } else { STATE_LEN };
+        c.read_exact(&mut b[..n]).unwrap();
+        assert_eq!(u32_at(&b, 0), STATE_MAGIC);
+        assert_eq!(u64::from_le_bytes(b[4..12].try_into().unwrap()), step);
+        (version != 1).then(|| u32_at(&b, STATE_LEN_V1))
+    }
+
+    #[test]
+    fn the_uplink_is_counted_from_its_start_and_a_v1_client_is_flown_uncounted() {
+        let scene = r#"
+name = "ap2"
+[sim]
+physics_dt_s = 0.001
+control_dt_s = 0.001
+[arena]
+size_m = [4.0, 3.0]
+height_m = 2.5
+[[copter]]
+name = "new"
+kind = "autopilot"
+ac_id = 7
+start = { pos_m = [0.5, 0.0, 0.0] }
+[[copter]]
+name = "old"
+kind = "autopilot"
+ac_id = 8
+start = { pos_m = [-0.5, 0.0, 0.0] }
+"#;
+        let spec = sim_core::SceneSpec::from_toml("ap2.toml", scene).unwrap();
+        let world = sim_core::compile(&spec).unwrap();
+        let mut state = world.initial_state();
+        let listener = TcpListener::bind("127.0.0.1:0").unwrap();
+        let addr = listener.local_addr().unwrap();
+        let opts = AutopilotOptions { listen: addr, connect_timeout: Duration::from_secs(10), ..Default::default() };
+        let (tx, rx) = std::sync::mpsc::channel::<()>();
+        let client = std::thread::spawn(move || {
+            let mut new = TcpStream::connect(addr).unwrap();
+            new.write_all(&hello(7, 0.001)).unwrap();
+            let mut old = TcpStream::connect(addr).unwrap();
+            old.write_all(&hello_v(8, 0.001, 1)).unwrap();
+            let mut seen = Vec::new();
+            for k in 0..4 {
+                rx.recv().unwrap();
+                new.write_all(&step(k, [0.0; 4])).unwrap();
+                old.write_all(&step(k, [0.0; 4])).unwrap();
+                seen.push((state_uplinks(&mut new, 2, k), state_uplinks(&mut old, 1, k)));
+            }
+            seen
+        });
+        let mut aps = Autopilots::accept_on(listener, &world, &opts).unwrap();
+        // As count_uplinks does, without an Ivy bus: link has heard aircraft 7 already.
+        assert_eq!(aps.start_counting(|_| true), [7]);
+        let heard = Arc::new(Mutex::new(BTreeSet::from([7u8])));
+        aps.link = Some(LinkWatch { ivy: None, heard, binds: BTreeMap::new() });
+        assert!(aps.counts_uplinks());
+        let mut inputs = world.initial_inputs();
+        let mut sent = Vec::new();
+        for t in [0.1, UPLINK_START_S, 0.6, 0.7] {
+            tx.send(()).unwrap();
+            aps.commands(&world, &state, &mut inputs);
+            sim_core::step(&world, &mut state, &inputs);
+            aps.answer(&world, &state);
+            // The outbox's uplinks after this step: one each.
+            let text = "dl SONAR_UPLINK 7 255 100 765 765 765";
+            sent.push((aps.uplink(7, text, t), aps.uplink(8, text, t), aps.uplink(99, text, t)));
+        }
+        let seen = client.join().unwrap();
+        // Before its start the counted uplink is not sent; from then on each is counted and the
+        // next state names it. The v1 client's is sent, uncounted, and its records are v1's; an
+        // aircraft no autopilot flies (a twin) is none of the world's business here.
+        assert_eq!(sent, [(false, true, true), (true, true, true), (true, true, true), (true, true, true)]);
+        assert_eq!(seen.iter().map(|s| s.0).collect::<Vec<_>>(), [Some(0), Some(0), Some(1), Some(2)]);
+        assert!(seen.iter().all(|s| s.1.is_none()), "{seen:?}");
+        let stats = aps.stats();
+        assert_eq!((stats[0].uplink.as_str(), stats[0].uplinks_counted, stats[0].protocol), ("counted", 3, 2));
+        assert!(stats[1].uplink.contains("protocol v1") && stats[1].uplinks_counted == 0, "{:?}", stats[1]);
     }
 
     #[test]

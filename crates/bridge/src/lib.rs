@@ -21,7 +21,8 @@
 //!   [`realflight::fit`], system identification of the horizontal flight model from real
 //!   flights' sonars and attitude, and the prediction errors it and the simpler models make.
 //! * [`shard`]: a shard's link to its neighbours over Zenoh (ghosts, liveliness, barrier).
-//! * [`autopilot`]: copters flown by outside autopilots (Paparazzi NPS), in lockstep over TCP.
+//! * [`autopilot`]: copters flown by outside autopilots (Paparazzi NPS), in lockstep over TCP,
+//!   with their virtual-sonar uplink through Paparazzi's `link` counted in that lockstep.
 //! * [`log`]: MCAP logs, their reader and recovery.
 //! * [`live`]: the live view (a Foxglove WebSocket server).
 //! * `ids.rs`: [`AcId`], at the bottom: every room that names an aircraft imports it from there.
@@ -32,7 +33,8 @@
 //! own link: publishers, subscribers and liveliness to its neighbours) and [`mixed::gateway`]
 //! (it hands a session to [`zenoh_net`]'s bus and puts the Ivy texts it bridges); nothing else
 //! names `zenoh`. Only [`paparazzi::ivy`] opens Ivy sockets. Only [`engine`] steps the world
-//! (tests aside), and its loop never blocks on publishing.
+//! (tests aside), and its loop never blocks on publishing (but in lockstep, and where an
+//! autopilot's uplink is counted: [`autopilot`]).
 
 pub mod autopilot;
 pub mod engine;

@@ -41,6 +41,8 @@ async fn two_agents_find_each_other_exchange_groups_and_unbind() {
     let b = within("start b", IvyAgent::start(IvyOptions::new(bus.clone(), "B agent"))).await.unwrap();
     eventually("b knows a's regex", || b.peers().iter().any(|p| p.app_name == "A" && p.ready && !p.regexes.is_empty()))
         .await;
+    // Who would take a text, without sending it.
+    assert_eq!((b.takers("5 ATTITUDE 0.1 -0.2 0.3"), b.takers("5 ROTORCRAFT_FP 1 2 3")), (1, 0));
     assert_eq!(b.send("5 ATTITUDE 0.1 -0.2 0.3").unwrap(), 1);
     assert_eq!(b.send("5 ROTORCRAFT_FP 1 2 3").unwrap(), 0);
     eventually("delivery", || got.lock().unwrap().len() == 1).await;
@@ -53,6 +55,7 @@ async fn two_agents_find_each_other_exchange_groups_and_unbind() {
     assert!(a.unbind(id));
     eventually("b saw DelRegexp", || b.peers().iter().all(|p| p.regexes.is_empty())).await;
     assert_eq!(b.send("5 ATTITUDE 1 2 3").unwrap(), 0);
+    assert_eq!(b.takers("5 ATTITUDE 1 2 3"), 0);
     // Each saw its own hello once and dropped it.
     assert_eq!(drops(&a, "hello: our own"), 1);
     b.stop().await;

@@ -306,6 +306,13 @@ pub fn run<W: StepObserver + Send>(
     let gateway = start_gateway(rt, bus, &node, &ivy, &prefix, &world_arc, &req_tx)?;
     opts.sync = bus.mixed.sync.clone();
     opts.outbox = Some(outbox_options(bus, &prefix, &world_arc));
+    if let (Some(aps), Some(ivy), Some(outbox)) = (&opts.autopilots, &ivy, &opts.outbox) {
+        // The autopilots' uplink goes on the Ivy bus, through Paparazzi's link: in the lockstep.
+        let none = bridge::paparazzi::convert::Uplink::None;
+        bridge::lock(aps)
+            .count_uplinks(ivy, |ac| outbox.uplink_for(ac) != none)
+            .context("cannot watch the Ivy bus for the autopilots' telemetry")?;
+    }
     let (frame_tx, mut frame_rx) = tokio::sync::mpsc::channel(256);
     let opts_link = opts.shard.clone();
     let flight = Flight::new(world, state, inputs, &opts, recorder, watch);

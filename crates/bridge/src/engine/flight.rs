@@ -132,6 +132,12 @@ impl<W: StepObserver> Flight<W> {
         &self.core.stats
     }
 
+    /// Whether an autopilot's uplink is counted in the lockstep: then no frame may be dropped
+    /// (its texts must reach `link`).
+    pub fn counts_uplinks(&self) -> bool {
+        self.core.autopilots.as_ref().is_some_and(|a| crate::lock(a).counts_uplinks())
+    }
+
     /// Marks the run as stopped before its end (a stop request or a signal).
     pub fn stopped_early(&mut self) {
         self.core.stats.stopped_early = true;
@@ -434,6 +440,13 @@ impl Core {
         let mut pprz_out = Vec::new();
         if let Some(outbox) = self.outbox.as_mut() {
             outbox.after_step(&self.world, &self.state, &self.inputs, sensed, &mut pprz_out);
+            if let Some(a) = &self.autopilots {
+                // An autopilot aircraft's uplink through `link`: counted, or held back before
+                // its start (crate::autopilot, "The uplink in the lockstep").
+                let mut a = crate::lock(a);
+                let t = self.state.time_s(&self.world);
+                pprz_out.retain(|o| o.uplink_to.is_none_or(|ac| a.uplink(ac, &o.text, t)));
+            }
             for out in &pprz_out {
                 obs.pprz_out(self.state.tick, out);
             }

@@ -60,6 +60,8 @@ pub fn run_loop<W: StepObserver>(
         }
         ls.started = true;
     }
+    // Frames that carry an autopilot's counted uplink must reach `link`: never dropped.
+    let hold_frames = lockstep.is_some() || flight.counts_uplinks();
     let mut start = Instant::now();
     for k in 0..opts.ticks {
         while let Ok(r) = requests.try_recv() {
@@ -90,8 +92,9 @@ pub fn run_loop<W: StepObserver>(
         };
         if let Some(tx) = &frames {
             let frame = flight.frame(stepped.sensed, stepped.pprz_out);
-            if lockstep.is_some() {
-                // Lockstep: the controllers wait for this frame; never drop it.
+            if hold_frames {
+                // Lockstep: the controllers wait for this frame; never drop it. So do the
+                // autopilots whose uplink is counted.
                 let _ = tx.blocking_send(frame);
             } else if let Err(e) = tx.try_send(frame) {
                 flight.frame_dropped(e.into_inner());

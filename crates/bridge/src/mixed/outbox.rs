@@ -88,6 +88,9 @@ pub struct PprzOut {
     pub key: String,
     /// The Ivy text.
     pub text: String,
+    /// The aircraft a virtual-sonar uplink is for (`None`: a virtual copter's telemetry): the
+    /// step loop counts an autopilot aircraft's uplink (`crate::autopilot`).
+    pub uplink_to: Option<AcId>,
 }
 
 /// The loop side of mixed reality (see the module docs).
@@ -184,7 +187,9 @@ impl Outbox {
                     let Some(name) = uplink.message() else { continue };
                     let readings = self.virtual_sonar.readings(world, state, i);
                     match uplink_text(&self.opts.messages, uplink, ac_id, readings) {
-                        Ok(Some(text)) => out.push(PprzOut { key: self.key(uplink.sender(), name), text }),
+                        Ok(Some(text)) => {
+                            out.push(PprzOut { key: self.key(uplink.sender(), name), text, uplink_to: Some(ac_id) })
+                        }
                         Ok(None) => {}
                         Err(e) => self.fail(name, &e.to_string()),
                     }
@@ -200,7 +205,9 @@ impl Outbox {
                             .get_or_insert_with(|| (state_msg(world, state, inputs, i), sensors_msg(world, state, i)));
                         let source = TelemetrySource { state: st, sensors: se, setpoint: state.copters[i].setpoint };
                         match telemetry_text(&self.opts.messages, ac_id, name, &source) {
-                            Some(Ok(text)) => out.push(PprzOut { key: self.key(&ac_id.to_string(), name), text }),
+                            Some(Ok(text)) => {
+                                out.push(PprzOut { key: self.key(&ac_id.to_string(), name), text, uplink_to: None })
+                            }
                             Some(Err(e)) => {
                                 let name = name.clone();
                                 self.fail(&name, &e.to_string());

@@ -469,6 +469,21 @@ impl IvyAgent {
         Ok(n)
     }
 
+    /// How many peers have a regex that `text` matches (`send` would reach them), without
+    /// sending it.
+    pub fn takers(&self, text: &str) -> usize {
+        let name = split_header(text).map(|(_, n, _)| n);
+        let peers = crate::lock(&self.inner.peers);
+        peers
+            .values()
+            .filter(|p| {
+                p.regexes
+                    .values()
+                    .any(|r| r.name.as_ref().is_none_or(|want| Some(want.as_str()) == name) && r.regex.is_match(text))
+            })
+            .count()
+    }
+
     /// Sends a direct message to every peer named `app_name`; returns how many.
     pub fn send_direct(&self, app_name: &str, id: u32, text: &str) -> usize {
         let mut line = Vec::new();
