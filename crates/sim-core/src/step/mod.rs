@@ -252,13 +252,9 @@ where
     }
 }
 
-/// Copters per parallel chunk of `n`: about 256 chunks, at least 32 copters each. A copter's
-/// work varies tenfold with its crowd (its sonars' neighbours, its contacts), and a take-off's
-/// crowd sits in a few parts of the id range: fine chunks let idle threads steal the rest of a
-/// crowded part (32 chunks left a third of the sensing stage on one thread at two threads).
-/// The chunking never changes the bits (each copter touches only its own state and lane).
+/// Copters per parallel chunk of `n`: about 32 chunks, at least 32 copters each.
 fn lane_chunk(n: usize) -> usize {
-    (n / 256).max(32)
+    (n / 32).max(32)
 }
 
 /// Fills `out` with `f(i)` for every `i` in `0..n`, in parallel chunks or in order (the same
