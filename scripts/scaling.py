@@ -6,7 +6,7 @@ For each swarm size it writes the scene (`twinswarm scene KIND --n N`), flies it
 `twinswarm cluster SCENE --shards S --threads T --no-bus --json` for every shard count (the
 machine's cores shared among the shards), and reports per run: wall time, real-time factor,
 drone-seconds per second, the speed-up over one thread, the largest process's resident memory
-(`getrusage` of the children), and whether every copter's digest equals the one-thread run's
+(`wait4` of each run), and whether every copter's digest equals the one-thread run's
 (the bits must not depend on threads or shards). From the thread runs it fits Amdahl's law,
 speed-up(n) = 1 / (f + (1 - f) / n), by least squares on f: the serial fraction the curve
 implies. It writes a Markdown table (with the commit, the date and the machine), a JSON file
@@ -25,7 +25,6 @@ import json
 import os
 import pathlib
 import platform
-import resource
 import subprocess
 import sys
 import tempfile
@@ -65,18 +64,21 @@ def commit():
 
 
 def measured(cmd):
-    """Runs `cmd`, returns (its JSON summary, wall s, the largest child's peak RSS in MiB so far)."""
+    """Runs `cmd`, returns (its JSON summary, wall s, its peak RSS in MiB: the largest of it and
+    the descendants it waited for, as `wait4` reports for this one run)."""
     start = time.monotonic()
-    out = subprocess.run(cmd, capture_output=True, text=True)
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    out, err = proc.stdout.read(), proc.stderr.read()
+    _, status, usage = os.wait4(proc.pid, 0)
+    proc.returncode = os.waitstatus_to_exitcode(status)
     wall = time.monotonic() - start
-    if out.returncode != 0:
-        sys.exit(f"error: {' '.join(map(str, cmd))} exited {out.returncode}:\n{out.stderr[-2000:]}")
+    if proc.returncode != 0:
+        sys.exit(f"error: {' '.join(map(str, cmd))} exited {proc.returncode}:\n{err[-2000:]}")
     try:
-        summary = json.loads(out.stdout)
+        summary = json.loads(out)
     except json.JSONDecodeError as e:
-        sys.exit(f"error: {' '.join(map(str, cmd))}: its --json output is not JSON ({e}): {out.stdout[:500]}")
-    rss_mib = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 1024
-    return summary, wall, rss_mib
+        sys.exit(f"error: {' '.join(map(str, cmd))}: its --json output is not JSON ({e}): {out[:500]}")
+    return summary, wall, usage.ru_maxrss / 1024
 
 
 def digests(summary):
