@@ -860,25 +860,27 @@ mod tests {
         assert_eq!(rotor_commands([-1.0, 2.0, 0.5, -0.5]), [0.0, 0.0, 1.0, 0.5]);
     }
 
+    /// A 1 ms world in the 4 × 3 m arena with these `[[copter]]` tables.
+    fn world_of(copters: &str) -> (World, State) {
+        let scene = format!(
+            "name = \"ap\"\n[sim]\nphysics_dt_s = 0.001\ncontrol_dt_s = 0.001\n\
+             [arena]\nsize_m = [4.0, 3.0]\nheight_m = 2.5\n{copters}"
+        );
+        let spec = sim_core::SceneSpec::from_toml("ap.toml", &scene).unwrap();
+        let world = sim_core::compile(&spec).unwrap();
+        let state = world.initial_state();
+        (world, state)
+    }
+
     fn world() -> (World, State) {
-        let scene = r#"
-name = "ap"
-[sim]
-physics_dt_s = 0.001
-control_dt_s = 0.001
-[arena]
-size_m = [4.0, 3.0]
-height_m = 2.5
-[[copter]]
+        world_of(
+            r#"[[copter]]
 name = "nps"
 kind = "autopilot"
 ac_id = 7
 start = { pos_m = [0.5, -0.25, 0.0], yaw_deg = 30.0 }
-"#;
-        let spec = sim_core::SceneSpec::from_toml("ap.toml", scene).unwrap();
-        let world = sim_core::compile(&spec).unwrap();
-        let state = world.initial_state();
-        (world, state)
+"#,
+        )
     }
 
     #[test]
@@ -986,15 +988,8 @@ start = { pos_m = [0.5, -0.25, 0.0], yaw_deg = 30.0 }
 
     #[test]
     fn the_uplink_is_counted_from_its_start_and_a_v1_client_is_flown_uncounted() {
-        let scene = r#"
-name = "ap2"
-[sim]
-physics_dt_s = 0.001
-control_dt_s = 0.001
-[arena]
-size_m = [4.0, 3.0]
-height_m = 2.5
-[[copter]]
+        let (world, mut state) = world_of(
+            r#"[[copter]]
 name = "new"
 kind = "autopilot"
 ac_id = 7
@@ -1004,10 +999,8 @@ name = "old"
 kind = "autopilot"
 ac_id = 8
 start = { pos_m = [-0.5, 0.0, 0.0] }
-"#;
-        let spec = sim_core::SceneSpec::from_toml("ap2.toml", scene).unwrap();
-        let world = sim_core::compile(&spec).unwrap();
-        let mut state = world.initial_state();
+"#,
+        );
         let listener = TcpListener::bind("127.0.0.1:0").unwrap();
         let addr = listener.local_addr().unwrap();
         let opts = AutopilotOptions { listen: addr, connect_timeout: Duration::from_secs(10), ..Default::default() };
