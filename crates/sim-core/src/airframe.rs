@@ -16,6 +16,7 @@
 use serde::{Deserialize, Serialize};
 
 use crate::battery::BatterySpec;
+use crate::finken_height::FinkenHeightSpec;
 use crate::math::{GRAVITY_M_S2, Real, Vec3};
 
 /// How the number of particles a rotor emits in one physics step is drawn.
@@ -105,6 +106,9 @@ pub struct AirframeSpec {
     pub height_kd_n_s_per_m: Real,
     /// Height hold integral gain, N per (m·s) of height error.
     pub height_ki_n_per_m_s: Real,
+    /// The lab firmware's own height loop (`[airframes.NAME.finken_height]`), in place of the
+    /// newton PID above while a height is held; absent by default.
+    pub finken_height: Option<FinkenHeightSpec>,
     /// Throttle curve parameter `a` (flatness at hover, 0 = linear, 1 = flat).
     pub throttle_curve_a: Real,
     /// Throttle curve parameter `b` (width of the flat zone around hover).
@@ -154,6 +158,7 @@ impl Default for AirframeSpec {
             height_kp_n_per_m: 1.4,
             height_kd_n_s_per_m: 1.4,
             height_ki_n_per_m_s: 0.065,
+            finken_height: None,
             throttle_curve_a: 1.0,
             throttle_curve_b: 1.0,
             crash_impact_speed_m_s: 0.6,
@@ -164,12 +169,17 @@ impl Default for AirframeSpec {
 }
 
 /// Names of the built-in airframe presets.
-pub const PRESETS: &[&str] = &["finken3"];
+pub const PRESETS: &[&str] = &["finken3", "finken3_2015_12"];
 
-/// A built-in preset by name.
+/// A built-in preset by name: `finken3`, the FINken III with Twinswarm's height loop (in
+/// newtons, tilt-compensated, adapting to the battery); `finken3_2015_12`, the same copter on
+/// the lab firmware's own height loop of 16 Dec 2015 ([`FinkenHeightSpec`]).
 pub fn preset(name: &str) -> Option<AirframeSpec> {
     match name {
         "finken3" => Some(AirframeSpec::default()),
+        "finken3_2015_12" => {
+            Some(AirframeSpec { finken_height: Some(FinkenHeightSpec::default()), ..Default::default() })
+        }
         _ => None,
     }
 }
@@ -389,6 +399,9 @@ impl AirframeSpec {
             }
         }
         if let Err((field, message)) = self.battery.validate() {
+            return Err(AirframeError { field, message });
+        }
+        if let Some(Err((field, message))) = self.finken_height.as_ref().map(FinkenHeightSpec::validate) {
             return Err(AirframeError { field, message });
         }
         if self.throttle_curve_a > 1.0 {

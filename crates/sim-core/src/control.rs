@@ -216,6 +216,13 @@ pub const LANDED_VZ_M_S: Real = 0.1;
 /// … for this long, s, is on the ground: its motors stop.
 pub const LANDED_AFTER_S: Real = 0.5;
 
+/// Whether `sp` holds a height in flight (not the landing band at the floor, not rotor
+/// commands): where the height loop runs.
+#[inline]
+pub fn holds_height(af: &Airframe, sp: &Setpoint) -> bool {
+    sp.rotors.is_none() && sp.height_m > 0.0 && sp.height_m > af.rest_height_m + LANDING_BAND_M
+}
+
 /// Collective thrust for a setpoint: height hold (`hover + P e + I ∫e − D v_z`, eq. 3.5 with
 /// an integral as on the real FINken's `GUIDANCE_V`, divided by the cosine of the tilt) when
 /// a height is set, a 0.3 m/s descent when that height is the floor, else the throttle curve. `z_m` and `vz_m_s` are the copter's estimates;

@@ -22,6 +22,7 @@
 use serde::{Deserialize, Serialize};
 
 use crate::error::{FieldPath, PathSeg, SceneError};
+use crate::finken_height::FinkenHeightState;
 use crate::math::{Real, wrap_angle_rad};
 use crate::rng::Rng32;
 use crate::sensors::ir::IrSpec;
@@ -135,6 +136,13 @@ pub struct Estimate {
     /// How long a landing's descent has stalled (ground detection), s.
     #[serde(default)]
     pub landing_stalled_s: Real,
+    /// The last IR reading as the firmware holds it (`finken_sensor_model.pos.z`): clamped
+    /// to the conversion table's range, m.
+    #[serde(default)]
+    pub ir_reading_m: Real,
+    /// The lab firmware's height loop, for airframes that fly it.
+    #[serde(default)]
+    pub finken_height: FinkenHeightState,
 }
 
 impl Estimate {
@@ -158,6 +166,8 @@ impl Estimate {
             collective_steps: 0,
             height_integral_n: 0.0,
             landing_stalled_s: 0.0,
+            ir_reading_m: start_height_m,
+            finken_height: FinkenHeightState::default(),
         }
     }
 
@@ -230,6 +240,7 @@ impl Estimate {
         // copter passing below reads as the floor coming up).
         self.ir_in_range = ir_raw_m.is_finite() && (ir.min_range_m..=ir.max_range_m).contains(&ir_raw_m);
         let reading = if ir_raw_m.is_finite() { ir_raw_m.min(ir.max_range_m) } else { ir.max_range_m };
+        self.ir_reading_m = reading.max(ir.min_range_m);
         if reading >= ir.min_range_m {
             let innovation = reading - self.height_m;
             self.height_m += spec.height_alpha * innovation;
@@ -252,6 +263,7 @@ impl Estimate {
     /// The truth, for twins and `ideal` estimation.
     pub fn ideal_height(&mut self, height_m: Real, vz_m_s: Real) {
         self.height_m = height_m;
+        self.ir_reading_m = height_m;
         self.vz_m_s = vz_m_s;
         self.ir_in_range = true;
     }

@@ -30,6 +30,7 @@ pub mod control;
 pub mod error;
 pub mod estimate;
 pub mod finite;
+pub mod finken_height;
 pub mod geometry;
 mod lanes;
 pub mod math;

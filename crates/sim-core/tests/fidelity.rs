@@ -3,6 +3,8 @@
 //! - height held on the IR: flying over the lab's table lifts the copter by the table;
 //! - the battery: thrust at the same command falls over a 10-minute flight, and the height
 //!   loop absorbs it;
+//! - the lab firmware's own height loop (`finken3_2015_12`) sags below its set point and wanders
+//!   as the real copter did; Twinswarm's newton loop holds it;
 //! - downwash: a copter 0.5 m below another loses height and shakes; side by side at 0.5 m
 //!   they barely feel each other;
 //! - ground effect: the hover thrust drops near the floor and over a box top;
@@ -81,6 +83,58 @@ fn a_copter_holding_height_on_its_ir_climbs_by_the_table() {
     println!("ideal (true height): {before_ideal:.3} m, {over_ideal:.3} m: rises {:.3} m", over_ideal - before_ideal);
     assert!((over - before - 0.75).abs() < 0.08, "an IR-held copter rises by the table's height");
     assert!((over_ideal - before_ideal).abs() < 0.05, "a copter on true height does not");
+}
+
+/// The 16 Dec 2015 set-up (one FINken in Wall-Avoid holding 0.6 m in the 4 × 3 m arena from
+/// where the real one started), 120 s on `airframe`: the firmware's IR reading
+/// (`finken_sensor_model.pos_z`) from 5 s after take-off, as real_flights.py takes the real
+/// one's; returns its mean and standard deviation, m.
+fn lab_height(airframe: &str) -> (Real, Real) {
+    let world = load(&format!(
+        r#"
+[sim]
+seed = 2015
+[arena]
+size_m = [4.0, 3.0]
+height_m = 2.5
+[[copter]]
+name = "finken"
+ac_id = 5
+airframe = "{airframe}"
+start = {{ pos_m = [0.06, -0.44] }}
+mode = "wall_avoid"
+command = {{ height_m = 0.6 }}
+"#
+    ));
+    let mut took_off = None;
+    let mut ir = Vec::new();
+    let end = fly(&world, 120.0, |t, s| {
+        let c = &s.copters[0];
+        if took_off.is_none() && c.took_off_tick.is_some() {
+            took_off = Some(t);
+        }
+        if took_off.is_some_and(|t0| t >= t0 + 5.0) {
+            ir.push(c.estimate.ir_reading_m);
+        }
+    });
+    assert!(end.copters[0].crash.is_none(), "{airframe}: crashed");
+    (mean(&ir), std_dev(&ir))
+}
+
+#[test]
+fn the_lab_firmware_height_loop_sags_and_wanders_the_newton_loop_holds() {
+    let (fw_mean, fw_sd) = lab_height("finken3_2015_12");
+    let (pid_mean, pid_sd) = lab_height("finken3");
+    println!(
+        "height from take-off + 5 s, set point 0.6 m: lab firmware's loop {fw_mean:.3} m, σ {:.1} cm; \
+         Twinswarm's {pid_mean:.3} m, σ {:.1} cm (real, 16 Dec: 0.495 m, σ 4.4-8.5 cm per flight)",
+        fw_sd * 100.0,
+        pid_sd * 100.0
+    );
+    // The firmware's soft PIDT1 follows the battery and the tilt from below: low, wandering.
+    assert!(fw_mean < 0.58 && fw_sd > 0.02, "firmware loop: {fw_mean} ± {fw_sd}");
+    // The newton loop, tilt-compensated and adapting to the battery, holds its set point.
+    assert!((pid_mean - 0.6).abs() < 0.01 && pid_sd < 0.02, "newton loop: {pid_mean} ± {pid_sd}");
 }
 
 /// One copter hovering 10 minutes at 0.8 m; returns (thrust factor of the same command at

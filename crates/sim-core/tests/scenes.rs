@@ -105,7 +105,10 @@ fn control_step_not_a_multiple_of_physics_step() {
 #[test]
 fn unknown_airframe_preset_lists_the_known_ones() {
     let text = GOOD.replace("name = \"b\"", "name = \"b\"\nairframe = \"finken9\"");
-    assert_error(&text, "bad.toml:14:12: copter[1].airframe: unknown airframe \"finken9\"; known: finken3");
+    assert_error(
+        &text,
+        "bad.toml:14:12: copter[1].airframe: unknown airframe \"finken9\"; known: finken3, finken3_2015_12",
+    );
 }
 
 #[test]
@@ -114,6 +117,16 @@ fn inline_airframe_override_is_checked() {
     let e = error_of(&text);
     assert_eq!(e.path().to_string(), "copter[1].airframe.body_mass_kg", "{e}");
     assert_eq!(e.message(), "must be positive, got -0.3");
+}
+
+#[test]
+fn firmware_height_loop_fields_are_checked() {
+    let text = GOOD.replace("name = \"b\"", "name = \"b\"\nairframe = { finken_height = { rate_hz = 0.0 } }");
+    let e = error_of(&text);
+    assert_eq!(e.path().to_string(), "copter[1].airframe.finken_height.rate_hz", "{e}");
+    assert_eq!(e.message(), "must be finite and positive, got 0");
+    let text = GOOD.replace("name = \"b\"", "name = \"b\"\nairframe = { finken_height = { hover_gain = 1.0 } }");
+    assert!(error_of(&text).to_string().contains("hover_gain"), "an unknown field is named");
 }
 
 #[test]

@@ -15,7 +15,7 @@
 //!
 //! # File
 //! `<dir>/<stem>-tick-<tick, 12 digits>.ckpt`, with `<stem>` `shard-K-of-N` or `run`:
-//! - 8 bytes magic and format version, `TWCKPT` `0x00` `0x03` (2: ghosts carry their holder; 3: one collider per copter, one fixed body per wall, floor and box);
+//! - 8 bytes magic and format version, `TWCKPT` `0x00` `0x04` (2: ghosts carry their holder; 3: one collider per copter, one fixed body per wall, floor and box; 4: the estimate holds the IR reading and the lab firmware's height loop);
 //! - the payload's CRC-32 (little-endian u32) and length (little-endian u64);
 //! - the payload, postcard: a [`RunKey`] first (what run it belongs to), then the tick, the
 //!   state, the inputs, the shard view and the batches.
@@ -34,7 +34,7 @@ use sim_core::{Inputs, State, World};
 use crate::shard::GhostBatch;
 
 /// Magic and format version at the start of every checkpoint file.
-const MAGIC: &[u8; 8] = b"TWCKPT\x00\x03";
+const MAGIC: &[u8; 8] = b"TWCKPT\x00\x04";
 
 /// Header bytes: magic, CRC-32, payload length.
 const HEADER: usize = 8 + 4 + 8;

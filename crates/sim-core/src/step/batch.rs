@@ -243,7 +243,7 @@ impl ActBounds {
 
 /// The attitude and height loops of a batch ([`steer`]), one copter per lane, with the state
 /// they keep, held in lanes for the batch. For copters with an estimator (not twins, not
-/// `ideal`) holding a height on the PIDs: [`SteerLanes::gather`] says whether all four do.
+/// `ideal`) holding a height on the newton PIDs: [`SteerLanes::gather`] says whether all four do.
 struct SteerLanes {
     attitude_bias: [F4; 2],
     mount_offset: [F4; 2],
@@ -274,12 +274,9 @@ struct SteerLanes {
 impl SteerLanes {
     /// The batch's state, when every copter's inner loop takes the path lanes compute.
     fn gather(af: &Airframe, p: &InnerParams, twin: [bool; LANES], cs: &[&mut CopterState; LANES]) -> Option<Self> {
-        let holds = |c: &CopterState| {
-            let sp = &c.setpoint;
-            sp.rotors.is_none() && sp.height_m > 0.0 && sp.height_m > af.rest_height_m + control::LANDING_BAND_M
-        };
         let spec = &af.spec;
-        if p.ideal || twin.contains(&true) || !cs.iter().all(|c| holds(c)) || spec.attitude_ref_omega_rad_s <= 0.0 {
+        let lanes_fit = spec.finken_height.is_none() && spec.attitude_ref_omega_rad_s > 0.0;
+        if !lanes_fit || p.ideal || twin.contains(&true) || !cs.iter().all(|c| control::holds_height(af, &c.setpoint)) {
             return None;
         }
         let lanes = |f: fn(&CopterState) -> Real| per_copter(cs, f);

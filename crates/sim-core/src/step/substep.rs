@@ -207,19 +207,26 @@ pub(super) fn steer(
         (e.height_m, e.vz_m_s, math::cos(e.attitude_rad[0]) * math::cos(e.attitude_rad[1]))
     };
     let e = &mut c.estimate;
-    let mut collective = control::collective_thrust_n(
-        af,
-        &c.setpoint,
-        z,
-        vz,
-        cos_tilt,
-        &mut e.height_integral_n,
-        &mut e.landing_stalled_s,
-        dt,
-    );
-    if !twin {
-        collective /= e.thrust_gain;
-    }
+    let firmware = af.spec.finken_height.as_ref().filter(|_| control::holds_height(af, &c.setpoint));
+    let collective = if let Some(fw) = firmware {
+        // The lab firmware's own loop, on the IR reading it holds (the truth for twins).
+        let ir = if truth { z } else { e.ir_reading_m };
+        let command = e.finken_height.step(fw, c.setpoint.height_m, ir, c.battery.voltage_v, dt);
+        4.0 * af.hover_thrust_per_rotor_n * command / fw.hover_command
+    } else {
+        e.finken_height = Default::default();
+        let t = control::collective_thrust_n(
+            af,
+            &c.setpoint,
+            z,
+            vz,
+            cos_tilt,
+            &mut e.height_integral_n,
+            &mut e.landing_stalled_s,
+            dt,
+        );
+        if twin { t } else { t / e.thrust_gain }
+    };
     e.collective_sum_n += collective;
     e.collective_steps += 1;
     // The trim cancels the rotors' tolerances in thrust actually made; in commands, like the
