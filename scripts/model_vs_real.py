@@ -12,12 +12,16 @@ target/debug/twinswarm):
 - **battery**: the hover copter for 9 minutes, as the battery flights of Feb 2016 flew (its
   pack's voltage).
 
-and reads each run's MCAP log (PyPI mcap with CRCs on, the file's own protobuf schemas):
+With `--scene FILE` it flies that scene instead (e.g. the embedded lab scene,
+assets/scenes/finken_lab.toml) and gives each copter's IR height from its take-off + 5 s.
+
+It reads each run's MCAP log (PyPI mcap with CRCs on, the file's own protobuf schemas):
 roll and pitch of the AHRS estimate (standard deviation, mean), the IR height around the set
 point, the battery's voltage, and the sonars' noise (the residual from a 5-sample moving median, as for the real logs, and the
 first difference / sqrt 2), all from 5 s after take-off on.
 
-    .venv/bin/python scripts/model_vs_real.py [--bin PATH] [--json FILE]
+    .venv/bin/python scripts/model_vs_real.py [--bin PATH] [--json FILE] [--airframe NAME] [--only RUNS]
+    .venv/bin/python scripts/model_vs_real.py --scene assets/scenes/finken_lab.toml
 
 Needs the test venv (mcap, mcap-protobuf-support, numpy): `scripts/test.sh` makes it.
 """
@@ -45,6 +49,7 @@ SCENES = {
 
 
 EXTRA = ""
+AIRFRAME = "finken3"
 
 
 def scene_toml(name, size, start, duration):
@@ -59,6 +64,7 @@ height_m = 2.5
 name = "finken"
 kind = "virtual"
 ac_id = 5
+airframe = "{AIRFRAME}"
 start = {{ pos_m = [{start[0]}, {start[1]}], yaw_deg = 0.0 }}
 mode = "wall_avoid"
 command = {{ height_m = 0.6 }}
@@ -141,6 +147,31 @@ def attitude_and_height(log):
     }
 
 
+def scene_heights(binary, scene, tmp):
+    """Each copter's IR height from its take-off + 5 s to the end (or its crash), as for the
+    real flights: mean, standard deviation, range, and the 5 s means' range."""
+    log = tmp / "scene.mcap"
+    subprocess.run([str(binary), "run", str(scene), "--no-bus", "--log", str(log)], check=True,
+                   stdout=subprocess.DEVNULL)
+    m = messages(log, ["/copters/state", "/copters/sensors"])
+    out = {}
+    for name in sorted({s.copter for s in m["/copters/state"]}):
+        states = [s for s in m["/copters/state"] if s.copter == name]
+        t0 = took_off(states)
+        if t0 is None:
+            out[name] = {"take_off_s": None}
+            continue
+        sensors = [s for s in m["/copters/sensors"] if s.copter == name and s.t_s >= t0 + SETTLE_S]
+        t_ir = np.array([(s.t_s, s.ir_m) for s in sensors if s.HasField("ir_m")])
+        ir = t_ir[:, 1]
+        bins = [ir[(t_ir[:, 0] >= lo) & (t_ir[:, 0] < lo + 5)] for lo in np.arange(t_ir[0, 0], t_ir[-1, 0], 5)]
+        means = [b.mean() for b in bins if len(b)]
+        out[name] = {"take_off_s": round(t0, 2), "mean": round(float(ir.mean()), 3), "std": round(float(ir.std()), 3),
+                     "min": round(float(ir.min()), 3), "max": round(float(ir.max()), 3),
+                     "five_s_means": [round(float(min(means)), 3), round(float(max(means)), 3)]}
+    return out
+
+
 def battery(log):
     """The pack's voltage from take-off to the end (the height loop's thrust adaptation absorbs
     the sag; `cargo test -p sim-core --test fidelity` gives the thrust at the same command)."""
@@ -158,22 +189,35 @@ def main():
     ap.add_argument("--bin", type=pathlib.Path)
     ap.add_argument("--json", type=pathlib.Path)
     ap.add_argument("--scene-extra", default="", help="TOML tables added to every scene (to try a setting)")
+    ap.add_argument("--airframe", default="finken3",
+                    help="the copter's airframe: finken3 (Twinswarm's height loop) or finken3_2015_12 (the lab "
+                         "firmware's); default finken3")
+    ap.add_argument("--only", default="lab,hover,battery", help="comma-separated runs (default all three)")
+    ap.add_argument("--scene", type=pathlib.Path, help="fly this scene file instead; per-copter IR heights")
     args = ap.parse_args()
-    global EXTRA
+    global EXTRA, AIRFRAME
     EXTRA = args.scene_extra.replace("\\n", "\n")
+    AIRFRAME = args.airframe
+    only = set(args.only.split(","))
     binary = args.bin or next((p for p in [ROOT / "target/release/twinswarm", ROOT / "target/debug/twinswarm"]
                                if p.exists()), None)
     if binary is None or not binary.exists():
         sys.exit("model_vs_real.py: no twinswarm binary (build it, or pass --bin)")
     commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True,
                             text=True).stdout.strip()
-    out = {"commit": commit, "binary": str(binary)}
+    out = {"commit": commit, "binary": str(binary), "airframe": AIRFRAME}
     with tempfile.TemporaryDirectory() as d:
         tmp = pathlib.Path(d)
+        if args.scene:
+            out = {"commit": commit, "binary": str(binary), "scene": str(args.scene),
+                   "heights": scene_heights(binary, args.scene, tmp)}
+            only = set()
         for name in ("lab", "hover"):
-            _m, _t0, figs = attitude_and_height(fly(binary, name, tmp))
-            out[name] = figs
-        out["battery"] = battery(fly(binary, "battery", tmp))
+            if name in only:
+                _m, _t0, figs = attitude_and_height(fly(binary, name, tmp))
+                out[name] = figs
+        if "battery" in only:
+            out["battery"] = battery(fly(binary, "battery", tmp))
     print(json.dumps(out, indent=2))
     if args.json:
         args.json.write_text(json.dumps(out, indent=2))
