@@ -579,7 +579,8 @@ def battery_report(path, firmware_dir):
         if thrust_col.startswith("FINKEN_ACTUATORS_SET_POINT"):
             columns["FINKEN_ACTUATORS_MODEL"] = np.clip(thr + shift, 0.2, 1.0)
         else:
-            # Only where the motor command was not clamped can the set point be recovered.
+            # Only where the compensated value was not clamped can the set point be recovered.
+            # (The set point is what the flight plans fly: `throttle=finken_actuators_set_point.thrust`.)
             columns["FINKEN_ACTUATORS_SET_POINT"] = np.where((thr > 0.2) & (thr < 1.0), thr - shift, np.nan)
         out["compensation"] = {"ac_id": ac_id, "THRUST_LOW": low, "THRUST_DEFAULT": default,
                                "model_minus_set_point_at_12V": r((low - default) * (84 - 120) / 19, 4)}
