@@ -6,7 +6,9 @@ Flies, with the `twinswarm` binary given (default target/release/twinswarm, else
 target/debug/twinswarm):
 
 - **lab**: the 16 Dec 2015 flight's set-up: one FINken in Wall-Avoid holding 0.6 m in the lab's
-  4 m x 3 m arena, starting where the real copter started (0.06, -0.44), 120 s;
+  4 m x 3 m arena, starting where the real copter started (0.06, -0.44), 120 s, its pack charged
+  as that day's was (`ROTORCRAFT_STATUS.vsupply` 11.5-11.8 V in flight 1; charge 0.9 gives
+  11.7 V);
 - **hover**: the same copter in an 8 m x 8 m arena, where every wall is beyond Wall-Avoid's
   1.2 m, so it hovers, 120 s;
 - **battery**: the hover copter for 9 minutes, as the battery flights of Feb 2016 flew (its
@@ -41,18 +43,23 @@ from mcap_protobuf.decoder import DecoderFactory
 ROOT = pathlib.Path(__file__).resolve().parent.parent
 SETTLE_S = 5.0
 
+# Arena, start, duration, the pack's initial charge.
 SCENES = {
-    "lab": ([4.0, 3.0], [0.06, -0.44], 120.0),
-    "hover": ([8.0, 8.0], [0.0, 0.0], 120.0),
-    "battery": ([8.0, 8.0], [0.0, 0.0], 540.0),
+    "lab": ([4.0, 3.0], [0.06, -0.44], 120.0, 0.9),
+    "hover": ([8.0, 8.0], [0.0, 0.0], 120.0, 1.0),
+    "battery": ([8.0, 8.0], [0.0, 0.0], 540.0, 1.0),
 }
 
 
 EXTRA = ""
-AIRFRAME = "finken3"
+AIRFRAME = "finken3_2015_12"
 
 
-def scene_toml(name, size, start, duration):
+def scene_toml(name, size, start, duration, charge):
+    # The preset with the set-up's pack (a scene's airframe table starts from finken3).
+    firmware = "finken_height = {}\n" if AIRFRAME == "finken3_2015_12" else ""
+    if AIRFRAME not in ("finken3", "finken3_2015_12"):
+        sys.exit(f"model_vs_real.py: --airframe must be finken3 or finken3_2015_12, got {AIRFRAME!r}")
     return f"""name = "{name}"
 [sim]
 seed = 2015
@@ -60,11 +67,13 @@ duration_s = {duration}
 [arena]
 size_m = [{size[0]}, {size[1]}]
 height_m = 2.5
+[airframes.under_test]
+{firmware}battery = {{ initial_charge = {charge} }}
 [[copter]]
 name = "finken"
 kind = "virtual"
 ac_id = 5
-airframe = "{AIRFRAME}"
+airframe = "under_test"
 start = {{ pos_m = [{start[0]}, {start[1]}], yaw_deg = 0.0 }}
 mode = "wall_avoid"
 command = {{ height_m = 0.6 }}
@@ -72,9 +81,9 @@ command = {{ height_m = 0.6 }}
 
 
 def fly(binary, name, tmp):
-    size, start, duration = SCENES[name]
+    size, start, duration, charge = SCENES[name]
     scene = tmp / f"{name}.toml"
-    scene.write_text(scene_toml(name, size, start, duration))
+    scene.write_text(scene_toml(name, size, start, duration, charge))
     log = tmp / f"{name}.mcap"
     subprocess.run([str(binary), "run", str(scene), "--no-bus", "--log", str(log)], check=True,
                    stdout=subprocess.DEVNULL)
@@ -189,9 +198,9 @@ def main():
     ap.add_argument("--bin", type=pathlib.Path)
     ap.add_argument("--json", type=pathlib.Path)
     ap.add_argument("--scene-extra", default="", help="TOML tables added to every scene (to try a setting)")
-    ap.add_argument("--airframe", default="finken3",
-                    help="the copter's airframe: finken3 (Twinswarm's height loop) or finken3_2015_12 (the lab "
-                         "firmware's); default finken3")
+    ap.add_argument("--airframe", default="finken3_2015_12",
+                    help="the copter's airframe: finken3_2015_12 (the lab firmware's height loop, the default) or "
+                         "finken3 (Twinswarm's newton loop)")
     ap.add_argument("--only", default="lab,hover,battery", help="comma-separated runs (default all three)")
     ap.add_argument("--scene", type=pathlib.Path, help="fly this scene file instead; per-copter IR heights")
     args = ap.parse_args()
