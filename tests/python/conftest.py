@@ -16,8 +16,9 @@ import pytest
 
 ROOT = pathlib.Path(__file__).resolve().parents[2]
 
-# Tests skipped for want of shared data in this session: (test, path), reported at the end.
-_SHARED_DATA_SKIPS = []
+# The start of the reason of a test skipped for want of shared data (skip_for_absent_shared),
+# by which the end of the session lists them (also from pytest-xdist's workers).
+_ABSENT = " not found at "
 
 
 @pytest.fixture(scope="session")
@@ -96,7 +97,6 @@ def skip_for_absent_shared(path: pathlib.Path, what: str, env_var: str):
     if under_ci():
         pytest.fail(f"{what} not found at {path} ({how}); CI=true, so this is a failure, not a skip "
                     f"(provide the directory or point {env_var} at it)", pytrace=False)
-    _SHARED_DATA_SKIPS.append((test, path, what))
     log = os.environ.get("TWINSWARM_SKIP_LOG")
     if log:
         with open(log, "a", encoding="utf-8") as f:
@@ -105,11 +105,37 @@ def skip_for_absent_shared(path: pathlib.Path, what: str, env_var: str):
 
 
 def pytest_terminal_summary(terminalreporter):
-    if _SHARED_DATA_SKIPS:
+    # From the skip reports, not from a list kept here: under pytest-xdist the skips happen in
+    # the workers and only their reports reach this process.
+    absent = []
+    for rep in terminalreporter.stats.get("skipped", []):
+        reason = rep.longrepr[2] if isinstance(rep.longrepr, (tuple, list)) else ""
+        reason = reason.removeprefix("Skipped: ")
+        if _ABSENT in reason:
+            absent.append(f"SKIPPED {rep.nodeid}: {reason.rsplit(' (', 1)[0]}")
+    if absent:
         terminalreporter.section("shared data absent", sep="=", yellow=True, bold=True)
-        for test, path, what in _SHARED_DATA_SKIPS:
-            terminalreporter.write_line(f"SKIPPED {test}: {what} not found at {path}", yellow=True)
+        for line in absent:
+            terminalreporter.write_line(line, yellow=True)
 
+
+def pytest_configure(config):
+    # The NPS tests (test_nps.py) build their aircraft into one Paparazzi tree and its private
+    # conf: they must run one after another, in one process. pytest-xdist's `--dist loadfile`
+    # (scripts/test.sh) keeps each file's tests on one worker; `load` would spread them.
+    dist = getattr(config.option, "dist", "no")
+    if getattr(config.option, "numprocesses", None) and dist not in ("no", "loadfile", "loadscope"):
+        raise pytest.UsageError(f"tests/python under pytest-xdist needs --dist loadfile (not {dist}): "
+                                "test_nps.py's tests share one Paparazzi tree")
+
+
+def pytest_collection_modifyitems(config, items):
+    """Under pytest-xdist (scripts/test.sh: `-n N --dist loadfile --no-loadscope-reorder`), the
+    NPS tests first: together they are the longest file of the session, so one worker starts
+    on them while the others take the rest, file by file. Without xdist the order is left as
+    collected."""
+    if os.environ.get("PYTEST_XDIST_WORKER"):
+        items[:] = [i for i in items if i.path.name == "test_nps.py"] + [i for i in items if i.path.name != "test_nps.py"]
 
 
 # ---- the real Paparazzi ground segment (pprz_ground.py) ----
