@@ -8,8 +8,9 @@ model) in one Twinswarm world, and report how they flew and how fast.
 Builds (paparazzi/build_nps.sh, ~25 s per aircraft the first time, ~1 s after) one aircraft
 per ac_id (`tw_nps<ac_id>`; the id is compiled in), writes a scene with N `autopilot` copters
 (1 ms steps, the FINken's sonar schedule) in the paper's 4 m x 3 m arena (larger for more
-copters), starts `twinswarm run --no-bus` on a free port, then the N NPS processes with
-`--time_factor 1e9` (lockstep: nothing waits on the wall clock) on a private Ivy bus. Reads the
+copters), starts `twinswarm run --no-bus` on a Unix-domain socket in a fresh temporary folder
+(removed at the end; `--transport tcp`: a free loopback TCP port), then the N NPS processes with
+`--time_factor 1e9` (lockstep: nothing waits on the wall clock), each on a private Ivy bus. Reads the
 run's JSON summary and its MCAP log (PyPI mcap, CRCs on) and prints: simulated seconds per
 wall second, the time the world waited for the autopilots, crashes, each copter's height over
 the last 10 s, the closest approach to a wall and between copters, and the digests.
@@ -24,6 +25,7 @@ import argparse
 import json
 import math
 import resource
+import shutil
 import signal
 import os
 import socket
@@ -269,6 +271,15 @@ def main(argv=None):
                     "target/debug/twinswarm)")
     ap.add_argument("--out", help="keep the scene, logs and summaries here")
     ap.add_argument("--no-log", action="store_true", help="no MCAP log (speed runs): no flight figures")
+    ap.add_argument("--transport", choices=["unix", "tcp"], default="unix",
+                    help="between the world and each NPS: unix (default), a Unix-domain socket in a fresh temporary "
+                    "folder, removed at the end; tcp: a free loopback port (as before 2026-11-28)")
+    ap.add_argument("--one-build", action="store_true",
+                    help="speed benches: build the first aircraft only and start every NPS from it, each told the "
+                    "copter it flies by TWINSWARM_FDM_AC_ID (the ac_id is compiled in: N builds otherwise); their "
+                    "telemetry and datalink all keep the first aircraft's id, so not with link (--udp-out)")
+    ap.add_argument("--simsitl", metavar="PATH", help="speed benches: start every NPS from this aircraft binary, built "
+                    "before (e.g. with another version of the glue), as --one-build does; nothing is built")
     ap.add_argument("--run-arg", action="append", default=[], help="an extra argument for twinswarm run")
     ap.add_argument("--stranger", type=int, metavar="AC", help="also start aircraft AC, which no copter of the scene flies: "
                     "the world must refuse it, and it must exit non-zero saying why")
@@ -296,7 +307,18 @@ def main(argv=None):
         udp = (a.udp_out, a.udp_in) if a.udp_out else None
         if udp and a.count != 1:
             sys.exit("--udp-out/--udp-in: one aircraft only (the ports are compiled in)")
-        sims = [build(ac, a.plan, log, udp, a.cruise, a.sighting_hold, a.firmware) for ac in acs]
+        if a.simsitl:
+            a.one_build = True
+        if a.one_build and udp:
+            sys.exit("--one-build: not with --udp-out/--udp-in (its telemetry and datalink are the first aircraft's)")
+        if a.simsitl:
+            if not os.access(a.simsitl, os.X_OK):
+                sys.exit(f"--simsitl {a.simsitl}: not an executable file")
+            sims = [Path(a.simsitl).resolve()] * len(acs)
+        elif a.one_build:
+            sims = [build(acs[0], a.plan, log, udp, a.cruise, a.sighting_hold, a.firmware)] * len(acs)
+        else:
+            sims = [build(ac, a.plan, log, udp, a.cruise, a.sighting_hold, a.firmware) for ac in acs]
         if a.stranger is not None:
             if a.stranger in acs:
                 sys.exit(f"--stranger {a.stranger}: that aircraft flies a copter of the scene")
@@ -305,16 +327,33 @@ def main(argv=None):
         else:
             acs_started = acs
     build_s = time.monotonic() - t0
+    sock_dir = None
+    if a.transport == "unix":
+        # Its own folder (0700) for this run's socket, short enough for a socket path (107 bytes).
+        base = tempfile.gettempdir()
+        sock_dir = tempfile.mkdtemp(prefix="tw-fdm.", dir=base if len(base) < 60 else "/tmp")
+        fdm = f"unix:{sock_dir}/fdm.sock"
+    else:
+        fdm = f"127.0.0.1:{free_port()}"
+    try:
+        return fly(a, out, acs, acs_started, sims, trims, build_s, fdm)
+    finally:
+        if sock_dir:
+            shutil.rmtree(sock_dir, ignore_errors=True)
+
+
+def fly(a, out, acs, acs_started, sims, trims, build_s, fdm):
+    """Starts the world listening on `fdm` and the NPS processes, waits, and reports."""
     boxes = [[s.strip() for s in b.split(";")] for b in a.box]
     size = tuple(float(v) for v in a.arena.split("x")) if a.arena else None
     text, arena = scene(a.count, a.first_ac, a.duration, a.seed, boxes, size, a.gap, a.airframe)
     (out / "scene.toml").write_text(text)
-    port = free_port()
-    ivy_port = free_port()
-    run = [str(Path(a.twinswarm).resolve()), "run", str(out / "scene.toml"), "--no-bus", "--json", "--autopilot-listen", f"127.0.0.1:{port}"]
+    run = [str(Path(a.twinswarm).resolve()), "run", str(out / "scene.toml"), "--no-bus", "--json", "--autopilot-listen", fdm]
     run += ["--no-log"] if a.no_log else ["--log", str(out / "run.mcap")]
     run += a.run_arg
     env = dict(os.environ)
+    # CPU of the children reaped so far (the builds; earlier runs in this process), to subtract.
+    ru0 = resource.getrusage(resource.RUSAGE_CHILDREN)
     with open(out / "run.err", "w") as err, open(out / "run.json", "w") as js:
         world = subprocess.Popen(run, stdout=js, stderr=err, cwd=out)
         for _ in range(200):
@@ -323,12 +362,18 @@ def main(argv=None):
                 break
         npss = []
         for k, (ac, sim) in enumerate(zip(acs_started, sims)):
-            e = dict(env, TWINSWARM_FDM=f"127.0.0.1:{port}")
+            e = dict(env, TWINSWARM_FDM=fdm)
+            if a.one_build:
+                e["TWINSWARM_FDM_AC_ID"] = str(ac)
             if trims and k < len(trims):
                 e["FINKEN_FW_IMU_TRIM"] = f"{trims[k][0]:.3f},{trims[k][1]:.3f}"
             f = open(out / f"nps{ac}.log", "w")
             # env.sh: Paparazzi's libraries (libivy) and PAPARAZZI_HOME.
-            cmd = f'. "{PPRZ}/env.sh" && exec "{sim}" --norc --time_factor 1e9 --ivy_bus 127.255.255.255:{ivy_port}'
+            # Each NPS on an Ivy bus of its own: they have nothing to say to each other there, and
+            # ivy-c is not thread-safe: with many NPS agents on one bus, an NPS's Ivy thread
+            # matching another's messages (libpcre) while its main loop sends crashed it
+            # (SIGSEGV in libpcre, 1 of 64, 2026-11-28).
+            cmd = f'. "{PPRZ}/env.sh" && exec "{sim}" --norc --time_factor 1e9 --ivy_bus 127.255.255.255:{free_port()}'
             npss.append(subprocess.Popen(["bash", "-c", cmd], stdout=f, stderr=subprocess.STDOUT, env=e, cwd=out))
         if a.stop:
             stop_ac, after = a.stop.split(":")
@@ -349,9 +394,12 @@ def main(argv=None):
 
             threading.Thread(target=stop_and_continue, daemon=True).start()
         world.wait(timeout=600 + a.duration * a.count)
-        # CPU time of the children waited for: the world alone here, the autopilots after.
+        # CPU time of the children waited for since ru0: the world alone here, the autopilots after.
         ru = resource.getrusage(resource.RUSAGE_CHILDREN)
-        world_cpu = ru.ru_utime + ru.ru_stime
+        world_cpu = ru.ru_utime + ru.ru_stime - (ru0.ru_utime + ru0.ru_stime)
+        world_sleeps = ru.ru_nvcsw - ru0.ru_nvcsw
+        world_preempted = ru.ru_nivcsw - ru0.ru_nivcsw
+        ru0 = ru
         nps_exit = {}
         for ac, p in zip(acs_started, npss):
             try:
@@ -360,7 +408,7 @@ def main(argv=None):
                 p.kill()
                 nps_exit[ac] = "killed after the run"
     ru = resource.getrusage(resource.RUSAGE_CHILDREN)
-    nps_cpu = ru.ru_utime + ru.ru_stime - world_cpu
+    nps_cpu = ru.ru_utime + ru.ru_stime - (ru0.ru_utime + ru0.ru_stime)
     if world.returncode != 0:
         sys.exit(f"twinswarm run failed ({world.returncode}):\n{(out / 'run.err').read_text()[-3000:]}")
     summary = json.loads((out / "run.json").read_text())
@@ -381,6 +429,11 @@ def main(argv=None):
         # autopilot, sensors, flight-model client).
         "world_cpu_us_per_step": round(world_cpu / steps * 1e6, 1),
         "nps_cpu_us_per_step_each": round(nps_cpu / steps / a.count * 1e6, 1),
+        # How often the world slept on an autopilot (voluntary context switches) per step.
+        "world_sleeps_per_step": round(world_sleeps / steps, 2),
+        # How often another process took the CPU from it (involuntary context switches) per step.
+        "world_preempted_per_step": round(world_preempted / steps, 2),
+        "transport": a.transport,
         "build_s": round(build_s, 1),
         "crashes": summary["crashes"],
         "autopilots_left": [ap_["ac_id"] for ap_ in summary["autopilots"] if ap_["left"]],

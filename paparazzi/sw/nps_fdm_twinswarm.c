@@ -11,7 +11,12 @@
  * paparazzi/README.md) so that its main loop does not pace itself either, and the world
  * sets the pace.
  *
- * Address: env TWINSWARM_FDM="host:port" (default 127.0.0.1:7460).
+ * Address: env TWINSWARM_FDM="host:port" (TCP; default 127.0.0.1:7460) or "unix:PATH" (a
+ * Unix-domain stream socket, where the world runs on the same machine: the same records, without
+ * the loopback TCP stack's work on every one; `twinswarm run --autopilot-listen unix:PATH`).
+ * Env TWINSWARM_FDM_AC_ID (speed benches only): the aircraft id this NPS says in its hello, i.e.
+ * the copter it flies, instead of the compiled AC_ID, so that one build can fly many copters;
+ * its telemetry and datalink stay the compiled AC_ID's (not for runs with Paparazzi's link).
  * Env TWINSWARM_FDM_CONNECT_TIMEOUT_S (default 30): how long to retry connecting.
  * Env TWINSWARM_FDM_VERBOSE=1: print every 1000th exchanged state.
  * Env TWINSWARM_NPS_REALTIME=1: let NPS's threads take the real-time policies they ask for
@@ -77,6 +82,9 @@
 #include <netinet/tcp.h>
 #include <arpa/inet.h>
 #include <netdb.h>
+#include <sys/un.h>
+#include <sys/stat.h>
+#include <poll.h>
 #include <pthread.h>
 #include <sched.h>
 
@@ -126,6 +134,7 @@ static struct DoubleQuat ecef_to_ltp_quat;
 static double ground_hmsl;       ///< height of the arena floor above MSL, m
 static double temperature_c = TWINSWARM_FDM_TEMPERATURE;
 static int sock = -1;
+static int fdm_ac_id = AC_ID;    /* the copter flown: AC_ID, or TWINSWARM_FDM_AC_ID (benches) */
 static uint64_t next_step = 0;
 static bool have_state = false; /* a state has come: the world took this aircraft */
 static bool verbose = false;
@@ -171,15 +180,17 @@ static void write_all(const uint8_t *buf, size_t len)
   }
 }
 
-static void read_all(uint8_t *buf, size_t len)
+/* at least `min` bytes, at most `max`, in as few reads as they come in; returns how many */
+static size_t read_at_least(uint8_t *buf, size_t min, size_t max)
 {
-  while (len > 0) {
-    ssize_t n = recv(sock, buf, len, 0);
+  size_t have = 0;
+  while (have < min) {
+    ssize_t n = recv(sock, buf + have, max - have, 0);
     if (n == 0 || (n < 0 && errno == ECONNRESET)) {
       if (!have_state) {
         /* an older world, or one that could not say why: it never took this aircraft */
         fprintf(stderr, "[twinswarm fdm] the world refused aircraft %d: it %s the connection before the first step "
-                "(its log says why)\n", (int)AC_ID, n == 0 ? "closed" : "reset");
+                "(its log says why)\n", fdm_ac_id, n == 0 ? "closed" : "reset");
         exit(2);
       }
       char dl[160];
@@ -194,19 +205,136 @@ static void read_all(uint8_t *buf, size_t len)
       fprintf(stderr, "[twinswarm fdm] recv failed: %s; stopping NPS\n", strerror(errno));
       exit(1);
     }
-    buf += n;
-    len -= (size_t)n;
+    have += (size_t)n;
   }
+  return have;
+}
+
+static void read_all(uint8_t *buf, size_t len)
+{
+  read_at_least(buf, len, len);
+}
+
+/* TWINSWARM_FDM_AC_ID, if set: an aircraft id 0-255, else exit 1 saying so */
+static void read_ac_id(void)
+{
+  const char *env = getenv("TWINSWARM_FDM_AC_ID");
+  if (!env || !*env) {
+    return;
+  }
+  char *end = NULL;
+  errno = 0;
+  long v = strtol(env, &end, 10);
+  if (errno != 0 || *end != '\0' || v < 0 || v > 255) {
+    fprintf(stderr, "[twinswarm fdm] TWINSWARM_FDM_AC_ID must be an aircraft id, 0-255, got '%s'\n", env);
+    exit(1);
+  }
+  fdm_ac_id = (int)v;
+}
+
+static double elapsed_s(const struct timespec *t0)
+{
+  struct timespec now;
+  clock_gettime(CLOCK_MONOTONIC, &now);
+  return (now.tv_sec - t0->tv_sec) + 1e-9 * (now.tv_nsec - t0->tv_nsec);
+}
+
+/* TWINSWARM_FDM=unix:PATH: connect to the world's Unix-domain socket, retrying while it is not
+ * there yet (or not listening) for timeout_s */
+static void connect_unix(const char *path, double timeout_s)
+{
+  struct sockaddr_un sa;
+  memset(&sa, 0, sizeof(sa));
+  sa.sun_family = AF_UNIX;
+  size_t n = strlen(path);
+  if (n == 0 || n >= sizeof(sa.sun_path)) {
+    fprintf(stderr, "[twinswarm fdm] TWINSWARM_FDM=unix:PATH: the path must be 1-%zu bytes, got %zu ('%s')\n",
+            sizeof(sa.sun_path) - 1, n, path);
+    exit(1);
+  }
+  memcpy(sa.sun_path, path, n);
+  struct timespec t0;
+  clock_gettime(CLOCK_MONOTONIC, &t0);
+  bool said = false;
+  while (true) {
+    int s = socket(AF_UNIX, SOCK_STREAM, 0);
+    if (s < 0) {
+      fprintf(stderr, "[twinswarm fdm] cannot make a Unix socket: %s\n", strerror(errno));
+      exit(1);
+    }
+    if (connect(s, (struct sockaddr *)&sa, sizeof(sa)) == 0) {
+      sock = s;
+      return;
+    }
+    int err = errno;
+    close(s);
+    struct stat st;
+    if (stat(path, &st) == 0 && !S_ISSOCK(st.st_mode)) {
+      fprintf(stderr, "[twinswarm fdm] TWINSWARM_FDM=unix:%s is not a socket (the world's --autopilot-listen makes "
+              "it)\n", path);
+      exit(1);
+    }
+    if (err != ENOENT && err != ECONNREFUSED && err != EAGAIN && err != EINTR) {
+      fprintf(stderr, "[twinswarm fdm] cannot connect to the world at unix:%s: %s\n", path, strerror(err));
+      exit(1);
+    }
+    if (elapsed_s(&t0) > timeout_s) {
+      fprintf(stderr, "[twinswarm fdm] no world at unix:%s after %.0f s (%s), giving up\n", path, timeout_s,
+              strerror(err));
+      exit(1);
+    }
+    if (!said) {
+      printf("[twinswarm fdm] waiting for the world at unix:%s ...\n", path);
+      said = true;
+    }
+    struct timespec pause = {0, 50 * 1000 * 1000};
+    nanosleep(&pause, NULL);
+  }
+}
+
+static void send_hello(double dt, const char *where)
+{
+  uint8_t hello[TWFD_HELLO_LEN];
+  memcpy(hello, "TWFD", 4);
+  put_u32(hello + 4, TWFD_VERSION);
+  put_u32(hello + 8, (uint32_t)fdm_ac_id);
+  put_f64(hello + 12, dt);
+  write_all(hello, sizeof(hello));
+  printf("[twinswarm fdm] connected to the world at %s (protocol v%u, ac_id %d, dt %.6f s)\n", where, TWFD_VERSION,
+         fdm_ac_id, dt);
+  if (fdm_ac_id != AC_ID) {
+    printf("[twinswarm fdm] TWINSWARM_FDM_AC_ID: flies aircraft %d's copter; this build's telemetry and datalink "
+           "stay aircraft %d's (a speed bench, not a run with link)\n", fdm_ac_id, (int)AC_ID);
+  }
+  fflush(stdout);
 }
 
 static void connect_world(double dt)
 {
   const char *env = getenv("TWINSWARM_FDM");
   char addr[256];
+  if (env && strlen(env) >= sizeof(addr)) {
+    fprintf(stderr, "[twinswarm fdm] TWINSWARM_FDM is longer than %zu bytes: '%s'\n", sizeof(addr) - 1, env);
+    exit(1);
+  }
   snprintf(addr, sizeof(addr), "%s", (env && *env) ? env : TWINSWARM_FDM_DEFAULT);
+  read_ac_id();
+
+  double timeout_s = 30.;
+  const char *to = getenv("TWINSWARM_FDM_CONNECT_TIMEOUT_S");
+  if (to && *to) { timeout_s = atof(to); }
+  const char *vb = getenv("TWINSWARM_FDM_VERBOSE");
+  verbose = vb && *vb && strcmp(vb, "0") != 0;
+
+  if (strncmp(addr, "unix:", 5) == 0) {
+    connect_unix(addr + 5, timeout_s);
+    send_hello(dt, addr);
+    return;
+  }
+
   char *colon = strrchr(addr, ':');
   if (!colon) {
-    fprintf(stderr, "[twinswarm fdm] TWINSWARM_FDM must be host:port, got '%s'\n", addr);
+    fprintf(stderr, "[twinswarm fdm] TWINSWARM_FDM must be host:port or unix:PATH, got '%s'\n", addr);
     exit(1);
   }
   *colon = '\0';
@@ -217,14 +345,8 @@ static void connect_world(double dt)
     if (rb) { *rb = '\0'; }
   }
 
-  double timeout_s = 30.;
-  const char *to = getenv("TWINSWARM_FDM_CONNECT_TIMEOUT_S");
-  if (to && *to) { timeout_s = atof(to); }
-  const char *vb = getenv("TWINSWARM_FDM_VERBOSE");
-  verbose = vb && *vb && strcmp(vb, "0") != 0;
-
   /* retrying a refused connect: the one place where waiting is timed (start-up only) */
-  struct timespec t0, now;
+  struct timespec t0;
   clock_gettime(CLOCK_MONOTONIC, &t0);
   bool said = false;
   while (true) {
@@ -248,9 +370,7 @@ static void connect_world(double dt)
     }
     freeaddrinfo(res);
     if (sock >= 0) { break; }
-    clock_gettime(CLOCK_MONOTONIC, &now);
-    double waited = (now.tv_sec - t0.tv_sec) + 1e-9 * (now.tv_nsec - t0.tv_nsec);
-    if (waited > timeout_s) {
+    if (elapsed_s(&t0) > timeout_s) {
       fprintf(stderr, "[twinswarm fdm] no world at %s:%s after %.0f s, giving up\n", host, port, timeout_s);
       exit(1);
     }
@@ -263,16 +383,9 @@ static void connect_world(double dt)
   }
   int one = 1;
   setsockopt(sock, IPPROTO_TCP, TCP_NODELAY, &one, sizeof(one));
-
-  uint8_t hello[TWFD_HELLO_LEN];
-  memcpy(hello, "TWFD", 4);
-  put_u32(hello + 4, TWFD_VERSION);
-  put_u32(hello + 8, (uint32_t)AC_ID);
-  put_f64(hello + 12, dt);
-  write_all(hello, sizeof(hello));
-  printf("[twinswarm fdm] connected to the world at %s:%s (protocol v%u, ac_id %d, dt %.6f s)\n",
-         host, port, TWFD_VERSION, (int)AC_ID, dt);
-  fflush(stdout);
+  char where[300];
+  snprintf(where, sizeof(where), "%s:%s", host, port);
+  send_hello(dt, where);
 }
 
 /* quaternion of a rotation matrix (Shepperd), the double counterpart of float_quat_of_rmat */
@@ -341,17 +454,25 @@ static void init_ltp(void)
 #endif
 }
 
-/* after the refused record's magic: print why and exit 2 */
-static void refused(void)
+/* after the refused record's magic (and `got` bytes of the rest, read with it): print why and exit 2 */
+static void refused(const uint8_t *got, size_t got_n)
 {
-  uint8_t n[2];
-  read_all(n, 2);
-  size_t len = (size_t)n[0] | ((size_t)n[1] << 8);
+  uint8_t rec[2 + 1024];
+  if (got_n > sizeof(rec)) { got_n = sizeof(rec); }
+  if (got_n > 0) { memcpy(rec, got, got_n); }
+  if (got_n < 2) {
+    read_all(rec + got_n, 2 - got_n);
+    got_n = 2;
+  }
+  size_t len = (size_t)rec[0] | ((size_t)rec[1] << 8);
+  if (len > sizeof(rec) - 3) { len = sizeof(rec) - 3; }
+  if (got_n < 2 + len) {
+    read_all(rec + got_n, 2 + len - got_n);
+  }
   char why[1024];
-  if (len > sizeof(why) - 1) { len = sizeof(why) - 1; }
-  read_all((uint8_t *)why, len);
+  memcpy(why, rec + 2, len);
   why[len] = '\0';
-  fprintf(stderr, "[twinswarm fdm] the world refused aircraft %d at step %llu: %s\n", (int)AC_ID,
+  fprintf(stderr, "[twinswarm fdm] the world refused aircraft %d at step %llu: %s\n", fdm_ac_id,
           (unsigned long long)next_step, why);
   exit(2);
 }
@@ -367,7 +488,7 @@ static void check_dropped(void)
     uint8_t magic[4];
     read_all(magic, 4); /* the end of the stream exits in read_all */
     if (get_u32(magic) == TWFD_MAGIC_REFUSED) {
-      refused();
+      refused(NULL, 0);
     }
     fprintf(stderr, "[twinswarm fdm] unexpected record 0x%08x before step %llu\n", get_u32(magic),
             (unsigned long long)next_step);
@@ -389,12 +510,21 @@ static void exchange(bool launch, double *commands, int commands_nb)
   }
   write_all(out, sizeof(out));
 
+  /* Wait for the state in poll(), not in recv(): a task asleep in a Unix socket's recv() is woken
+   * (for nothing) when the world reads the commands just sent, which frees their buffer space
+   * (unix_write_space wakes every sleeper on the socket); poll() sleeps for POLLIN only, so
+   * the world's read costs no wake-up and only its state wakes this process. Then one read for
+   * the whole record as a rule (the world writes it at once). */
+  struct pollfd pfd = {sock, POLLIN, 0};
+  while (poll(&pfd, 1, -1) < 0 && errno == EINTR) {}
   uint8_t in[TWFD_STATE_LEN];
-  read_all(in, 4);
+  size_t have = read_at_least(in, 4, sizeof(in));
   if (get_u32(in) == TWFD_MAGIC_REFUSED) {
-    refused();
+    refused(in + 4, have - 4);
   }
-  read_all(in + 4, sizeof(in) - 4);
+  if (have < sizeof(in)) {
+    read_all(in + have, sizeof(in) - have);
+  }
   uint32_t magic = get_u32(in);
   uint64_t step = get_u64(in + 4);
   if (magic != TWFD_MAGIC_STATE || step != next_step) {

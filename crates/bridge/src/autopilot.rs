@@ -1,6 +1,7 @@
 //! Copters flown by outside autopilots: Paparazzi's rotorcraft autopilot compiled for its
 //! simulator NPS, with this project's flight-model backend (`paparazzi/sw/nps_fdm_twinswarm.c`),
-//! one process per aircraft, in lockstep with the world over TCP.
+//! one process per aircraft, in lockstep with the world over a Unix-domain socket (both on one
+//! machine) or TCP ([`transport`]).
 //!
 //! Each NPS step (1 ms at the airframe's `PERIODIC_FREQUENCY` 500) is one control step of the
 //! world: the scene's `control_dt_s` must equal the autopilot's step, so that every autopilot
@@ -59,7 +60,6 @@
 
 use std::collections::{BTreeMap, BTreeSet};
 use std::io::{Read, Write};
-use std::net::{SocketAddr, TcpListener, TcpStream};
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
@@ -70,6 +70,10 @@ use sim_core::{CopterKind, FlightMode, Inputs, State, World};
 
 use crate::ids::AcId;
 use crate::paparazzi::ivy::IvyAgent;
+
+pub mod transport;
+pub use transport::{BadListen, Listen};
+use transport::{Listener, SocketFile, Stream};
 
 /// Where the world listens by default (`nps_fdm_twinswarm.c`'s default `TWINSWARM_FDM`).
 pub const DEFAULT_LISTEN: &str = "127.0.0.1:7460";
@@ -281,8 +285,8 @@ pub fn fdm_state(world: &World, state: &State, id: usize, prev_vel: Vec3, dt: f6
 /// How the world meets its autopilots.
 #[derive(Debug, Clone)]
 pub struct AutopilotOptions {
-    /// Where to listen for them.
-    pub listen: SocketAddr,
+    /// Where to listen for them: TCP or a Unix-domain socket ([`transport`]).
+    pub listen: Listen,
     /// How long to wait for every autopilot's hello before the first step.
     pub connect_timeout: Duration,
     /// How long one step waits for an autopilot before it counts as gone.
@@ -302,11 +306,11 @@ impl Default for AutopilotOptions {
 /// Why the autopilots could not be met.
 #[derive(Debug, thiserror::Error)]
 pub enum AutopilotError {
-    /// The listening socket.
-    #[error("cannot listen for autopilots on {addr}: {source}")]
+    /// The listening socket (the reason is the error's source).
+    #[error("cannot listen for autopilots on {addr}")]
     Listen {
-        /// The address.
-        addr: SocketAddr,
+        /// The address (`HOST:PORT` or `unix:PATH`).
+        addr: String,
         /// Why.
         source: std::io::Error,
     },
@@ -317,8 +321,8 @@ pub enum AutopilotError {
         missing: String,
         /// Waited, s.
         waited_s: f64,
-        /// Where.
-        addr: SocketAddr,
+        /// Where (`HOST:PORT` or `unix:PATH`).
+        addr: String,
     },
     /// An autopilot steps at another rate than the world.
     #[error(
@@ -373,7 +377,7 @@ pub struct Refusal {
 
 struct Conn {
     copter: usize,
-    stream: TcpStream,
+    stream: Stream,
     prev_vel: Vec3,
     gone: bool,
     stats: AutopilotStats,
@@ -416,6 +420,10 @@ pub struct Autopilots {
     refused: Arc<Mutex<Vec<Refusal>>>,
     /// Refuses the autopilots that come once every copter has its own; held for its `Drop`.
     _late: Option<LateDoor>,
+    /// The Unix socket's file (and the folder made for it), removed when dropped; after the
+    /// door, so that no one connects in between.
+    _socket: Option<SocketFile>,
+    listening_on: String,
     dt_s: f64,
     /// The step waiting time of all autopilots together, s.
     wait_s: f64,
@@ -435,15 +443,40 @@ impl Autopilots {
     /// (or one already flown) is refused and the wait goes on; a rate other than the world's is
     /// an error.
     pub fn accept(world: &World, opts: &AutopilotOptions) -> Result<Self, AutopilotError> {
-        let listener =
-            TcpListener::bind(opts.listen).map_err(|source| AutopilotError::Listen { addr: opts.listen, source })?;
-        Self::accept_on(listener, world, opts)
+        Self::accept_with(world, opts, |_| {})
     }
 
-    /// [`Autopilots::accept`] on a listener already bound.
-    pub fn accept_on(listener: TcpListener, world: &World, opts: &AutopilotOptions) -> Result<Self, AutopilotError> {
-        let addr = listener.local_addr().map_err(|source| AutopilotError::Listen { addr: opts.listen, source })?;
-        let listen_err = |source| AutopilotError::Listen { addr, source };
+    /// [`Autopilots::accept`], telling `bound` where it listens (`HOST:PORT` or `unix:PATH`:
+    /// with [`Listen::Unix`]`(None)` the fresh socket's path) before it waits.
+    pub fn accept_with(
+        world: &World,
+        opts: &AutopilotOptions,
+        bound: impl FnOnce(&str),
+    ) -> Result<Self, AutopilotError> {
+        let listen_err = |source| AutopilotError::Listen { addr: opts.listen.to_string(), source };
+        let (listener, file) = Listener::bind(&opts.listen).map_err(listen_err)?;
+        bound(&listener.local().map_err(listen_err)?);
+        let mut aps = Self::accept_on(listener, world, opts)?;
+        aps._socket = file;
+        Ok(aps)
+    }
+
+    /// Where `twinswarm run` tells its autopilots to connect (`TWINSWARM_FDM`), once bound:
+    /// `HOST:PORT` or `unix:PATH`.
+    pub fn listening_on(&self) -> &str {
+        &self.listening_on
+    }
+
+    /// [`Autopilots::accept`] on a listener already bound (TCP or Unix).
+    pub fn accept_on(
+        listener: impl Into<Listener>,
+        world: &World,
+        opts: &AutopilotOptions,
+    ) -> Result<Self, AutopilotError> {
+        let listener = listener.into();
+        let addr =
+            listener.local().map_err(|source| AutopilotError::Listen { addr: opts.listen.to_string(), source })?;
+        let listen_err = |source| AutopilotError::Listen { addr: addr.clone(), source };
         listener.set_nonblocking(true).map_err(listen_err)?;
         let mut wanted: Vec<(u8, usize)> = world
             .copters
@@ -455,10 +488,10 @@ impl Autopilots {
         let dt_s = world.params.control_dt_s;
         let start = Instant::now();
         let (mut conns, mut refused) = (Vec::new(), Vec::new());
-        let mut refuse = |stream: &TcpStream, peer: SocketAddr, ac_id: Option<u8>, why: String| {
+        let mut refuse = |stream: &Stream, peer: &str, ac_id: Option<u8>, why: String| {
             tracing::warn!("autopilot from {peer} refused: {why}");
             send_refusal(stream, &why);
-            refused.push(Refusal { peer: peer.to_string(), ac_id, why });
+            refused.push(Refusal { peer: peer.to_owned(), ac_id, why });
         };
         while !wanted.is_empty() {
             if start.elapsed() > opts.connect_timeout {
@@ -467,7 +500,8 @@ impl Autopilots {
                     .map(|&(ac, i)| format!("aircraft {ac} ({})", world.copters[i].name))
                     .collect::<Vec<_>>()
                     .join(", ");
-                return Err(AutopilotError::Missing { missing, waited_s: start.elapsed().as_secs_f64(), addr });
+                let waited_s = start.elapsed().as_secs_f64();
+                return Err(AutopilotError::Missing { missing, waited_s, addr: addr.clone() });
             }
             let (stream, peer) = match listener.accept() {
                 Ok(s) => s,
@@ -480,7 +514,7 @@ impl Autopilots {
             let hello = match read_hello(&stream, opts.step_timeout) {
                 Ok(h) => h,
                 Err(why) => {
-                    refuse(&stream, peer, None, why);
+                    refuse(&stream, &peer, None, why);
                     continue;
                 }
             };
@@ -492,17 +526,17 @@ impl Autopilots {
             }
             let Some(k) = wanted.iter().position(|&(ac, _)| ac == hello.ac_id) else {
                 let why = format!("aircraft {} flies no copter of this scene (or one already flown)", hello.ac_id);
-                refuse(&stream, peer, Some(hello.ac_id), why);
+                refuse(&stream, &peer, Some(hello.ac_id), why);
                 continue;
             };
             let (ac_id, copter) = wanted.swap_remove(k);
-            let _ = stream.set_nodelay(true);
+            let _ = stream.set_nodelay();
             let _ = stream.set_read_timeout(Some(opts.step_timeout));
             tracing::info!("autopilot of aircraft {ac_id} connected from {peer}: flies {}", world.copters[copter].name);
             let stats = AutopilotStats {
                 ac_id,
                 copter: world.copters[copter].name.clone(),
-                peer: peer.to_string(),
+                peer,
                 protocol: hello.version,
                 uplink: "not counted".to_owned(),
                 ..Default::default()
@@ -514,7 +548,7 @@ impl Autopilots {
         let refused = Arc::new(Mutex::new(refused));
         let flown = conns.iter().map(|c: &Conn| c.stats.ac_id).collect();
         let late = LateDoor::open(listener, flown, Arc::clone(&refused), opts.step_timeout);
-        Ok(Self { conns, refused, _late: Some(late), dt_s, wait_s: 0.0, link: None })
+        Ok(Self { conns, refused, _late: Some(late), _socket: None, listening_on: addr, dt_s, wait_s: 0.0, link: None })
     }
 
     /// How many autopilots there are.
@@ -565,10 +599,10 @@ impl Autopilots {
             s.uplinks = conn.counting.field();
             let b = encode_state(&s);
             let b = if conn.stats.protocol == 1 { &b[..STATE_LEN_V1] } else { &b[..] };
-            match conn.stream.write_all(b) {
+            match (&conn.stream).write_all(b) {
                 Ok(()) => conn.stats.steps += 1,
                 Err(e) => {
-                    let _ = conn.stream.shutdown(std::net::Shutdown::Both);
+                    let _ = conn.stream.shutdown();
                     conn.stats.left = Some((state.tick, format!("cannot send its state: {e}")));
                     conn.gone = true;
                 }
@@ -713,7 +747,7 @@ struct LateDoor {
 }
 
 impl LateDoor {
-    fn open(listener: TcpListener, flown: Vec<u8>, refused: Arc<Mutex<Vec<Refusal>>>, timeout: Duration) -> Self {
+    fn open(listener: Listener, flown: Vec<u8>, refused: Arc<Mutex<Vec<Refusal>>>, timeout: Duration) -> Self {
         let stop = Arc::new(AtomicBool::new(false));
         let flag = Arc::clone(&stop);
         let thread = std::thread::Builder::new().name("autopilot-door".into()).spawn(move || {
@@ -764,13 +798,13 @@ pub fn encode_refusal(why: &str) -> Vec<u8> {
 
 /// Tells an autopilot why the world will not fly it (best effort: it may be gone) and shuts
 /// the connection, so that it reads the end of the stream after the reason.
-fn send_refusal(mut stream: &TcpStream, why: &str) {
+fn send_refusal(mut stream: &Stream, why: &str) {
     let _ = stream.set_write_timeout(Some(Duration::from_secs(1)));
     let _ = stream.write_all(&encode_refusal(why));
-    let _ = stream.shutdown(std::net::Shutdown::Both);
+    let _ = stream.shutdown();
 }
 
-fn read_hello(mut stream: &TcpStream, timeout: Duration) -> Result<Hello, String> {
+fn read_hello(mut stream: &Stream, timeout: Duration) -> Result<Hello, String> {
     stream.set_nonblocking(false).map_err(|e| e.to_string())?;
     stream.set_read_timeout(Some(timeout)).map_err(|e| e.to_string())?;
     let mut b = [0u8; HELLO_LEN];
@@ -778,7 +812,7 @@ fn read_hello(mut stream: &TcpStream, timeout: Duration) -> Result<Hello, String
     decode_hello(&b).map_err(|e| e.to_string())
 }
 
-fn read_step(mut stream: &TcpStream, tick: u64) -> Result<StepRecord, String> {
+fn read_step(mut stream: &Stream, tick: u64) -> Result<StepRecord, String> {
     let mut b = [0u8; STEP_LEN];
     stream.read_exact(&mut b).map_err(|e| match e.kind() {
         std::io::ErrorKind::UnexpectedEof => "it closed the connection".to_owned(),
@@ -805,6 +839,7 @@ fn f64_at(b: &[u8], at: usize) -> f64 {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use std::net::{TcpListener, TcpStream};
 
     fn hello(ac: u32, dt: f64) -> [u8; HELLO_LEN] {
         hello_v(ac, dt, VERSION)
@@ -912,7 +947,7 @@ start = { pos_m = [0.5, -0.25, 0.0], yaw_deg = 30.0 }
         let listener = TcpListener::bind("127.0.0.1:0").unwrap();
         let addr = listener.local_addr().unwrap();
         let opts = AutopilotOptions {
-            listen: addr,
+            listen: Listen::Tcp(addr),
             connect_timeout: Duration::from_secs(10),
             step_timeout: Duration::from_millis(300),
         };
@@ -1003,7 +1038,11 @@ start = { pos_m = [-0.5, 0.0, 0.0] }
         );
         let listener = TcpListener::bind("127.0.0.1:0").unwrap();
         let addr = listener.local_addr().unwrap();
-        let opts = AutopilotOptions { listen: addr, connect_timeout: Duration::from_secs(10), ..Default::default() };
+        let opts = AutopilotOptions {
+            listen: Listen::Tcp(addr),
+            connect_timeout: Duration::from_secs(10),
+            ..Default::default()
+        };
         let (tx, rx) = std::sync::mpsc::channel::<()>();
         let client = std::thread::spawn(move || {
             let mut new = TcpStream::connect(addr).unwrap();
@@ -1046,6 +1085,70 @@ start = { pos_m = [-0.5, 0.0, 0.0] }
         let stats = aps.stats();
         assert_eq!((stats[0].uplink.as_str(), stats[0].uplinks_counted, stats[0].protocol), ("counted", 3, 2));
         assert!(stats[1].uplink.contains("protocol v1") && stats[1].uplinks_counted == 0, "{:?}", stats[1]);
+    }
+
+    #[test]
+    fn an_autopilot_flies_over_a_unix_socket_which_goes_with_the_run() {
+        let (world, mut state) = world();
+        let dir = std::env::temp_dir().join(format!("tw-ap-test.{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let path = dir.join("fdm.sock");
+        let opts = AutopilotOptions {
+            listen: format!("unix:{}", path.display()).parse().unwrap(),
+            connect_timeout: Duration::from_secs(10),
+            ..Default::default()
+        };
+        let at = path.clone();
+        let client = std::thread::spawn(move || {
+            let mut c = loop {
+                match std::os::unix::net::UnixStream::connect(&at) {
+                    Ok(c) => break c,
+                    Err(_) => std::thread::sleep(Duration::from_millis(5)),
+                }
+            };
+            c.write_all(&hello(7, 0.001)).unwrap();
+            let mut got = Vec::new();
+            for k in 0..3 {
+                c.write_all(&step(k, [0.6; 4])).unwrap();
+                let mut b = [0u8; STATE_LEN];
+                c.read_exact(&mut b).unwrap();
+                got.push((u32_at(&b, 0), u64::from_le_bytes(b[4..12].try_into().unwrap())));
+            }
+            // The world's end closes the connection.
+            (got, c.read(&mut [0u8; 1]).unwrap())
+        });
+        let mut told = String::new();
+        let mut aps = Autopilots::accept_with(&world, &opts, |a| told = a.to_owned()).unwrap();
+        assert_eq!(told, format!("unix:{}", path.display()));
+        assert_eq!(aps.listening_on(), told);
+        let mut inputs = world.initial_inputs();
+        for _ in 0..3 {
+            aps.commands(&world, &state, &mut inputs);
+            assert_eq!(inputs.commands[0].rotors, Some([0.6; 4]));
+            sim_core::step(&world, &mut state, &inputs);
+            aps.answer(&world, &state);
+        }
+        assert_eq!(aps.stats()[0].steps, 3);
+        assert!(aps.stats()[0].peer.starts_with("unix:"), "{:?}", aps.stats()[0].peer);
+        drop(aps);
+        let (got, end) = client.join().unwrap();
+        assert_eq!(got, [(STATE_MAGIC, 0), (STATE_MAGIC, 1), (STATE_MAGIC, 2)]);
+        assert_eq!(end, 0);
+        assert!(!path.exists(), "the socket file goes with the run");
+        std::fs::remove_dir(&dir).unwrap();
+        // Bad input is named, with where.
+        let err = Autopilots::accept(
+            &world,
+            &AutopilotOptions {
+                listen: Listen::Unix(Some(dir.join("no such folder").join("fdm.sock"))),
+                ..Default::default()
+            },
+        )
+        .unwrap_err();
+        let why = std::error::Error::source(&err).map(|e| e.to_string()).unwrap_or_default();
+        let err = err.to_string();
+        assert!(err.starts_with("cannot listen for autopilots on unix:") && err.contains("no such folder"), "{err}");
+        assert!(why.contains("No such file or directory"), "{why}");
     }
 
     #[test]

@@ -96,8 +96,10 @@ pub(crate) struct RunArgs {
     /// Where copters of kind `autopilot` wait for their outside autopilots (Paparazzi NPS
     /// with Twinswarm's flight model, `TWINSWARM_FDM`; docs/paparazzi.md). Each step then
     /// waits for every autopilot's motor commands, and nothing waits on the wall clock.
-    #[arg(long, value_name = "ADDR:PORT", default_value = bridge::autopilot::DEFAULT_LISTEN)]
-    autopilot_listen: std::net::SocketAddr,
+    /// ADDR:PORT over TCP, or unix:PATH, a Unix-domain socket (faster, both on one machine;
+    /// `unix` alone: a fresh one in a temporary folder, printed; removed at the end).
+    #[arg(long, value_name = "ADDR:PORT|unix:PATH", default_value = bridge::autopilot::DEFAULT_LISTEN)]
+    autopilot_listen: bridge::autopilot::Listen,
     /// How long the first step waits for every autopilot to connect, s.
     #[arg(long, value_name = "S", default_value_t = 60.0)]
     autopilot_timeout: f64,
@@ -390,7 +392,7 @@ fn pace(args: &RunArgs, world: &World) -> anyhow::Result<Pace> {
                 return Err(bad(format!("--autopilot-timeout must be in (0, 3600] s, got {t}")));
             }
             Some(bridge::autopilot::AutopilotOptions {
-                listen: args.autopilot_listen,
+                listen: args.autopilot_listen.clone(),
                 connect_timeout: Duration::from_secs_f64(t),
                 ..Default::default()
             })

@@ -360,8 +360,9 @@ fn loop_options(
     };
     if let Some(o) = &pace.autopilots {
         let n = world.copters.iter().filter(|c| c.kind == sim_core::CopterKind::Autopilot).count();
-        eprintln!("waiting for {n} autopilot(s) on {} (at most {:.0} s)", o.listen, o.connect_timeout.as_secs_f64());
-        let aps = bridge::autopilot::Autopilots::accept(world, o)?;
+        let aps = bridge::autopilot::Autopilots::accept_with(world, o, |at| {
+            eprintln!("waiting for {n} autopilot(s) on {at} (at most {:.0} s)", o.connect_timeout.as_secs_f64());
+        })?;
         eprintln!("{} autopilot(s) connected, stepping", aps.len());
         opts.autopilots = Some(Arc::new(Mutex::new(aps)));
     }
