@@ -1,14 +1,14 @@
 //! `twinswarm fit LOG.data [LOG.data …]`: system identification of the horizontal flight model
-//! from real flights ([`bridge::realflight::fit`]): the attitude-to-position delay, the linear damping, the
-//! sign mapping and an on-line trim bias, fitted leave-one-flight-out on every flight of the
-//! logs ([`bridge::realflight::flights`]), and the prediction errors 1, 2 and 4 s ahead of
-//! Twinswarm's current model, the identified one, constant velocity and staying put; and the
-//! height loop's IR statistics.
+//! from real flights ([`bridge::realflight::fit`]): the attitude-to-position delay, the linear
+//! damping, the sign mapping and an on-line trim, fitted leave-one-flight-out on every flight of
+//! the logs ([`bridge::realflight::flights`]), and the prediction errors 1, 2 and 4 s ahead, from
+//! the state a twin synced to the copter has at each start, of Twinswarm's current model, the
+//! identified one, constant velocity and staying put; and the height loop's IR statistics.
 
 use std::path::{Path, PathBuf};
 
 use bridge::paparazzi::flightlog::FlightLog;
-use bridge::realflight::fit::{FitOptions, FitReport, FlightInput};
+use bridge::realflight::fit::{FitOptions, FitReport, FlightInput, StateEstimate};
 use bridge::realflight::{Flight, Series};
 
 use crate::BadInput;
@@ -22,14 +22,46 @@ pub struct FitArgs {
     /// The aircraft (default: in each log, the one that sent the most).
     #[arg(long, value_name = "AC_ID")]
     pub ac_id: Option<u8>,
-    /// Take the known state at each start from a line centred on it, which peeks half its
-    /// window (0.25 s) into the future, instead of one that ends there (as analyses that
-    /// smooth the track both ways do; the identified model's on-line bias stays causal).
-    #[arg(long)]
+    /// Where each prediction's state comes from: `synced` (the model fitted to the sonars'
+    /// last second up to the start, as a twin kept in step with the copter has it), `centred`
+    /// (the same fit over a second centred on the start: it peeks half a second ahead) or
+    /// `line` (a line through the track's last half second, its state a quarter second old:
+    /// the estimate before the synced one). The on-line trim stays causal in each.
+    #[arg(long, value_enum, default_value_t = StateArg::Synced)]
+    pub state: StateArg,
+    /// Shorthand for `--state centred`.
+    #[arg(long, conflicts_with = "state")]
     pub centred_state: bool,
+    /// Take the floor level off the identified model's attitude too, as the current model's
+    /// (by default the identified model learns the AHRS's trim on line instead).
+    #[arg(long)]
+    pub level_from_floor: bool,
     /// Print the report as JSON.
     #[arg(long)]
     pub json: bool,
+}
+
+/// `--state`'s values.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
+pub enum StateArg {
+    /// The model fitted to the last second of readings up to the start (causal).
+    Synced,
+    /// The same over a second centred on the start (peeks half a second ahead).
+    Centred,
+    /// A line through the track's last half second (causal; the state a quarter second old).
+    Line,
+}
+
+impl FitArgs {
+    /// The options the arguments ask for.
+    fn options(&self) -> FitOptions {
+        let state = match (self.centred_state, self.state) {
+            (true, _) | (_, StateArg::Centred) => StateEstimate::Centred,
+            (_, StateArg::Synced) => StateEstimate::Synced,
+            (_, StateArg::Line) => StateEstimate::Line,
+        };
+        FitOptions { state, level_from_floor: self.level_from_floor, ..FitOptions::default() }
+    }
 }
 
 /// One log, read: its aircraft's series and flights.
@@ -80,7 +112,7 @@ pub fn run(args: &FitArgs) -> anyhow::Result<()> {
             })
         })
         .collect();
-    let opts = FitOptions { centred_state: args.centred_state, ..FitOptions::default() };
+    let opts = args.options();
     let report = bridge::realflight::fit::identify(&inputs, &opts).map_err(|e| {
         let files: Vec<String> = args.files.iter().map(|f| f.display().to_string()).collect();
         BadInput(anyhow::Error::new(e).context(files.join(", ")))
@@ -93,6 +125,24 @@ pub fn run(args: &FitArgs) -> anyhow::Result<()> {
     Ok(())
 }
 
+/// What the state at each start is.
+fn state_line(o: &FitOptions) -> String {
+    match o.state {
+        StateEstimate::Synced => format!(
+            "  state at t0: synced (the model fitted to the sonars' last {:.1} s up to t0, gated looking back: causal)\n",
+            o.state_window_s
+        ),
+        StateEstimate::Centred => format!(
+            "  state at t0: the model fitted to the sonars' {:.1} s centred on t0 (peeks half of it ahead)\n",
+            o.state_window_s
+        ),
+        StateEstimate::Line => format!(
+            "  state at t0: a line through the track's last {:.1} s (causal; the state at its centre)\n",
+            o.velocity_window_s
+        ),
+    }
+}
+
 /// `lo-hi` with `unit`, or one value where they agree.
 fn span(lo: f64, hi: f64, digits: usize, unit: &str) -> String {
     if (hi - lo).abs() < 1e-9 { format!("{lo:.digits$} {unit}") } else { format!("{lo:.digits$}-{hi:.digits$} {unit}") }
@@ -100,6 +150,18 @@ fn span(lo: f64, hi: f64, digits: usize, unit: &str) -> String {
 
 /// The terminal report: models × horizons, then what was identified and what went in.
 fn to_text(r: &FitReport, files: &[PathBuf]) -> String {
+    let mut s = table_text(r, files);
+    s += &state_line(&r.options);
+    s += &identified_text(r);
+    s += &height_text(r);
+    for k in &r.skipped {
+        s += &format!("  skipped {}: {}\n", k.label, k.reason);
+    }
+    s
+}
+
+/// The heading and the models × horizons table.
+fn table_text(r: &FitReport, files: &[PathBuf]) -> String {
     let files: Vec<String> = files.iter().map(|f| f.display().to_string()).collect();
     let mut s = format!(
         "twinswarm fit: {} ({} flights scored, {}{})\n",
@@ -120,6 +182,11 @@ fn to_text(r: &FitReport, files: &[PathBuf]) -> String {
         }
         s += &format!(" {:>6}\n", m.horizons.iter().map(|h| h.n.to_string()).collect::<Vec<_>>().join("/"));
     }
+    s
+}
+
+/// The current model, what was identified, the signs and the trim.
+fn identified_text(r: &FitReport) -> String {
     let folds = &r.flights;
     let fold = |f: fn(&bridge::realflight::fit::Params) -> f64| {
         let lo = folds.iter().map(|x| f(&x.params)).fold(f64::INFINITY, f64::min);
@@ -139,23 +206,29 @@ fn to_text(r: &FitReport, files: &[PathBuf]) -> String {
     .into_iter()
     .flatten()
     .collect();
-    s += &format!(
-        "  state at t0: a line through the track's {:.1} s {}\n",
-        r.options.velocity_window_s,
-        if r.options.centred_state { "centred on t0 (peeks half of it ahead)" } else { "up to t0 (causal)" }
-    );
-    s += &format!(
-        "  current: damping {:.2} /s, no delay, no bias, {}\n",
+    let mut s = format!(
+        "  current: damping {:.2} /s, no delay, the floor level taken off, no trim, {}\n",
         r.options.current_damping_per_s, r.twinswarm_mapping
     );
     s += &format!(
-        "  identified: delay τ {} (all flights: {:.2} s), damping k {} (all: {:.2} /s), trim bias b x {} y {}\n",
+        "  identified: delay τ {} (all flights: {:.2} s), damping k {} (all: {:.2} /s)\n",
         span(tau.0, tau.1, 2, "s"),
         a.delay_s,
         span(k.0, k.1, 2, "/s"),
         a.damping_per_s,
-        span(r.bias_rad[0][0], r.bias_rad[0][1], 3, "rad"),
-        span(r.bias_rad[1][0], r.bias_rad[1][1], 3, "rad"),
+    );
+    let prior = |axis: usize| {
+        let lo = folds.iter().map(|f| f.trim_prior_rad[axis]).fold(f64::INFINITY, f64::min);
+        let hi = folds.iter().map(|f| f.trim_prior_rad[axis]).fold(f64::NEG_INFINITY, f64::max);
+        span(lo.to_degrees(), hi.to_degrees(), 2, "°")
+    };
+    s += &format!(
+        "    trim b on line ({}): x {} y {} (from priors x {} y {}, the other flights' mean)\n",
+        if r.options.level_from_floor { "attitude less the floor level" } else { "the AHRS's attitude as it is" },
+        span(r.bias_rad[0][0].to_degrees(), r.bias_rad[0][1].to_degrees(), 2, "°"),
+        span(r.bias_rad[1][0].to_degrees(), r.bias_rad[1][1].to_degrees(), 2, "°"),
+        prior(0),
+        prior(1),
     );
     if !edges.is_empty() {
         s += &format!(
@@ -182,8 +255,13 @@ fn to_text(r: &FitReport, files: &[PathBuf]) -> String {
         ev(&a.sign_evidence[0]),
         ev(&a.sign_evidence[1])
     );
+    s
+}
+
+/// What went in, and the height loop per flight.
+fn height_text(r: &FitReport) -> String {
     let n = &r.samples;
-    s += &format!(
+    let mut s = format!(
         "  samples: sonar x {} of {} readings kept, y {} of {}; {} grid points at {:.0} Hz (gaps x {}, y {}); {} starts every {:.1} s\n",
         n.kept[0],
         n.readings[0],
@@ -210,7 +288,7 @@ fn to_text(r: &FitReport, files: &[PathBuf]) -> String {
         ),
         None => format!("    {label:<50} -\n"),
     };
-    for f in folds {
+    for f in &r.flights {
         let label = format!(
             "{} (log {:.1}-{:.1} s, τ {:.2} s, k {:.2})",
             f.label, f.flight.start_s, f.flight.end_s, f.params.delay_s, f.params.damping_per_s
@@ -218,8 +296,5 @@ fn to_text(r: &FitReport, files: &[PathBuf]) -> String {
         s += &row(&label, f.height);
     }
     s += &row("all flights", r.height);
-    for k in &r.skipped {
-        s += &format!("  skipped {}: {}\n", k.label, k.reason);
-    }
     s
 }
