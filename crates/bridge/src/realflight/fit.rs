@@ -34,7 +34,7 @@
 //! linear interpolation between readings less than `max_gap_s` apart; NaN marks a gap.
 //!
 //! **The synced state at t0** (every `start_every_s` from `first_start_s` after take-off;
-//! [`synced`]): the same readings, gated as a twin can at the time (against the median of the
+//! `synced.rs`): the same readings, gated as a twin can at the time (against the median of the
 //! readings in the `gate_window_s` before each, [`Track::causal_m`]), and the model's trajectory
 //! fitted to those of the last `state_window_s` by least squares: position and velocity at the
 //! window's start free, the delay, damping, signs and the trim as at t0 given, the attitude
