@@ -157,6 +157,7 @@ static double get_f64(const uint8_t *b) { uint64_t v = get_u64(b); double d; mem
  * simulated UDP and UART threads ask for SCHED_FIFO; a lockstep simulation has no deadline, and
  * a real-time thread spinning on a socket can starve the world on the same cores. */
 int __real_pthread_setschedparam(pthread_t thread, int policy, const struct sched_param *param);
+int __wrap_pthread_setschedparam(pthread_t thread, int policy, const struct sched_param *param);
 int __wrap_pthread_setschedparam(pthread_t thread, int policy, const struct sched_param *param)
 {
   const char *rt = getenv("TWINSWARM_NPS_REALTIME");

