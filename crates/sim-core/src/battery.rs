@@ -53,9 +53,7 @@ impl Default for BatterySpec {
             cells: 3,
             capacity_mah: 900.0,
             initial_charge: 1.0,
-            // The real FINken's pack (aircraft 5, Feb 2016): 12.5 V at rest, 11.9 V in hover at
-            // take-off (docs/real-flights.md §5); 0.06 Ω gave 12.25 V.
-            internal_resistance_ohm: 0.12,
+            internal_resistance_ohm: 0.06,
             efficiency: 0.38,
             calibration_voltage_v: 11.1,
         }
