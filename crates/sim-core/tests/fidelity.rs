@@ -101,7 +101,7 @@ size_m = [4.0, 3.0]
 height_m = 2.5
 [airframes.under_test]
 {height_loop}
-battery = {{ initial_charge = 0.9 }}
+battery = {{ initial_charge = 0.8 }}
 [[copter]]
 name = "finken"
 ac_id = 5
