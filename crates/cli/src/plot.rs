@@ -644,8 +644,7 @@ mod tests {
         let file = LogFile::open(&path).unwrap();
         let data = PlotData::load(&file, true, true).unwrap();
         assert_eq!(data.copters.len(), 2);
-        // Every state the log holds (a copter still on the floor, unchanged, is not re-logged:
-        // the lab firmware's loop lifts the first copter off after a couple of seconds).
+        // Every state the log holds (a copter still on the floor, unchanged, is not re-logged).
         let logged = file.messages::<proto::CopterState>("/copters/state").unwrap().len();
         assert!(logged > 120, "{logged} states logged");
         assert_eq!(data.states.len(), logged);

@@ -28,12 +28,7 @@ enum Schedule {
 /// The lab, both copters in Wall-Avoid facing each other (the second turned to 180°), under
 /// `seed`, cross-talk on or off, with the sonar `schedule`.
 fn lab(seed: u64, crosstalk: bool, schedule: Schedule) -> World {
-    // Twinswarm's height loop, not the lab firmware's the scene flies: that one's wander and
-    // sag can bring the facing copters into each other and onto the table without any
-    // cross-talk, which would hide what cross-talk alone adds.
-    let steady = LAB.replace("airframe = \"finken3_2015_12\"", "airframe = \"finken3\"");
-    assert_ne!(steady, LAB);
-    let facing = steady.replace("yaw_deg = 225.0", "yaw_deg = 180.0");
+    let facing = LAB.replace("yaw_deg = 225.0", "yaw_deg = 180.0");
     assert_ne!(facing, LAB);
     let (sonar, cycle) = match schedule {
         Schedule::Firmware => ("", ""),
