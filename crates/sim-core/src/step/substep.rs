@@ -214,7 +214,10 @@ pub(super) fn steer(
         let command = e.finken_height.step(fw, c.setpoint.height_m, ir, c.battery.voltage_v, dt);
         4.0 * af.hover_thrust_per_rotor_n * command / fw.hover_command
     } else {
-        e.finken_height = Default::default();
+        if af.spec.finken_height.is_some() {
+            // Landing or on throttle: the firmware loop starts afresh at the next held height.
+            e.finken_height = Default::default();
+        }
         let t = control::collective_thrust_n(
             af,
             &c.setpoint,
