@@ -100,7 +100,13 @@ pub enum Stage {
     Begin,
     /// Every copter's motion into its lane.
     Lanes,
-    /// Sensing: sonars, IR, IMU, estimates, cross-talk.
+    /// Sensing, what the sonars can see: the sonar scene, its copter grid, the pingers.
+    SonarScene,
+    /// Sensing: each copter's sonars, IR, IMU and estimators.
+    Ranges,
+    /// Sensing: the sonars' cross-talk.
+    Crosstalk,
+    /// Sensing: the fused readings into the firmware's sonar filter (the end of sensing).
     Sense,
     /// The flight modes' setpoints.
     OuterLoops,
@@ -317,7 +323,7 @@ fn step_copters(
     probe(Stage::Lanes);
     let sonar_period = world.sensors.spec.sonar.period_steps.max(1) as u64;
     if world.sensors.spec.enabled {
-        sense(world, state, inputs, state.tick.is_multiple_of(sonar_period), parallel, roles);
+        sense(world, state, inputs, state.tick.is_multiple_of(sonar_period), parallel, roles, probe);
     }
     probe(Stage::Sense);
     outer_loops(world, state, inputs, parallel, roles);

@@ -105,6 +105,7 @@ pub(super) fn sense(
     sonar_due: bool,
     parallel: bool,
     roles: Roles<'_>,
+    probe: &mut (dyn FnMut(Stage) + Send),
 ) {
     let scratch = &mut state.scratch;
     let present = roles.0.map(|_| &scratch.present[..]);
@@ -116,6 +117,7 @@ pub(super) fn sense(
     if sonar_due {
         gather_pingers(world, state, parallel, roles);
     }
+    probe(Stage::SonarScene);
     let scratch = &mut state.scratch;
     let (scene, real_scene, pingers) = (&scratch.sonar_scene, &scratch.real_scene, &scratch.pingers);
     let p = SenseParams::new(world, state.tick, sonar_due);
@@ -130,9 +132,11 @@ pub(super) fn sense(
         let ir = read_ranges(world, &p, if real_layer { real_scene } else { scene }, i, cones, c, lane);
         read_imu_and_estimate(world, &p, i, c, lane, ir);
     });
+    probe(Stage::Ranges);
     if sonar_due && world.sensors.spec.crosstalk.enabled && world.copters.len() > 1 {
         crosstalk(world, state, &p, parallel);
     }
+    probe(Stage::Crosstalk);
     fuse_and_filter(world, state, inputs, &p, parallel, roles);
 }
 
