@@ -244,7 +244,7 @@ mod cpu {
             .filter_map(|t| {
                 let tid: i32 = t.file_name().to_str()?.parse().ok()?;
                 let comm = std::fs::read_to_string(t.path().join("comm")).ok()?;
-                comm.starts_with("sim-core-").then(|| (comm, (!tid << 3) | 6))
+                comm.starts_with("sim-core-").then_some((comm, (!tid << 3) | 6))
             })
             .collect();
         clocks.sort();

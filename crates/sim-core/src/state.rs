@@ -528,6 +528,9 @@ pub(crate) struct Scratch {
     /// Per chunk of [`step::ALERT_CHUNK`] lanes: whether one of them may have crashed, taken
     /// off or left its reservation in the last substep (see `step::detect_tilt_and_takeoff`).
     pub(crate) alerts: Vec<bool>,
+    /// Per copter: whether its Rapier body is enabled, disabled or taken over this step (see
+    /// `step::enable_rapier_bodies`), found in parallel, changed in id order.
+    pub(crate) body_changes: Vec<bool>,
     /// Copters on watch and what they may meet this step, (on watch, other) once per pair.
     pub(crate) watch_pairs: Vec<(u32, u32)>,
     /// cos of each airframe's crash tilt.

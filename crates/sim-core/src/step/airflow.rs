@@ -12,30 +12,40 @@ use super::*;
 /// real copter's). Crashed copters neither make nor feel any.
 pub(super) fn airflow(world: &World, state: &mut State, parallel: bool, roles: Roles<'_>) -> u32 {
     let spec = &world.airflow.spec;
-    for_each_lane(parallel, &mut state.copters, &mut state.scratch.lanes, |i, _, lane| {
-        if !roles.present(i) {
-            return;
-        }
-        let real_layer = world.copters[i].kind.is_real_layer();
-        let af = &world.airframes[world.copters[i].airframe];
-        lane.ground_m = match spec.ground_effect && may_be_over_a_box(world, lane.pos_m, af.reach_bound_m) {
-            true => af.rotor_pos_in_body_m.map(|arm| ground_below(world, lane.pos_m + lane.rot * arm, real_layer)),
-            false => [0.0; 4],
-        };
-        lane.downwash_force_n = Vec3::ZERO;
-        lane.downwash_torque_n_m = Vec3::ZERO;
-    });
-    if !spec.downwash || world.copters.len() < 2 {
-        return 0;
-    }
-    let (violations, any) = gather_wakes(world, state, parallel, roles);
+    let downwash = spec.downwash && world.copters.len() >= 2;
+    let (violations, any) = if downwash { gather_wakes(world, state, parallel, roles) } else { (0, false) };
+    // The wakes' grid on one thread, the ground below each copter on the others.
+    let crate::state::Scratch { lanes, wake_grid, wake_reach, present, .. } = &mut state.scratch;
+    beside(
+        parallel,
+        || {
+            if any {
+                wake_grid.set_cover(arena_rect(world));
+                match roles.0 {
+                    Some(_) => wake_grid.build_some(wake_reach, present, GRID_CELL_M),
+                    None => wake_grid.build(wake_reach, GRID_CELL_M),
+                }
+            }
+        },
+        || {
+            for_each_lane(parallel, &mut state.copters, lanes, |i, _, lane| {
+                if !roles.present(i) {
+                    return;
+                }
+                let real_layer = world.copters[i].kind.is_real_layer();
+                let af = &world.airframes[world.copters[i].airframe];
+                lane.ground_m = match spec.ground_effect && may_be_over_a_box(world, lane.pos_m, af.reach_bound_m) {
+                    true => {
+                        af.rotor_pos_in_body_m.map(|arm| ground_below(world, lane.pos_m + lane.rot * arm, real_layer))
+                    }
+                    false => [0.0; 4],
+                };
+                lane.downwash_force_n = Vec3::ZERO;
+                lane.downwash_torque_n_m = Vec3::ZERO;
+            })
+        },
+    );
     if any {
-        let scratch = &mut state.scratch;
-        scratch.wake_grid.set_cover(arena_rect(world));
-        match roles.0 {
-            Some(_) => scratch.wake_grid.build_some(&scratch.wake_reach, &scratch.present, GRID_CELL_M),
-            None => scratch.wake_grid.build(&scratch.wake_reach, GRID_CELL_M),
-        }
         feel_wakes(world, state, parallel, roles);
     }
     violations
@@ -47,7 +57,16 @@ pub(super) fn gather_wakes(world: &World, state: &mut State, parallel: bool, rol
     let spec = &world.airflow.spec;
     let scratch = &mut state.scratch;
     let (lanes, copters) = (&scratch.lanes, &state.copters);
-    fill_each(parallel, &mut scratch.wakes, lanes.len(), Wake::default(), |i| {
+    let width_per_m = world.airflow.width_per_m;
+    // Each wake with its reach, a sphere around its origin for the wakes' grid. An active
+    // wake is one with a length (its origin above the floor, pointing down).
+    let with_reach = |w: Wake| {
+        let reach = if w.length_m > 0.0 { w.reach_m(width_per_m) } else { 0.0 };
+        (w, OrientedBox { center: w.origin, rotation: Quat::IDENTITY, half: Vec3::new(reach, 0.0, 0.0) })
+    };
+    let (wakes, wake_reach) = (&mut scratch.wakes, &mut scratch.wake_reach);
+    let fills = (Wake::default(), OrientedBox::default());
+    fill_each2(parallel, wakes, wake_reach, lanes.len(), fills, |i| {
         let (lane, c) = (&lanes[i], &copters[i]);
         let af = &world.airframes[world.copters[i].airframe];
         let thrust: Real = c.rotor_thrust_n.iter().sum();
@@ -60,11 +79,11 @@ pub(super) fn gather_wakes(world: &World, state: &mut State, parallel: bool, rol
             && roles.present(i);
         if !active {
             // Reaches nothing, from where it would start (`wake_reach` is centred there).
-            return Wake { origin, ..Wake::default() };
+            return with_reach(Wake { origin, ..Wake::default() });
         }
         let rho_a = af.spec.air_density_kg_m3 * af.disc_area_m2;
         let hubs = af.rotor_pos_in_body_m.map(|arm| lane.pos_m + lane.rot * arm);
-        Wake {
+        with_reach(Wake {
             origin,
             dir,
             v0_m_s: (0.5 * thrust / rho_a).sqrt(),
@@ -75,16 +94,7 @@ pub(super) fn gather_wakes(world: &World, state: &mut State, parallel: bool, rol
             hubs_reach_m: hubs.iter().map(|h| (*h - origin).length()).fold(0.0, Real::max),
             hub_b0_m: 0.5 * af.spec.rotor_diameter_m,
             merge_m: spec.wake_merge_sizes * 2.0 * af.spec.arm_length_m,
-        }
-    });
-    let wakes = &scratch.wakes;
-    let width_per_m = world.airflow.width_per_m;
-    // An active wake is one with a length (its origin above the floor, pointing down).
-    let reach = |w: &Wake| if w.length_m > 0.0 { w.reach_m(width_per_m) } else { 0.0 };
-    fill_each(parallel, &mut scratch.wake_reach, wakes.len(), OrientedBox::default(), |i| OrientedBox {
-        center: wakes[i].origin,
-        rotation: Quat::IDENTITY,
-        half: Vec3::new(reach(&wakes[i]), 0.0, 0.0),
+        })
     });
     let wake_limit = crate::partition::sense_reach_m(world);
     let (mut violations, mut any) = (0, false);

@@ -242,6 +242,27 @@ where
     });
 }
 
+/// [`for_each_lane`] with a third per-copter slice, `extra` (as long as the copters).
+fn for_each_lane_with<T, F>(parallel: bool, copters: &mut [CopterState], lanes: &mut [Lane], extra: &mut [T], f: F)
+where
+    T: Send,
+    F: Fn(usize, &mut CopterState, &mut Lane, &mut T) + Sync + Send,
+{
+    let run = |first: usize, cs: &mut [CopterState], ls: &mut [Lane], xs: &mut [T]| {
+        for (j, ((c, l), x)) in cs.iter_mut().zip(ls.iter_mut()).zip(xs.iter_mut()).enumerate() {
+            f(first + j, c, l, x);
+        }
+    };
+    if parallel && copters.len() > 64 {
+        use rayon::prelude::*;
+        let chunk = lane_chunk(copters.len());
+        let chunks = copters.par_chunks_mut(chunk).zip(lanes.par_chunks_mut(chunk)).zip(extra.par_chunks_mut(chunk));
+        chunks.enumerate().for_each(|(k, ((cs, ls), xs))| run(k * chunk, cs, ls, xs));
+    } else {
+        run(0, copters, lanes, extra);
+    }
+}
+
 /// Runs `f` on chunks of copters with their lanes (and the first one's id), in parallel or
 /// all in one. `f` must only touch the copters and lanes it is given.
 fn for_each_chunk<F>(parallel: bool, copters: &mut [CopterState], lanes: &mut [Lane], f: F)
@@ -258,9 +279,54 @@ where
     }
 }
 
-/// Copters per parallel chunk of `n`: about 32 chunks, at least 32 copters each.
+/// Copters per parallel chunk of `n`: about 128 chunks, at least 32 copters each. Rayon
+/// splits a pass only as far as idle threads steal from it; the chunks bound how long the
+/// last one takes, while the other threads wait (the copters' cost differs with the crowd).
 fn lane_chunk(n: usize) -> usize {
-    (n / 32).max(32)
+    (n / 128).max(32)
+}
+
+/// [`fill_each`] into two outputs at once: `(a[i], b[i]) = f(i)`.
+fn fill_each2<A, B>(
+    parallel: bool,
+    a: &mut Vec<A>,
+    b: &mut Vec<B>,
+    n: usize,
+    fill: (A, B),
+    f: impl Fn(usize) -> (A, B) + Sync + Send,
+) where
+    A: Copy + Send + Sync,
+    B: Copy + Send + Sync,
+{
+    a.clear();
+    b.clear();
+    a.resize(n, fill.0);
+    b.resize(n, fill.1);
+    let run = |first: usize, a: &mut [A], b: &mut [B]| {
+        for (j, (x, y)) in a.iter_mut().zip(b.iter_mut()).enumerate() {
+            (*x, *y) = f(first + j);
+        }
+    };
+    if parallel && n > 64 {
+        use rayon::prelude::*;
+        let chunk = lane_chunk(n);
+        let chunks = a.par_chunks_mut(chunk).zip(b.par_chunks_mut(chunk));
+        chunks.enumerate().for_each(|(k, (a, b))| run(k * chunk, a, b));
+    } else {
+        run(0, a, b);
+    }
+}
+
+/// Runs `a` on this thread beside `b`, which may use every thread (a serial task, such as a
+/// grid's build, beside an independent pass over the copters); without threads, `a` then `b`.
+/// The two must not depend on each other: then the bits are the same either way.
+fn beside(parallel: bool, a: impl FnOnce() + Send, b: impl FnOnce() + Send) {
+    if parallel {
+        rayon::join(a, b);
+    } else {
+        a();
+        b();
+    }
 }
 
 /// Fills `out` with `f(i)` for every `i` in `0..n`, in parallel chunks or in order (the same

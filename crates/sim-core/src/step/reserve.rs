@@ -31,7 +31,7 @@ pub(super) fn reserve_free_flight(
     let roles = Roles(view.as_ref().map(|v| &v.roles[..]));
     gather_watch_pairs(state, roles);
     gather_falling(world, state, roles);
-    enable_rapier_bodies(world, state, view);
+    enable_rapier_bodies(world, state, view, parallel);
     let roles = Roles(view.as_ref().map(|v| &v.roles[..]));
     let scratch = &mut state.scratch;
     scratch.in_rapier.clear();
@@ -48,7 +48,9 @@ pub(super) fn reserve_spheres(world: &World, state: &mut State, parallel: bool, 
     let t = world.params.control_dt_s as Real;
     let dt = world.physics_dt();
     let scratch = &mut state.scratch;
-    for_each_lane(parallel, &mut state.copters, &mut scratch.lanes, |i, c, lane| {
+    scratch.spheres.resize(scratch.lanes.len(), OrientedBox::default());
+    let (lanes, spheres) = (&mut scratch.lanes, &mut scratch.spheres);
+    for_each_lane_with(parallel, &mut state.copters, lanes, spheres, |i, c, lane, sphere| {
         let af = &world.airframes[world.copters[i].airframe];
         let tol = c.rotor_tolerance.iter().copied().fold(1.0, Real::max);
         // A wreck's motors are off: only gravity and contacts move it.
@@ -64,12 +66,8 @@ pub(super) fn reserve_spheres(world: &World, state: &mut State, parallel: bool, 
         let radius = af.radius_m.hypot(af.spec.body_size_m[2] / 2.0) + 0.01;
         lane.reserved_m = radius + lane.reach_m;
         lane.substep_reserved_m = radius + 0.5 * a_max * dt * dt;
-    });
-    let lanes = &scratch.lanes;
-    fill_each(parallel, &mut scratch.spheres, lanes.len(), OrientedBox::default(), |i| OrientedBox {
-        center: lanes[i].pos_m,
-        rotation: crate::math::Quat::IDENTITY,
-        half: Vec3::new(lanes[i].reserved_m, 0.0, 0.0),
+        let half = Vec3::new(lane.reserved_m, 0.0, 0.0);
+        *sphere = OrientedBox { center: lane.pos_m, rotation: crate::math::Quat::IDENTITY, half };
     });
     scratch.sphere_grid.set_cover(arena_rect(world));
     match roles.0 {
@@ -157,42 +155,46 @@ pub(super) fn gather_falling(world: &World, state: &mut State, roles: Roles<'_>)
 
 /// Each copter's Rapier body enabled for the step if it goes through Rapier, disabled if it
 /// flies free or belongs to another shard; a wreck a shard has just taken over enters as its
-/// owner had it.
-pub(super) fn enable_rapier_bodies(world: &World, state: &mut State, view: &Option<ShardView>) {
+/// owner had it. Which bodies change is found first, in parallel chunks (reading Rapier's
+/// bodies only); the few that do are changed in id order.
+pub(super) fn enable_rapier_bodies(world: &World, state: &mut State, view: &Option<ShardView>, parallel: bool) {
     let closed_form = world.params.closed_form;
-    for (i, (lane, c)) in state.scratch.lanes.iter().zip(&state.copters).enumerate() {
-        // Borrowed mutably only when something changes: a mutable borrow marks a Rapier body
-        // modified, and Rapier's next step revisits every modified body.
-        let body = &state.physics.bodies[c.body];
-        if let Some(v) = view {
-            // Another shard's copter is not in this shard's Rapier world.
-            if v.roles[i] != Role::Owned {
-                if body.is_enabled() {
-                    state.physics.bodies[c.body].set_enabled(false);
-                }
-                continue;
-            }
-            // A wreck this shard has just taken over enters as its owner had it.
-            if c.crash.is_some() && !body.is_enabled() {
-                if closed_form {
-                    // Disabled here, so the same body (the handle does not change).
-                    fix_wreck(world, &mut state.physics, c.body, lane, i, !c.grounded);
-                } else {
-                    take_over_wreck(&mut state.physics.bodies[c.body], lane, v.asleep[i]);
-                }
-                continue;
-            }
-        }
-        // A wreck's body is fixed (closed form) or Rapier's from its crash on.
-        if c.crash.is_some() || lane.free != body.is_enabled() {
+    let (lanes, copters, bodies) = (&state.scratch.lanes, &state.copters, &state.physics.bodies);
+    let roles = view.as_ref().map(|v| &v.roles[..]);
+    fill_each(parallel, &mut state.scratch.body_changes, copters.len(), false, |i| {
+        body_changes(roles.map(|r| r[i]), &copters[i], &lanes[i], bodies[copters[i].body].is_enabled())
+    });
+    for i in 0..state.copters.len() {
+        if !state.scratch.body_changes[i] {
             continue;
         }
-        let body = &mut state.physics.bodies[c.body];
-        if lane.free {
-            body.set_enabled(false);
-        } else {
-            enter_rapier(body, lane);
+        // Borrowed mutably only when something changes: a mutable borrow marks a Rapier body
+        // modified, and Rapier's next step revisits every modified body.
+        let (lane, c) = (&state.scratch.lanes[i], &state.copters[i]);
+        let physics = &mut state.physics;
+        match view {
+            // Another shard's copter is not in this shard's Rapier world.
+            Some(v) if v.roles[i] != Role::Owned => physics.bodies[c.body].set_enabled(false),
+            // A wreck this shard has just taken over enters as its owner had it: in closed
+            // form fixed (disabled here, so the same body: the handle does not change).
+            Some(_) if c.crash.is_some() && closed_form => {
+                fix_wreck(world, physics, c.body, lane, i, !c.grounded);
+            }
+            Some(v) if c.crash.is_some() => take_over_wreck(&mut physics.bodies[c.body], lane, v.asleep[i]),
+            _ if lane.free => physics.bodies[c.body].set_enabled(false),
+            _ => enter_rapier(&mut physics.bodies[c.body], lane),
         }
+    }
+}
+
+/// Whether [`enable_rapier_bodies`] changes copter `c`'s body (`enabled` now), with its role
+/// in a shard.
+fn body_changes(role: Option<Role>, c: &CopterState, lane: &Lane, enabled: bool) -> bool {
+    match role {
+        Some(r) if r != Role::Owned => enabled,
+        Some(_) if c.crash.is_some() && !enabled => true,
+        // A wreck's body is fixed (closed form) or Rapier's from its crash on.
+        _ => c.crash.is_none() && lane.free == enabled,
     }
 }
 

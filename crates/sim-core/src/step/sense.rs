@@ -107,33 +107,55 @@ pub(super) fn sense(
     roles: Roles<'_>,
     probe: &mut (dyn FnMut(Stage) + Send),
 ) {
-    let scratch = &mut state.scratch;
-    let present = roles.0.map(|_| &scratch.present[..]);
-    fill_sonar_scene_of(world, &state.copters, present, parallel, &mut scratch.sonar_scene);
+    let crosstalk_due = sonar_due && world.sensors.spec.crosstalk.enabled && world.copters.len() > 1;
     let autopilots = world.copters.iter().any(|c| c.kind == CopterKind::Autopilot);
-    if autopilots {
-        fill_real_scene(world, &state.copters, present, &mut scratch.real_ids, &mut scratch.real_scene);
-    }
-    if sonar_due {
-        gather_pingers(world, state, parallel, roles);
-    }
+    let crate::state::Scratch { present, sonar_scene, real_scene, real_ids, pingers, lanes, .. } = &mut state.scratch;
+    let (copters, present) = (&state.copters, roles.0.map(|_| &present[..]));
+    // The scene's copter grid on one thread, the pingers on the others.
+    beside(
+        parallel,
+        || {
+            fill_sonar_scene_of(world, copters, present, parallel, sonar_scene);
+            if autopilots {
+                fill_real_scene(world, copters, present, real_ids, real_scene);
+            }
+        },
+        || {
+            if sonar_due {
+                gather_pingers(world, copters, lanes, pingers, parallel, roles);
+            }
+        },
+    );
     probe(Stage::SonarScene);
-    let scratch = &mut state.scratch;
-    let (scene, real_scene, pingers) = (&scratch.sonar_scene, &scratch.real_scene, &scratch.pingers);
+    let crate::state::Scratch { sonar_scene, real_scene, pingers, ping_points, ping_grid, lanes, .. } =
+        &mut state.scratch;
+    let (scene, real_scene, pingers) = (&*sonar_scene, &*real_scene, &*pingers);
     let p = SenseParams::new(world, state.tick, sonar_due);
-    for_each_lane(parallel, &mut state.copters, &mut scratch.lanes, |i, c, lane| {
-        // A wreck's sensors stop (and its sonars no longer ping): its readings keep their
-        // last values.
-        if c.crash.is_some() || !roles.near(i) {
-            return;
-        }
-        let real_layer = autopilots && world.copters[i].kind == CopterKind::Autopilot;
-        let cones = pingers.get(i).map(|p| &p.cones);
-        let ir = read_ranges(world, &p, if real_layer { real_scene } else { scene }, i, cones, c, lane);
-        read_imu_and_estimate(world, &p, i, c, lane, ir);
-    });
+    let copters = &mut state.copters;
+    // Cross-talk's grid of pingers on one thread, every copter's readings on the others.
+    beside(
+        parallel,
+        || {
+            if crosstalk_due {
+                fill_ping_grid(world, pingers, ping_points, ping_grid);
+            }
+        },
+        || {
+            for_each_lane(parallel, copters, lanes, |i, c, lane| {
+                // A wreck's sensors stop (and its sonars no longer ping): its readings keep
+                // their last values.
+                if c.crash.is_some() || !roles.near(i) {
+                    return;
+                }
+                let real_layer = autopilots && world.copters[i].kind == CopterKind::Autopilot;
+                let cones = pingers.get(i).map(|p| &p.cones);
+                let ir = read_ranges(world, &p, if real_layer { real_scene } else { scene }, i, cones, c, lane);
+                read_imu_and_estimate(world, &p, i, c, lane, ir);
+            })
+        },
+    );
     probe(Stage::Ranges);
-    if sonar_due && world.sensors.spec.crosstalk.enabled && world.copters.len() > 1 {
+    if crosstalk_due {
         crosstalk(world, state, &p, parallel);
     }
     probe(Stage::Crosstalk);
@@ -173,9 +195,15 @@ impl SenseParams {
 
 /// Every copter's sonar cones and ping timing, for a sonar update ([`read_ranges`] and
 /// [`crosstalk`]); a wreck's or an absent copter's sonars are silent.
-pub(super) fn gather_pingers(world: &World, state: &mut State, parallel: bool, roles: Roles<'_>) {
-    let (copters, lanes) = (&state.copters, &state.scratch.lanes);
-    fill_each(parallel, &mut state.scratch.pingers, world.copters.len(), Pinger::default(), |i| {
+pub(super) fn gather_pingers(
+    world: &World,
+    copters: &[CopterState],
+    lanes: &[Lane],
+    pingers: &mut Vec<Pinger>,
+    parallel: bool,
+    roles: Roles<'_>,
+) {
+    fill_each(parallel, pingers, world.copters.len(), Pinger::default(), |i| {
         let (lane, c) = (&lanes[i], &copters[i]);
         let pings = c.crash.is_none() && roles.present(i);
         Pinger {
@@ -186,6 +214,21 @@ pub(super) fn gather_pingers(world: &World, state: &mut State, parallel: bool, r
             pings,
         }
     });
+}
+
+/// The grid of the copters that ping, for [`crosstalk`].
+pub(super) fn fill_ping_grid(
+    world: &World,
+    pingers: &[Pinger],
+    ping_points: &mut Vec<(u32, Vec3)>,
+    ping_grid: &mut sensors::CopterGrid,
+) {
+    ping_points.clear();
+    ping_points.extend(pingers.iter().enumerate().filter(|(_, p)| p.pings).map(|(i, p)| (i as u32, p.pos_m)));
+    ping_grid.set_cover(arena_rect(world));
+    // The wedges reach the sonars' full range: cells twice the usual size visit fewer rows
+    // and cells per wedge (any size gives the same readings).
+    ping_grid.build_points(ping_points, 2.0 * grid_cell_m(world, ping_points.len()));
 }
 
 /// A copter's fresh sonars (when due: `cones` from [`gather_pingers`]) and its IR, down the
@@ -304,13 +347,8 @@ pub(super) fn crosstalk(world: &World, state: &mut State, p: &SenseParams, paral
     let (ct, sonar) = (&params.spec.crosstalk, &params.spec.sonar);
     let now_s = world.time_at(p.tick);
     let stagger = if sonar.schedule == SonarSchedule::RoundRobin { 0.25 } else { 0.0 };
-    let crate::state::Scratch { pingers, ping_points, ping_grid, lanes, .. } = &mut state.scratch;
-    ping_points.clear();
-    ping_points.extend(pingers.iter().enumerate().filter(|(_, p)| p.pings).map(|(i, p)| (i as u32, p.pos_m)));
-    ping_grid.set_cover(arena_rect(world));
-    // The wedges reach the sonars' full range: cells twice the usual size visit fewer rows
-    // and cells per wedge (any size gives the same readings).
-    ping_grid.build_points(ping_points, 2.0 * grid_cell_m(world, ping_points.len()));
+    // The pingers' grid is [`fill_ping_grid`]'s.
+    let crate::state::Scratch { pingers, ping_grid, lanes, .. } = &mut state.scratch;
     let (pingers, grid) = (&*pingers, &*ping_grid);
     // Emitter sonar j can reach listener sonar k only if each apex lies in the other's
     // cone. With apexes `mount_offset_m` from the centres, that needs
