@@ -90,6 +90,8 @@ pub const UPLINKS_NOT_COUNTED: u32 = u32::MAX;
 pub const UPLINK_START_S: f64 = 0.5;
 /// How long the world waits, there, for `link` to relay a telemetry message of the aircraft.
 pub const LINK_HEARD_TIMEOUT: Duration = Duration::from_secs(10);
+/// Paparazzi's `link` on the Ivy bus (its application name).
+pub const LINK_IVY_NAME: &str = "Link";
 const STEP_MAGIC: u32 = 0x5457_5331;
 const STATE_MAGIC: u32 = 0x5457_5332;
 const REFUSED_MAGIC: u32 = 0x5457_5330;
@@ -629,6 +631,15 @@ impl Autopilots {
             binds.insert(ac, id);
         }
         if !binds.is_empty() {
+            // Before the first step: `link` must have the bindings before it relays the
+            // aircraft's first telemetry, or the world, waiting at the first counted uplink
+            // with the aircraft held in the lockstep, would hear none (a loaded machine).
+            if !ivy.sync_with(LINK_IVY_NAME, LINK_HEARD_TIMEOUT) {
+                tracing::warn!(
+                    "no {LINK_IVY_NAME} on the Ivy bus answered within {} s: the uplink may go uncounted",
+                    LINK_HEARD_TIMEOUT.as_secs()
+                );
+            }
             self.link = Some(LinkWatch { ivy: Some(Arc::clone(ivy)), heard, binds });
         }
         Ok(())

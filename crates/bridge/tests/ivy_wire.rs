@@ -62,6 +62,26 @@ async fn two_agents_find_each_other_exchange_groups_and_unbind() {
     eventually("a saw b leave", || a.events().iter().any(|e| e.what == "left" && e.why == "bye")).await;
 }
 
+/// `sync_with` returns once the named peer has taken in this agent's bindings (its Pong comes
+/// after them), and false after the timeout when no such peer is on the bus.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn sync_with_waits_until_the_named_peer_has_the_bindings() {
+    let bus = bus();
+    let a = Arc::new(within("start a", IvyAgent::start(IvyOptions::new(bus.clone(), "A"))).await.unwrap());
+    let b = within("start b", IvyAgent::start(IvyOptions::new(bus.clone(), "Link"))).await.unwrap();
+    a.bind(r"^(\S*) ATTITUDE", |_, _| {}).unwrap();
+    let a2 = Arc::clone(&a);
+    let synced = tokio::task::spawn_blocking(move || a2.sync_with("Link", Duration::from_secs(10))).await.unwrap();
+    assert!(synced);
+    // No waiting: b holds a's regex now.
+    assert_eq!(b.takers("5 ATTITUDE 1 2 3"), 1);
+    let a3 = Arc::clone(&a);
+    let start = Instant::now();
+    let none = tokio::task::spawn_blocking(move || a3.sync_with("nobody", Duration::from_millis(300))).await.unwrap();
+    assert!(!none && start.elapsed() >= Duration::from_millis(300));
+    b.stop().await;
+}
+
 /// A peer written by hand: connects to `agent` and introduces itself.
 async fn raw_peer(
     agent: &IvyAgent,

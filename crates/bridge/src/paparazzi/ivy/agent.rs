@@ -32,10 +32,10 @@
 //! - **Die** sets the caller's stop flag (the simulator then ends its run cleanly) and the
 //!   agent leaves the bus with Bye, as ivy-python does.
 
-use std::collections::BTreeMap;
+use std::collections::{BTreeMap, BTreeSet};
 use std::net::{Ipv4Addr, SocketAddr, SocketAddrV4};
-use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
-use std::sync::{Arc, Mutex};
+use std::sync::atomic::{AtomicBool, AtomicU32, AtomicU64, Ordering};
+use std::sync::{Arc, Condvar, Mutex};
 use std::time::{Duration, Instant};
 
 use regex::{CaptureLocations, Regex};
@@ -208,6 +208,10 @@ struct Inner {
     counters: IvyCounters,
     drops: Mutex<BTreeMap<&'static str, u64>>,
     events: Mutex<Vec<PeerEvent>>,
+    /// The Pongs heard, by ping id ([`IvyAgent::sync_with`]), and who waits for them.
+    pongs: Mutex<BTreeSet<u32>>,
+    pong_heard: Condvar,
+    next_ping: AtomicU32,
 }
 
 /// Keeps at most this many peer events.
@@ -301,6 +305,9 @@ impl IvyAgent {
             counters: IvyCounters::default(),
             drops: Mutex::new(BTreeMap::new()),
             events: Mutex::new(Vec::new()),
+            pongs: Mutex::new(BTreeSet::new()),
+            pong_heard: Condvar::new(),
+            next_ping: AtomicU32::new(1),
         });
         // The hello goes out from a socket of its own: on loopback its source is 127.0.0.1,
         // the address peers then connect to.
@@ -489,6 +496,35 @@ impl IvyAgent {
         let mut line = Vec::new();
         Frame::DirectMsg { id, text: text.to_owned() }.encode(&mut line);
         self.for_peers_named(app_name, &line)
+    }
+
+    /// Waits, up to `timeout`, until a peer named `app_name` is connected and has taken in
+    /// everything this agent sent it so far (its bindings included): a Ping, queued after them,
+    /// comes back as a Pong, and Ivy agents handle a connection's lines in order. Returns
+    /// whether it did. Blocks the calling thread (not one of the runtime's).
+    pub fn sync_with(&self, app_name: &str, timeout: Duration) -> bool {
+        let deadline = Instant::now() + timeout;
+        let id = self.inner.next_ping.fetch_add(1, Ordering::Relaxed);
+        let mut line = Vec::new();
+        Frame::Ping { id }.encode(&mut line);
+        // A peer's name is known once its StartRegexp has come.
+        while self.for_peers_named(app_name, &line) == 0 {
+            if Instant::now() >= deadline {
+                return false;
+            }
+            std::thread::sleep(Duration::from_millis(5));
+        }
+        let mut pongs = crate::lock(&self.inner.pongs);
+        loop {
+            if pongs.remove(&id) {
+                return true;
+            }
+            let left = deadline.saturating_duration_since(Instant::now());
+            if left.is_zero() {
+                return false;
+            }
+            pongs = self.inner.pong_heard.wait_timeout(pongs, left).unwrap_or_else(|e| e.into_inner()).0;
+        }
     }
 
     /// Asks every peer named `app_name` to quit (Die); returns how many.
@@ -787,7 +823,10 @@ fn handle_frame(inner: &Arc<Inner>, key: u64, frame: Frame) -> Option<String> {
                 queue(inner, p, line);
             }
         }
-        Frame::Pong { .. } => {}
+        Frame::Pong { id } => {
+            crate::lock(&inner.pongs).insert(id);
+            inner.pong_heard.notify_all();
+        }
         Frame::Error { id, text } => {
             inner.counters.errors_received.fetch_add(1, Ordering::Relaxed);
             tracing::warn!("ivy: a peer reports an error about regex {id}: {text}");
