@@ -24,7 +24,8 @@
 //!
 //! On one thread the free copters' inner loops run inside `InRapierLanes` (one pass over all
 //! copters); on two, beside Rapier in `RapierAndFreeLanes`: the two are read together as
-//! "inner loops + Rapier". The same bits on both (checked every round).
+//! "inner loops + Rapier". The same bits on both (checked every round). With
+//! `STAGES_SUBSTEPS=1` in the environment, the physics stages are shown per substep.
 #![allow(unsafe_code, reason = "clock_gettime on other threads' CPU clocks; an example, not the library")]
 
 use std::collections::BTreeMap;
@@ -120,8 +121,12 @@ impl Row {
 
 /// Per stage group, the median over the rounds of each figure, ms per step.
 fn table(runs: &[Vec<Run>; 2], steps: f64) -> BTreeMap<String, Row> {
-    let group = |s: Stage| match s {
+    // With STAGES_SUBSTEPS set, the physics stages are shown per substep ("RapierForces/3").
+    let per_substep = std::env::var_os("STAGES_SUBSTEPS").is_some();
+    let group = |&(s, sub): &(Stage, u32)| match s {
+        Stage::InRapierLanes | Stage::RapierAndFreeLanes if per_substep => format!("inner loops + Rapier/{sub}"),
         Stage::InRapierLanes | Stage::RapierAndFreeLanes => "inner loops + Rapier".to_owned(),
+        Stage::RapierForces | Stage::RapierResults | Stage::TiltAndTakeOff if per_substep => format!("{s:?}/{sub}"),
         s => format!("{s:?}"),
     };
     // Per group, per round: (wall, cpu) at 1 and at 2 threads.
@@ -129,7 +134,7 @@ fn table(runs: &[Vec<Run>; 2], steps: f64) -> BTreeMap<String, Row> {
     for (k, rs) in runs.iter().enumerate() {
         for (round, run) in rs.iter().enumerate() {
             for (stage, t) in &run.stages {
-                let e = per.entry(group(*stage)).or_default();
+                let e = per.entry(group(stage)).or_default();
                 e[k].resize(rs.len(), (0.0, 0.0));
                 e[k][round].0 += t.wall_s;
                 e[k][round].1 += t.cpu_s;
@@ -161,7 +166,8 @@ struct Times {
 }
 
 struct Run {
-    stages: BTreeMap<Stage, Times>,
+    /// Per stage and substep (0 outside the substeps).
+    stages: BTreeMap<(Stage, u32), Times>,
     wall_s: f64,
     digest: Vec<u64>,
 }
@@ -169,15 +175,19 @@ struct Run {
 fn fly(world: &sim_core::World, ticks: u64) -> Run {
     let (mut state, inputs) = (world.initial_state(), world.initial_inputs());
     let mut report = StepReport::default();
-    let mut stages: BTreeMap<Stage, Times> = BTreeMap::new();
+    let mut stages: BTreeMap<(Stage, u32), Times> = BTreeMap::new();
+    let mut substep = 0;
     let mut clocks = cpu::Clocks::default();
     let start = Instant::now();
     let (mut last, mut last_cpu) = (start, 0.0);
     for _ in 0..ticks {
         step_probed(world, &mut state, &inputs, &mut report, &mut |stage| {
             let (now, cpu) = (Instant::now(), clocks.seconds(world.params.threads));
-            if stage != Stage::Begin {
-                let t = stages.entry(stage).or_default();
+            if stage == Stage::Begin {
+                substep = 0;
+            } else {
+                let t = stages.entry((stage, substep)).or_default();
+                substep += u32::from(stage == Stage::TiltAndTakeOff);
                 t.wall_s += (now - last).as_secs_f64();
                 t.cpu_s += cpu - last_cpu;
             }
