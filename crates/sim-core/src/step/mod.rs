@@ -257,7 +257,7 @@ where
         use rayon::prelude::*;
         let chunk = lane_chunk(copters.len());
         let chunks = copters.par_chunks_mut(chunk).zip(lanes.par_chunks_mut(chunk)).zip(extra.par_chunks_mut(chunk));
-        chunks.enumerate().for_each(|(k, ((cs, ls), xs))| run(k * chunk, cs, ls, xs));
+        chunks.enumerate().with_max_len(PIECE).for_each(|(k, ((cs, ls), xs))| run(k * chunk, cs, ls, xs));
     } else {
         run(0, copters, lanes, extra);
     }
@@ -273,15 +273,20 @@ where
         use rayon::prelude::*;
         let chunk = lane_chunk(copters.len());
         let chunks = copters.par_chunks_mut(chunk).zip(lanes.par_chunks_mut(chunk));
-        chunks.enumerate().for_each(|(k, (cs, ls))| f(k * chunk, cs, ls));
+        chunks.enumerate().with_max_len(PIECE).for_each(|(k, (cs, ls))| f(k * chunk, cs, ls));
     } else {
         f(0, copters, lanes);
     }
 }
 
-/// Copters per parallel chunk of `n`: about 128 chunks, at least 32 copters each. Rayon
-/// splits a pass only as far as idle threads steal from it; the chunks bound how long the
-/// last one takes, while the other threads wait (the copters' cost differs with the crowd).
+/// Chunks per rayon job at most: one.
+const PIECE: usize = 1;
+
+/// Copters per parallel chunk of `n`: about 128 chunks, at least 32 copters each. Every chunk
+/// is its own job (`with_max_len(PIECE)`): left to itself, rayon splits a pass only into as
+/// many pieces as it takes to feed the idle threads at its start, and the last piece of a
+/// crowded pass, run by one thread, is what the others wait for (the copters' cost differs
+/// several times with the crowd).
 fn lane_chunk(n: usize) -> usize {
     (n / 128).max(32)
 }
@@ -311,7 +316,7 @@ fn fill_each2<A, B>(
         use rayon::prelude::*;
         let chunk = lane_chunk(n);
         let chunks = a.par_chunks_mut(chunk).zip(b.par_chunks_mut(chunk));
-        chunks.enumerate().for_each(|(k, (a, b))| run(k * chunk, a, b));
+        chunks.enumerate().with_max_len(PIECE).for_each(|(k, (a, b))| run(k * chunk, a, b));
     } else {
         run(0, a, b);
     }
@@ -340,7 +345,7 @@ where
     if parallel && n > 64 {
         use rayon::prelude::*;
         let chunk = lane_chunk(n);
-        out.par_chunks_mut(chunk).enumerate().for_each(|(k, out)| {
+        out.par_chunks_mut(chunk).enumerate().with_max_len(PIECE).for_each(|(k, out)| {
             for (j, x) in out.iter_mut().enumerate() {
                 *x = f(k * chunk + j);
             }
