@@ -34,7 +34,7 @@
 //! **Where the bits could differ:** Rapier keeps per-contact memory (warm-start impulses) and
 //! an island order set by its whole world's history, which do not travel. With
 //! `[sim] closed_form` (the default) only flying copters near something are in Rapier's hands,
-//! and a touch is mostly a crash, after which the wreck is closed form (`step::fall_wreck`);
+//! and a touch is mostly a crash, after which the wreck is closed form (`step::fall_wrecks`);
 //! so every copter keeps the one-process bits in `tests/shard.rs` (60 s, 2–4 shards, a crowded
 //! take-off where most copters crash). Rapier colours new contacts in body-id order, which
 //! every shard shares, but two collider pairs of one body pair in contact-graph order, which it

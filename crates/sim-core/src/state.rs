@@ -523,8 +523,13 @@ pub(crate) struct Scratch {
     pub(crate) spheres: Vec<OrientedBox>,
     /// A grid over `spheres`.
     pub(crate) sphere_grid: CopterGrid,
-    /// This shard's wrecks falling in closed form, by id (see `step::fall_wreck`).
+    /// This shard's wrecks falling in closed form, by id (see `step::fall_wrecks`).
     pub(crate) falling: Vec<u32>,
+    /// Per falling wreck (as `falling`): its substep from the substep's start, found in
+    /// parallel, and whether it came to rest (see `step::fall_wrecks`).
+    pub(crate) wreck_moves: Vec<(Lane, bool)>,
+    /// The wrecks that came to rest in the current substep, in id order.
+    pub(crate) landed: Vec<u32>,
     /// Per chunk of [`step::ALERT_CHUNK`] lanes: whether one of them may have crashed, taken
     /// off or left its reservation in the last substep (see `step::detect_tilt_and_takeoff`).
     pub(crate) alerts: Vec<bool>,

@@ -223,11 +223,62 @@ pub(super) const FALLING_WRECK: InteractionGroups = InteractionGroups::none();
 /// other. A wreck at rest is tested as its bounding disc (radius `Airframe::radius_m`) and
 /// its top. Its Rapier body is fixed and follows it, so a flying copter that hits it crashes
 /// as before. Wreck against wreck looks only at wrecks whose reservations meet its own: in a
-/// shard they are in its contact cluster, so every shard decides the same.
-pub(super) fn fall_wreck(world: &World, state: &mut State, i: usize, dt: Real) {
+/// shard they are in its contact cluster, so every shard decides the same. With threads and
+/// many wrecks falling, their substeps are found in parallel first; the same bits.
+pub(super) fn fall_wrecks(world: &World, state: &mut State, dt: Real, parallel: bool) {
+    let crate::state::Scratch { lanes, spheres, sphere_grid, falling, wreck_moves, landed, .. } = &mut state.scratch;
+    let copters = &state.copters;
+    let motion = |i: usize, lanes: &[Lane], copters: &[CopterState]| {
+        wreck_motion(world, WreckView { lanes, spheres, grid: sphere_grid, copters }, i, dt)
+    };
+    // Each wreck's substep from the substep's start, in parallel (alone, one wreck after the
+    // other in the loop below).
+    let ahead = parallel && falling.len() >= 16;
+    if ahead {
+        wreck_moves.clear();
+        wreck_moves.reserve(lanes.len());
+        let (lanes, falling) = (&*lanes, &*falling);
+        fill_each(true, wreck_moves, falling.len(), (Lane::default(), false), |k| {
+            motion(falling[k] as usize, lanes, copters)
+        });
+    }
+    // In id order, as one pass: a wreck near one that came to rest earlier in this substep
+    // (their reservations meet) may land on it, so its substep is taken again from there.
+    landed.clear();
+    // Room for every copter, kept from step to step: a warm step does not allocate.
+    landed.reserve(lanes.len());
+    for k in 0..falling.len() {
+        let i = falling[k] as usize;
+        let near = |j: &u32| {
+            let (a, b) = (&spheres[i], &spheres[*j as usize]);
+            (b.center - a.center).length() <= a.half.x + FREE_GAP_M + b.half.x
+        };
+        let (lane, rests) = match ahead && !landed.iter().any(near) {
+            true => wreck_moves[k],
+            false => motion(i, lanes, &state.copters),
+        };
+        lanes[i] = lane;
+        lanes[i].vel_before_m_s = lane.vel_m_s;
+        if rests {
+            landed.push(i as u32);
+        }
+        commit_wreck(&mut state.physics, &mut state.copters[i], &lane, rests);
+    }
+}
+
+/// What [`wreck_motion`] reads besides its own wreck.
+#[derive(Clone, Copy)]
+pub(super) struct WreckView<'a> {
+    pub(super) lanes: &'a [Lane],
+    pub(super) spheres: &'a [OrientedBox],
+    pub(super) grid: &'a crate::sensors::CopterGrid,
+    pub(super) copters: &'a [CopterState],
+}
+
+/// A wreck's substep ([`fall_wrecks`]): its lane after it, and whether it came to rest.
+pub(super) fn wreck_motion(world: &World, view: WreckView<'_>, i: usize, dt: Real) -> (Lane, bool) {
     let af = &world.airframes[world.copters[i].airframe];
-    let scratch = &mut state.scratch;
-    let mut lane = scratch.lanes[i];
+    let mut lane = view.lanes[i];
     let rate_body = lane.rot.inverse() * lane.angvel_rad_s;
     integrate_free(af, &mut lane, rate_body, 0.0, Vec3::ZERO, dt);
     // Planes `x · n = -h` with inward normal `n`: the walls and the ceiling.
@@ -274,10 +325,10 @@ pub(super) fn fall_wreck(world: &World, state: &mut State, i: usize, dt: Real) {
     if lowest <= 0.0 {
         land_on(0.0);
     }
-    let sphere = scratch.spheres[i];
+    let sphere = view.spheres[i];
     let r = sphere.half.x + FREE_GAP_M;
-    let (spheres, lanes, copters) = (&scratch.spheres, &scratch.lanes, &state.copters);
-    scratch.sphere_grid.visit_near(sphere.center, r, |j| {
+    let (spheres, lanes, copters) = (view.spheres, view.lanes, view.copters);
+    view.grid.visit_near(sphere.center, r, |j| {
         let other = &copters[j];
         if j == i || other.crash.is_none() || !other.grounded {
             return r;
@@ -293,23 +344,26 @@ pub(super) fn fall_wreck(world: &World, state: &mut State, i: usize, dt: Real) {
         }
         r
     });
-    if let Some(ground) = ground {
-        let fwd = lane.rot * Vec3::X;
-        let level = Quat::from_rotation_z(fwd.y.atan2(fwd.x));
-        lane.rot =
-            if (lane.rot * Vec3::Z).z < 0.0 { level * Quat::from_rotation_x(std::f32::consts::PI) } else { level };
-        lane.pos_m.z = ground + lowest_point_below_centre(af, lane.rot);
-        lane.vel_m_s = Vec3::ZERO;
-        lane.angvel_rad_s = Vec3::ZERO;
-        state.copters[i].grounded = true;
-        // At rest for good: solid for the copters that come to it.
-        let physics = &mut state.physics;
-        for &collider in physics.bodies[state.copters[i].body].colliders() {
+    let Some(ground) = ground else { return (lane, false) };
+    let fwd = lane.rot * Vec3::X;
+    let level = Quat::from_rotation_z(fwd.y.atan2(fwd.x));
+    lane.rot = if (lane.rot * Vec3::Z).z < 0.0 { level * Quat::from_rotation_x(std::f32::consts::PI) } else { level };
+    lane.pos_m.z = ground + lowest_point_below_centre(af, lane.rot);
+    lane.vel_m_s = Vec3::ZERO;
+    lane.angvel_rad_s = Vec3::ZERO;
+    (lane, true)
+}
+
+/// A wreck's substep into its copter and its fixed Rapier body, which follows it; one at rest
+/// becomes solid for the copters that come to it.
+fn commit_wreck(physics: &mut PhysicsWorld, c: &mut CopterState, lane: &Lane, rests: bool) {
+    if rests {
+        c.grounded = true;
+        for &collider in physics.bodies[c.body].colliders() {
             physics.colliders[collider].set_solver_groups(InteractionGroups::all());
         }
     }
-    scratch.lanes[i] = lane;
-    let body = &mut state.physics.bodies[state.copters[i].body];
+    let body = &mut physics.bodies[c.body];
     body.set_translation(lane.pos_m, false);
     body.set_rotation(lane.rot, false);
 }

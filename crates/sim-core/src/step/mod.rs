@@ -484,12 +484,7 @@ fn physics_substep(
     let first = pass.closure(s, parallel_rapier.then_some(true));
     for_each_chunk(parallel, &mut state.copters, &mut scratch.lanes, first);
     probe(Stage::InRapierLanes);
-    for k in 0..state.scratch.falling.len() {
-        let i = state.scratch.falling[k] as usize;
-        fall_wreck(world, state, i, dt);
-        let lane = &mut state.scratch.lanes[i];
-        lane.vel_before_m_s = lane.vel_m_s;
-    }
+    fall_wrecks(world, state, dt, parallel);
     let (copters, falling) = (&state.copters, &mut state.scratch.falling);
     falling.retain(|&i| !copters[i as usize].grounded);
     // The others go through Rapier, in id order.

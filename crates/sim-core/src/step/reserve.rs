@@ -13,7 +13,7 @@ use super::*;
 /// floor is met in closed form ([`touch_floor`]), so Rapier has nothing to do for it: its body
 /// is disabled and it is integrated in closed form (semi-implicit Euler, Rapier's damping and
 /// gyroscopic terms). A copter whose sphere meets only other copters' flies free on watch
-/// ([`watch_contacts`]). Wrecks fall and rest in closed form too ([`fall_wreck`]), their
+/// ([`watch_contacts`]). Wrecks fall and rest in closed form too ([`fall_wrecks`]), their
 /// bodies fixed in Rapier where flying copters can hit them.
 pub(super) fn reserve_free_flight(
     world: &World,
@@ -91,7 +91,7 @@ pub(super) fn sort_free_and_watched(world: &World, state: &mut State, parallel: 
             return;
         }
         lane.floor_impact_m_s = 0.0;
-        // A wreck in closed form falls and lies outside Rapier's dynamics (`fall_wreck`).
+        // A wreck in closed form falls and lies outside Rapier's dynamics (`fall_wrecks`).
         if c.crash.is_some() && closed_form {
             (lane.free, lane.watch) = (true, false);
             return;

@@ -101,7 +101,7 @@ pub(super) fn substep_lane(
     dt: Real,
 ) {
     'motion: {
-        // A wreck in closed form moves in the serial pass (`fall_wreck`).
+        // A wreck in closed form moves in its own pass (`fall_wrecks`).
         if !roles.owned(i) || (c.crash.is_some() && lane.free) {
             break 'motion;
         }
