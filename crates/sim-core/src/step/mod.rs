@@ -568,6 +568,30 @@ mod tests {
     use super::*;
     use crate::airframe::AirframeSpec;
 
+    /// Falling wrecks found in parallel and then taken in id order (`fall_wrecks`, from two
+    /// falling here) give the one-thread bits, a wreck landing on one that came to rest in the
+    /// same substep included.
+    #[test]
+    fn wrecks_falling_together_give_the_one_thread_bits() {
+        let worlds = [1, 2].map(|threads| {
+            let mut spec = crate::scene::dense_swarm(150, 1.5, true, 10, 3);
+            spec.sim.threads = threads;
+            crate::scene::compile(&spec).unwrap()
+        });
+        let inputs = worlds[0].initial_inputs();
+        let mut states = worlds.each_ref().map(World::initial_state);
+        let mut most_falling = 0;
+        for _ in 0..300 {
+            for (w, s) in worlds.iter().zip(&mut states) {
+                step(w, s, &inputs);
+            }
+            most_falling = most_falling.max(states[1].scratch.falling.len());
+            let digests = states.each_ref().map(|s| s.copters.iter().map(|c| c.digest()).collect::<Vec<_>>());
+            assert_eq!(digests[0], digests[1], "tick {}", states[0].tick);
+        }
+        assert!(most_falling >= crash::WRECKS_AHEAD_MIN, "{most_falling} wrecks falling at most");
+    }
+
     #[test]
     fn crosstalks_pretest_passes_only_near_the_listeners_cone() {
         let mut rng = crate::rng::Rng32::new(9, 0);
