@@ -471,18 +471,24 @@ fn gate_outliers(v: &[(f64, f64)], gate_m: f64, window_s: f64) -> Vec<(f64, f64)
         }
         near.clear();
         near.extend((lo..hi).filter(|j| *j != i).map(|j| v[j].1));
-        if near.len() < 2 {
-            out.push((t, x));
-            continue;
-        }
-        near.sort_by(f64::total_cmp);
-        let k = near.len() / 2;
-        let median = if near.len() % 2 == 1 { near[k] } else { 0.5 * (near[k - 1] + near[k]) };
-        if (x - median).abs() <= gate_m {
+        if near_median(&mut near, x, gate_m) {
             out.push((t, x));
         }
     }
     out
+}
+
+/// Whether `x` lies within `gate_m` of the median of `others` (sorted here); with fewer than
+/// two others, there is nothing to gate against and it does. The gate of [`gate_outliers`] and
+/// of the synced state's causal one.
+fn near_median(others: &mut [f64], x: f64, gate_m: f64) -> bool {
+    if others.len() < 2 {
+        return true;
+    }
+    others.sort_by(f64::total_cmp);
+    let k = others.len() / 2;
+    let median = if others.len() % 2 == 1 { others[k] } else { 0.5 * (others[k - 1] + others[k]) };
+    (x - median).abs() <= gate_m
 }
 
 /// `v` (time-ordered) at `t`, linear between the samples either side where they are less than

@@ -101,14 +101,7 @@ pub(super) fn causal_gate(v: &[(f64, f64)], gate_m: f64, window_s: f64) -> Vec<(
         }
         before.clear();
         before.extend(v[lo..i].iter().map(|r| r.1));
-        if before.len() < 2 {
-            out.push((t, x));
-            continue;
-        }
-        before.sort_by(f64::total_cmp);
-        let k = before.len() / 2;
-        let median = if before.len() % 2 == 1 { before[k] } else { 0.5 * (before[k - 1] + before[k]) };
-        if (x - median).abs() <= gate_m {
+        if super::near_median(&mut before, x, gate_m) {
             out.push((t, x));
         }
     }
