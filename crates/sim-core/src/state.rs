@@ -585,6 +585,8 @@ pub(crate) struct Lane {
     /// Flies free but near other copters: each substep checks whether it may touch one, and
     /// if so hands it to Rapier (see `step::watch_contacts`).
     pub(crate) watch: bool,
+    /// In a shard: its reservation sphere meets another copter's (see `step::take_ownership`).
+    pub(crate) touching: bool,
     /// Bounding radius plus the reach of its acceleration within one substep, m.
     pub(crate) substep_reserved_m: Real,
     /// Centre of the reservation at the start of the step, m.

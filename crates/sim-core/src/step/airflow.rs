@@ -67,16 +67,15 @@ pub(super) fn gather_wakes(world: &World, state: &mut State, parallel: bool, rol
     let (wakes, wake_reach) = (&mut scratch.wakes, &mut scratch.wake_reach);
     let fills = (Wake::default(), OrientedBox::default());
     fill_each2(parallel, wakes, wake_reach, lanes.len(), fills, |i| {
+        if !roles.present(i) {
+            return fills;
+        }
         let (lane, c) = (&lanes[i], &copters[i]);
         let af = &world.airframes[world.copters[i].airframe];
         let thrust: Real = c.rotor_thrust_n.iter().sum();
         let dir = lane.rot * Vec3::NEG_Z;
         let origin = lane.pos_m + lane.rot * Vec3::new(0.0, 0.0, af.rotor_pos_in_body_m[0].z);
-        let active = c.crash.is_none()
-            && thrust > 0.1 * af.hover_thrust_per_rotor_n
-            && dir.z < -0.2
-            && origin.z > 0.0
-            && roles.present(i);
+        let active = c.crash.is_none() && thrust > 0.1 * af.hover_thrust_per_rotor_n && dir.z < -0.2 && origin.z > 0.0;
         if !active {
             // Reaches nothing, from where it would start (`wake_reach` is centred there).
             return with_reach(Wake { origin, ..Wake::default() });

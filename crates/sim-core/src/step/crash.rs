@@ -70,15 +70,19 @@ pub(super) fn detect_tilt_and_takeoff(
     let crash_cos_tilt = &scratch.crash_cos_tilt;
     // A copter that ran ahead is checked at the substep it stopped after.
     let at = |lane: &Lane| lane.batched <= s + 1;
-    let may_act = |lane: &Lane| at(lane) && may_act(world, crash_cos_tilt, lane);
+    // Chunk `k`'s alert: one of its copters that this shard moves may act.
+    let alert = |k: usize, lanes: &[Lane]| {
+        let may = |(j, lane): (usize, &Lane)| roles.owned(k * ALERT_CHUNK + j) && at(lane);
+        lanes.iter().enumerate().any(|jl| may(jl) && may_act(world, crash_cos_tilt, jl.1))
+    };
     scratch.alerts.resize(scratch.lanes.len().div_ceil(ALERT_CHUNK), false);
     if parallel && scratch.lanes.len() > 4 * ALERT_CHUNK {
         use rayon::prelude::*;
         let chunks = scratch.lanes.par_chunks(ALERT_CHUNK).zip(scratch.alerts.par_iter_mut());
-        chunks.for_each(|(lanes, alert)| *alert = lanes.iter().any(may_act));
+        chunks.enumerate().for_each(|(k, (lanes, a))| *a = alert(k, lanes));
     } else {
-        for (lanes, alert) in scratch.lanes.chunks(ALERT_CHUNK).zip(&mut scratch.alerts) {
-            *alert = lanes.iter().any(may_act);
+        for (k, (lanes, a)) in scratch.lanes.chunks(ALERT_CHUNK).zip(&mut scratch.alerts).enumerate() {
+            *a = alert(k, lanes);
         }
     }
     let n = world.copters.len();

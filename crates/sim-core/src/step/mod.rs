@@ -390,7 +390,7 @@ fn step_copters(
     }
     // Before the ownership of this step is decided: what this shard owned at its start.
     let roles = Roles(view.as_ref().map(|v| &v.roles[..]));
-    load_lanes(world, state, parallel);
+    load_lanes(world, state, parallel, roles);
     probe(Stage::Lanes);
     let sonar_period = world.sensors.spec.sonar.period_steps.max(1) as u64;
     if world.sensors.spec.enabled {
@@ -429,11 +429,15 @@ fn step_copters(
     probe(Stage::Store);
 }
 
-/// Every copter's motion at the start of the step, into its lane.
-fn load_lanes(world: &World, state: &mut State, parallel: bool) {
+/// Every copter's motion at the start of the step, into its lane (in a shard, of the copters
+/// it reads: an absent one's lane is read by nothing).
+fn load_lanes(world: &World, state: &mut State, parallel: bool, roles: Roles<'_>) {
     let lanes = &mut state.scratch.lanes;
     lanes.resize(world.copters.len(), Lane::default());
     for_each_lane(parallel, &mut state.copters, lanes, |i, c, lane| {
+        if !roles.present(i) {
+            return;
+        }
         let m = &c.motion;
         (lane.pos_m, lane.rot, lane.vel_m_s, lane.angvel_rad_s) = (m.pos_m, m.rot, m.vel_m_s, m.angvel_rad_s);
         lane.airframe = world.copters[i].airframe as u32;

@@ -51,6 +51,9 @@ pub(super) fn reserve_spheres(world: &World, state: &mut State, parallel: bool, 
     scratch.spheres.resize(scratch.lanes.len(), OrientedBox::default());
     let (lanes, spheres) = (&mut scratch.lanes, &mut scratch.spheres);
     for_each_lane_with(parallel, &mut state.copters, lanes, spheres, |i, c, lane, sphere| {
+        if !roles.present(i) {
+            return;
+        }
         let af = &world.airframes[world.copters[i].airframe];
         let tol = c.rotor_tolerance.iter().copied().fold(1.0, Real::max);
         // A wreck's motors are off: only gravity and contacts move it.
@@ -77,7 +80,8 @@ pub(super) fn reserve_spheres(world: &World, state: &mut State, parallel: bool, 
 }
 
 /// Which copters fly free (their spheres clear of the walls, the ceiling and the boxes) and,
-/// of those, which on watch (their spheres meet another copter's).
+/// of those, which on watch (their spheres meet another copter's); in a shard, which spheres
+/// meet another copter's at all (`Lane::touching`, for [`take_ownership`]).
 pub(super) fn sort_free_and_watched(world: &World, state: &mut State, parallel: bool, roles: Roles<'_>) {
     let scratch = &mut state.scratch;
     let spheres = &scratch.spheres;
@@ -85,18 +89,29 @@ pub(super) fn sort_free_and_watched(world: &World, state: &mut State, parallel: 
     let arena = &world.arena;
     let (hx, hy) = (arena.size_m[0] / 2.0, arena.size_m[1] / 2.0);
     let closed_form = world.params.closed_form;
+    // Whether copter `i`'s sphere (centre `p`, radius `r` with the gap) meets another's.
+    let meets_another = |i: usize, p: Vec3, r: Real| {
+        let mut meets = false;
+        grid.visit_near(p, r, |j| {
+            meets |= j != i && (spheres[j].center - p).length() <= r + spheres[j].half.x;
+            if meets { -1.0 } else { r }
+        });
+        meets
+    };
+    // A shard's ownership joins the copters whose spheres meet: it looks only at those.
+    let shard = roles.0.is_some();
     for_each_lane(parallel, &mut state.copters, &mut scratch.lanes, |i, c, lane| {
+        (lane.free, lane.watch, lane.touching) = (false, false, false);
         if !roles.present(i) {
-            (lane.free, lane.watch) = (false, false);
             return;
         }
         lane.floor_impact_m_s = 0.0;
+        let (p, r) = (lane.pos_m, lane.reserved_m + FREE_GAP_M);
         // A wreck in closed form falls and lies outside Rapier's dynamics (`fall_wrecks`).
         if c.crash.is_some() && closed_form {
-            (lane.free, lane.watch) = (true, false);
+            (lane.free, lane.touching) = (true, shard && meets_another(i, p, r));
             return;
         }
-        let (p, r) = (lane.pos_m, lane.reserved_m + FREE_GAP_M);
         // The floor needs no clearance: free flight meets it in closed form.
         let mut free = c.crash.is_none() && closed_form;
         if free && arena.walls {
@@ -106,17 +121,8 @@ pub(super) fn sort_free_and_watched(world: &World, state: &mut State, parallel: 
             free = world.boxes.iter().all(|b| b.is_farther_than(p, r));
         }
         // Clear of the walls and boxes but near other copters: on watch.
-        let mut watch = false;
-        if free {
-            grid.visit_near(p, r, |j| {
-                if j != i && (spheres[j].center - p).length() <= r + spheres[j].half.x {
-                    watch = true;
-                }
-                if watch { -1.0 } else { r }
-            });
-        }
-        lane.free = free;
-        lane.watch = watch;
+        let meets = (free || shard) && meets_another(i, p, r);
+        (lane.free, lane.watch, lane.touching) = (free, free && meets, meets);
         // Rapier keeps a copter on the floor itself; back in free flight it lands anew.
         c.grounded &= free;
     });
@@ -212,7 +218,8 @@ pub(super) fn take_ownership(state: &mut State, view: &mut ShardView) -> u32 {
     parent.clear();
     parent.extend(0..n as u32);
     let (spheres, grid) = (&scratch.spheres, &scratch.sphere_grid);
-    for &i in &scratch.present {
+    // A copter whose sphere meets no other is a cluster of its own.
+    for &i in scratch.present.iter().filter(|&&i| scratch.lanes[i as usize].touching) {
         let sphere = &spheres[i as usize];
         let (p, r) = (sphere.center, sphere.half.x + FREE_GAP_M);
         grid.visit_near(p, r, |j| {

@@ -7,13 +7,15 @@ use super::*;
 /// every copter's body (crashed ones too), indexed in the copter grid. `sense` uses it; so can
 /// tools that need the same geometry (e.g. extra virtual sonars).
 pub fn fill_sonar_scene(world: &World, copters: &[CopterState], scene: &mut SonarScene) {
-    fill_sonar_scene_of(world, copters, None, false, scene);
+    fill_sonar_scene_of(world, copters, Roles(None), None, false, scene);
 }
 
-/// [`fill_sonar_scene`] seeing only the copters in `present` (ascending ids), if given.
+/// [`fill_sonar_scene`] seeing only the copters in `present` (ascending ids: those `roles`
+/// has present), if given.
 pub(super) fn fill_sonar_scene_of(
     world: &World,
     copters: &[CopterState],
+    roles: Roles<'_>,
     present: Option<&[u32]>,
     parallel: bool,
     scene: &mut SonarScene,
@@ -35,7 +37,10 @@ pub(super) fn fill_sonar_scene_of(
         rotation: crate::math::Quat::from_rotation_z(b.yaw_rad),
         half: b.half_extents_m,
     }));
-    fill_each(parallel, &mut scene.copters, copters.len(), OrientedBox::default(), |i| copter_box(world, copters, i));
+    fill_each(parallel, &mut scene.copters, copters.len(), OrientedBox::default(), |i| match roles.present(i) {
+        true => copter_box(world, copters, i),
+        false => OrientedBox::default(),
+    });
     scene.grid.set_cover(arena_rect(world));
     match present {
         Some(ids) => scene.index_some_copters(ids, grid_cell_m(world, copters.len())),
@@ -52,7 +57,7 @@ pub(super) fn fill_real_scene(
     ids: &mut Vec<u32>,
     scene: &mut SonarScene,
 ) {
-    fill_sonar_scene_of(world, copters, None, false, scene);
+    fill_sonar_scene_of(world, copters, Roles(None), None, false, scene);
     scene.boxes.clear();
     scene.boxes.extend(world.boxes.iter().filter(|b| !b.virtual_only).map(|b| OrientedBox {
         center: b.center_m,
@@ -115,7 +120,7 @@ pub(super) fn sense(
     beside(
         parallel,
         || {
-            fill_sonar_scene_of(world, copters, present, parallel, sonar_scene);
+            fill_sonar_scene_of(world, copters, roles, present, parallel, sonar_scene);
             if autopilots {
                 fill_real_scene(world, copters, present, real_ids, real_scene);
             }
@@ -156,7 +161,7 @@ pub(super) fn sense(
     );
     probe(Stage::Ranges);
     if crosstalk_due {
-        crosstalk(world, state, &p, parallel);
+        crosstalk(world, state, &p, parallel, roles);
     }
     probe(Stage::Crosstalk);
     fuse_and_filter(world, state, inputs, &p, parallel, roles);
@@ -204,8 +209,11 @@ pub(super) fn gather_pingers(
     roles: Roles<'_>,
 ) {
     fill_each(parallel, pingers, world.copters.len(), Pinger::default(), |i| {
+        if !roles.present(i) {
+            return Pinger::default();
+        }
         let (lane, c) = (&lanes[i], &copters[i]);
-        let pings = c.crash.is_none() && roles.present(i);
+        let pings = c.crash.is_none();
         Pinger {
             pos_m: lane.pos_m,
             cones: if pings { sonar_cones(&world.sensors, lane.pos_m, lane.rot) } else { Default::default() },
@@ -342,7 +350,7 @@ pub(super) fn read_imu_and_estimate(
 /// before its echo. Each listener looks for emitters only in the grid cells under its fresh
 /// sonar's cone (a [`Wedge`]), and writes only its own readings: a reading is a minimum, the
 /// same in any order and on any thread.
-pub(super) fn crosstalk(world: &World, state: &mut State, p: &SenseParams, parallel: bool) {
+pub(super) fn crosstalk(world: &World, state: &mut State, p: &SenseParams, parallel: bool, roles: Roles<'_>) {
     let params = &world.sensors;
     let (ct, sonar) = (&params.spec.crosstalk, &params.spec.sonar);
     let now_s = world.time_at(p.tick);
@@ -388,7 +396,8 @@ pub(super) fn crosstalk(world: &World, state: &mut State, p: &SenseParams, paral
     let fresh = p.fresh;
     for_each_lane(parallel, &mut state.copters, lanes, |b, c, _| {
         let me = &pingers[b];
-        if !me.pings {
+        // A far copter pings, and the near ones hear it, but its own readings are its owner's.
+        if !me.pings || !roles.near(b) {
             return;
         }
         for k in (0..4).filter(|&k| fresh[k]) {
@@ -427,10 +436,14 @@ pub(super) fn fuse_and_filter(
 ) {
     let wall_avoid = &world.sensors.spec.wall_avoid;
     for_each_lane(parallel, &mut state.copters, &mut state.scratch.lanes, |i, c, _| {
+        // Another shard's copter farther out is fused and filtered by its owner.
+        if !roles.near(i) {
+            return;
+        }
         let virt = inputs.commands.get(i).and_then(|c| c.virtual_sonar_m);
         let r = &mut c.sensors;
         r.sonar_fused_m = sensors::fuse_min(r.sonar_m, virt);
-        if p.sonar_due && c.crash.is_none() && roles.near(i) {
+        if p.sonar_due && c.crash.is_none() {
             for k in (0..4).filter(|&k| p.fresh[k]) {
                 c.wall_avoid.filter(wall_avoid, k, r.sonar_fused_m[k]);
             }
