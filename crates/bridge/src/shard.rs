@@ -107,7 +107,8 @@ fn zerr(e: impl std::fmt::Display) -> LinkError {
 }
 
 enum Incoming {
-    Batch(GhostBatch, usize),
+    /// A batch, its size (bytes) and the time it took to decode (s).
+    Batch(GhostBatch, usize, f64),
     Bad(String, String),
     Joined(ShardId),
     Left(ShardId),
@@ -124,6 +125,12 @@ pub struct LinkStats {
     pub wait_max_s: f64,
     /// Time encoding and sending, s.
     pub send_s: f64,
+    /// Time decoding the neighbours' batches, s (on Zenoh's threads, as they arrive).
+    #[serde(default)]
+    pub decode_s: f64,
+    /// Time taking the neighbours' ghosts into the state, s (after the wait).
+    #[serde(default)]
+    pub take_s: f64,
     /// Ghosts sent and received.
     pub ghosts_sent: u64,
     /// Ghosts received.
@@ -158,9 +165,10 @@ fn declare_batches(
         .declare_subscriber(format!("{prefix}/shard/*/to/{me}"))
         .callback(move |sample| {
             let key = sample.key_expr().to_string();
+            let start = Instant::now();
             let bytes = sample.payload().to_bytes();
             let msg = match postcard::from_bytes::<GhostBatch>(&bytes) {
-                Ok(b) => Incoming::Batch(b, bytes.len()),
+                Ok(b) => Incoming::Batch(b, bytes.len(), start.elapsed().as_secs_f64()),
                 Err(e) => Incoming::Bad(key, e.to_string()),
             };
             let _ = tx.send(msg);
@@ -345,8 +353,9 @@ impl ShardLink {
 
     fn take(&mut self, msg: Incoming) -> Result<(), LinkError> {
         match msg {
-            Incoming::Batch(b, bytes) => {
+            Incoming::Batch(b, bytes, decode_s) => {
                 self.stats.bytes_received += bytes as u64;
+                self.stats.decode_s += decode_s;
                 if self.taken_tick.is_some_and(|t| b.tick <= t) {
                     self.stats.stale_batches += 1;
                     return Ok(());
@@ -472,7 +481,9 @@ impl ShardLink {
         self.early.retain(|&(t, _), _| t > tick);
         self.stats.stale_batches += (before - self.early.len()) as u64;
         self.taken_tick = Some(tick);
+        let t2 = Instant::now();
         state.receive_ghosts(batches.into_iter().flat_map(|b| b.ghosts))?;
+        self.stats.take_s += t2.elapsed().as_secs_f64();
         Ok(())
     }
 

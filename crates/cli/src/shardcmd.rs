@@ -68,13 +68,20 @@ pub fn print_section(s: &ShardSection) {
         s.shard, s.shards, s.grid[0], s.grid[1], s.halo_m, s.owned_at_end, s.ghosts_at_end, s.taken_over
     );
     if let Some(l) = &s.link {
+        let per_step = |s: f64| s * 1e3 / l.totals.exchanges.max(1) as f64;
         println!(
-            "    barrier: {:.3} ms per step (worst wait {:.1} ms); ghosts: {:.0} B sent per step, {} sent, {} received",
+            "    barrier: {:.3} ms per step (encode and send {:.2}, wait {:.2}, take in {:.2}; decode {:.2} on \
+             Zenoh's threads; worst wait {:.1} ms)",
             l.barrier_ms_per_step,
+            per_step(l.totals.send_s),
+            per_step(l.totals.wait_s),
+            per_step(l.totals.take_s),
+            per_step(l.totals.decode_s),
             l.totals.wait_max_s * 1e3,
-            l.bytes_sent_per_step,
-            l.totals.ghosts_sent,
-            l.totals.ghosts_received
+        );
+        println!(
+            "    ghosts: {:.0} B sent per step, {} sent, {} received",
+            l.bytes_sent_per_step, l.totals.ghosts_sent, l.totals.ghosts_received
         );
     }
 }
@@ -94,7 +101,7 @@ impl From<&LinkStats> for LinkStatsOut {
         Self {
             totals: s.clone(),
             bytes_sent_per_step: per(s.bytes_sent as f64),
-            barrier_ms_per_step: per((s.wait_s + s.send_s) * 1e3),
+            barrier_ms_per_step: per((s.send_s + s.wait_s + s.take_s) * 1e3),
         }
     }
 }
