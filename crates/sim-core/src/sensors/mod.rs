@@ -430,6 +430,23 @@ impl CopterGrid {
         self.built_for = boxes.len();
     }
 
+    /// Indexes items by their centres before their sizes are known: the ids in `ids`
+    /// (ascending) or, without, `0..n`, each at `centre(id)`; cells list them as
+    /// [`CopterGrid::build`] and [`CopterGrid::build_some`] would. [`CopterGrid::set_max_radius`]
+    /// must follow before the grid is visited.
+    pub fn build_centres(&mut self, n: usize, ids: Option<&[u32]>, centre: impl Fn(usize) -> Vec3, cell_m: Real) {
+        match ids {
+            Some(ids) => self.build_from(ids.len(), |k| (ids[k], centre(ids[k] as usize)), 0.0, cell_m),
+            None => self.build_from(n, |k| (k as u32, centre(k)), 0.0, cell_m),
+        }
+        self.built_for = n;
+    }
+
+    /// The largest bounding radius of the items [`CopterGrid::build_centres`] indexed, m.
+    pub fn set_max_radius(&mut self, radius_m: Real) {
+        self.max_radius_m = radius_m;
+    }
+
     /// Indexes points `(id, position)` (bounding radius 0). With `points` in ascending id
     /// order, each cell lists its ids ascending, as [`CopterGrid::build`] does.
     pub fn build_points(&mut self, points: &[(u32, Vec3)], cell_m: Real) {

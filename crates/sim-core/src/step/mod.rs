@@ -397,7 +397,14 @@ fn step_copters(
         sense(world, state, inputs, state.tick.is_multiple_of(sonar_period), parallel, roles, probe);
     }
     probe(Stage::Sense);
-    outer_loops(world, state, inputs, parallel, roles);
+    // The reachable spheres' grid by their centres on one thread, the outer loops on the others.
+    let crate::state::Scratch { lanes, sphere_grid, present, .. } = &mut state.scratch;
+    let (copters, tick) = (&mut state.copters, state.tick);
+    beside(
+        parallel,
+        || reserve::index_sphere_centres(world, lanes, present, roles, sphere_grid),
+        || outer_loops(world, copters, lanes, tick, inputs, parallel, roles),
+    );
     probe(Stage::OuterLoops);
     report.shard_violations += airflow(world, state, parallel, roles);
     probe(Stage::Airflow);
@@ -447,19 +454,38 @@ fn load_lanes(world: &World, state: &mut State, parallel: bool, roles: Roles<'_>
     });
 }
 
-/// Each copter's flight mode: its setpoint for the step's inner loops.
-fn outer_loops(world: &World, state: &mut State, inputs: &Inputs, parallel: bool, roles: Roles<'_>) {
+/// Each copter's flight mode: its setpoint for the step's inner loops (reading the lanes
+/// only, in parallel chunks or in order).
+fn outer_loops(
+    world: &World,
+    copters: &mut [CopterState],
+    lanes: &[Lane],
+    tick: u64,
+    inputs: &Inputs,
+    parallel: bool,
+    roles: Roles<'_>,
+) {
     let command = |i: usize| -> &Command { inputs.commands.get(i).unwrap_or(&world.copters[i].initial_command) };
     let dt_control = world.params.control_dt_s as Real;
-    let tick = state.tick;
-    for_each_lane(parallel, &mut state.copters, &mut state.scratch.lanes, |i, c, lane| {
-        if !roles.near(i) {
-            return;
+    let run = |first: usize, cs: &mut [CopterState], ls: &[Lane]| {
+        for (j, (c, lane)) in cs.iter_mut().zip(ls).enumerate() {
+            let i = first + j;
+            if !roles.near(i) {
+                continue;
+            }
+            let af = &world.airframes[world.copters[i].airframe];
+            let yaw = euler_from_quat(lane.rot)[2];
+            c.setpoint = outer_loop(world, i, af, c, command(i), lane.pos_m, lane.vel_m_s, yaw, dt_control, tick);
         }
-        let af = &world.airframes[world.copters[i].airframe];
-        let yaw = euler_from_quat(lane.rot)[2];
-        c.setpoint = outer_loop(world, i, af, c, command(i), lane.pos_m, lane.vel_m_s, yaw, dt_control, tick);
-    });
+    };
+    if parallel && copters.len() > 64 {
+        use rayon::prelude::*;
+        let chunk = lane_chunk(copters.len());
+        let chunks = copters.par_chunks_mut(chunk).zip(lanes.par_chunks(chunk));
+        chunks.enumerate().with_max_len(PIECE).for_each(|(k, (cs, ls))| run(k * chunk, cs, ls));
+    } else {
+        run(0, copters, lanes);
+    }
 }
 
 /// Physics substep `s` of every copter: inner loops and rotors; free copters move in closed

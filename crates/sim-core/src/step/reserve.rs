@@ -72,11 +72,28 @@ pub(super) fn reserve_spheres(world: &World, state: &mut State, parallel: bool, 
         let half = Vec3::new(lane.reserved_m, 0.0, 0.0);
         *sphere = OrientedBox { center: lane.pos_m, rotation: crate::math::Quat::IDENTITY, half };
     });
-    scratch.sphere_grid.set_cover(arena_rect(world));
-    match roles.0 {
-        Some(_) => scratch.sphere_grid.build_some(&scratch.spheres, &scratch.present, GRID_CELL_M),
-        None => scratch.sphere_grid.build(&scratch.spheres, GRID_CELL_M),
-    }
+    // The grid is indexed already ([`index_sphere_centres`]); its reach is the largest sphere's.
+    let radius = |i: usize| scratch.spheres[i].bounding_radius();
+    let max_radius_m = match roles.0 {
+        Some(_) => scratch.present.iter().map(|&i| radius(i as usize)).fold(0.0, Real::max),
+        None => (0..scratch.spheres.len()).map(radius).fold(0.0, Real::max),
+    };
+    scratch.sphere_grid.set_max_radius(max_radius_m);
+}
+
+/// The grid of the copters' reachable spheres, by their centres alone: the lanes' positions
+/// at the step's start, which nothing moves before the substeps (so it can be built beside
+/// the outer loops; [`reserve_spheres`] sets its reach).
+pub(super) fn index_sphere_centres(
+    world: &World,
+    lanes: &[Lane],
+    present: &[u32],
+    roles: Roles<'_>,
+    grid: &mut sensors::CopterGrid,
+) {
+    grid.set_cover(arena_rect(world));
+    let ids = roles.0.map(|_| present);
+    grid.build_centres(lanes.len(), ids, |i| lanes[i].pos_m, GRID_CELL_M);
 }
 
 /// Which copters fly free (their spheres clear of the walls, the ceiling and the boxes) and,
