@@ -78,6 +78,42 @@ pub enum GhostState {
     Seen(Seen),
 }
 
+/// A [`Ghost`] as its owner sends it, borrowing the copter's state: it serialises to the
+/// same bytes as the [`Ghost`] it is read back as ([`State::ghost_refs_for`]).
+#[derive(Clone, Debug, Serialize)]
+#[serde(rename = "Ghost")]
+pub struct GhostRef<'a> {
+    /// Copter id.
+    pub id: u32,
+    /// See [`Ghost::asleep`].
+    pub asleep: bool,
+    /// See [`Ghost::held_by`].
+    pub held_by: Option<ShardId>,
+    /// What it carries.
+    pub state: GhostStateRef<'a>,
+}
+
+/// What a [`GhostRef`] carries: [`GhostState`], the whole state borrowed.
+#[derive(Clone, Debug, Serialize)]
+#[serde(rename = "GhostState")]
+pub enum GhostStateRef<'a> {
+    /// Everything (see [`GhostState::Full`]).
+    Full(&'a CopterState),
+    /// What others read of it (see [`GhostState::Seen`]).
+    Seen(Seen),
+}
+
+impl GhostRef<'_> {
+    /// The ghost it stands for.
+    pub fn to_ghost(&self) -> Ghost {
+        let state = match &self.state {
+            GhostStateRef::Full(c) => GhostState::Full(Box::new((*c).clone())),
+            GhostStateRef::Seen(s) => GhostState::Seen(s.clone()),
+        };
+        Ghost { id: self.id, asleep: self.asleep, held_by: self.held_by, state }
+    }
+}
+
 /// What other copters read of a far ghost.
 #[derive(Clone, Debug, Serialize, Deserialize)]
 pub struct Seen {
@@ -156,6 +192,14 @@ impl State {
     /// copters within the halo of `to`'s region, whole within [`FAR_BEYOND_M`] of it, what
     /// others read of them beyond.
     pub fn ghosts_for(&self, to: ShardId, out: &mut Vec<Ghost>) {
+        let mut refs = Vec::new();
+        self.ghost_refs_for(to, &mut refs);
+        out.extend(refs.iter().map(GhostRef::to_ghost));
+    }
+
+    /// [`State::ghosts_for`], borrowing each copter's state instead of copying it (what a
+    /// transport serialises).
+    pub fn ghost_refs_for<'a>(&'a self, to: ShardId, out: &mut Vec<GhostRef<'a>>) {
         let Some(view) = &self.shard else { return };
         for (i, c) in self.copters.iter().enumerate() {
             if view.roles[i] != Role::Owned {
@@ -170,9 +214,9 @@ impl State {
             let asleep = body.is_some_and(|b| b.is_sleeping() || b.is_fixed());
             let held_by = body.is_some_and(held_in_rapier).then_some(view.me);
             let state = if d <= FAR_BEYOND_M {
-                GhostState::Full(Box::new(c.clone()))
+                GhostStateRef::Full(c)
             } else {
-                GhostState::Seen(Seen {
+                GhostStateRef::Seen(Seen {
                     motion: c.motion,
                     rotor_thrust_n: c.rotor_thrust_n,
                     crash: c.crash,
@@ -180,7 +224,7 @@ impl State {
                     sonar_cycle_s: c.sonar_cycle_s,
                 })
             };
-            out.push(Ghost { id: i as u32, asleep, held_by, state });
+            out.push(GhostRef { id: i as u32, asleep, held_by, state });
         }
     }
 
