@@ -11,15 +11,36 @@ use crate::math::Real;
 #[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
 pub struct Rng32(Pcg32);
 
+/// SplitMix64's finaliser: decorrelates nearby inputs.
+#[inline]
+fn mix64(seed: u64) -> u64 {
+    let mut z = seed.wrapping_add(0x9E37_79B9_7F4A_7C15);
+    z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
+    z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
+    z ^ (z >> 31)
+}
+
+/// Maps 32 random bits to zero-mean, unit-variance triangular noise on `[−√6, √6]`.
+#[inline]
+fn triangular_of(x: u32) -> Real {
+    let s = (x >> 16) as Real + (x & 0xFFFF) as Real - 65535.0;
+    s * (6f32.sqrt() / 65536.0)
+}
+
+/// Triangular noise ([`Rng32::triangular`]'s) keyed by `key` under `seed`: a draw that keeps
+/// no state, so it is the same whenever and wherever it is made (a pass may run before or
+/// after another that draws from a copter's stream, or in another shard, and read the same).
+#[inline]
+pub fn keyed_triangular(seed: u64, key: [u64; 4]) -> Real {
+    let z = key.iter().fold(mix64(seed), |z, &k| mix64(z ^ k));
+    triangular_of((z >> 32) as u32)
+}
+
 impl Rng32 {
     /// The stream of `stream_id` under `seed`.
     pub fn new(seed: u64, stream_id: u64) -> Self {
         // Decorrelate nearby seeds with a SplitMix64 finaliser.
-        let mut z = seed.wrapping_add(0x9E37_79B9_7F4A_7C15);
-        z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
-        z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
-        z ^= z >> 31;
-        Rng32(Pcg32::new(z, stream_id.wrapping_mul(2).wrapping_add(1)))
+        Rng32(Pcg32::new(mix64(seed), stream_id.wrapping_mul(2).wrapping_add(1)))
     }
 
     /// Uniform in [0, 1).
@@ -41,9 +62,7 @@ impl Rng32 {
     /// physics step and axis would cost more than the rest of the copter's step.
     #[inline]
     pub fn triangular(&mut self) -> Real {
-        let x = self.0.next_u32();
-        let s = (x >> 16) as Real + (x & 0xFFFF) as Real - 65535.0;
-        s * (6f32.sqrt() / 65536.0)
+        triangular_of(self.0.next_u32())
     }
 
     /// Poisson with mean `lambda` (Knuth's method; `lambda` here is a few particles).
@@ -93,6 +112,21 @@ mod tests {
         let mean = xs.iter().sum::<Real>() / n as Real;
         let var = xs.iter().map(|x| (x - mean).powi(2)).sum::<Real>() / n as Real;
         assert!(mean.abs() < 0.02 && (var - 1.0).abs() < 0.03, "mean {mean} var {var}");
+    }
+
+    #[test]
+    fn keyed_noise_has_unit_variance_and_keys_differ() {
+        let n = 40_000u64;
+        let xs: Vec<Real> = (0..n).map(|k| keyed_triangular(5, [k / 16, k % 16, 3, 1])).collect();
+        let mean = xs.iter().sum::<Real>() / n as Real;
+        let var = xs.iter().map(|x| (x - mean).powi(2)).sum::<Real>() / n as Real;
+        assert!(mean.abs() < 0.02 && (var - 1.0).abs() < 0.03, "mean {mean} var {var}");
+        // Neighbouring draws are uncorrelated.
+        let lag: Real = xs.windows(2).map(|w| w[0] * w[1]).sum::<Real>() / (n - 1) as Real;
+        assert!(lag.abs() < 0.02, "lag-1 correlation {lag}");
+        assert_eq!(keyed_triangular(5, [1, 2, 3, 4]), keyed_triangular(5, [1, 2, 3, 4]));
+        assert_ne!(keyed_triangular(5, [1, 2, 3, 4]), keyed_triangular(6, [1, 2, 3, 4]));
+        assert_ne!(keyed_triangular(5, [1, 2, 3, 4]), keyed_triangular(5, [2, 1, 3, 4]));
     }
 
     #[test]

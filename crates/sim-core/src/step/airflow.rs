@@ -115,6 +115,9 @@ pub(super) fn feel_wakes(world: &World, state: &mut State, parallel: bool, roles
     let scratch = &mut state.scratch;
     let (wakes, grid) = (&scratch.wakes, &scratch.wake_grid);
     let turbulence = spec.wake_turbulence;
+    // Each gust is keyed by the step, the copter, the wake and the rotor, not drawn from the
+    // copter's stream: a shard can feel a ghost's wakes before (or without) sensing it.
+    let (seed, tick) = (world.params.seed, state.tick);
     for_each_lane(parallel, &mut state.copters, &mut scratch.lanes, |i, c, lane| {
         if c.crash.is_some() || world.copters[i].kind == CopterKind::Real || !roles.near(i) {
             return;
@@ -137,7 +140,8 @@ pub(super) fn feel_wakes(world: &World, state: &mut State, parallel: bool, roles
                 if v > MIN_WAKE_SPEED_M_S {
                     // The inflow through this rotor's disc, and the thrust it costs along the
                     // rotor's axis (at the rotor speed and thrust of the step's start).
-                    let v = v * (1.0 + turbulence * c.rng.triangular()).max(0.0);
+                    let gust = crate::rng::keyed_triangular(seed, [tick, i as u64, j as u64, r as u64]);
+                    let v = v * (1.0 + turbulence * gust).max(0.0);
                     let inflow = v * -w.dir.dot(axis);
                     let omega = c.rotor_speed_rad_s[r];
                     let kept = inflow_thrust_factor(inflow, omega, rotor_r, k, ct0);
