@@ -112,14 +112,14 @@ fn trade_ghosts(states: &mut [State]) {
 fn order(name: &str) -> usize {
     let stages = [
         Stage::Lanes,
+        Stage::Airflow,
+        Stage::Reserve,
+        Stage::RapierSetup,
         Stage::SonarScene,
         Stage::Ranges,
         Stage::Crosstalk,
         Stage::Sense,
         Stage::OuterLoops,
-        Stage::Airflow,
-        Stage::Reserve,
-        Stage::RapierSetup,
         Stage::InRapierLanes,
         Stage::RapierForces,
         Stage::RapierAndFreeLanes,

@@ -30,11 +30,12 @@ pub enum Role {
     /// Stepped here.
     Owned,
     /// A neighbour's copter within the pull zone (and a margin) of this region, with its
-    /// whole state: read, and sensed and controlled here as its owner would, since this shard
-    /// may take it over within the step.
+    /// whole state, since this shard may take it over within the step: read, and its wakes
+    /// felt here as its owner feels them (its reachable sphere joins the ownership); sensed
+    /// and controlled only once taken over.
     Ghost,
     /// A neighbour's copter farther out in the halo: only what others read of it (its motion,
-    /// rotor thrusts, crash, sonar timing), neither sensed nor controlled here.
+    /// rotor thrusts, crash, sonar timing), neither sensed, controlled nor blown on here.
     Far,
     /// Far away: not read.
     Absent,

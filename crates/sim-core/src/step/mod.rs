@@ -100,6 +100,12 @@ pub enum Stage {
     Begin,
     /// Every copter's motion into its lane.
     Lanes,
+    /// Downwash and wakes between copters.
+    Airflow,
+    /// Each copter's reachable sphere, and which fly free or on watch.
+    Reserve,
+    /// Ownership (in a shard), watch pairs, falling wrecks, Rapier bodies entering or leaving.
+    RapierSetup,
     /// Sensing, what the sonars can see: the sonar scene, its copter grid, the pingers.
     SonarScene,
     /// Sensing: each copter's sonars, IR, IMU and estimators.
@@ -110,12 +116,6 @@ pub enum Stage {
     Sense,
     /// The flight modes' setpoints.
     OuterLoops,
-    /// Downwash and wakes between copters.
-    Airflow,
-    /// Each copter's reachable sphere, and which fly free or on watch.
-    Reserve,
-    /// Ownership (in a shard), watch pairs, falling wrecks, Rapier bodies entering or leaving.
-    RapierSetup,
     /// A substep: the inner loops of the copters in Rapier (all copters on one thread).
     InRapierLanes,
     /// A substep: falling wrecks and the forces onto Rapier's bodies.
@@ -159,7 +159,8 @@ impl Roles<'_> {
         self.0.is_none_or(|r| r[i] == Role::Owned)
     }
 
-    /// Sensed and controlled by this step: owned, or a ghost it may take over (not a far one).
+    /// Feels the wakes before this step's ownership is decided (its reachable sphere decides
+    /// it): owned, or a ghost it may take over (not a far one).
     #[inline]
     fn near(self, i: usize) -> bool {
         self.0.is_none_or(|r| matches!(r[i], Role::Owned | Role::Ghost))
@@ -370,10 +371,16 @@ fn step_on(
     state.shard = view;
 }
 
-/// One control step of the copters, stage by stage: each copter's motion into its lane;
-/// sensing ([`sense`]); the outer loops; the airflow between copters ([`airflow`]); which
-/// copters fly free of Rapier ([`reserve_free_flight`]); the physics substeps
-/// ([`physics_substep`]); the lanes back into the copters' motion.
+/// One control step of the copters, stage by stage: each copter's motion into its lane; the
+/// airflow between copters ([`airflow`]); which copters fly free of Rapier
+/// ([`reserve_free_flight`]), and in a shard which copters it steps; sensing ([`sense`]) and
+/// the outer loops of those it steps; the physics substeps ([`physics_substep`]); the lanes
+/// back into the copters' motion.
+///
+/// The airflow and the reservations read only the motion, rotor thrusts and crashes of the
+/// step's start (and the wakes' keyed gusts, not the copters' streams), nothing sensing or the
+/// outer loops write: so a shard decides what it owns first, and senses and controls only
+/// that, not the ghosts it may have taken over.
 fn step_copters(
     world: &World,
     state: &mut State,
@@ -390,28 +397,29 @@ fn step_copters(
     }
     // Before the ownership of this step is decided: what this shard owned at its start.
     let roles = Roles(view.as_ref().map(|v| &v.roles[..]));
-    load_lanes(world, state, parallel, roles);
-    probe(Stage::Lanes);
-    let sonar_period = world.sensors.spec.sonar.period_steps.max(1) as u64;
-    if world.sensors.spec.enabled {
-        sense(world, state, inputs, state.tick.is_multiple_of(sonar_period), parallel, roles, probe);
-    }
-    probe(Stage::Sense);
-    // The reachable spheres' grid by their centres on one thread, the outer loops on the others.
+    // The reachable spheres' grid by their centres on one thread, the lanes on the others.
     let crate::state::Scratch { lanes, sphere_grid, present, .. } = &mut state.scratch;
-    let (copters, tick) = (&mut state.copters, state.tick);
+    lanes.resize(world.copters.len(), Lane::default());
+    let copters = &state.copters;
     beside(
         parallel,
-        || reserve::index_sphere_centres(world, lanes, present, roles, sphere_grid),
-        || outer_loops(world, copters, lanes, tick, inputs, parallel, roles),
+        || reserve::index_sphere_centres(world, copters, present, roles, sphere_grid),
+        || load_lanes(world, copters, lanes, parallel, roles),
     );
-    probe(Stage::OuterLoops);
+    probe(Stage::Lanes);
     report.shard_violations += airflow(world, state, parallel, roles);
     probe(Stage::Airflow);
     report.shard_violations += reserve_free_flight(world, state, parallel, view, probe);
     probe(Stage::RapierSetup);
     // From here on: what this shard owns for this step.
     let roles = Roles(view.as_ref().map(|v| &v.roles[..]));
+    let sonar_period = world.sensors.spec.sonar.period_steps.max(1) as u64;
+    if world.sensors.spec.enabled {
+        sense(world, state, inputs, state.tick.is_multiple_of(sonar_period), parallel, roles, probe);
+    }
+    probe(Stage::Sense);
+    outer_loops(world, &mut state.copters, &state.scratch.lanes, state.tick, inputs, parallel, roles);
+    probe(Stage::OuterLoops);
 
     let dt = world.physics_dt();
     let scratch = &mut state.scratch;
@@ -438,20 +446,28 @@ fn step_copters(
 
 /// Every copter's motion at the start of the step, into its lane (in a shard, of the copters
 /// it reads: an absent one's lane is read by nothing).
-fn load_lanes(world: &World, state: &mut State, parallel: bool, roles: Roles<'_>) {
-    let lanes = &mut state.scratch.lanes;
-    lanes.resize(world.copters.len(), Lane::default());
-    for_each_lane(parallel, &mut state.copters, lanes, |i, c, lane| {
-        if !roles.present(i) {
-            return;
+fn load_lanes(world: &World, copters: &[CopterState], lanes: &mut [Lane], parallel: bool, roles: Roles<'_>) {
+    let load = |first: usize, ls: &mut [Lane]| {
+        for (j, lane) in ls.iter_mut().enumerate() {
+            let i = first + j;
+            if !roles.present(i) {
+                continue;
+            }
+            let (c, m) = (&copters[i], &copters[i].motion);
+            (lane.pos_m, lane.rot, lane.vel_m_s, lane.angvel_rad_s) = (m.pos_m, m.rot, m.vel_m_s, m.angvel_rad_s);
+            lane.airframe = world.copters[i].airframe as u32;
+            lane.flying = c.crash.is_none();
+            lane.awaiting_takeoff = lane.flying && c.took_off_tick.is_none();
+            lane.batched = 0;
         }
-        let m = &c.motion;
-        (lane.pos_m, lane.rot, lane.vel_m_s, lane.angvel_rad_s) = (m.pos_m, m.rot, m.vel_m_s, m.angvel_rad_s);
-        lane.airframe = world.copters[i].airframe as u32;
-        lane.flying = c.crash.is_none();
-        lane.awaiting_takeoff = lane.flying && c.took_off_tick.is_none();
-        lane.batched = 0;
-    });
+    };
+    if parallel && lanes.len() > 64 {
+        use rayon::prelude::*;
+        let chunk = lane_chunk(lanes.len());
+        lanes.par_chunks_mut(chunk).enumerate().with_max_len(PIECE).for_each(|(k, ls)| load(k * chunk, ls));
+    } else {
+        load(0, lanes);
+    }
 }
 
 /// Each copter's flight mode: its setpoint for the step's inner loops (reading the lanes
@@ -470,7 +486,7 @@ fn outer_loops(
     let run = |first: usize, cs: &mut [CopterState], ls: &[Lane]| {
         for (j, (c, lane)) in cs.iter_mut().zip(ls).enumerate() {
             let i = first + j;
-            if !roles.near(i) {
+            if !roles.owned(i) {
                 continue;
             }
             let af = &world.airframes[world.copters[i].airframe];

@@ -81,19 +81,19 @@ pub(super) fn reserve_spheres(world: &World, state: &mut State, parallel: bool, 
     scratch.sphere_grid.set_max_radius(max_radius_m);
 }
 
-/// The grid of the copters' reachable spheres, by their centres alone: the lanes' positions
-/// at the step's start, which nothing moves before the substeps (so it can be built beside
-/// the outer loops; [`reserve_spheres`] sets its reach).
+/// The grid of the copters' reachable spheres, by their centres alone: the copters' positions
+/// at the step's start (the lanes' positions, which nothing moves before the substeps; so it
+/// can be built beside the lanes' loading; [`reserve_spheres`] sets its reach).
 pub(super) fn index_sphere_centres(
     world: &World,
-    lanes: &[Lane],
+    copters: &[CopterState],
     present: &[u32],
     roles: Roles<'_>,
     grid: &mut sensors::CopterGrid,
 ) {
     grid.set_cover(arena_rect(world));
     let ids = roles.0.map(|_| present);
-    grid.build_centres(lanes.len(), ids, |i| lanes[i].pos_m, GRID_CELL_M);
+    grid.build_centres(copters.len(), ids, |i| copters[i].motion.pos_m, GRID_CELL_M);
 }
 
 /// Which copters fly free (their spheres clear of the walls, the ceiling and the boxes) and,

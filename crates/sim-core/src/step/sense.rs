@@ -149,7 +149,7 @@ pub(super) fn sense(
             for_each_lane(parallel, copters, lanes, |i, c, lane| {
                 // A wreck's sensors stop (and its sonars no longer ping): its readings keep
                 // their last values.
-                if c.crash.is_some() || !roles.near(i) {
+                if c.crash.is_some() || !roles.owned(i) {
                     return;
                 }
                 let real_layer = autopilots && world.copters[i].kind == CopterKind::Autopilot;
@@ -396,8 +396,9 @@ pub(super) fn crosstalk(world: &World, state: &mut State, p: &SenseParams, paral
     let fresh = p.fresh;
     for_each_lane(parallel, &mut state.copters, lanes, |b, c, _| {
         let me = &pingers[b];
-        // A far copter pings, and the near ones hear it, but its own readings are its owner's.
-        if !me.pings || !roles.near(b) {
+        // Another shard's copter pings, and this shard's hear it, but its own readings are its
+        // owner's.
+        if !me.pings || !roles.owned(b) {
             return;
         }
         for k in (0..4).filter(|&k| fresh[k]) {
@@ -436,8 +437,8 @@ pub(super) fn fuse_and_filter(
 ) {
     let wall_avoid = &world.sensors.spec.wall_avoid;
     for_each_lane(parallel, &mut state.copters, &mut state.scratch.lanes, |i, c, _| {
-        // Another shard's copter farther out is fused and filtered by its owner.
-        if !roles.near(i) {
+        // Another shard's copter is fused and filtered by its owner.
+        if !roles.owned(i) {
             return;
         }
         let virt = inputs.commands.get(i).and_then(|c| c.virtual_sonar_m);
