@@ -87,7 +87,12 @@ fn main() {
             print!(" {:>9.3}", s / steps * 1e3);
         }
         let (sum, max) = (shard_s.iter().sum::<f64>(), shard_s.iter().copied().fold(0.0, f64::max));
-        println!(" {:>7.2} {:>8.2}", sum / one_s.max(1e-12), max / one_s.max(1e-12));
+        if one_s > 0.0 {
+            println!(" {:>7.2} {:>8.2}", sum / one_s, max / one_s);
+        } else {
+            // Work only shards do (the trade of ghosts): no ratio.
+            println!(" {:>7} {:>8}", "-", "-");
+        }
     }
     println!("imbalance (slowest shard's step less the mean, per step): {:.3} ms", imbalance_s / steps * 1e3);
     println!("copters unlike one process: {differ}");
