@@ -1,9 +1,11 @@
-//! Digests of a set of scenes that cover the model's paths, on one and two threads: an
-//! optimisation that must keep the bits keeps every line of this output.
+//! Digests of a set of scenes that cover the model's paths, on one and two threads (or the
+//! thread counts given): an optimisation that must keep the bits keeps every line of this
+//! output, and every thread count gives one digest per scene.
 //!
 //! ```text
-//! cargo run --release -p sim-core --example same_bits -- [SIM_SECONDS] > after.txt
+//! cargo run --release -p sim-core --example same_bits -- [SIM_SECONDS] [THREADS] > after.txt
 //! diff before.txt after.txt
+//! cargo run --release -p sim-core --example same_bits -- 20 1,2,4,8,16
 //! ```
 //!
 //! Each line: the scene, the thread count, the number of crashed copters and an FNV-1a digest
@@ -57,8 +59,14 @@ fn scenes() -> Vec<(&'static str, SceneSpec)> {
 
 fn main() {
     let seconds: f64 = std::env::args().nth(1).and_then(|s| s.parse().ok()).unwrap_or(20.0);
+    let threads: Vec<usize> = match std::env::args().nth(2) {
+        Some(list) => list.split(',').map(|t| t.trim().parse().expect("THREADS: counts such as 1,2,4")).collect(),
+        None => vec![1, 2],
+    };
+    let mut unlike = Vec::new();
     for (name, mut spec) in scenes() {
-        for threads in [1, 2] {
+        let mut first = None;
+        for &threads in &threads {
             spec.sim.threads = threads;
             let world = scene::compile(&spec).expect("scene compiles");
             let mut state = world.initial_state();
@@ -73,6 +81,13 @@ fn main() {
             }
             let crashed = state.copters.iter().filter(|c| c.crash.is_some()).count();
             println!("{name:<18} threads {threads}  crashed {crashed:>4}  {h:016x}");
+            if *first.get_or_insert(h) != h {
+                unlike.push(format!("{name} on {threads} threads"));
+            }
         }
+    }
+    if !unlike.is_empty() {
+        eprintln!("same_bits: other digests than on {} thread(s): {}", threads[0], unlike.join(", "));
+        std::process::exit(1);
     }
 }
