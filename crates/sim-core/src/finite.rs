@@ -7,8 +7,10 @@ use serde::ser::{self, Serialize};
 
 /// Where the first non-finite number is (a path of field names), if there is one.
 pub fn first_non_finite<T: Serialize + ?Sized>(value: &T) -> Option<String> {
-    let mut c = Check { path: Vec::new() };
-    match value.serialize(&mut c) {
+    // Most values are finite: a walk that keeps no path says so; only a value that is not is
+    // walked again to name the place.
+    value.serialize(&mut Check { path: None }).err()?;
+    match value.serialize(&mut Check { path: Some(Vec::new()) }) {
         Ok(()) => None,
         Err(NonFinite(p)) => Some(p),
     }
@@ -31,17 +33,34 @@ impl ser::Error for NonFinite {
     }
 }
 
+/// The walk: with a path, it keeps the field names down to where it is (for the message).
 struct Check {
-    path: Vec<&'static str>,
+    path: Option<Vec<&'static str>>,
 }
 
 impl Check {
+    #[inline]
     fn float(&self, v: f64) -> Result<(), NonFinite> {
         if v.is_finite() {
             Ok(())
         } else {
-            Err(NonFinite(if self.path.is_empty() { "the top".into() } else { self.path.join(".") }))
+            Err(NonFinite(match &self.path {
+                Some(path) if !path.is_empty() => path.join("."),
+                _ => "the top".into(),
+            }))
         }
+    }
+
+    #[inline]
+    fn within<T: Serialize + ?Sized>(&mut self, name: &'static str, v: &T) -> Result<(), NonFinite> {
+        if let Some(path) = &mut self.path {
+            path.push(name);
+        }
+        v.serialize(&mut *self)?;
+        if let Some(path) = &mut self.path {
+            path.pop();
+        }
+        Ok(())
     }
 }
 
@@ -94,10 +113,7 @@ impl ser::Serializer for &mut Check {
         variant: &'static str,
         v: &T,
     ) -> Result<(), NonFinite> {
-        self.path.push(variant);
-        v.serialize(&mut *self)?;
-        self.path.pop();
-        Ok(())
+        self.within(variant, v)
     }
     fn serialize_seq(self, _: Option<usize>) -> Result<Self, NonFinite> {
         Ok(self)
@@ -164,10 +180,7 @@ macro_rules! fields {
             type Ok = ();
             type Error = NonFinite;
             fn serialize_field<T: Serialize + ?Sized>(&mut self, key: &'static str, v: &T) -> Result<(), NonFinite> {
-                self.path.push(key);
-                v.serialize(&mut **self)?;
-                self.path.pop();
-                Ok(())
+                self.within(key, v)
             }
             fn end(self) -> Result<(), NonFinite> {
                 Ok(())
