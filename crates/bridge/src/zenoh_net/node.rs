@@ -63,6 +63,10 @@ fn zerr(e: impl std::fmt::Display) -> NodeError {
 
 /// A Zenoh configuration in `mode` (`peer`, `client` or `router`), listening on `listen` and
 /// connecting to `connect`, multicast scouting off: every configuration the project makes.
+/// The data priority's transmission queue is Zenoh's largest, 16 batches of 64 kB per link
+/// (allocated as they fill, Zenoh's default): a shard's ghost batch, a few hundred kB a step,
+/// is handed to the link without waiting for the socket to drain the two batches of the
+/// default (at 10,000 copters, 2 shards: encode and send 1.1-1.3 -> 0.6-0.9 ms a step).
 pub fn config(mode: &str, listen: &[String], connect: &[String]) -> Result<zenoh::Config, NodeError> {
     let mut c = zenoh::Config::default();
     let json = |r: serde_json::Result<String>| r.map_err(|e| NodeError::Config(e.to_string()));
@@ -71,6 +75,7 @@ pub fn config(mode: &str, listen: &[String], connect: &[String]) -> Result<zenoh
         ("scouting/multicast/enabled", "false".to_owned()),
         ("listen/endpoints", json(serde_json::to_string(listen))?),
         ("connect/endpoints", json(serde_json::to_string(connect))?),
+        ("transport/link/tx/queue/size/data", "16".to_owned()),
     ] {
         c.insert_json5(k, &v).map_err(|e| NodeError::Config(format!("{k}: {e}")))?;
     }
