@@ -157,7 +157,23 @@ impl State {
             })
             .collect();
         self.shard = Some(ShardView::new(me, partition, roles, vec![false; n], held_by));
+        self.disable_others_bodies();
         Ok(())
+    }
+
+    /// Disables the Rapier body of every copter this shard does not own: they are not in its
+    /// Rapier world. A step keeps it so (a copter leaves a shard as a ghost, whose body the
+    /// step disables), so the step need not look at an absent copter's body at all.
+    fn disable_others_bodies(&mut self) {
+        let Some(view) = &self.shard else { return };
+        for (c, role) in self.copters.iter().zip(&view.roles) {
+            if *role != Role::Owned
+                && let Some(body) = self.physics.bodies.get_mut(c.body)
+                && body.is_enabled()
+            {
+                body.set_enabled(false);
+            }
+        }
     }
 
     /// The shard view as a snapshot keeps it (`None` outside a sharded run).
@@ -180,6 +196,7 @@ impl State {
         }
         let ShardSnapshot { me, roles, asleep, .. } = snap;
         self.shard = Some(ShardView::new(me, partition, roles, asleep, vec![None; n]));
+        self.disable_others_bodies();
         Ok(())
     }
 

@@ -292,6 +292,39 @@ fn lane_chunk(n: usize) -> usize {
     (n / 128).max(32)
 }
 
+/// [`fill_each`] for the copters `roles` has present (all, outside a shard); in a shard an
+/// absent copter's entry keeps whatever it held, unwritten: nothing reads it, and a shard's
+/// tables are the whole swarm's, mostly absent.
+fn fill_present<T>(
+    parallel: bool,
+    out: &mut Vec<T>,
+    n: usize,
+    fill: T,
+    roles: Roles<'_>,
+    f: impl Fn(usize) -> T + Sync + Send,
+) where
+    T: Copy + Send + Sync,
+{
+    if roles.0.is_none() {
+        return fill_each(parallel, out, n, fill, f);
+    }
+    out.resize(n, fill);
+    let run = |first: usize, out: &mut [T]| {
+        for (j, x) in out.iter_mut().enumerate() {
+            if roles.present(first + j) {
+                *x = f(first + j);
+            }
+        }
+    };
+    if parallel && n > 64 {
+        use rayon::prelude::*;
+        let chunk = lane_chunk(n);
+        out.par_chunks_mut(chunk).enumerate().with_max_len(PIECE).for_each(|(k, out)| run(k * chunk, out));
+    } else {
+        run(0, out);
+    }
+}
+
 /// [`fill_each`] into two outputs at once: `(a[i], b[i]) = f(i)`.
 fn fill_each2<A, B>(
     parallel: bool,

@@ -37,9 +37,9 @@ pub(super) fn fill_sonar_scene_of(
         rotation: crate::math::Quat::from_rotation_z(b.yaw_rad),
         half: b.half_extents_m,
     }));
-    fill_each(parallel, &mut scene.copters, copters.len(), OrientedBox::default(), |i| match roles.present(i) {
-        true => copter_box(world, copters, i),
-        false => OrientedBox::default(),
+    // The grid below indexes only the present copters: nothing reads an absent one's box.
+    fill_present(parallel, &mut scene.copters, copters.len(), OrientedBox::default(), roles, |i| {
+        copter_box(world, copters, i)
     });
     scene.grid.set_cover(arena_rect(world));
     match present {
