@@ -306,13 +306,18 @@ pub(super) fn held_clusters(state: &State, view: &mut ShardView) {
     // The present copters, in id order: a cluster goes with its lowest held copter.
     for &i in &state.scratch.present {
         let i = i as usize;
+        let lane = &state.scratch.lanes[i];
+        // Free and off watch, it is Rapier's no longer: its own copter's body is not looked up
+        // (`held_by` of this shard's copters is read only below).
+        if lane.free && !lane.watch {
+            continue;
+        }
         if view.roles[i] == Role::Owned {
             let held = state.physics.bodies.get(state.copters[i].body).is_some_and(held_in_rapier);
             view.held_by[i] = held.then_some(view.me);
         }
-        let lane = &state.scratch.lanes[i];
         let Some(k) = view.held_by[i] else { continue };
-        if (lane.free && !lane.watch) || view.partition.distance_to(lane.pos_m, k) > HELD_ZONE_M {
+        if view.partition.distance_to(lane.pos_m, k) > HELD_ZONE_M {
             continue;
         }
         let home = root(&mut view.parent, i as u32) as usize;
