@@ -309,20 +309,7 @@ fn fill_present<T>(
         return fill_each(parallel, out, n, fill, f);
     }
     out.resize(n, fill);
-    let run = |first: usize, out: &mut [T]| {
-        for (j, x) in out.iter_mut().enumerate() {
-            if roles.present(first + j) {
-                *x = f(first + j);
-            }
-        }
-    };
-    if parallel && n > 64 {
-        use rayon::prelude::*;
-        let chunk = lane_chunk(n);
-        out.par_chunks_mut(chunk).enumerate().with_max_len(PIECE).for_each(|(k, out)| run(k * chunk, out));
-    } else {
-        run(0, out);
-    }
+    fill_where(parallel, out, |i| roles.present(i), f);
 }
 
 /// [`fill_each`] into two outputs at once: `(a[i], b[i]) = f(i)`.
@@ -376,18 +363,27 @@ where
 {
     out.clear();
     out.resize(n, fill);
-    if parallel && n > 64 {
-        use rayon::prelude::*;
-        let chunk = lane_chunk(n);
-        out.par_chunks_mut(chunk).enumerate().with_max_len(PIECE).for_each(|(k, out)| {
-            for (j, x) in out.iter_mut().enumerate() {
-                *x = f(k * chunk + j);
+    fill_where(parallel, out, |_| true, f);
+}
+
+/// `out[i] = f(i)` where `keep(i)`, in parallel chunks or in order (the same values either way).
+fn fill_where<T>(parallel: bool, out: &mut [T], keep: impl Fn(usize) -> bool + Sync, f: impl Fn(usize) -> T + Sync)
+where
+    T: Send,
+{
+    let run = |first: usize, out: &mut [T]| {
+        for (j, x) in out.iter_mut().enumerate() {
+            if keep(first + j) {
+                *x = f(first + j);
             }
-        });
-    } else {
-        for (i, x) in out.iter_mut().enumerate() {
-            *x = f(i);
         }
+    };
+    if parallel && out.len() > 64 {
+        use rayon::prelude::*;
+        let chunk = lane_chunk(out.len());
+        out.par_chunks_mut(chunk).enumerate().with_max_len(PIECE).for_each(|(k, out)| run(k * chunk, out));
+    } else {
+        run(0, out);
     }
 }
 
