@@ -59,6 +59,22 @@ pub fn lock<T>(m: &std::sync::Mutex<T>) -> std::sync::MutexGuard<'_, T> {
     m.lock().unwrap_or_else(std::sync::PoisonError::into_inner)
 }
 
+/// The CPU time this process has used so far, all its threads (user and system), s; `None`
+/// where the system does not say. Beside a run's wall time it shows what the run cost: the
+/// simulation's threads, the transport's, and the cores' waits left out.
+#[allow(unsafe_code)]
+pub fn process_cpu_s() -> Option<f64> {
+    let mut usage = std::mem::MaybeUninit::<libc::rusage>::zeroed();
+    // SAFETY: `getrusage` fills the `rusage` it is given, or fails and leaves it zeroed.
+    if unsafe { libc::getrusage(libc::RUSAGE_SELF, usage.as_mut_ptr()) } != 0 {
+        return None;
+    }
+    // SAFETY: zeroed is a valid `rusage` (plain integers), and filled it is too.
+    let usage = unsafe { usage.assume_init() };
+    let seconds = |t: libc::timeval| t.tv_sec as f64 + t.tv_usec as f64 * 1e-6;
+    Some(seconds(usage.ru_utime) + seconds(usage.ru_stime))
+}
+
 pub use paparazzi::bus::{BindId, Bus, BusError, Control, Delivery};
 pub use paparazzi::codec::{CodecError, Message, Sender};
 pub use paparazzi::conf::{Aircraft, AircraftKind, ConfXml, is_virtual_name};
@@ -68,3 +84,20 @@ pub use paparazzi::telemetry::Telemetry;
 pub use paparazzi::value::Value;
 pub use paparazzi::xml::{Location, XmlError};
 pub use zenoh_net::keyexpr::{key_expr_matches, key_for, key_for_text, narrow_key_expr};
+
+#[cfg(test)]
+mod tests {
+    /// Work shows in the process's CPU time. (Other tests run in this process at the same
+    /// time: what they spend counts too, so a sleep's cost is not checked here.)
+    #[test]
+    fn cpu_time_counts_work() {
+        let start = super::process_cpu_s().expect("getrusage on this system");
+        assert!(start > 0.0, "a running test has used some CPU: {start}");
+        // Spin until 50 ms more are counted (however busy the machine), at most 20 s.
+        let (wall, mut x) = (std::time::Instant::now(), 0u64);
+        while super::process_cpu_s().unwrap() - start < 0.05 {
+            x = std::hint::black_box(x.wrapping_mul(6364136223846793005).wrapping_add(1));
+            assert!(wall.elapsed().as_secs() < 20, "20 s of spinning counted no CPU time");
+        }
+    }
+}

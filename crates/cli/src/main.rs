@@ -571,9 +571,15 @@ fn cluster_cmd(args: &ClusterArgs) -> anyhow::Result<()> {
         "cluster of {} shards (router {}): {} copters, {} crashed, {:.2} s wall, slowest shard {:.2}x real time",
         s.shards, s.router, s.copters_count, s.crashed, s.wall_s, s.real_time_factor
     );
+    let cpu = |s: Option<f64>| s.map_or("CPU time unknown".to_owned(), |s| format!("{s:.2} s CPU"));
     for p in &s.per_shard {
-        println!("shard {}: {:.2}x real time, {:.2} s wall", p.shard.shard, p.real_time_factor, p.wall_time_s);
+        let (k, rtf, wall) = (p.shard.shard, p.real_time_factor, p.wall_time_s);
+        println!("shard {k}: {rtf:.2}x real time, {wall:.2} s wall, {}", cpu(p.cpu_s));
         shardcmd::print_section(&p.shard);
+    }
+    if let Some(r) = s.cpu_per_sim_s {
+        let launcher = s.launcher_cpu_s.unwrap_or(0.0);
+        println!("CPU: {r:.2} s per simulated second, the shards' and the launcher's (its router: {launcher:.2} s)");
     }
     for r in &s.restarts {
         println!(

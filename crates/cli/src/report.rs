@@ -51,7 +51,16 @@ impl Tracker {
         }
     }
 
-    pub fn summary(&self, world: &World, state: &State, scene: &str, wall_s: f64, overruns: u64) -> Summary {
+    /// The run's summary; `spent` is its wall time and this process's CPU time over it, s.
+    pub fn summary(
+        &self,
+        world: &World,
+        state: &State,
+        scene: &str,
+        spent: (f64, Option<f64>),
+        overruns: u64,
+    ) -> Summary {
+        let (wall_s, cpu_s) = spent;
         let sim_s = state.time_s(world);
         // A shard reports its own copters only.
         let copters: Vec<CopterLine> = world
@@ -81,6 +90,7 @@ impl Tracker {
             copters_count: copters.len(),
             sim_time_s: sim_s,
             wall_time_s: wall_s,
+            cpu_s,
             real_time_factor: if wall_s > 0.0 { sim_s / wall_s } else { f64::INFINITY },
             control_steps: state.tick,
             realtime_overruns: overruns,
@@ -113,6 +123,9 @@ pub struct Summary {
     copters_count: usize,
     sim_time_s: f64,
     wall_time_s: f64,
+    /// This process's CPU time over the same span, all its threads (the simulation's and the
+    /// transport's), s.
+    cpu_s: Option<f64>,
     real_time_factor: f64,
     control_steps: u64,
     realtime_overruns: u64,

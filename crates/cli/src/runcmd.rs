@@ -240,10 +240,11 @@ pub(crate) fn run(args: RunArgs) -> anyhow::Result<()> {
     let stop = logcmd::install_stop_flag()?;
     let recorder = Recorder::new(log, (args.on_log_error == OnLogError::Stop).then(|| stop.clone()));
     let watch = RunWatch::new(&world, progress_bar(&args, pace.ticks));
-    let started = Instant::now();
+    let (started, cpu_at_start) = (Instant::now(), bridge::process_cpu_s());
     let outcome = runner::run(&rt, world, &pace, &bus, durability, recorder, watch, stop)?;
     let wall_s = started.elapsed().as_secs_f64();
-    report_run(&args, &origin, outcome, live, wall_s)
+    let cpu_s = bridge::process_cpu_s().zip(cpu_at_start).map(|(end, start)| end - start);
+    report_run(&args, &origin, outcome, live, (wall_s, cpu_s))
 }
 
 /// The scene with the command line's seed, threads, duration and pairing applied, compiled;
@@ -463,7 +464,7 @@ fn report_run(
     origin: &str,
     outcome: RunOutcome<RunWatch>,
     live: Option<Arc<LiveServer>>,
-    wall_s: f64,
+    (wall_s, cpu_s): (f64, Option<f64>),
 ) -> anyhow::Result<()> {
     let RunOutcome { end, bus, link } = outcome;
     let Finished { world, state, stats, recorder, watch } = end;
@@ -506,7 +507,7 @@ fn report_run(
              `twinswarm log recover {path} FIXED.mcap` makes it a complete log"
         ))
     });
-    let summary = tracker.summary(&world, &state, origin, wall_s, stats.overruns);
+    let summary = tracker.summary(&world, &state, origin, (wall_s, cpu_s), stats.overruns);
     let shard = shardcmd::section(&state, &stats, link.as_ref());
     if args.json {
         let mut json = serde_json::to_value(&summary)?;

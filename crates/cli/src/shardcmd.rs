@@ -141,6 +141,11 @@ pub fn swarm_digest(copters: &mut [CopterEnd]) -> String {
 pub struct ShardRun {
     pub real_time_factor: f64,
     pub wall_time_s: f64,
+    /// The shard process's CPU time over its run, s.
+    #[serde(default)]
+    pub cpu_s: Option<f64>,
+    #[serde(default)]
+    pub sim_time_s: f64,
     pub shard: ShardSection,
     #[serde(skip_serializing)]
     pub copters: Vec<CopterEnd>,
@@ -203,6 +208,13 @@ pub struct ClusterSummary {
     pub restarts: Vec<Restart>,
     /// Each shard's summary (of its last segment, after restarts).
     pub per_shard: Vec<ShardRun>,
+    /// The launcher's own CPU time from its start (its Zenoh router, which carries the
+    /// ghosts between the shards, and the merging), s.
+    pub launcher_cpu_s: Option<f64>,
+    /// CPU seconds per simulated second, the shards' (of the last segment) and the launcher's
+    /// together. Beside one process's `cpu_s / sim_time_s` on the same scene, what the split
+    /// costs in work, whatever the cores' waits.
+    pub cpu_per_sim_s: Option<f64>,
 }
 
 /// A Zenoh router's configuration: listening and connecting where told, multicast scouting
@@ -526,6 +538,10 @@ fn summarise(
     }
     let mut all: Vec<CopterEnd> = per_shard.iter().flat_map(|s| s.copters.iter().cloned()).collect();
     let digest = swarm_digest(&mut all);
+    let launcher_cpu_s = bridge::process_cpu_s();
+    let shards_cpu_s: Option<f64> = per_shard.iter().map(|s| s.cpu_s).sum();
+    let sim_s = per_shard.iter().map(|s| s.sim_time_s).fold(f64::INFINITY, f64::min);
+    let cpu_per_sim_s = shards_cpu_s.zip(launcher_cpu_s).map(|(a, b)| (a + b) / sim_s).filter(|r| r.is_finite());
     Ok(ClusterSummary {
         shards: opts.shards,
         router,
@@ -537,5 +553,7 @@ fn summarise(
         copters: all,
         restarts,
         per_shard,
+        launcher_cpu_s,
+        cpu_per_sim_s,
     })
 }

@@ -51,6 +51,10 @@ fn a_minute_over_processes_is_the_same_minute_in_one_process() {
     let one = json(&out);
     let copters = digests(&one);
     assert_eq!(copters.len(), 144);
+    let cpu = one["cpu_s"].as_f64().expect("the run's CPU time");
+    let cores = std::thread::available_parallelism().map_or(1, |n| n.get()) as f64;
+    let wall = one["wall_time_s"].as_f64().unwrap();
+    assert!(cpu > 0.0 && cpu <= wall * cores + 0.5, "CPU {cpu} s against {wall} s wall on {cores} cores");
     let crashed = one["copters"].as_array().unwrap().iter().filter(|c| c["crashed"] == true).count();
     assert!(crashed > 0, "the flock has crashes to agree on");
     // Shards on two threads each too: a shard's step merges its threads' work in id order.
@@ -63,11 +67,17 @@ fn a_minute_over_processes_is_the_same_minute_in_one_process() {
         let per_shard = c["per_shard"].as_array().unwrap();
         let taken: u64 = per_shard.iter().map(|s| s["shard"]["taken_over"].as_u64().unwrap()).sum();
         assert!(taken > 0, "{shards} shards: copters migrated");
+        let mut cpu = c["launcher_cpu_s"].as_f64().expect("the launcher's CPU time");
         for s in per_shard {
             let link = &s["shard"]["link"];
             assert_eq!(link["exchanges"].as_u64(), Some(1200), "{shards} shards: one barrier per step: {s}");
             assert!(link["bytes_sent"].as_u64().unwrap() > 0);
+            let shard_cpu = s["cpu_s"].as_f64().expect("each shard's CPU time");
+            assert!(shard_cpu > 0.0 && shard_cpu <= s["wall_time_s"].as_f64().unwrap() * cores + 0.5, "{s}");
+            cpu += shard_cpu;
         }
+        let per_sim_s = c["cpu_per_sim_s"].as_f64().expect("CPU per simulated second");
+        assert!((per_sim_s - cpu / 60.0).abs() < 1e-9, "{shards} shards: {per_sim_s} against {cpu} s over 60 s");
     }
     let _ = std::fs::remove_file(scene);
 }
