@@ -144,6 +144,7 @@ pub struct ShardRun {
     /// The shard process's CPU time over its run, s.
     #[serde(default)]
     pub cpu_s: Option<f64>,
+    /// The simulated time it reached, s (the cluster's CPU per simulated second divides by it).
     #[serde(default)]
     pub sim_time_s: f64,
     pub shard: ShardSection,
