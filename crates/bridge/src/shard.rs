@@ -116,11 +116,23 @@ fn zerr(e: impl std::fmt::Display) -> LinkError {
 }
 
 enum Incoming {
-    /// A batch, its size (bytes) and the time it took to decode (s).
-    Batch(GhostBatch, usize, f64),
+    /// A batch as it arrived.
+    Batch(Arrived),
     Bad(String, String),
     Joined(ShardId),
     Left(ShardId),
+}
+
+/// A neighbour's batch, decoded on Zenoh's thread.
+struct Arrived {
+    batch: GhostBatch,
+    /// Its size, bytes.
+    bytes: usize,
+    /// The time it took to decode, s.
+    decode_s: f64,
+    /// Whether its bytes came in shared memory (a neighbour on this machine) rather than
+    /// over the socket.
+    in_shm: bool,
 }
 
 /// What the barrier cost, for the run's summary.
@@ -148,6 +160,14 @@ pub struct LinkStats {
     pub bytes_sent: u64,
     /// Payload bytes received.
     pub bytes_received: u64,
+    /// Batches received (stale ones included).
+    #[serde(default)]
+    pub batches_received: u64,
+    /// Of them, those whose bytes came in shared memory, not over the socket: Zenoh puts a
+    /// message of 3 kB or more there when both ends of a link are on one machine with shared
+    /// memory enabled (the default; `transport/shared_memory` in a Zenoh configuration file).
+    #[serde(default)]
+    pub batches_in_shm: u64,
     /// Batches sent again while waiting (see [`RESEND`]).
     #[serde(default)]
     pub resent: u64,
@@ -175,9 +195,13 @@ fn declare_batches(
         .callback(move |sample| {
             let key = sample.key_expr().to_string();
             let start = Instant::now();
+            let in_shm = sample.payload().as_shm().is_some();
             let bytes = sample.payload().to_bytes();
             let msg = match postcard::from_bytes::<GhostBatch>(&bytes) {
-                Ok(b) => Incoming::Batch(b, bytes.len(), start.elapsed().as_secs_f64()),
+                Ok(batch) => {
+                    let decode_s = start.elapsed().as_secs_f64();
+                    Incoming::Batch(Arrived { batch, bytes: bytes.len(), decode_s, in_shm })
+                }
                 Err(e) => Incoming::Bad(key, e.to_string()),
             };
             let _ = tx.send(msg);
@@ -360,9 +384,11 @@ impl ShardLink {
 
     fn take(&mut self, msg: Incoming) -> Result<(), LinkError> {
         match msg {
-            Incoming::Batch(b, bytes, decode_s) => {
+            Incoming::Batch(Arrived { batch: b, bytes, decode_s, in_shm }) => {
                 self.stats.bytes_received += bytes as u64;
                 self.stats.decode_s += decode_s;
+                self.stats.batches_received += 1;
+                self.stats.batches_in_shm += u64::from(in_shm);
                 if self.taken_tick.is_some_and(|t| b.tick <= t) {
                     self.stats.stale_batches += 1;
                     return Ok(());

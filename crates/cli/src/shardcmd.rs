@@ -80,8 +80,12 @@ pub fn print_section(s: &ShardSection) {
             l.totals.wait_max_s * 1e3,
         );
         println!(
-            "    ghosts: {:.0} B sent per step, {} sent, {} received",
-            l.bytes_sent_per_step, l.totals.ghosts_sent, l.totals.ghosts_received
+            "    ghosts: {:.0} B sent per step, {} sent, {} received; {} of {} batches came in shared memory",
+            l.bytes_sent_per_step,
+            l.totals.ghosts_sent,
+            l.totals.ghosts_received,
+            l.totals.batches_in_shm,
+            l.totals.batches_received
         );
     }
 }
