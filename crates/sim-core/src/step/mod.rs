@@ -473,13 +473,22 @@ fn step_copters(
     probe(Stage::Store);
 }
 
+/// `Lane::batched` of a copter a shard does not step (another shard's, seen or absent): the
+/// substeps' passes skip it at their first test, without reading more of its lane or calling
+/// into the substep. Set when the step's roles are known: by [`load_lanes`] for absent copters,
+/// by the ownership pass for the ghosts this shard does not take over. Nothing reads a lane
+/// this shard does not step during the substeps (its Rapier body is disabled, so no contact
+/// reads its `vel_before_m_s`).
+pub(super) const NOT_STEPPED: u32 = u32::MAX;
+
 /// Every copter's motion at the start of the step, into its lane (in a shard, of the copters
-/// it reads: an absent one's lane is read by nothing).
+/// it reads: an absent one's lane is read by nothing, and only marked [`NOT_STEPPED`]).
 fn load_lanes(world: &World, copters: &[CopterState], lanes: &mut [Lane], parallel: bool, roles: Roles<'_>) {
     let load = |first: usize, ls: &mut [Lane]| {
         for (j, lane) in ls.iter_mut().enumerate() {
             let i = first + j;
             if !roles.present(i) {
+                lane.batched = NOT_STEPPED;
                 continue;
             }
             let (c, m) = (&copters[i], &copters[i].motion);

@@ -279,6 +279,14 @@ pub(super) fn take_ownership(state: &mut State, view: &mut ShardView) -> u32 {
         }
         view.roles[i as usize] = now;
     }
+    // The substeps pass over the copters this shard does not step at once (see `NOT_STEPPED`).
+    let crate::state::Scratch { present, lanes, .. } = &mut state.scratch;
+    for &i in present.iter() {
+        if view.roles[i as usize] != Role::Owned {
+            lanes[i as usize].batched = super::NOT_STEPPED;
+        }
+    }
+    let scratch = &state.scratch;
     let mut violations = 0;
     for &i in &scratch.present {
         let home = root(parent, i);
