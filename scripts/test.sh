@@ -89,12 +89,22 @@ python3 scripts/check-imports.py
 say "no function over 150 lines outside tests (scripts/long-functions.py)"
 python3 scripts/long-functions.py --over 150 --max 150
 
-say "cargo clippy --all-targets -- -D warnings"
-cargo clippy --workspace --all-targets --locked -- -D warnings
+# clippy in the builds below, not in a build of its own: clippy-driver (rustc with clippy's
+# lints) compiles the workspace's crates, every dependency is compiled once (a `cargo clippy`
+# beforehand checked each of them again, about 250 s of a cold run), and `-D warnings` makes
+# any lint or warning a failed build. The lints are those of `cargo clippy --workspace
+# --all-targets -- -D warnings` (lib, bins, tests, benches and examples here, crates/py in
+# maturin's build below), which stays the command to run by hand. Exported for every cargo
+# command below and for maturin, so that they share one build.
+say "clippy: clippy-driver compiles the workspace's crates below, -D warnings"
+RUSTC_WORKSPACE_WRAPPER="$(command -v clippy-driver)" || { echo "error: clippy-driver not found (rustup component add clippy)" >&2; exit 1; }
+export RUSTC_WORKSPACE_WRAPPER
+export RUSTFLAGS="${RUSTFLAGS:+$RUSTFLAGS }-D warnings"
+echo "RUSTC_WORKSPACE_WRAPPER=$RUSTC_WORKSPACE_WRAPPER RUSTFLAGS=$RUSTFLAGS"
 
-say "cargo test --no-run (build every crate's tests, benches as tests)"
+say "cargo test --no-run (build every crate's tests, benches as tests; with clippy's lints)"
 # crates/py is left out of cargo's build and test: it has no Rust tests (its tests are Python's,
-# below), clippy has checked it, and maturin builds it below in any case, with PyO3 configured
+# below), and maturin builds it below in any case (linted there), with PyO3 configured
 # for the venv's Python; built here too, PyO3 and the extension were compiled twice. Leaving it
 # out changes no other crate's features (cargo's unit graph, checked).
 cargo test --workspace --exclude twinswarm-py --all-targets --locked --no-run
