@@ -79,9 +79,10 @@ fn a_minute_over_processes_is_the_same_minute_in_one_process() {
             let link = &s["shard"]["link"];
             assert_eq!(link["exchanges"].as_u64(), Some(1200), "{shards} shards: one barrier per step: {s}");
             assert!(link["bytes_sent"].as_u64().unwrap() > 0);
-            let received = link["batches_received"].as_u64().unwrap();
-            in_shm += link["batches_in_shm"].as_u64().unwrap();
-            assert!(received >= 1200 && link["batches_in_shm"].as_u64().unwrap() <= received, "{link}");
+            let (received, shm) =
+                (link["batches_received"].as_u64().unwrap(), link["batches_in_shm"].as_u64().unwrap());
+            assert!(received >= 1200 && shm <= received, "{link}");
+            in_shm += shm;
             let shard_cpu = s["cpu_s"].as_f64().expect("each shard's CPU time");
             assert!(shard_cpu > 0.0 && shard_cpu <= s["wall_time_s"].as_f64().unwrap() * cores + 0.5, "{s}");
             cpu += shard_cpu;
