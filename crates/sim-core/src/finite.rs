@@ -7,14 +7,57 @@ use serde::ser::{self, Serialize};
 
 /// Where the first non-finite number is (a path of field names), if there is one.
 pub fn first_non_finite<T: Serialize + ?Sized>(value: &T) -> Option<String> {
-    // Most values are finite: a walk that keeps no path says so; only a value that is not is
-    // walked again to name the place.
-    value.serialize(&mut Check { path: None }).err()?;
-    match value.serialize(&mut Check { path: Some(Vec::new()) }) {
+    // Most values are finite: a walk that keeps nothing and fails with nothing says so (it
+    // compiles to a test per number); only a value that is not is walked again to name the place.
+    value.serialize(&mut Check(Quick)).err()?;
+    match value.serialize(&mut Check(Path(Vec::new()))) {
         Ok(()) => None,
         Err(NonFinite(p)) => Some(p),
     }
 }
+
+/// What a walk keeps on its way down and says at a non-finite number.
+trait Walk {
+    type Error: ser::Error;
+    fn float(&self, v: f64) -> Result<(), Self::Error>;
+    fn enter(&mut self, name: &'static str);
+    fn leave(&mut self);
+}
+
+/// The first walk: nothing kept, nothing said.
+struct Quick;
+
+#[derive(Debug)]
+struct NotFinite;
+
+impl std::fmt::Display for NotFinite {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str("a non-finite number")
+    }
+}
+
+impl std::error::Error for NotFinite {}
+
+impl ser::Error for NotFinite {
+    fn custom<M: std::fmt::Display>(_: M) -> Self {
+        NotFinite
+    }
+}
+
+impl Walk for Quick {
+    type Error = NotFinite;
+    #[inline(always)]
+    fn float(&self, v: f64) -> Result<(), NotFinite> {
+        if v.is_finite() { Ok(()) } else { Err(NotFinite) }
+    }
+    #[inline(always)]
+    fn enter(&mut self, _: &'static str) {}
+    #[inline(always)]
+    fn leave(&mut self) {}
+}
+
+/// The second walk: the field names down to where it is, for the message.
+struct Path(Vec<&'static str>);
 
 #[derive(Debug)]
 struct NonFinite(String);
@@ -33,46 +76,45 @@ impl ser::Error for NonFinite {
     }
 }
 
-/// The walk: with a path, it keeps the field names down to where it is (for the message).
-struct Check {
-    path: Option<Vec<&'static str>>,
-}
-
-impl Check {
-    #[inline]
+impl Walk for Path {
+    type Error = NonFinite;
     fn float(&self, v: f64) -> Result<(), NonFinite> {
         if v.is_finite() {
             Ok(())
         } else {
-            Err(NonFinite(match &self.path {
-                Some(path) if !path.is_empty() => path.join("."),
-                _ => "the top".into(),
-            }))
+            Err(NonFinite(if self.0.is_empty() { "the top".into() } else { self.0.join(".") }))
         }
     }
+    fn enter(&mut self, name: &'static str) {
+        self.0.push(name);
+    }
+    fn leave(&mut self) {
+        self.0.pop();
+    }
+}
 
+/// The serializer of either walk.
+struct Check<W>(W);
+
+impl<W: Walk> Check<W> {
     #[inline]
-    fn within<T: Serialize + ?Sized>(&mut self, name: &'static str, v: &T) -> Result<(), NonFinite> {
-        if let Some(path) = &mut self.path {
-            path.push(name);
-        }
+    fn within<T: Serialize + ?Sized>(&mut self, name: &'static str, v: &T) -> Result<(), W::Error> {
+        self.0.enter(name);
         v.serialize(&mut *self)?;
-        if let Some(path) = &mut self.path {
-            path.pop();
-        }
+        self.0.leave();
         Ok(())
     }
 }
 
 macro_rules! fine {
     ($($name:ident: $t:ty),*) => {
-        $(fn $name(self, _: $t) -> Result<(), NonFinite> { Ok(()) })*
+        $(fn $name(self, _: $t) -> Result<(), W::Error> { Ok(()) })*
     };
 }
 
-impl ser::Serializer for &mut Check {
+impl<W: Walk> ser::Serializer for &mut Check<W> {
     type Ok = ();
-    type Error = NonFinite;
+    type Error = W::Error;
     type SerializeSeq = Self;
     type SerializeTuple = Self;
     type SerializeTupleStruct = Self;
@@ -85,25 +127,25 @@ impl ser::Serializer for &mut Check {
         serialize_u8: u8, serialize_u16: u16, serialize_u32: u32, serialize_u64: u64, serialize_char: char,
         serialize_str: &str, serialize_bytes: &[u8], serialize_unit_struct: &'static str);
 
-    fn serialize_f32(self, v: f32) -> Result<(), NonFinite> {
-        self.float(f64::from(v))
+    fn serialize_f32(self, v: f32) -> Result<(), W::Error> {
+        self.0.float(f64::from(v))
     }
-    fn serialize_f64(self, v: f64) -> Result<(), NonFinite> {
-        self.float(v)
+    fn serialize_f64(self, v: f64) -> Result<(), W::Error> {
+        self.0.float(v)
     }
-    fn serialize_none(self) -> Result<(), NonFinite> {
+    fn serialize_none(self) -> Result<(), W::Error> {
         Ok(())
     }
-    fn serialize_some<T: Serialize + ?Sized>(self, v: &T) -> Result<(), NonFinite> {
+    fn serialize_some<T: Serialize + ?Sized>(self, v: &T) -> Result<(), W::Error> {
         v.serialize(self)
     }
-    fn serialize_unit(self) -> Result<(), NonFinite> {
+    fn serialize_unit(self) -> Result<(), W::Error> {
         Ok(())
     }
-    fn serialize_unit_variant(self, _: &'static str, _: u32, _: &'static str) -> Result<(), NonFinite> {
+    fn serialize_unit_variant(self, _: &'static str, _: u32, _: &'static str) -> Result<(), W::Error> {
         Ok(())
     }
-    fn serialize_newtype_struct<T: Serialize + ?Sized>(self, _: &'static str, v: &T) -> Result<(), NonFinite> {
+    fn serialize_newtype_struct<T: Serialize + ?Sized>(self, _: &'static str, v: &T) -> Result<(), W::Error> {
         v.serialize(self)
     }
     fn serialize_newtype_variant<T: Serialize + ?Sized>(
@@ -112,41 +154,41 @@ impl ser::Serializer for &mut Check {
         _: u32,
         variant: &'static str,
         v: &T,
-    ) -> Result<(), NonFinite> {
+    ) -> Result<(), W::Error> {
         self.within(variant, v)
     }
-    fn serialize_seq(self, _: Option<usize>) -> Result<Self, NonFinite> {
+    fn serialize_seq(self, _: Option<usize>) -> Result<Self, W::Error> {
         Ok(self)
     }
-    fn serialize_tuple(self, _: usize) -> Result<Self, NonFinite> {
+    fn serialize_tuple(self, _: usize) -> Result<Self, W::Error> {
         Ok(self)
     }
-    fn serialize_tuple_struct(self, _: &'static str, _: usize) -> Result<Self, NonFinite> {
+    fn serialize_tuple_struct(self, _: &'static str, _: usize) -> Result<Self, W::Error> {
         Ok(self)
     }
-    fn serialize_tuple_variant(self, _: &'static str, _: u32, _: &'static str, _: usize) -> Result<Self, NonFinite> {
+    fn serialize_tuple_variant(self, _: &'static str, _: u32, _: &'static str, _: usize) -> Result<Self, W::Error> {
         Ok(self)
     }
-    fn serialize_map(self, _: Option<usize>) -> Result<Self, NonFinite> {
+    fn serialize_map(self, _: Option<usize>) -> Result<Self, W::Error> {
         Ok(self)
     }
-    fn serialize_struct(self, _: &'static str, _: usize) -> Result<Self, NonFinite> {
+    fn serialize_struct(self, _: &'static str, _: usize) -> Result<Self, W::Error> {
         Ok(self)
     }
-    fn serialize_struct_variant(self, _: &'static str, _: u32, _: &'static str, _: usize) -> Result<Self, NonFinite> {
+    fn serialize_struct_variant(self, _: &'static str, _: u32, _: &'static str, _: usize) -> Result<Self, W::Error> {
         Ok(self)
     }
 }
 
 macro_rules! elements {
     ($($tr:ident :: $m:ident),*) => {
-        $(impl ser::$tr for &mut Check {
+        $(impl<W: Walk> ser::$tr for &mut Check<W> {
             type Ok = ();
-            type Error = NonFinite;
-            fn $m<T: Serialize + ?Sized>(&mut self, v: &T) -> Result<(), NonFinite> {
+            type Error = W::Error;
+            fn $m<T: Serialize + ?Sized>(&mut self, v: &T) -> Result<(), W::Error> {
                 v.serialize(&mut **self)
             }
-            fn end(self) -> Result<(), NonFinite> {
+            fn end(self) -> Result<(), W::Error> {
                 Ok(())
             }
         })*
@@ -160,29 +202,29 @@ elements!(
     SerializeTupleVariant::serialize_field
 );
 
-impl ser::SerializeMap for &mut Check {
+impl<W: Walk> ser::SerializeMap for &mut Check<W> {
     type Ok = ();
-    type Error = NonFinite;
-    fn serialize_key<T: Serialize + ?Sized>(&mut self, k: &T) -> Result<(), NonFinite> {
+    type Error = W::Error;
+    fn serialize_key<T: Serialize + ?Sized>(&mut self, k: &T) -> Result<(), W::Error> {
         k.serialize(&mut **self)
     }
-    fn serialize_value<T: Serialize + ?Sized>(&mut self, v: &T) -> Result<(), NonFinite> {
+    fn serialize_value<T: Serialize + ?Sized>(&mut self, v: &T) -> Result<(), W::Error> {
         v.serialize(&mut **self)
     }
-    fn end(self) -> Result<(), NonFinite> {
+    fn end(self) -> Result<(), W::Error> {
         Ok(())
     }
 }
 
 macro_rules! fields {
     ($($tr:ident),*) => {
-        $(impl ser::$tr for &mut Check {
+        $(impl<W: Walk> ser::$tr for &mut Check<W> {
             type Ok = ();
-            type Error = NonFinite;
-            fn serialize_field<T: Serialize + ?Sized>(&mut self, key: &'static str, v: &T) -> Result<(), NonFinite> {
+            type Error = W::Error;
+            fn serialize_field<T: Serialize + ?Sized>(&mut self, key: &'static str, v: &T) -> Result<(), W::Error> {
                 self.within(key, v)
             }
-            fn end(self) -> Result<(), NonFinite> {
+            fn end(self) -> Result<(), W::Error> {
                 Ok(())
             }
         })*
