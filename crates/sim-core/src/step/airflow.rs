@@ -32,6 +32,13 @@ pub(super) fn airflow(world: &World, state: &mut State, parallel: bool, roles: R
                 if !roles.present(i) {
                     return;
                 }
+                lane.downwash_force_n = Vec3::ZERO;
+                lane.downwash_torque_n_m = Vec3::ZERO;
+                // The ground below is read by the substeps alone: not of a far ghost, which
+                // this shard never steps.
+                if !roles.near(i) {
+                    return;
+                }
                 let real_layer = world.copters[i].kind.is_real_layer();
                 let af = &world.airframes[world.copters[i].airframe];
                 lane.ground_m = match spec.ground_effect && may_be_over_a_box(world, lane.pos_m, af.reach_bound_m) {
@@ -40,8 +47,6 @@ pub(super) fn airflow(world: &World, state: &mut State, parallel: bool, roles: R
                     }
                     false => [0.0; 4],
                 };
-                lane.downwash_force_n = Vec3::ZERO;
-                lane.downwash_torque_n_m = Vec3::ZERO;
             })
         },
     );
