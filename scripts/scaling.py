@@ -6,8 +6,10 @@ For each swarm size it writes the scene (`twinswarm scene KIND --n N`), flies it
 `twinswarm cluster SCENE --shards S --threads T --no-bus --json` for every shard count (the
 machine's cores shared among the shards), and reports per run: wall time, real-time factor,
 drone-seconds per second, the speed-up over one thread, the largest process's resident memory
-(`wait4` of each run), and whether every copter's digest equals the one-thread run's
-(the bits must not depend on threads or shards). From the thread runs it fits Amdahl's law,
+(`wait4` of each run), the CPU it spent per simulated second over one thread's (the work a
+configuration adds, apart from its waits and this machine's pace) with how busy its cores were,
+and whether every copter's digest equals the one-thread run's (the bits must not depend on
+threads or shards). From the thread runs it fits Amdahl's law,
 speed-up(n) = 1 / (f + (1 - f) / n), by least squares on f: the serial fraction the curve
 implies. It writes a Markdown table (with the commit, the date and the machine), a JSON file
 and an SVG of the measured speed-up against Amdahl's curve for that f and the ideal line.
@@ -85,6 +87,26 @@ def digests(summary):
     return {c["id"] if "id" in c else c["name"]: c["digest"] for c in summary["copters"]}
 
 
+def cpu_per_sim_s(summary):
+    """CPU seconds (every thread; a cluster's shards and launcher together) per simulated second."""
+    if summary.get("cpu_per_sim_s") is not None:
+        return summary["cpu_per_sim_s"]
+    if summary.get("cpu_s") is not None and summary.get("sim_time_s"):
+        return summary["cpu_s"] / summary["sim_time_s"]
+    return None
+
+
+def with_work(row, summary, used, one_thread_cpu):
+    """The row's CPU account: CPU per simulated s, over one thread's (the work the configuration
+    adds: 1.00 is none), and how busy the cores it had were (CPU per wall s over their count:
+    below 1, threads or shards waited)."""
+    cpu = cpu_per_sim_s(summary)
+    row["cpu_per_sim_s"] = cpu
+    row["work_over_1_thread"] = cpu / one_thread_cpu if cpu and one_thread_cpu else None
+    row["cores_busy"] = cpu * row["real_time_factor"] / used if cpu else None
+    return row
+
+
 def amdahl_fraction(points):
     """Least-squares serial fraction f in [0, 1] from (threads, speed-up) points."""
     pts = [(n, s) for n, s in points if n > 1]
@@ -99,7 +121,7 @@ def fly(args, n, scene, duration):
     cores = os.cpu_count() or 1
     rows = []
     reference = None
-    one_thread_rtf = None
+    one_thread_rtf = one_thread_cpu = None
     for t in args.threads:
         cmd = [args.bin, "run", scene, "--no-bus", "--no-log", "--threads", str(t), "--duration", str(duration),
                "--json"]
@@ -108,14 +130,15 @@ def fly(args, n, scene, duration):
         reference = reference or d
         rtf = s["real_time_factor"]
         one_thread_rtf = one_thread_rtf or (rtf if t == 1 else None)
-        rows.append({
+        one_thread_cpu = one_thread_cpu or (cpu_per_sim_s(s) if t == 1 else None)
+        rows.append(with_work({
             "copters": n, "kind": "run", "how": f"{t} thread{'s' if t > 1 else ''}", "threads": t, "shards": 1,
             "oversubscribed": t > cores, "loop_wall_s": s["wall_time_s"], "process_wall_s": wall,
             "real_time_factor": rtf, "drone_s_per_s": n * rtf,
             "speed_up": (rtf / one_thread_rtf) if one_thread_rtf else None,
             "rss_mib": rss, "differ": sum(1 for k, v in d.items() if reference.get(k) != v),
             "crashed": len(s["crashes"]) if isinstance(s["crashes"], list) else s["crashes"],
-        })
+        }, s, min(t, cores), one_thread_cpu))
         print(f"  {n} copters, {t} thread(s): {wall:.1f} s, {rtf:.2f}× real time, "
               f"{rows[-1]['differ']} digests differ", file=sys.stderr)
     for k in args.shards:
@@ -126,7 +149,7 @@ def fly(args, n, scene, duration):
         d = digests(s)
         # The slowest shard's step loop (the barrier makes them one pace); start-up apart.
         rtf = s["real_time_factor"]
-        rows.append({
+        rows.append(with_work({
             "copters": n, "kind": "cluster",
             "how": f"{k} shard{'s' if k > 1 else ''} × {t} thread{'s' if t > 1 else ''}",
             "threads": t, "shards": k, "oversubscribed": k * t > cores, "loop_wall_s": duration / rtf,
@@ -134,7 +157,7 @@ def fly(args, n, scene, duration):
             "speed_up": (rtf / one_thread_rtf) if one_thread_rtf else None,
             "rss_mib": rss, "differ": sum(1 for c, v in d.items() if reference and reference.get(c) != v),
             "crashed": s.get("crashed"),
-        })
+        }, s, min(k * t, cores), one_thread_cpu))
         print(f"  {n} copters, {k} shard(s) × {t} thread(s): {wall:.1f} s, "
               f"{rtf:.2f}× real time, {rows[-1]['differ']} digests differ", file=sys.stderr)
     return rows
@@ -142,13 +165,16 @@ def fly(args, n, scene, duration):
 
 def markdown(args, rows, fractions, header):
     lines = [header, "",
-             "| copters | how | real time | drone-s/s | speed-up over 1 thread | largest process | digests unlike 1 thread |",
-             "|---:|---|---:|---:|---:|---:|---:|"]
+             "| copters | how | real time | drone-s/s | speed-up over 1 thread | CPU per simulated s over 1 thread's "
+             "| cores busy | largest process | digests unlike 1 thread |",
+             "|---:|---|---:|---:|---:|---:|---:|---:|---:|"]
     for r in rows:
         sp = f"{r['speed_up']:.2f}" if r["speed_up"] else "–"
         over = " (oversubscribed)" if r["oversubscribed"] else ""
+        work = f"{r['work_over_1_thread']:.2f}" if r.get("work_over_1_thread") else "–"
+        busy = f"{r['cores_busy'] * 100:.0f} %" if r.get("cores_busy") else "–"
         lines.append(f"| {r['copters']:,} | {r['how']}{over} | {r['real_time_factor']:.2f}× | "
-                     f"{r['drone_s_per_s']:,.0f} | {sp} | {r['rss_mib']:.0f} MiB | {r['differ']} |")
+                     f"{r['drone_s_per_s']:,.0f} | {sp} | {work} | {busy} | {r['rss_mib']:.0f} MiB | {r['differ']} |")
     lines.append("")
     for n, f in fractions.items():
         if f is not None:
@@ -237,7 +263,9 @@ def main():
     when = datetime.date.today().isoformat()
     header = (f"`python3 scripts/scaling.py --sizes {args.sizes} --scene {args.scene} --duration {args.duration}` "
               f"at {commit()}, {when}, on {machine()} (real time: simulated s per wall s of the step loop, "
-              f"a cluster's slowest shard's, start-up apart; the largest process's peak memory; a "
+              f"a cluster's slowest shard's, start-up apart; CPU: every thread of the run's processes, a "
+              f"cluster's launcher and its router included, start-up too; cores busy: that CPU per wall s "
+              f"of the step loop over the cores the run had; the largest process's peak memory; a "
               f"cluster's shards share the cores)")
     text = markdown(args, rows, fractions, header)
     print(text)
