@@ -17,7 +17,7 @@ use std::collections::BTreeMap;
 use std::time::Instant;
 
 use sim_core::scene;
-use sim_core::shard::{Ghost, Partition};
+use sim_core::shard::{Ghost, Partition, Role};
 use sim_core::{Stage, State, StepReport, World, step_probed};
 
 fn main() {
@@ -48,6 +48,8 @@ fn main() {
     let mut times: Vec<Times> = (0..shards).map(|_| Times::default()).collect();
     // Per step, the slowest shard's step less the mean shard's: what the barrier waits for.
     let mut imbalance_s = 0.0;
+    // Per shard, its copters of each role summed over the steps (after each step's ownership).
+    let mut roles = vec![[0usize; 3]; shards];
     for _ in 0..ticks {
         let trade = Instant::now();
         trade_ghosts(&mut states);
@@ -60,6 +62,16 @@ fn main() {
             walls.push(start.elapsed().as_secs_f64());
         }
         imbalance_s += walls.iter().copied().fold(0.0, f64::max) - walls.iter().sum::<f64>() / shards as f64;
+        for (s, counts) in states.iter().zip(&mut roles) {
+            for r in &s.shard().expect("a shard").roles {
+                match r {
+                    Role::Owned => counts[0] += 1,
+                    Role::Ghost => counts[1] += 1,
+                    Role::Far => counts[2] += 1,
+                    Role::Absent => {}
+                }
+            }
+        }
     }
     let differ = (0..one.copters.len())
         .filter(|&i| states.iter().find(|s| s.owns(i)).map(|s| s.copters[i].digest()) != Some(one.copters[i].digest()))
@@ -95,6 +107,15 @@ fn main() {
         }
     }
     println!("imbalance (slowest shard's step less the mean, per step): {:.3} ms", imbalance_s / steps * 1e3);
+    for (k, [owned, ghost, far]) in roles.iter().enumerate() {
+        let per_step = |c: usize| c as f64 / steps;
+        println!(
+            "shard {k}: per step {:.0} owned, {:.0} ghosts (whole), {:.0} far ghosts",
+            per_step(*owned),
+            per_step(*ghost),
+            per_step(*far)
+        );
+    }
     println!("copters unlike one process: {differ}");
 }
 
