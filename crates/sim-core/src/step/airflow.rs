@@ -71,10 +71,9 @@ pub(super) fn gather_wakes(world: &World, state: &mut State, parallel: bool, rol
     };
     let (wakes, wake_reach) = (&mut scratch.wakes, &mut scratch.wake_reach);
     let fills = (Wake::default(), OrientedBox::default());
-    fill_each2(parallel, wakes, wake_reach, lanes.len(), fills, |i| {
-        if !roles.present(i) {
-            return fills;
-        }
+    // In a shard, an absent copter's entries keep what they held: the wakes' grid holds the
+    // present ones only, and nothing else reads them.
+    fill_present2(parallel, wakes, wake_reach, lanes.len(), fills, roles, |i| {
         let (lane, c) = (&lanes[i], &copters[i]);
         let af = &world.airframes[world.copters[i].airframe];
         let thrust: Real = c.rotor_thrust_n.iter().sum();
@@ -102,12 +101,16 @@ pub(super) fn gather_wakes(world: &World, state: &mut State, parallel: bool, rol
     });
     let wake_limit = crate::partition::sense_reach_m(world);
     let (mut violations, mut any) = (0, false);
-    for (i, w) in scratch.wakes.iter().enumerate() {
-        any |= w.length_m > 0.0;
+    let mut wake_of = |i: usize| {
+        any |= scratch.wakes[i].length_m > 0.0;
         // A shard's neighbours see its copters only within the halo.
         if roles.0.is_some() && roles.owned(i) && scratch.wake_reach[i].half.x > wake_limit {
             violations += 1;
         }
+    };
+    match roles.0 {
+        Some(_) => scratch.present.iter().for_each(|&i| wake_of(i as usize)),
+        None => (0..scratch.wakes.len()).for_each(wake_of),
     }
     (violations, any)
 }
@@ -124,7 +127,7 @@ pub(super) fn feel_wakes(world: &World, state: &mut State, parallel: bool, roles
     // copter's stream: a shard can feel a ghost's wakes before (or without) sensing it.
     let (seed, tick) = (world.params.seed, state.tick);
     for_each_lane(parallel, &mut state.copters, &mut scratch.lanes, |i, c, lane| {
-        if c.crash.is_some() || world.copters[i].kind == CopterKind::Real || !roles.near(i) {
+        if !roles.near(i) || c.crash.is_some() || world.copters[i].kind == CopterKind::Real {
             return;
         }
         let af = &world.airframes[world.copters[i].airframe];

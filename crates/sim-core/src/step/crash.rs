@@ -94,7 +94,7 @@ pub(super) fn detect_tilt_and_takeoff(
         }
         for i in chunk(k) {
             let lane = &state.scratch.lanes[i];
-            if !lane.flying || !roles.owned(i) || lane.batched > s + 1 {
+            if !roles.owned(i) || !lane.flying || lane.batched > s + 1 {
                 continue;
             }
             let cos_tilt = (lane.rot * Vec3::Z).z.clamp(-1.0, 1.0);
@@ -123,7 +123,7 @@ pub(super) fn detect_tilt_and_takeoff(
         }
         for i in chunk(k) {
             let lane = &mut state.scratch.lanes[i];
-            if !lane.awaiting_takeoff || !roles.owned(i) || lane.batched > s + 1 {
+            if !roles.owned(i) || !lane.awaiting_takeoff || lane.batched > s + 1 {
                 continue;
             }
             let rest = world.airframes[lane.airframe as usize].rest_height_m;

@@ -312,25 +312,26 @@ fn fill_present<T>(
     fill_where(parallel, out, |i| roles.present(i), f);
 }
 
-/// [`fill_each`] into two outputs at once: `(a[i], b[i]) = f(i)`.
-fn fill_each2<A, B>(
+/// [`fill_present`] into two outputs at once: `(a[i], b[i]) = f(i)`.
+fn fill_present2<A, B>(
     parallel: bool,
     a: &mut Vec<A>,
     b: &mut Vec<B>,
     n: usize,
     fill: (A, B),
+    roles: Roles<'_>,
     f: impl Fn(usize) -> (A, B) + Sync + Send,
 ) where
     A: Copy + Send + Sync,
     B: Copy + Send + Sync,
 {
-    a.clear();
-    b.clear();
     a.resize(n, fill.0);
     b.resize(n, fill.1);
     let run = |first: usize, a: &mut [A], b: &mut [B]| {
         for (j, (x, y)) in a.iter_mut().zip(b.iter_mut()).enumerate() {
-            (*x, *y) = f(first + j);
+            if roles.present(first + j) {
+                (*x, *y) = f(first + j);
+            }
         }
     };
     if parallel && n > 64 {
@@ -356,12 +357,12 @@ fn beside(parallel: bool, a: impl FnOnce() + Send, b: impl FnOnce() + Send) {
 }
 
 /// Fills `out` with `f(i)` for every `i` in `0..n`, in parallel chunks or in order (the same
-/// values either way); `fill` only stands in until then.
+/// values either way); `fill` only stands in until then, for entries `out` did not have (the
+/// others are written once, not filled first).
 fn fill_each<T>(parallel: bool, out: &mut Vec<T>, n: usize, fill: T, f: impl Fn(usize) -> T + Sync + Send)
 where
     T: Copy + Send + Sync,
 {
-    out.clear();
     out.resize(n, fill);
     fill_where(parallel, out, |_| true, f);
 }

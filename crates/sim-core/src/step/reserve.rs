@@ -38,7 +38,7 @@ pub(super) fn reserve_free_flight(
     // Room for every copter, so that entering Rapier during the step never grows it.
     scratch.in_rapier.reserve(scratch.lanes.len());
     let lanes = scratch.lanes.iter().enumerate();
-    scratch.in_rapier.extend(lanes.filter(|(i, l)| !l.free && roles.owned(*i)).map(|(i, _)| i as u32));
+    scratch.in_rapier.extend(lanes.filter(|(i, l)| roles.owned(*i) && !l.free).map(|(i, _)| i as u32));
     violations
 }
 

@@ -132,8 +132,9 @@ pub(super) fn sense(
         },
     );
     probe(Stage::SonarScene);
-    let crate::state::Scratch { sonar_scene, real_scene, pingers, ping_points, ping_grid, lanes, .. } =
+    let crate::state::Scratch { sonar_scene, real_scene, pingers, ping_points, ping_grid, lanes, present, .. } =
         &mut state.scratch;
+    let present = roles.0.map(|_| &present[..]);
     let (scene, real_scene, pingers) = (&*sonar_scene, &*real_scene, &*pingers);
     let p = SenseParams::new(world, state.tick, sonar_due);
     let copters = &mut state.copters;
@@ -142,14 +143,14 @@ pub(super) fn sense(
         parallel,
         || {
             if crosstalk_due {
-                fill_ping_grid(world, pingers, ping_points, ping_grid);
+                fill_ping_grid(world, pingers, present, ping_points, ping_grid);
             }
         },
         || {
             for_each_lane(parallel, copters, lanes, |i, c, lane| {
                 // A wreck's sensors stop (and its sonars no longer ping): its readings keep
                 // their last values.
-                if c.crash.is_some() || !roles.owned(i) {
+                if !roles.owned(i) || c.crash.is_some() {
                     return;
                 }
                 let real_layer = autopilots && world.copters[i].kind == CopterKind::Autopilot;
@@ -208,10 +209,8 @@ pub(super) fn gather_pingers(
     parallel: bool,
     roles: Roles<'_>,
 ) {
-    fill_each(parallel, pingers, world.copters.len(), Pinger::default(), |i| {
-        if !roles.present(i) {
-            return Pinger::default();
-        }
+    // In a shard, an absent copter's entry keeps what it held ([`fill_ping_grid`] passes over it).
+    fill_present(parallel, pingers, world.copters.len(), Pinger::default(), roles, |i| {
         let (lane, c) = (&lanes[i], &copters[i]);
         let pings = c.crash.is_none();
         Pinger {
@@ -224,15 +223,21 @@ pub(super) fn gather_pingers(
     });
 }
 
-/// The grid of the copters that ping, for [`crosstalk`].
+/// The grid of the copters that ping, for [`crosstalk`]: of all, or in a shard of those
+/// `present` (an absent one's pinger is stale).
 pub(super) fn fill_ping_grid(
     world: &World,
     pingers: &[Pinger],
+    present: Option<&[u32]>,
     ping_points: &mut Vec<(u32, Vec3)>,
     ping_grid: &mut sensors::CopterGrid,
 ) {
     ping_points.clear();
-    ping_points.extend(pingers.iter().enumerate().filter(|(_, p)| p.pings).map(|(i, p)| (i as u32, p.pos_m)));
+    let pinging = |i: u32| pingers[i as usize].pings.then(|| (i, pingers[i as usize].pos_m));
+    match present {
+        Some(ids) => ping_points.extend(ids.iter().filter_map(|&i| pinging(i))),
+        None => ping_points.extend((0..pingers.len() as u32).filter_map(pinging)),
+    }
     ping_grid.set_cover(arena_rect(world));
     // The wedges reach the sonars' full range: cells twice the usual size visit fewer rows
     // and cells per wedge (any size gives the same readings).
@@ -395,12 +400,12 @@ pub(super) fn crosstalk(world: &World, state: &mut State, p: &SenseParams, paral
     };
     let fresh = p.fresh;
     for_each_lane(parallel, &mut state.copters, lanes, |b, c, _| {
-        let me = &pingers[b];
         // Another shard's copter pings, and this shard's hear it, but its own readings are its
-        // owner's.
-        if !me.pings || !roles.owned(b) {
+        // owner's. (The role first: an absent copter's entries are not read.)
+        if !roles.owned(b) || !pingers[b].pings {
             return;
         }
+        let me = &pingers[b];
         for k in (0..4).filter(|&k| fresh[k]) {
             let wedge = Wedge::of_cone(me.pos_m, me.cones[k].axis, sin_h);
             grid.visit_over(me.pos_m, reach, (&wedge, grow), |a| {
