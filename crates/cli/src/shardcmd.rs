@@ -213,8 +213,8 @@ pub struct ClusterSummary {
     pub restarts: Vec<Restart>,
     /// Each shard's summary (of its last segment, after restarts).
     pub per_shard: Vec<ShardRun>,
-    /// The launcher's own CPU time from its start (its Zenoh router, which carries the
-    /// ghosts between the shards, and the merging), s.
+    /// The launcher's own CPU time while the shards ran (its Zenoh router, which carries the
+    /// ghosts between the shards), s: its start-up and the merging of the summaries apart.
     pub launcher_cpu_s: Option<f64>,
     /// CPU seconds per simulated second, the shards' (of the last segment) and the launcher's
     /// together. Beside one process's `cpu_s / sim_time_s` on the same scene, what the split
@@ -279,7 +279,9 @@ pub fn run_cluster(opts: &ClusterRun, stop: &Arc<AtomicBool>) -> anyhow::Result<
     if opts.checkpoint_every_s.is_some() {
         clear_checkpoints(&opts.checkpoint_dir, opts.shards)?;
     }
-    let start = Instant::now();
+    // The launcher's CPU while the shards run (its router carrying the ghosts), not its start-up
+    // nor the merging: like `run`'s `cpu_s`, the step loop's.
+    let (start, cpu_at_start) = (Instant::now(), bridge::process_cpu_s());
     let mut restarts: Vec<Restart> = Vec::new();
     let mut from: Option<(u64, Vec<PathBuf>)> = None;
     let ended = loop {
@@ -312,8 +314,9 @@ pub fn run_cluster(opts: &ClusterRun, stop: &Arc<AtomicBool>) -> anyhow::Result<
         );
         restarts.push(r);
     };
+    let launcher_cpu_s = bridge::process_cpu_s().zip(cpu_at_start).map(|(end, start)| end - start);
     let _ = router.close().wait();
-    summarise(opts, launch.endpoint, ended, restarts, start, stop)
+    summarise(opts, launch.endpoint, ended, restarts, (start, launcher_cpu_s), stop)
 }
 
 impl Launch<'_> {
@@ -516,7 +519,7 @@ fn summarise(
     router: String,
     ended: Ended,
     restarts: Vec<Restart>,
-    start: Instant,
+    (start, launcher_cpu_s): (Instant, Option<f64>),
     stop: &AtomicBool,
 ) -> anyhow::Result<ClusterSummary> {
     let Ended { status, outputs, failed } = ended;
@@ -543,7 +546,6 @@ fn summarise(
     }
     let mut all: Vec<CopterEnd> = per_shard.iter().flat_map(|s| s.copters.iter().cloned()).collect();
     let digest = swarm_digest(&mut all);
-    let launcher_cpu_s = bridge::process_cpu_s();
     let shards_cpu_s: Option<f64> = per_shard.iter().map(|s| s.cpu_s).sum();
     let sim_s = per_shard.iter().map(|s| s.sim_time_s).fold(f64::INFINITY, f64::min);
     let cpu_per_sim_s = shards_cpu_s.zip(launcher_cpu_s).map(|(a, b)| (a + b) / sim_s).filter(|r| r.is_finite());
