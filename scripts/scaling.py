@@ -263,10 +263,10 @@ def main():
     when = datetime.date.today().isoformat()
     header = (f"`python3 scripts/scaling.py --sizes {args.sizes} --scene {args.scene} --duration {args.duration}` "
               f"at {commit()}, {when}, on {machine()} (real time: simulated s per wall s of the step loop, "
-              f"a cluster's slowest shard's, start-up apart; CPU: every thread of the run's processes, a "
-              f"cluster's launcher and its router included, start-up too; cores busy: that CPU per wall s "
-              f"of the step loop over the cores the run had; the largest process's peak memory; a "
-              f"cluster's shards share the cores)")
+              f"a cluster's slowest shard's, start-up apart; CPU: every thread of the run's processes during "
+              f"the step loop, a cluster's shards' and its launcher's (the router) while they ran; cores "
+              f"busy: that CPU per wall s over the cores the run had; the largest process's peak memory; "
+              f"a cluster's shards share the cores)")
     text = markdown(args, rows, fractions, header)
     print(text)
     if args.md:
