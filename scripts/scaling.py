@@ -16,7 +16,7 @@ and an SVG of the measured speed-up against Amdahl's curve for that f and the id
 
     python3 scripts/scaling.py                                  # 10,000 dense, threads up to the cores
     python3 scripts/scaling.py --sizes 10000,100000 --threads 1,2,4,8,16 --shards 1,2,4,8 \\
-        --md docs/scaling.md --svg docs/scaling.svg --json scaling.json
+        --docs --json scaling.json          # the table into docs/performance.md, the plot beside it
 
 Thread counts above the machine's cores are measured if asked (oversubscribed: they say
 nothing of scaling) and marked so. Runs are sequential; nothing else should run meanwhile.
@@ -216,6 +216,26 @@ def svg(rows, fractions, path):
     pathlib.Path(path).write_text("\n".join(out) + "\n")
 
 
+BEGIN = "<!-- scaling.py: begin -->"
+END = "<!-- scaling.py: end -->"
+
+
+def docs_parts(path):
+    """What lies before BEGIN and after END in `path` (checked before the runs, so that a file
+    without them fails at once, not after an hour of measuring)."""
+    doc = path.read_text() if path.is_file() else sys.exit(f"error: --docs: no file {path}")
+    if doc.count(BEGIN) != 1 or doc.count(END) != 1 or doc.index(BEGIN) > doc.index(END):
+        sys.exit(f"error: --docs: {path} must hold one `{BEGIN}` line and, after it, one `{END}` line")
+    head, rest = doc.split(BEGIN, 1)
+    return head, rest.split(END, 1)[1]
+
+
+def into_docs(path, text):
+    """Replaces what lies between the BEGIN and END lines of `path` with `text`."""
+    head, tail = docs_parts(path)
+    path.write_text(f"{head}{BEGIN}\n{text}{END}{tail}")
+
+
 def main():
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     cores = os.cpu_count() or 1
@@ -231,6 +251,9 @@ def main():
     ap.add_argument("--md", type=pathlib.Path, help="write the Markdown table here")
     ap.add_argument("--svg", type=pathlib.Path, help="write the speed-up plot here")
     ap.add_argument("--json", type=pathlib.Path, help="write every row as JSON here")
+    ap.add_argument("--docs", nargs="?", type=pathlib.Path, const=REPO / "docs" / "performance.md",
+                    help="write the table into this Markdown file (default docs/performance.md) between its "
+                         f"`{BEGIN}` and `{END}` lines, and the plot as scaling.svg beside it")
     args = ap.parse_args()
     if not pathlib.Path(args.bin).is_file():
         sys.exit(f"error: no twinswarm binary at {args.bin}: build it with `cargo build --release` or pass --bin")
@@ -245,6 +268,8 @@ def main():
         args.threads = [1] + args.threads
     if len(durations) not in (1, len(sizes)) or any(v <= 0 for v in sizes + args.threads + args.shards + durations):
         sys.exit("error: sizes, threads, shards and durations must be positive; --duration one value or one per size")
+    if args.docs:
+        docs_parts(args.docs)
     rows, fractions = [], {}
     with tempfile.TemporaryDirectory() as tmp:
         for i, n in enumerate(sizes):
@@ -273,6 +298,9 @@ def main():
         args.md.write_text(text)
     if args.svg:
         svg(rows, fractions, args.svg)
+    if args.docs:
+        into_docs(args.docs, text)
+        svg(rows, fractions, args.docs.parent / "scaling.svg")
     if args.json:
         args.json.write_text(json.dumps({"machine": machine(), "commit": commit(), "date": when, "rows": rows,
                                          "serial_fraction": fractions}, indent=1))
