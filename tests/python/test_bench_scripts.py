@@ -75,3 +75,22 @@ def test_scaling_py_fails_when_a_thread_count_changes_the_bits(twinswarm_bin, tm
     assert got.returncode != 0 and "other digests than one thread's" in got.stderr, (got.stdout, got.stderr[-2000:])
     two = next(line for line in got.stdout.splitlines() if line.startswith("| 60 | 2 threads |"))
     assert int(two.rstrip(" |").rsplit("|", 1)[1]) > 0, two
+
+
+def test_scaling_py_writes_its_table_between_the_docs_markers_and_refuses_a_file_without_them(
+        twinswarm_bin, tmp_path):
+    doc = tmp_path / "perf.md"
+    doc.write_text("# before\n<!-- scaling.py: begin -->\nold table\n<!-- scaling.py: end -->\nafter\n")
+    run = [sys.executable, str(ROOT / "scripts" / "scaling.py"), "--bin", str(twinswarm_bin), "--sizes", "40",
+           "--threads", "1", "--shards", "", "--duration", "0.5", "--docs", str(doc)]
+    got = subprocess.run(run, capture_output=True, text=True, timeout=300)
+    assert got.returncode == 0, got.stderr[-3000:]
+    text = doc.read_text()
+    assert text.startswith("# before\n<!-- scaling.py: begin -->\n`python3 scripts/scaling.py"), text
+    assert "old table" not in text and "| 40 | 1 thread |" in text and text.endswith("<!-- scaling.py: end -->\nafter\n")
+    assert (tmp_path / "scaling.svg").read_text().startswith("<svg")
+    # Without the markers it stops before measuring anything, and leaves the file alone.
+    doc.write_text("no markers here\n")
+    got = subprocess.run(run, capture_output=True, text=True, timeout=300)
+    assert got.returncode != 0 and "must hold one" in got.stderr and "copters" not in got.stderr, got.stderr
+    assert doc.read_text() == "no markers here\n"
