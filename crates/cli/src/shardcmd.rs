@@ -213,8 +213,9 @@ pub struct ClusterSummary {
     pub restarts: Vec<Restart>,
     /// Each shard's summary (of its last segment, after restarts).
     pub per_shard: Vec<ShardRun>,
-    /// The launcher's own CPU time while the shards ran (its Zenoh router, which carries the
-    /// ghosts between the shards), s: its start-up and the merging of the summaries apart.
+    /// The launcher's own CPU time while the last segment's shards ran (its Zenoh router, which
+    /// carries the ghosts between the shards), s: its start-up, earlier segments and the merging
+    /// of the summaries apart.
     pub launcher_cpu_s: Option<f64>,
     /// CPU seconds per simulated second, the shards' (of the last segment) and the launcher's
     /// together. Beside one process's `cpu_s / sim_time_s` on the same scene, what the split
@@ -279,19 +280,21 @@ pub fn run_cluster(opts: &ClusterRun, stop: &Arc<AtomicBool>) -> anyhow::Result<
     if opts.checkpoint_every_s.is_some() {
         clear_checkpoints(&opts.checkpoint_dir, opts.shards)?;
     }
-    // The launcher's CPU while the shards run (its router carrying the ghosts), not its start-up
-    // nor the merging: like `run`'s `cpu_s`, the step loop's.
-    let (start, cpu_at_start) = (Instant::now(), bridge::process_cpu_s());
+    let start = Instant::now();
     let mut restarts: Vec<Restart> = Vec::new();
     let mut from: Option<(u64, Vec<PathBuf>)> = None;
-    let ended = loop {
+    // The launcher's CPU while the last segment's shards run (its router carrying the ghosts),
+    // as their own CPU is the last segment's: not its start-up, the restarts before, nor the
+    // merging (like `run`'s `cpu_s`, the step loop's).
+    let (ended, cpu_at_start) = loop {
+        let cpu_at_start = bridge::process_cpu_s();
         let segment = launch.start(restarts.len(), from.as_ref())?;
         let logs = segment.logs.clone();
         let ended = segment.wait(stop);
-        let Some(k) = ended.failed else { break ended };
+        let Some(k) = ended.failed else { break (ended, cpu_at_start) };
         let can_restart = opts.checkpoint_every_s.is_some() && restarts.len() < opts.max_restarts as usize;
         if !can_restart || stop.load(Ordering::Relaxed) {
-            break ended;
+            break (ended, cpu_at_start);
         }
         recover_logs(&logs);
         launch.wait_for_tokens_gone(&router);
