@@ -12,7 +12,10 @@
 //! - `<prefix>/shard/<from>/to/<to>`: a [`GhostBatch`] (postcard), reliable, express, blocking
 //!   under congestion (a lost batch would be a lost barrier);
 //! - `<prefix>/shard/alive/<k>`: liveliness token of shard `k` (declared after its subscriber,
-//!   so a shard that sees it may publish to it).
+//!   so a shard that sees it may publish to it);
+//! - `<prefix>/shard/<k>/done`: shard `k` took its neighbours' batches for its last step (the
+//!   tick, 8 bytes little-endian). A shard leaves only when each neighbour has said so
+//!   ([`ShardLink::finish`]): its own last batch may still be in its session's shared memory.
 //!
 //! No home-made transport and no discovery: the sessions connect to a Zenoh router (or to each
 //! other) as configured, multicast scouting off by default.
@@ -121,6 +124,8 @@ enum Incoming {
     Bad(String, String),
     Joined(ShardId),
     Left(ShardId),
+    /// A neighbour took every batch of its last step.
+    Done(ShardId),
 }
 
 /// A neighbour's batch, decoded on Zenoh's thread.
@@ -210,6 +215,24 @@ fn declare_batches(
         .map_err(zerr)
 }
 
+/// The subscriber to the neighbours' word that they are done ([`ShardLink::finish`]).
+fn declare_done(
+    session: &zenoh::Session,
+    prefix: &str,
+    tx: mpsc::Sender<Incoming>,
+) -> Result<zenoh::pubsub::Subscriber<()>, LinkError> {
+    session
+        .declare_subscriber(format!("{prefix}/shard/*/done"))
+        .callback(move |sample| {
+            let from = sample.key_expr().as_str().rsplit('/').nth(1).and_then(|k| k.parse().ok());
+            if let Some(k) = from {
+                let _ = tx.send(Incoming::Done(k));
+            }
+        })
+        .wait()
+        .map_err(zerr)
+}
+
 /// One publisher per neighbour, in `neighbours` order.
 fn declare_publishers(
     session: &zenoh::Session,
@@ -248,6 +271,9 @@ pub struct ShardLink {
     subscriber: zenoh::pubsub::Subscriber<()>,
     _alive: zenoh::liveliness::LivelinessToken,
     _watch: zenoh::pubsub::Subscriber<()>,
+    _done: zenoh::pubsub::Subscriber<()>,
+    /// Neighbours that took every batch of their last step.
+    done: Vec<ShardId>,
     /// Batches that came early (a neighbour one step ahead), by (tick, from).
     early: BTreeMap<(u64, ShardId), GhostBatch>,
     /// The last step whose batches were taken: a batch for it or before is stale.
@@ -292,6 +318,7 @@ impl ShardLink {
     ) -> Result<Self, LinkError> {
         let (tx, inbox) = mpsc::channel();
         let subscriber = declare_batches(&session, prefix, me, tx.clone())?;
+        let done = declare_done(&session, prefix, tx.clone())?;
         let alive = session.liveliness().declare_token(format!("{prefix}/shard/alive/{me}")).wait().map_err(zerr)?;
         let watch_tx = tx.clone();
         let watch = session
@@ -321,6 +348,8 @@ impl ShardLink {
             subscriber,
             _alive: alive,
             _watch: watch,
+            _done: done,
+            done: Vec::new(),
             early: BTreeMap::new(),
             taken_tick: None,
             joined: Vec::new(),
@@ -407,9 +436,13 @@ impl ShardLink {
                     self.rejoined = true;
                 }
             }
+            Incoming::Done(k) => {
+                if !self.done.contains(&k) {
+                    self.done.push(k);
+                }
+            }
             Incoming::Left(k) => {
-                // Not an error yet: a neighbour that finished its last step leaves right after
-                // sending its last batch, which may still be on its way (see `exchange`).
+                // Not an error yet: its last batch may still be on its way (see `exchange`).
                 if self.neighbours.contains(&k) && !self.left.iter().any(|(l, _)| *l == k) {
                     self.left.push((k, Instant::now()));
                 }
@@ -486,12 +519,7 @@ impl ShardLink {
                 last_send = t1 - RESEND;
             }
             if last_send.elapsed() >= RESEND {
-                for (k, publisher) in self.publishers.iter().enumerate() {
-                    for bytes in [&self.sent_before[k], &self.sent[k]].into_iter().filter(|b| !b.is_empty()) {
-                        publisher.put(bytes.as_slice()).wait().map_err(zerr)?;
-                        self.stats.resent += 1;
-                    }
-                }
+                self.resend()?;
                 last_send = Instant::now();
             }
             // Wake at least every POLL to look at neighbours that left.
@@ -520,6 +548,55 @@ impl ShardLink {
         let t2 = Instant::now();
         state.receive_ghosts(batches.into_iter().flat_map(|b| b.ghosts))?;
         self.stats.take_s += t2.elapsed().as_secs_f64();
+        Ok(())
+    }
+
+    /// Ends this shard's part after its last exchange: tells its neighbours it is done, and
+    /// waits until each of them is done too, or gone, sending its last batches again every
+    /// [`RESEND`]. A neighbour that is done has taken this shard's last batch; leaving before
+    /// could lose it, as a batch in shared memory goes with its sender's session. Bounded by
+    /// the barrier timeout.
+    pub fn finish(&mut self) -> Result<(), LinkError> {
+        let Some(tick) = self.taken_tick else { return Ok(()) };
+        let key = format!("{}/shard/{}/done", self.prefix, self.me);
+        let say_done = |session: &zenoh::Session| {
+            let put = session.put(&key, tick.to_le_bytes().to_vec());
+            put.congestion_control(CongestionControl::Block).wait().map_err(zerr)
+        };
+        // Said first: a neighbour may be done already, and wait for this shard's word.
+        say_done(&self.session)?;
+        let (start, mut last_send) = (Instant::now(), Instant::now());
+        loop {
+            while let Ok(msg) = self.inbox.try_recv() {
+                self.take(msg)?;
+            }
+            let gone = |k: &ShardId| self.done.contains(k) || self.left.iter().any(|(l, _)| l == k);
+            let missing: Vec<ShardId> = self.neighbours.iter().copied().filter(|k| !gone(k)).collect();
+            if missing.is_empty() {
+                return Ok(());
+            }
+            if start.elapsed() > self.timeout {
+                return Err(LinkError::Timeout { me: self.me, missing, tick, waited_s: start.elapsed().as_secs_f64() });
+            }
+            if last_send.elapsed() >= RESEND {
+                self.resend()?;
+                say_done(&self.session)?;
+                last_send = Instant::now();
+            }
+            if let Ok(msg) = self.inbox.recv_timeout(POLL) {
+                self.take(msg)?;
+            }
+        }
+    }
+
+    /// Sends this step's and the previous step's batches again.
+    fn resend(&mut self) -> Result<(), LinkError> {
+        for (k, publisher) in self.publishers.iter().enumerate() {
+            for bytes in [&self.sent_before[k], &self.sent[k]].into_iter().filter(|b| !b.is_empty()) {
+                publisher.put(bytes.as_slice()).wait().map_err(zerr)?;
+                self.stats.resent += 1;
+            }
+        }
         Ok(())
     }
 
@@ -553,9 +630,9 @@ impl ShardLink {
 
     /// Withdraws this shard's token and subscribers, leaving the session open (the node's).
     pub fn leave(self) {
-        let Self { _alive, subscriber, _watch, publishers, .. } = self;
+        let Self { _alive, subscriber, _watch, _done, publishers, .. } = self;
         let _ = _alive.undeclare().wait();
-        drop((subscriber, _watch, publishers));
+        drop((subscriber, _watch, _done, publishers));
     }
 }
 

@@ -262,6 +262,13 @@ impl<W: StepObserver> Flight<W> {
                 obs.input_rejected(c.state.tick, origin, "arrived after the last step");
             }
         }
+        if let (Some(link), false) = (&c.shard, c.stats.stopped_early) {
+            // Every step done: stay until the neighbours have this shard's last batch. A
+            // neighbour that did not say so fails on its own; this shard's flight is whole.
+            if let Err(e) = crate::lock(link).finish() {
+                tracing::warn!("shard: leaving without every neighbour's word: {e}");
+            }
+        }
         c.stats.failsafe = c.failsafe.counts.clone();
         if let Some(a) = &c.autopilots {
             let a = crate::lock(a);
