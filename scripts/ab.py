@@ -6,7 +6,7 @@ so builds are compared in alternating rounds and by medians (docs/performance.md
   python3 scripts/ab.py cluster ROUNDS SECONDS SCENE BIN_A BIN_B [BIN...]   # 2 shards x 1 thread
 
 Copy each build somewhere first (cp target/release/twinswarm /tmp/ts_A). Per run: real time,
-CPU per simulated second (`run --json`'s cpu_s; `cluster --json`'s cpu_per_sim_s with the
+CPU per simulated second (`cpu_per_sim_s` of `run --json`, and of `cluster --json` with the
 launcher's router), and for `cluster` the barrier's parts (ms a step, mean of the shards) and the
 batches that came in shared memory. The digests of all builds must agree (an A/B that changes
 the bits says so).
@@ -26,7 +26,8 @@ def once(mode, binary, scene, seconds):
     d = json.loads(subprocess.run(cmd, capture_output=True, text=True, check=True).stdout)
     digest = hash(tuple(sorted((c["id"], c["digest"]) for c in d["copters"])))
     if mode == "run":
-        return dict(rt=d["real_time_factor"], cpu=d["cpu_s"] / float(seconds)), digest
+        # Builds older than `run --json`'s cpu_per_sim_s: cpu_s over the seconds flown.
+        return dict(rt=d["real_time_factor"], cpu=d.get("cpu_per_sim_s", d["cpu_s"] / float(seconds))), digest
     links = [p["shard"]["link"] for p in d["per_shard"]]
     per_step = lambda k: st.mean(l[k] / max(l["exchanges"], 1) * 1e3 for l in links)
     row = dict(rt=d["real_time_factor"], cpu=d["cpu_per_sim_s"], router_cpu_s=d["launcher_cpu_s"],

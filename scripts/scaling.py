@@ -88,12 +88,9 @@ def digests(summary):
 
 
 def cpu_per_sim_s(summary):
-    """CPU seconds (every thread; a cluster's shards and launcher together) per simulated second."""
-    if summary.get("cpu_per_sim_s") is not None:
-        return summary["cpu_per_sim_s"]
-    if summary.get("cpu_s") is not None and summary.get("sim_time_s"):
-        return summary["cpu_s"] / summary["sim_time_s"]
-    return None
+    """CPU seconds (every thread; a cluster's shards and launcher together) per simulated second
+    (`run --json` and `cluster --json` both report it; None where the platform has no CPU clock)."""
+    return summary.get("cpu_per_sim_s")
 
 
 def with_work(row, summary, used, one_thread_cpu):

@@ -18,7 +18,7 @@ figures() {
     python3 -c '
 import json, sys
 d = json.load(sys.stdin)
-cpu = d.get("cpu_per_sim_s") or (d["cpu_s"] / d["sim_time_s"] if d.get("cpu_s") else float("nan"))
+cpu = d.get("cpu_per_sim_s") or float("nan")
 print(d["real_time_factor"], cpu)'
 }
 for _ in $(seq "$rounds"); do

@@ -58,10 +58,13 @@ impl Tracker {
         state: &State,
         scene: &str,
         spent: (f64, Option<f64>),
+        stepped: u64,
         overruns: u64,
     ) -> Summary {
         let (wall_s, cpu_s) = spent;
         let sim_s = state.time_s(world);
+        // A resumed run flew from its checkpoint on, not from 0.
+        let flown_s = stepped as f64 * world.params.control_dt_s;
         // A shard reports its own copters only.
         let copters: Vec<CopterLine> = world
             .copters
@@ -89,9 +92,11 @@ impl Tracker {
             seed: world.params.seed,
             copters_count: copters.len(),
             sim_time_s: sim_s,
+            flown_s,
             wall_time_s: wall_s,
             cpu_s,
-            real_time_factor: if wall_s > 0.0 { sim_s / wall_s } else { f64::INFINITY },
+            cpu_per_sim_s: cpu_s.filter(|_| flown_s > 0.0).map(|c| c / flown_s),
+            real_time_factor: if wall_s > 0.0 { flown_s / wall_s } else { f64::INFINITY },
             control_steps: state.tick,
             realtime_overruns: overruns,
             crashes: self.crashes.clone(),
@@ -121,11 +126,19 @@ pub struct Summary {
     world: String,
     seed: u64,
     copters_count: usize,
+    /// The simulated time at the end, s.
     sim_time_s: f64,
+    /// The simulated time this process stepped, s: `sim_time_s` less where a resumed run's
+    /// checkpoint began.
+    flown_s: f64,
     wall_time_s: f64,
     /// This process's CPU time over the same span, all its threads (the simulation's and the
     /// transport's), s.
     cpu_s: Option<f64>,
+    /// `cpu_s` per simulated second flown: the work of a simulated second, whatever the cores'
+    /// waits (`cluster` reports the same for all its processes).
+    cpu_per_sim_s: Option<f64>,
+    /// `flown_s / wall_time_s`.
     real_time_factor: f64,
     control_steps: u64,
     realtime_overruns: u64,
@@ -139,9 +152,13 @@ impl Summary {
         let _ = writeln!(s, "twinswarm run: {} (world {:?}, seed {})", self.scene, self.world, self.seed);
         let _ = writeln!(
             s,
-            "  {} copters, {:.1} s simulated in {:.3} s wall ({:.0}x real time, {} control steps{})",
+            "  {} copters, {:.1} s simulated{} in {:.3} s wall ({:.2}x real time, {} control steps{})",
             self.copters_count,
-            self.sim_time_s,
+            self.flown_s,
+            match self.sim_time_s - self.flown_s {
+                from if from > 1e-9 => format!(" (resumed at {from:.1} s)"),
+                _ => String::new(),
+            },
             self.wall_time_s,
             self.real_time_factor,
             self.control_steps,

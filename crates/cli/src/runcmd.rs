@@ -507,7 +507,7 @@ fn report_run(
              `twinswarm log recover {path} FIXED.mcap` makes it a complete log"
         ))
     });
-    let summary = tracker.summary(&world, &state, origin, (wall_s, cpu_s), stats.overruns);
+    let summary = tracker.summary(&world, &state, origin, (wall_s, cpu_s), stats.steps, stats.overruns);
     let shard = shardcmd::section(&state, &stats, link.as_ref());
     if args.json {
         let mut json = serde_json::to_value(&summary)?;

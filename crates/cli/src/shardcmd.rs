@@ -148,9 +148,13 @@ pub struct ShardRun {
     /// The shard process's CPU time over its run, s.
     #[serde(default)]
     pub cpu_s: Option<f64>,
-    /// The simulated time it reached, s (the cluster's CPU per simulated second divides by it).
+    /// The simulated time it reached, s.
     #[serde(default)]
     pub sim_time_s: f64,
+    /// The simulated time it stepped, s (from its checkpoint, after a restart): the cluster's
+    /// CPU per simulated second divides by it.
+    #[serde(default)]
+    pub flown_s: f64,
     pub shard: ShardSection,
     #[serde(skip_serializing)]
     pub copters: Vec<CopterEnd>,
@@ -218,8 +222,8 @@ pub struct ClusterSummary {
     /// of the summaries apart.
     pub launcher_cpu_s: Option<f64>,
     /// CPU seconds per simulated second, the shards' (of the last segment) and the launcher's
-    /// together. Beside one process's `cpu_s / sim_time_s` on the same scene, what the split
-    /// costs in work, whatever the cores' waits.
+    /// together, per simulated second of that segment. Beside one process's `cpu_per_sim_s` on
+    /// the same scene, what the split costs in work, whatever the cores' waits.
     pub cpu_per_sim_s: Option<f64>,
 }
 
@@ -550,7 +554,7 @@ fn summarise(
     let mut all: Vec<CopterEnd> = per_shard.iter().flat_map(|s| s.copters.iter().cloned()).collect();
     let digest = swarm_digest(&mut all);
     let shards_cpu_s: Option<f64> = per_shard.iter().map(|s| s.cpu_s).sum();
-    let sim_s = per_shard.iter().map(|s| s.sim_time_s).fold(f64::INFINITY, f64::min);
+    let sim_s = per_shard.iter().map(|s| s.flown_s).fold(f64::INFINITY, f64::min);
     let cpu_per_sim_s = shards_cpu_s.zip(launcher_cpu_s).map(|(a, b)| (a + b) / sim_s).filter(|r| r.is_finite());
     Ok(ClusterSummary {
         shards: opts.shards,

@@ -140,6 +140,13 @@ fn a_cluster_survives_a_killed_shard_with_the_uninterrupted_bits_and_one_log() {
     let from_tick = restarts[0]["from_tick"].as_u64().unwrap();
     assert!(from_tick >= 100 && from_tick.is_multiple_of(100), "from a checkpoint tick: {from_tick}");
     assert!(err.contains("shard 1/3 died"), "{err}");
+    // The last segment's speed and work are of what it flew, from the checkpoint on.
+    let flown_from = 60.0 - from_tick as f64 * 0.05;
+    for s in restarted["per_shard"].as_array().unwrap() {
+        assert!((s["flown_s"].as_f64().unwrap() - flown_from).abs() < 1e-6, "{s}");
+        let (rtf, wall) = (s["real_time_factor"].as_f64().unwrap(), s["wall_time_s"].as_f64().unwrap());
+        assert!((rtf * wall - flown_from).abs() < 1e-3, "shard speed {rtf} over {wall} s: not of {flown_from} s flown");
+    }
 
     // The bits of the uninterrupted run, every copter.
     assert_eq!(digests(&straight).len(), 144);
@@ -183,7 +190,18 @@ fn resume_refuses_a_checkpoint_of_another_run_naming_the_file() {
             .concat(),
     );
     assert!(ok, "{err}");
-    assert_eq!(digests(&json(&out)), digests(&whole));
+    let resumed = json(&out);
+    assert_eq!(digests(&resumed), digests(&whole));
+    // Its speed is of the 2 s it flew, not of the 4 s its state reached.
+    let (flown, wall, rtf) = (
+        resumed["flown_s"].as_f64().unwrap(),
+        resumed["wall_time_s"].as_f64().unwrap(),
+        resumed["real_time_factor"].as_f64().unwrap(),
+    );
+    assert!((flown - 2.0).abs() < 1e-9 && resumed["sim_time_s"] == 4.0, "{resumed}");
+    assert!((rtf * wall - flown).abs() < 1e-6, "real time factor {rtf} over {wall} s wall is not the 2 s flown");
+    let cpu_per_sim_s = resumed["cpu_per_sim_s"].as_f64().unwrap();
+    assert!((cpu_per_sim_s * flown - resumed["cpu_s"].as_f64().unwrap()).abs() < 1e-6, "{resumed}");
 
     let damaged = dir.join("damaged.ckpt");
     let mut bytes = std::fs::read(&ckpt).unwrap();
