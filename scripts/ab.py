@@ -33,6 +33,7 @@ def once(mode, binary, scene, seconds):
     row = dict(rt=d["real_time_factor"], cpu=d["cpu_per_sim_s"], router_cpu_s=d["launcher_cpu_s"],
                barrier_ms=st.mean(l["barrier_ms_per_step"] for l in links), send_ms=per_step("send_s"),
                decode_ms=per_step("decode_s"), take_ms=per_step("take_s"),
+               transit_ms=st.mean(l.get("transit_ms_per_batch", float("nan")) for l in links),
                in_shm=sum(l.get("batches_in_shm", 0) for l in links) / max(sum(l.get("batches_received", 0) for l in links), 1))
     return row, digest
 

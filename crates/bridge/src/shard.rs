@@ -10,7 +10,9 @@
 //!
 //! Keys, under the run's prefix:
 //! - `<prefix>/shard/<from>/to/<to>`: a [`GhostBatch`] (postcard), reliable, express, blocking
-//!   under congestion (a lost batch would be a lost barrier);
+//!   under congestion (a lost batch would be a lost barrier); its attachment, the sender's wall
+//!   clock when it put it (ns since the Unix epoch, 8 bytes little-endian), for
+//!   [`LinkStats::transit_s`];
 //! - `<prefix>/shard/alive/<k>`: liveliness token of shard `k` (declared after its subscriber,
 //!   so a shard that sees it may publish to it);
 //! - `<prefix>/shard/<k>/done`: shard `k` took its neighbours' batches for its last step (the
@@ -138,6 +140,14 @@ struct Arrived {
     /// Whether its bytes came in shared memory (a neighbour on this machine) rather than
     /// over the socket.
     in_shm: bool,
+    /// From its sender's put to its arrival here, s, by the two wall clocks (`None`: no
+    /// timestamp attached).
+    transit_s: Option<f64>,
+}
+
+/// The wall clock, ns since the Unix epoch: a batch's send and arrival times.
+fn unix_ns() -> u64 {
+    std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).map_or(0, |d| d.as_nanos() as u64)
 }
 
 /// What the barrier cost, for the run's summary.
@@ -157,6 +167,15 @@ pub struct LinkStats {
     /// Time taking the neighbours' ghosts into the state, s (after the wait).
     #[serde(default)]
     pub take_s: f64,
+    /// The batches' time in transit, from their sender's put to their arrival here, s (total
+    /// over `batches_received`; by the two wall clocks: exact on one machine, off by the
+    /// clocks' offset across machines). What of the wait is not in transit (or in decoding)
+    /// is the neighbours still stepping: their step took longer than this shard's.
+    #[serde(default)]
+    pub transit_s: f64,
+    /// The longest transit of a batch, s.
+    #[serde(default)]
+    pub transit_max_s: f64,
     /// Ghosts sent and received.
     pub ghosts_sent: u64,
     /// Ghosts received.
@@ -199,13 +218,15 @@ fn declare_batches(
         .declare_subscriber(format!("{prefix}/shard/*/to/{me}"))
         .callback(move |sample| {
             let key = sample.key_expr().to_string();
-            let start = Instant::now();
+            let (start, arrived_ns) = (Instant::now(), unix_ns());
+            let sent_ns = sample.attachment().and_then(|a| <[u8; 8]>::try_from(&a.to_bytes()[..]).ok());
+            let transit_s = sent_ns.map(|t| arrived_ns.saturating_sub(u64::from_le_bytes(t)) as f64 * 1e-9);
             let in_shm = sample.payload().as_shm().is_some();
             let bytes = sample.payload().to_bytes();
             let msg = match postcard::from_bytes::<GhostBatch>(&bytes) {
                 Ok(batch) => {
                     let decode_s = start.elapsed().as_secs_f64();
-                    Incoming::Batch(Arrived { batch, bytes: bytes.len(), decode_s, in_shm })
+                    Incoming::Batch(Arrived { batch, bytes: bytes.len(), decode_s, in_shm, transit_s })
                 }
                 Err(e) => Incoming::Bad(key, e.to_string()),
             };
@@ -213,6 +234,11 @@ fn declare_batches(
         })
         .wait()
         .map_err(zerr)
+}
+
+/// Puts a batch, with the time it was put attached.
+fn put(publisher: &zenoh::pubsub::Publisher<'static>, bytes: &[u8]) -> Result<(), LinkError> {
+    publisher.put(bytes).attachment(unix_ns().to_le_bytes().to_vec()).wait().map_err(zerr)
 }
 
 /// The subscriber to the neighbours' word that they are done ([`ShardLink::finish`]).
@@ -413,8 +439,11 @@ impl ShardLink {
 
     fn take(&mut self, msg: Incoming) -> Result<(), LinkError> {
         match msg {
-            Incoming::Batch(Arrived { batch: b, bytes, decode_s, in_shm }) => {
+            Incoming::Batch(Arrived { batch: b, bytes, decode_s, in_shm, transit_s }) => {
                 self.stats.bytes_received += bytes as u64;
+                let transit_s = transit_s.unwrap_or(0.0);
+                self.stats.transit_s += transit_s;
+                self.stats.transit_max_s = self.stats.transit_max_s.max(transit_s);
                 self.stats.decode_s += decode_s;
                 self.stats.batches_received += 1;
                 self.stats.batches_in_shm += u64::from(in_shm);
@@ -480,7 +509,7 @@ impl ShardLink {
             let bytes = postcard::to_extend(&batch, buffer).map_err(zerr)?;
             self.stats.ghosts_sent += ghosts.len() as u64;
             self.stats.bytes_sent += bytes.len() as u64;
-            publisher.put(bytes.as_slice()).wait().map_err(zerr)?;
+            put(publisher, bytes.as_slice())?;
             self.sent[k] = bytes;
         }
         let t1 = Instant::now();
@@ -593,7 +622,7 @@ impl ShardLink {
     fn resend(&mut self) -> Result<(), LinkError> {
         for (k, publisher) in self.publishers.iter().enumerate() {
             for bytes in [&self.sent_before[k], &self.sent[k]].into_iter().filter(|b| !b.is_empty()) {
-                publisher.put(bytes.as_slice()).wait().map_err(zerr)?;
+                put(publisher, bytes.as_slice())?;
                 self.stats.resent += 1;
             }
         }

@@ -30,24 +30,33 @@ fn links(timeout: Duration) -> (ShardLink, ShardLink) {
     (a, b)
 }
 
-/// Steps `state` `ticks` times through `link`, sleeps `pause`, then `finish`es. Returns the state, how long `finish` took, and its result.
+/// How a test shard flies: `ticks` steps, sleeping `each` before each exchange (a slow shard),
+/// and `pause` after the last; then it `finish`es or not.
+struct Fly {
+    ticks: u64,
+    each: Duration,
+    pause: Duration,
+    finish: bool,
+}
+
+/// Steps `state` through `link` as `how` says. Returns the state, how long `finish` took, and
+/// its result. Returns the state, how long `finish` took, and its result.
 fn fly(
     world: &sim_core::World,
     mut link: ShardLink,
     mut state: State,
-    ticks: u64,
-    pause: Duration,
-    finish: bool,
+    how: Fly,
 ) -> (State, Duration, Result<(), LinkError>, ShardLink) {
     let inputs = world.initial_inputs();
     link.wait_for_neighbours().unwrap();
-    for _ in 0..ticks {
+    for _ in 0..how.ticks {
+        std::thread::sleep(how.each);
         link.exchange(&mut state).unwrap();
         sim_core::step(world, &mut state, &inputs);
     }
-    std::thread::sleep(pause);
+    std::thread::sleep(how.pause);
     let start = Instant::now();
-    let done = if finish { link.finish() } else { Ok(()) };
+    let done = if how.finish { link.finish() } else { Ok(()) };
     (state, start.elapsed(), done, link)
 }
 
@@ -59,8 +68,9 @@ fn a_shard_leaves_only_when_its_neighbour_has_its_last_batch() {
     // Shard 1 is slow to say it is done (a loaded machine, a batch late on its way).
     let late = Duration::from_millis(2500);
     std::thread::scope(|s| {
-        let ha = s.spawn(|| fly(&world, a, sa, 40, Duration::ZERO, true));
-        let hb = s.spawn(|| fly(&world, b, sb, 40, late, true));
+        let ha = s
+            .spawn(|| fly(&world, a, sa, Fly { ticks: 40, each: Duration::ZERO, pause: Duration::ZERO, finish: true }));
+        let hb = s.spawn(|| fly(&world, b, sb, Fly { ticks: 40, each: Duration::ZERO, pause: late, finish: true }));
         let (sa, waited, done_a, a) = ha.join().unwrap();
         let (sb, _, done_b, b) = hb.join().unwrap();
         done_a.expect("shard 0 heard that shard 1 is done");
@@ -87,8 +97,11 @@ fn a_neighbour_that_never_says_it_is_done_bounds_the_wait_and_one_that_left_ends
     let (a, b) = links(Duration::from_millis(1500));
     let (sa, sb) = (shard_of(&world, 0), shard_of(&world, 1));
     let (a, b) = std::thread::scope(|s| {
-        let ha = s.spawn(|| fly(&world, a, sa, 10, Duration::ZERO, true));
-        let hb = s.spawn(|| fly(&world, b, sb, 10, Duration::ZERO, false));
+        let ha = s
+            .spawn(|| fly(&world, a, sa, Fly { ticks: 10, each: Duration::ZERO, pause: Duration::ZERO, finish: true }));
+        let hb = s.spawn(|| {
+            fly(&world, b, sb, Fly { ticks: 10, each: Duration::ZERO, pause: Duration::ZERO, finish: false })
+        });
         let (_, waited, done, a) = ha.join().unwrap();
         match done {
             Err(LinkError::Timeout { missing, tick, .. }) => assert_eq!((missing, tick), (vec![1], 9)),
@@ -107,4 +120,33 @@ fn a_neighbour_that_never_says_it_is_done_bounds_the_wait_and_one_that_left_ends
     }
     done.expect("a neighbour that left is done");
     a.close().unwrap();
+}
+
+/// The barrier's account tells a neighbour slow to step from a slow link: behind a shard that
+/// takes 30 ms longer a step, the wait grows and the batches' transit does not.
+#[test]
+fn the_barrier_tells_a_slow_neighbour_from_a_slow_link() {
+    let world = sim_core::compile(&sim_core::scene::dense_swarm(60, 1.5, true, 2, 3)).unwrap();
+    let (a, b) = links(Duration::from_secs(20));
+    let (sa, sb) = (shard_of(&world, 0), shard_of(&world, 1));
+    let slow = Duration::from_millis(30);
+    let (a, b) = std::thread::scope(|s| {
+        let ha = s
+            .spawn(|| fly(&world, a, sa, Fly { ticks: 20, each: Duration::ZERO, pause: Duration::ZERO, finish: true }));
+        let hb = s.spawn(|| fly(&world, b, sb, Fly { ticks: 20, each: slow, pause: Duration::ZERO, finish: true }));
+        (ha.join().unwrap().3, hb.join().unwrap().3)
+    });
+    let (fast, slowed) = (a.stats().clone(), b.stats().clone());
+    for (name, s) in [("shard 0", &fast), ("shard 1", &slowed)] {
+        assert_eq!(s.exchanges, 20, "{name}");
+        assert!(s.batches_received >= 20, "{name}: {s:?}");
+        assert!(s.transit_s > 0.0 && s.transit_max_s > 0.0, "{name}: the batches carry their send time: {s:?}");
+    }
+    // Shard 0 waits about 30 ms a step for shard 1 to step, not for the link.
+    assert!(fast.wait_s > 20.0 * 0.02, "shard 0 waited {:.3} s in all", fast.wait_s);
+    assert!(fast.transit_s < 0.25 * fast.wait_s, "transit {:.3} s of a {:.3} s wait", fast.transit_s, fast.wait_s);
+    // Shard 1 finds shard 0's batch there.
+    assert!(slowed.wait_s < 0.25 * fast.wait_s, "shard 1 waited {:.3} s, shard 0 {:.3} s", slowed.wait_s, fast.wait_s);
+    a.close().unwrap();
+    b.close().unwrap();
 }

@@ -71,13 +71,15 @@ pub fn print_section(s: &ShardSection) {
         let per_step = |s: f64| s * 1e3 / l.totals.exchanges.max(1) as f64;
         println!(
             "    barrier: {:.3} ms per step (encode and send {:.2}, wait {:.2}, take in {:.2}; decode {:.2} on \
-             Zenoh's threads; worst wait {:.1} ms)",
+             Zenoh's threads; worst wait {:.1} ms); a batch {:.2} ms in transit (worst {:.1})",
             l.barrier_ms_per_step,
             per_step(l.totals.send_s),
             per_step(l.totals.wait_s),
             per_step(l.totals.take_s),
             per_step(l.totals.decode_s),
             l.totals.wait_max_s * 1e3,
+            l.transit_ms_per_batch,
+            l.totals.transit_max_s * 1e3,
         );
         println!(
             "    ghosts: {:.0} B sent per step, {} sent, {} received; {} of {} batches came in shared memory",
@@ -97,6 +99,8 @@ pub struct LinkStatsOut {
     pub totals: LinkStats,
     pub bytes_sent_per_step: f64,
     pub barrier_ms_per_step: f64,
+    /// [`LinkStats::transit_s`] per batch received, ms.
+    pub transit_ms_per_batch: f64,
 }
 
 impl From<&LinkStats> for LinkStatsOut {
@@ -106,6 +110,7 @@ impl From<&LinkStats> for LinkStatsOut {
             totals: s.clone(),
             bytes_sent_per_step: per(s.bytes_sent as f64),
             barrier_ms_per_step: per((s.send_s + s.wait_s + s.take_s) * 1e3),
+            transit_ms_per_batch: s.transit_s * 1e3 / s.batches_received.max(1) as f64,
         }
     }
 }
