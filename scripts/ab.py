@@ -27,7 +27,8 @@ def once(mode, binary, scene, seconds):
     digest = hash(tuple(sorted((c["id"], c["digest"]) for c in d["copters"])))
     if mode == "run":
         # Builds older than `run --json`'s cpu_per_sim_s: cpu_s over the seconds flown.
-        return dict(rt=d["real_time_factor"], cpu=d.get("cpu_per_sim_s", d["cpu_s"] / float(seconds))), digest
+        cpu = d["cpu_per_sim_s"] if "cpu_per_sim_s" in d else d["cpu_s"] / float(seconds)
+        return dict(rt=d["real_time_factor"], cpu=cpu), digest
     links = [p["shard"]["link"] for p in d["per_shard"]]
     per_step = lambda k: st.mean(l[k] / max(l["exchanges"], 1) * 1e3 for l in links)
     row = dict(rt=d["real_time_factor"], cpu=d["cpu_per_sim_s"], router_cpu_s=d["launcher_cpu_s"],

@@ -89,8 +89,13 @@ def digests(summary):
 
 def cpu_per_sim_s(summary):
     """CPU seconds (every thread; a cluster's shards and launcher together) per simulated second
-    (`run --json` and `cluster --json` both report it; None where the platform has no CPU clock)."""
-    return summary.get("cpu_per_sim_s")
+    (`run --json` and `cluster --json` both report it; None where the platform has no CPU clock).
+    A `run` of a build before a27a00a has only `cpu_s`: over `sim_time_s`, as it never resumes here."""
+    if "cpu_per_sim_s" in summary:
+        return summary["cpu_per_sim_s"]
+    if summary.get("cpu_s") is not None and summary.get("sim_time_s"):
+        return summary["cpu_s"] / summary["sim_time_s"]
+    return None
 
 
 def with_work(row, summary, used, one_thread_cpu):

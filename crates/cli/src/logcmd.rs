@@ -107,19 +107,20 @@ pub fn install_stop_flag() -> anyhow::Result<Arc<AtomicBool>> {
 }
 
 /// Finishes the log of a run.
-pub fn finish_run_log(log: Option<Logger>, interrupted_at_tick: Option<u64>) -> anyhow::Result<Option<LogStats>> {
+/// Finishes a run's log; a run that stopped before its end (at a tick, why) says so in it.
+pub fn finish_run_log(log: Option<Logger>, interrupted: Option<(u64, &str)>) -> anyhow::Result<Option<LogStats>> {
     let Some(mut log) = log else { return Ok(None) };
     if !log.has_file() {
         log.finish()?;
         return Ok(None);
     }
-    if let Some(tick) = interrupted_at_tick {
+    if let Some((tick, why)) = interrupted {
         log.log_event(LogEvent {
             tick,
             kind: EventKind::Interrupted,
             copter: None,
             detail: None,
-            message: "run interrupted by a signal; log finished cleanly".into(),
+            message: format!("run {why}; log finished cleanly"),
         })?;
     }
     Ok(Some(log.finish()?))

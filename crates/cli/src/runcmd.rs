@@ -458,6 +458,17 @@ fn progress_bar(args: &RunArgs, ticks: u64) -> Option<indicatif::ProgressBar> {
     })
 }
 
+/// Why a run stopped before its end.
+fn stop_reason(stats: &bridge::engine::LoopStats) -> &'static str {
+    if stats.shard_error.is_some() {
+        "stopped by its shard link (the error follows)"
+    } else if stats.checkpoint_error.is_some() {
+        "stopped: a checkpoint could not be written (the error follows)"
+    } else {
+        "interrupted by a signal or a stop request"
+    }
+}
+
 /// Finishes the log and prints the summary; the run's error, if any, comes last.
 fn report_run(
     args: &RunArgs,
@@ -475,6 +486,7 @@ fn report_run(
     let log_path = recorder.path().map(|p| p.to_owned());
     let (mut log, log_error) = recorder.into_parts();
     let interrupted = (stats.stopped_early && log_error.is_none()).then_some(state.tick);
+    let why = stop_reason(&stats);
     if let (Some(l), Some(b)) = (&mut log, &bus) {
         // The drop counts belong in the log too: what never reached the loop is only there.
         let mut detail = serde_json::to_value(b)?;
@@ -493,7 +505,7 @@ fn report_run(
             tracing::warn!("could not log the bus report: {e}");
         }
     }
-    let log_stats = logcmd::finish_run_log(log, interrupted)?;
+    let log_stats = logcmd::finish_run_log(log, interrupted.map(|t| (t, why)))?;
     let live_stats = live.as_ref().map(|l| l.stats());
     drop(live);
     let log_error = log_error.map(|(tick, e)| {
@@ -542,10 +554,7 @@ fn report_run(
         print_bus(bus.as_ref(), &stats);
         print_inputs(&stats, &failsafe_events);
         if interrupted.is_some() {
-            outln!(
-                "  interrupted by a signal after {:.2} s simulated; the log was finished cleanly",
-                state.time_s(&world)
-            );
+            outln!("  {why} after {:.2} s simulated; the log was finished cleanly", state.time_s(&world));
         }
     }
     if let Some(e) = &stats.checkpoint_error {

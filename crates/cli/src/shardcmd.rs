@@ -110,7 +110,7 @@ impl From<&LinkStats> for LinkStatsOut {
             totals: s.clone(),
             bytes_sent_per_step: per(s.bytes_sent as f64),
             barrier_ms_per_step: per((s.send_s + s.wait_s + s.take_s) * 1e3),
-            transit_ms_per_batch: s.transit_s * 1e3 / s.batches_received.max(1) as f64,
+            transit_ms_per_batch: s.transit_s * 1e3 / s.batches_timed.max(1) as f64,
         }
     }
 }

@@ -194,6 +194,8 @@ fn a_shard_that_dies_stops_its_neighbour_with_a_reason() {
     let err = String::from_utf8_lossy(&out.stderr);
     assert!(!out.status.success());
     assert!(err.contains("shard 1 left the cluster"), "{err}");
+    let summary = String::from_utf8_lossy(&out.stdout);
+    assert!(summary.contains("stopped by its shard link"), "the summary says why it stopped: {summary}");
     // Liveliness, not the 60 s barrier timeout.
     assert!(took < Duration::from_secs(20), "noticed after {took:?}");
     let _ = std::fs::remove_file(scene);
