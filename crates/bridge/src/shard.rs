@@ -571,16 +571,7 @@ impl ShardLink {
             if remaining.is_zero() {
                 return Err(LinkError::Timeout { me: self.me, missing, tick, waited_s: t1.elapsed().as_secs_f64() });
             }
-            // A batch lost while a link was down is sent again; the receiver keeps one per
-            // (tick, sender). After a neighbour came back, on routes declared anew.
-            if std::mem::take(&mut self.rejoined) {
-                self.redeclare()?;
-                last_send = t1 - RESEND;
-            }
-            if last_send.elapsed() >= RESEND {
-                self.resend()?;
-                last_send = Instant::now();
-            }
+            self.resend_when_due(&mut last_send)?;
             // Wake at least every POLL to look at neighbours that left.
             if let Ok(msg) = self.inbox.recv_timeout(remaining.min(POLL)) {
                 self.take(msg)?;
@@ -655,20 +646,30 @@ impl ShardLink {
             if start.elapsed() > timeout {
                 return Err(LinkError::Timeout { me: self.me, missing, tick, waited_s: start.elapsed().as_secs_f64() });
             }
-            // After a router restart, on routes declared anew, at once.
-            if std::mem::take(&mut self.rejoined) {
-                self.redeclare()?;
-                last_send = start - RESEND;
-            }
-            if last_send.elapsed() >= RESEND {
-                self.resend()?;
+            if self.resend_when_due(&mut last_send)? {
                 say_done(&self.session)?;
-                last_send = Instant::now();
             }
             if let Ok(msg) = self.inbox.recv_timeout(POLL) {
                 self.take(msg)?;
             }
         }
+    }
+
+    /// Sends this step's and the previous step's batches again once [`RESEND`] has passed since
+    /// `last_send`, or at once after a neighbour came back (on routes declared anew): a batch
+    /// lost while a link was down; the receiver keeps one per (tick, sender). Returns whether
+    /// it sent.
+    fn resend_when_due(&mut self, last_send: &mut Instant) -> Result<bool, LinkError> {
+        let back = std::mem::take(&mut self.rejoined);
+        if back {
+            self.redeclare()?;
+        }
+        if !back && last_send.elapsed() < RESEND {
+            return Ok(false);
+        }
+        self.resend()?;
+        *last_send = Instant::now();
+        Ok(true)
     }
 
     /// Sends this step's and the previous step's batches again.
