@@ -33,6 +33,8 @@ use zenoh::Wait;
 use zenoh::qos::CongestionControl;
 use zenoh::sample::SampleKind;
 
+use crate::log::now_unix_ns;
+
 /// One shard's ghosts for one neighbour at one tick.
 #[derive(Debug, Serialize, Deserialize)]
 pub struct GhostBatch {
@@ -160,11 +162,6 @@ struct Arrived {
     transit_s: Option<f64>,
 }
 
-/// The wall clock, ns since the Unix epoch: a batch's send and arrival times.
-fn unix_ns() -> u64 {
-    std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).map_or(0, |d| d.as_nanos() as u64)
-}
-
 /// What the barrier cost, for the run's summary.
 #[derive(Clone, Debug, Default, Serialize, Deserialize)]
 pub struct LinkStats {
@@ -242,7 +239,7 @@ fn declare_batches(
         .declare_subscriber(format!("{prefix}/shard/*/to/{me}"))
         .callback(move |sample| {
             let key = sample.key_expr().to_string();
-            let (start, arrived_ns) = (Instant::now(), unix_ns());
+            let (start, arrived_ns) = (Instant::now(), now_unix_ns());
             let sent_ns = sample.attachment().and_then(|a| <[u8; 8]>::try_from(&a.to_bytes()[..]).ok());
             let transit_s = sent_ns.map(|t| arrived_ns.saturating_sub(u64::from_le_bytes(t)) as f64 * 1e-9);
             let in_shm = sample.payload().as_shm().is_some();
@@ -262,7 +259,7 @@ fn declare_batches(
 
 /// Puts a batch, with the time it was put attached.
 fn put(publisher: &zenoh::pubsub::Publisher<'static>, bytes: &[u8]) -> Result<(), LinkError> {
-    publisher.put(bytes).attachment(unix_ns().to_le_bytes().to_vec()).wait().map_err(zerr)
+    publisher.put(bytes).attachment(now_unix_ns().to_le_bytes().to_vec()).wait().map_err(zerr)
 }
 
 /// The subscriber to the neighbours' word that they are done ([`ShardLink::finish`]).

@@ -106,7 +106,6 @@ pub fn install_stop_flag() -> anyhow::Result<Arc<AtomicBool>> {
     Ok(stop)
 }
 
-/// Finishes the log of a run.
 /// Finishes a run's log; a run that stopped before its end (at a tick, why) says so in it.
 pub fn finish_run_log(log: Option<Logger>, interrupted: Option<(u64, &str)>) -> anyhow::Result<Option<LogStats>> {
     let Some(mut log) = log else { return Ok(None) };
