@@ -23,7 +23,8 @@
 //! other) as configured, multicast scouting off by default.
 
 use std::collections::BTreeMap;
-use std::sync::mpsc;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::{Arc, mpsc};
 use std::time::{Duration, Instant};
 
 use serde::{Deserialize, Serialize};
@@ -91,6 +92,15 @@ pub enum LinkError {
     Left {
         /// The neighbour.
         shard: ShardId,
+        /// This shard's tick.
+        tick: u64,
+    },
+    /// A stop request or a signal came while this shard waited for its neighbours (before its
+    /// first step, at a step's barrier, or for their word after its last).
+    #[error("shard {me}: stopped while waiting for its neighbours at tick {tick}")]
+    Stopped {
+        /// This shard.
+        me: ShardId,
         /// This shard's tick.
         tick: u64,
     },
@@ -333,6 +343,8 @@ pub struct ShardLink {
     rejoined: bool,
     timeout: Duration,
     on_lost: OnLost,
+    /// Set by a stop request or a signal: ends the waits outside the steps.
+    stop: Option<Arc<AtomicBool>>,
     /// This step's batch for each neighbour, kept to send again.
     sent: Vec<Vec<u8>>,
     /// The previous step's batches. A neighbour may still wait for one: this shard took
@@ -405,6 +417,7 @@ impl ShardLink {
             rejoined: false,
             timeout,
             on_lost: OnLost::Stop,
+            stop: None,
             sent: Vec::new(),
             sent_before: Vec::new(),
             stats: LinkStats::default(),
@@ -432,6 +445,20 @@ impl ShardLink {
         self
     }
 
+    /// Ends every wait for neighbours once `stop` is set: before the first step
+    /// ([`ShardLink::wait_for_neighbours`]), at a step's barrier ([`ShardLink::exchange`],
+    /// which then leaves the state untouched), and after the last ([`ShardLink::finish`]). A
+    /// neighbour held by a frozen or lost shard would otherwise keep a stopped run for the
+    /// barrier timeout.
+    pub fn stop_on(mut self, stop: Arc<AtomicBool>) -> Self {
+        self.stop = Some(stop);
+        self
+    }
+
+    fn stopped(&self) -> bool {
+        self.stop.as_ref().is_some_and(|s| s.load(Ordering::Relaxed))
+    }
+
     /// Waits until every neighbour is up (its liveliness token seen) and every publisher has
     /// a matching subscriber, so that the first batch is not lost.
     pub fn wait_for_neighbours(&mut self) -> Result<(), LinkError> {
@@ -445,6 +472,9 @@ impl ShardLink {
             let unmatched = self.publishers.iter().any(|p| !p.matching_status().wait().is_ok_and(|m| m.matching()));
             if missing.is_empty() && !unmatched {
                 return Ok(());
+            }
+            if self.stopped() {
+                return Err(LinkError::Stopped { me: self.me, tick: 0 });
             }
             if start.elapsed() > self.timeout {
                 let missing = if missing.is_empty() { self.neighbours.clone() } else { missing };
@@ -545,6 +575,9 @@ impl ShardLink {
             if missing.is_empty() {
                 break;
             }
+            if self.stopped() {
+                return Err(LinkError::Stopped { me: self.me, tick });
+            }
             if let Some(&(shard, at)) = self.done.iter().find(|(k, at)| missing.contains(k) && *at < tick) {
                 return Err(LinkError::Ended { me: self.me, shard, at, tick });
             }
@@ -604,7 +637,8 @@ impl ShardLink {
     /// before could lose it, as a batch in shared memory goes with its sender's session. A
     /// neighbour whose token went away counts as done after [`LEFT_GRACE`] (it failed, or its
     /// word was lost), except when holding for neighbours ([`OnLost::Hold`]: it may be back).
-    /// Bounded by the barrier timeout; the time goes to [`LinkStats::finish_s`].
+    /// Bounded by the barrier timeout, and ended by a stop ([`ShardLink::stop_on`]); the time
+    /// goes to [`LinkStats::finish_s`].
     pub fn finish(&mut self) -> Result<(), LinkError> {
         self.finish_within(self.timeout)
     }
@@ -639,6 +673,9 @@ impl ShardLink {
             let missing: Vec<ShardId> = self.neighbours.iter().copied().filter(|k| !gone(k)).collect();
             if missing.is_empty() {
                 return Ok(());
+            }
+            if self.stopped() {
+                return Err(LinkError::Stopped { me: self.me, tick });
             }
             if start.elapsed() > timeout {
                 return Err(LinkError::Timeout { me: self.me, missing, tick, waited_s: start.elapsed().as_secs_f64() });

@@ -1,9 +1,11 @@
 //! Two shards' links on loopback Zenoh: the end of a sharded run (a shard leaves only when each
-//! neighbour has taken its last batch; a neighbour that never says so bounds the wait; one given
-//! another duration stops at once), and the barrier's account.
+//! neighbour has taken its last batch; a neighbour that never says so bounds the wait, which a
+//! stop ends; one given another duration stops at once), and the barrier's account.
 
 mod net;
 
+use std::sync::Arc;
+use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::{Duration, Instant};
 
 use bridge::shard::{LEFT_GRACE, LinkError, ShardLink};
@@ -103,15 +105,33 @@ fn a_shard_leaves_only_when_its_neighbour_has_its_last_batch() {
 }
 
 #[test]
-fn a_neighbour_that_never_says_it_is_done_bounds_the_wait_and_one_that_left_ends_it() {
+fn a_neighbour_that_never_says_it_is_done_bounds_the_wait_and_a_stop_or_one_that_left_ends_it() {
     let quiet = Fly { finish: None, ..Fly::steps(10) };
-    let ((_, waited, done, mut a), (_, _, _, b)) =
+    let ((_, waited, done, a), (_, _, _, b)) =
         fly_two(Fly { finish: Some(Duration::from_millis(1500)), ..Fly::steps(10) }, quiet);
     match done {
         Err(LinkError::Timeout { missing, tick, .. }) => assert_eq!((missing, tick), (vec![1], 9)),
         other => panic!("shard 0 should time out waiting for shard 1's word, got {other:?}"),
     }
     assert!(waited >= Duration::from_millis(1400), "waited {waited:?}");
+    // A stop (a signal, a stop request) ends the wait at once, shard 1 still silent.
+    let stop = Arc::new(AtomicBool::new(false));
+    let mut a = a.stop_on(stop.clone());
+    let setter = {
+        let stop = stop.clone();
+        std::thread::spawn(move || {
+            std::thread::sleep(Duration::from_millis(300));
+            stop.store(true, Ordering::Relaxed);
+        })
+    };
+    let start = Instant::now();
+    match a.finish_within(Duration::from_secs(20)) {
+        Err(LinkError::Stopped { me: 0, tick: 9 }) => {}
+        other => panic!("a stop should end shard 0's wait, got {other:?}"),
+    }
+    assert!(start.elapsed() < Duration::from_secs(2), "stopped after {:?}", start.elapsed());
+    setter.join().unwrap();
+    stop.store(false, Ordering::Relaxed);
     // Shard 1 leaves without a word: shard 0 learns it from its token, and ends after the
     // grace a word on its way gets.
     b.close().unwrap();

@@ -267,7 +267,8 @@ pub fn run<W: StepObserver + Send>(
     let (req_tx, req_rx) = std::sync::mpsc::sync_channel::<Request>(REQUEST_QUEUE);
     let prefix = bus.zenoh.prefix.clone().unwrap_or_else(|| node::default_prefix(&world));
     let early = Mutex::new(Some(early));
-    let open_link = |session: zenoh::Session| open_shard_link(session, bus, &prefix, &neighbours, &early, state.tick);
+    let link_at = LinkAt { prefix: &prefix, neighbours: &neighbours, early: &early, tick: state.tick, stop: &stop };
+    let open_link = |session: zenoh::Session| open_shard_link(session, bus, &link_at);
 
     if bus.no_bus && bus.ivy.is_none() {
         let session = match neighbours.is_empty() {
@@ -369,22 +370,32 @@ fn loop_options(
     Ok(opts)
 }
 
-/// The shard's link to its neighbours, on `session`, preloaded with the batches a checkpoint
-/// kept (`early`, taken once); it waits until they are all up.
+/// Where a shard's link is opened: under `prefix`, to `neighbours`, preloaded with the batches
+/// a checkpoint kept (`early`, taken once) for the state at `tick`; its waits outside the steps
+/// end on `stop`.
+struct LinkAt<'a> {
+    prefix: &'a str,
+    neighbours: &'a [u16],
+    early: &'a Mutex<Option<Vec<bridge::shard::GhostBatch>>>,
+    tick: u64,
+    stop: &'a Arc<AtomicBool>,
+}
+
+/// The shard's link to its neighbours, on `session`; it waits until they are all up.
 fn open_shard_link(
     session: zenoh::Session,
     bus: &BusOptions,
-    prefix: &str,
-    neighbours: &[u16],
-    early: &Mutex<Option<Vec<bridge::shard::GhostBatch>>>,
-    tick: u64,
+    at: &LinkAt<'_>,
 ) -> anyhow::Result<Arc<Mutex<ShardLink>>> {
     let o = bus.shard.as_ref().expect("only for shards");
-    let mut link = ShardLink::on(session, prefix, o.shard as u16, neighbours.to_vec(), o.timeout)?.on_lost(o.on_lost);
-    link.preload(bridge::lock(early).take().unwrap_or_default(), tick);
+    let mut link = ShardLink::on(session, at.prefix, o.shard as u16, at.neighbours.to_vec(), o.timeout)?
+        .on_lost(o.on_lost)
+        .stop_on(at.stop.clone());
+    link.preload(bridge::lock(at.early).take().unwrap_or_default(), at.tick);
     link.wait_for_neighbours()?;
-    tracing::info!("shard {}/{}: {} neighbour(s) up, stepping", o.shard, o.shards, neighbours.len());
-    eprintln!("shard {}/{}: {} neighbour(s) up, stepping", o.shard, o.shards, neighbours.len());
+    let n = at.neighbours.len();
+    tracing::info!("shard {}/{}: {n} neighbour(s) up, stepping", o.shard, o.shards);
+    eprintln!("shard {}/{}: {n} neighbour(s) up, stepping", o.shard, o.shards);
     Ok(Arc::new(Mutex::new(link)))
 }
 

@@ -151,41 +151,41 @@ fn json(text: &str) -> serde_json::Value {
     serde_json::from_str(text.trim()).unwrap_or_else(|e| panic!("{e}: {text}"))
 }
 
-#[test]
-fn a_shard_that_dies_stops_its_neighbour_with_a_reason() {
-    let scene = flock_scene("die");
+/// Two shards of the flock stepping in real time for up to 10 minutes, peer to peer (shard 0
+/// listens, shard 1 connects), with a 60 s barrier timeout: `(shard 0, shard 1)`, once shard 1
+/// has stepped with its neighbour for a second.
+fn two_shards_stepping(scene: &std::path::Path, tag: &str) -> (std::process::Child, std::process::Child) {
     let port = std::net::TcpListener::bind("127.0.0.1:0").unwrap().local_addr().unwrap().port();
     let endpoint = format!("tcp/127.0.0.1:{port}");
-    let prefix = format!("twinswarm/test-die-{port}");
+    let prefix = format!("twinswarm/test-{tag}-{port}");
     let spawn = |k: &str, net: &[&str]| {
         Command::new(env!("CARGO_BIN_EXE_twinswarm"))
-            .args([
-                "run",
-                scene.to_str().unwrap(),
-                "--shard",
-                k,
-                "--duration",
-                "600",
-                "--realtime",
-                "--prefix",
-                &prefix,
-            ])
-            .args(["--barrier-timeout", "60"])
+            .args(["run", scene.to_str().unwrap(), "--shard", k, "--duration", "600", "--realtime"])
+            .args(["--prefix", &prefix, "--barrier-timeout", "60"])
             .args(net)
             .stdout(Stdio::piped())
             .stderr(Stdio::piped())
             .spawn()
             .unwrap()
     };
-    // Peer to peer, no router: shard 0 listens, shard 1 connects.
-    let survivor = spawn("0/2", &["--listen", &endpoint]);
+    let first = spawn("0/2", &["--listen", &endpoint]);
     std::thread::sleep(Duration::from_millis(500));
-    let mut victim = spawn("1/2", &["--connect", &endpoint]);
-    // Killed once it steps with its neighbour.
-    let mut lines = std::io::BufRead::lines(std::io::BufReader::new(victim.stderr.take().unwrap()));
+    let mut second = spawn("1/2", &["--connect", &endpoint]);
+    let mut lines = std::io::BufRead::lines(std::io::BufReader::new(second.stderr.take().unwrap()));
     let up = lines.find_map(|l| l.ok().filter(|l| l.contains("neighbour(s) up")));
-    assert!(up.is_some(), "the victim never started stepping");
+    assert!(up.is_some(), "shard 1 never started stepping");
     std::thread::sleep(Duration::from_secs(1));
+    (first, second)
+}
+
+fn signal(child: &std::process::Child, sig: &str) {
+    assert!(Command::new("kill").args([sig, &child.id().to_string()]).status().unwrap().success());
+}
+
+#[test]
+fn a_shard_that_dies_stops_its_neighbour_with_a_reason() {
+    let scene = flock_scene("die");
+    let (survivor, mut victim) = two_shards_stepping(&scene, "die");
     victim.kill().unwrap();
     victim.wait().unwrap();
     let killed_at = Instant::now();
@@ -198,6 +198,28 @@ fn a_shard_that_dies_stops_its_neighbour_with_a_reason() {
     assert!(summary.contains("stopped by its shard link"), "the summary says why it stopped: {summary}");
     // Liveliness, not the 60 s barrier timeout.
     assert!(took < Duration::from_secs(20), "noticed after {took:?}");
+    let _ = std::fs::remove_file(scene);
+}
+
+#[test]
+fn a_signal_stops_a_shard_whose_neighbour_froze_at_once() {
+    // Shard 1 frozen (SIGSTOP): its token stays, so shard 0 waits at its barrier. Ctrl-C ends
+    // that wait at once, not after the 60 s barrier timeout, and the run ends as interrupted.
+    let scene = flock_scene("freeze");
+    let (waiting, mut frozen) = two_shards_stepping(&scene, "freeze");
+    signal(&frozen, "-STOP");
+    std::thread::sleep(Duration::from_millis(500));
+    let signalled_at = Instant::now();
+    signal(&waiting, "-INT");
+    let out = waiting.wait_with_output().unwrap();
+    let took = signalled_at.elapsed();
+    signal(&frozen, "-CONT");
+    frozen.kill().unwrap();
+    frozen.wait().unwrap();
+    let summary = String::from_utf8_lossy(&out.stdout);
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    assert!(summary.contains("interrupted by a signal"), "{summary}");
+    assert!(took < Duration::from_secs(5), "stopped {took:?} after the signal");
     let _ = std::fs::remove_file(scene);
 }
 

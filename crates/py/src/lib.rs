@@ -131,6 +131,7 @@ impl Sim {
                     return Err(format!("logging failed {}", e.unwrap_or_default()));
                 }
                 Err(Halt::Shard(e) | Halt::Checkpoint(e)) => return Err(e),
+                Err(Halt::Stopped) => return Err("stopped while waiting for its shard's neighbours".into()),
             }
         }
         Ok(())

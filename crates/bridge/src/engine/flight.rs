@@ -26,7 +26,7 @@ use crate::engine::request::{BusInput, Request};
 use crate::log::{EventKind, LogError, LogEvent, Logger};
 use crate::mixed::outbox::{Outbox, PprzOut};
 use crate::mixed::sync::TwinSync;
-use crate::shard::ShardLink;
+use crate::shard::{LinkError, ShardLink};
 use crate::wire::{CommandError, CommandMsg, sensors_msg, state_msg};
 
 /// Why a step did not happen.
@@ -38,6 +38,8 @@ pub enum Halt {
     Log,
     /// A checkpoint could not be written (the run was asked for them).
     Checkpoint(String),
+    /// A stop request or a signal ended a shard's wait at its barrier: the step was not taken.
+    Stopped,
 }
 
 /// What one step produced besides the new state.
@@ -185,7 +187,7 @@ impl<W: StepObserver> Flight<W> {
             return Err(Halt::Log);
         }
         let mut obs = Tee(&mut self.recorder, &mut self.watch);
-        let stepped = self.core.step(&mut obs).map_err(Halt::Shard)?;
+        let stepped = self.core.step(&mut obs)?;
         if self.core.checkpoints.as_ref().is_some_and(|c| c.due(self.core.state.tick)) {
             // The log first: a run resumed from this checkpoint logs from the next step on.
             self.recorder.sync();
@@ -406,14 +408,17 @@ impl Core {
         }
     }
 
-    fn step(&mut self, obs: &mut dyn StepObserver) -> Result<Stepped, String> {
+    fn step(&mut self, obs: &mut dyn StepObserver) -> Result<Stepped, Halt> {
         let sonar_period = self.world.sensors.spec.sonar.period_steps.max(1) as u64;
         let sensed = self.state.tick.is_multiple_of(sonar_period);
         if let Some(sync) = &self.sync {
             sync.adjust_commands(&mut self.inputs);
         }
         if let Some(link) = &self.shard {
-            crate::lock(link).exchange(&mut self.state).map_err(|e| e.to_string())?;
+            crate::lock(link).exchange(&mut self.state).map_err(|e| match e {
+                LinkError::Stopped { .. } => Halt::Stopped,
+                e => Halt::Shard(e.to_string()),
+            })?;
         }
         let mut autopilots = self.autopilots.as_ref().map(|a| crate::lock(a));
         if let Some(a) = autopilots.as_mut() {
@@ -425,7 +430,7 @@ impl Core {
         }
         drop(autopilots);
         obs.after_step(&self.world, &self.state, &self.inputs, &self.report);
-        self.check_shard()?;
+        self.check_shard().map_err(Halt::Shard)?;
         self.stats.steps += 1;
         track_twins(&self.world, &self.state, &mut self.stats.twins);
         if let Some(sync) = self.sync.as_mut() {

@@ -84,7 +84,7 @@ pub fn run_loop<W: StepObserver>(
                 match halt {
                     Halt::Shard(e) => flight.shard_error(e),
                     Halt::Checkpoint(e) => flight.checkpoint_error(e),
-                    Halt::Log => {}
+                    Halt::Log | Halt::Stopped => {}
                 }
                 flight.stopped_early();
                 break;
