@@ -102,6 +102,11 @@ if [ ! -f "$pprz/env.sh" ]; then
   echo "no Paparazzi build at $pprz: run shared/paparazzi/build.sh $pprz first" >&2
   exit 1
 fi
+# One build at a time in a Paparazzi tree: every build writes the private conf.xml,
+# var/messages.xml and the installed modules (tests build aircraft from two pytest workers).
+command -v flock >/dev/null || { echo "flock (util-linux) not found: needed to serialise builds in $pprz" >&2; exit 1; }
+exec 9>"$pprz/.build_nps.lock"
+flock 9
 # shellcheck disable=SC1091
 . "$pprz/env.sh"
 home="$PAPARAZZI_HOME"
