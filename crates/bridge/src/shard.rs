@@ -343,7 +343,7 @@ pub struct ShardLink {
     rejoined: bool,
     timeout: Duration,
     on_lost: OnLost,
-    /// Set by a stop request or a signal: ends the waits outside the steps.
+    /// Set by a stop request or a signal: ends every wait for neighbours.
     stop: Option<Arc<AtomicBool>>,
     /// This step's batch for each neighbour, kept to send again.
     sent: Vec<Vec<u8>>,

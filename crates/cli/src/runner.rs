@@ -371,8 +371,8 @@ fn loop_options(
 }
 
 /// Where a shard's link is opened: under `prefix`, to `neighbours`, preloaded with the batches
-/// a checkpoint kept (`early`, taken once) for the state at `tick`; its waits outside the steps
-/// end on `stop`.
+/// a checkpoint kept (`early`, taken once) for the state at `tick`; its waits for neighbours end
+/// on `stop`.
 struct LinkAt<'a> {
     prefix: &'a str,
     neighbours: &'a [u16],
