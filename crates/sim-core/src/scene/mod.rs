@@ -19,6 +19,7 @@ pub use crate::error::{FieldPath, Location, PathSeg, SceneError};
 use crate::math::Real;
 use crate::sensors::SensorSpec;
 
+mod chunked;
 mod compile;
 pub use compile::{compile, load, load_default};
 
@@ -261,21 +262,34 @@ pub struct CommandSpec {
 
 impl SceneSpec {
     /// Parses a scene from TOML text. `origin` names the text in errors (usually its path).
+    /// A long text whose copters come last is parsed a chunk of copters at a time, with the
+    /// same result and errors (`chunked.rs`: the parser's tree of a 100,000-copter scene
+    /// took 890 MB at once).
     pub fn from_toml(origin: &str, text: &str) -> Result<Self, SceneError> {
-        toml::from_str::<SceneSpec>(text).map_err(|e| {
-            let span = e.span();
-            let (path, location) = match &span {
-                Some(span) => (path_at(text, span), Some(line_col(text, span.start))),
-                None => (FieldPath::default(), None),
-            };
-            SceneError::Syntax { origin: origin.into(), location, path, message: e.message().trim().to_owned() }
-        })
+        if text.len() >= chunked::CHUNKED_FROM_BYTES
+            && let Some(starts) = chunked::copter_headers(text)
+        {
+            return chunked::from_toml_chunked(origin, text, &starts, chunked::COPTERS_PER_CHUNK, parse_whole);
+        }
+        parse_whole(origin, text)
     }
 
     /// Serialises the scene back to TOML.
     pub fn to_toml(&self) -> String {
         toml::to_string_pretty(self).unwrap_or_else(|e| format!("# scene not serialisable: {e}"))
     }
+}
+
+/// [`SceneSpec::from_toml`] in one parse of the whole text.
+fn parse_whole(origin: &str, text: &str) -> Result<SceneSpec, SceneError> {
+    toml::from_str::<SceneSpec>(text).map_err(|e| {
+        let span = e.span();
+        let (path, location) = match &span {
+            Some(span) => (path_at(text, span), Some(line_col(text, span.start))),
+            None => (FieldPath::default(), None),
+        };
+        SceneError::Syntax { origin: origin.into(), location, path, message: e.message().trim().to_owned() }
+    })
 }
 
 /// Converts a byte offset into a 1-based line and column (in characters).
