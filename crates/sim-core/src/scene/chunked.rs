@@ -4,9 +4,10 @@
 //! reads it: about 35 times the text's size. A generated swarm of 100,000 copters is 25 MB
 //! of TOML, and its tree peaked at 890 MB, twice what the run then holds. When the
 //! `[[copter]]` tables come last, the head (everything before the first) is parsed alone and
-//! the copters [`COPTERS_PER_CHUNK`] at a time; each chunk is a TOML document of its own, and
-//! the result, and every error's location and field path, are those of one parse of the
-//! whole text (tested below).
+//! the copters [`COPTERS_PER_CHUNK`] at a time; each chunk is a TOML document of its own. The
+//! result is that of one parse of the whole text, and so is an error's location and field
+//! path (tested below). Of several errors, the first reported may differ: the head is read
+//! whole before any copter, where one parse reports any syntax error before any field error.
 
 use std::ops::Range;
 
@@ -22,8 +23,8 @@ pub(super) const COPTERS_PER_CHUNK: usize = 1024;
 
 /// The byte offsets of the `[[copter]]` header lines, if the text can be parsed in chunks:
 /// nothing but copter tables from the first on (every other header is `[copter.…]` or
-/// `[[copter.…]]`), no copter table before it, and no multi-line string anywhere (a line of
-/// one could look like a header). `None`: parse the whole text.
+/// `[[copter.…]]`), no copter table nor `copter` key before it, and no multi-line string
+/// anywhere (a line of one could look like a header). `None`: parse the whole text.
 pub(super) fn copter_headers(text: &str) -> Option<Vec<usize>> {
     if text.contains("\"\"\"") || text.contains("'''") {
         return None;
@@ -33,6 +34,9 @@ pub(super) fn copter_headers(text: &str) -> Option<Vec<usize>> {
         let t = line.trim();
         if t == "[[copter]]" {
             starts.push(offset);
+        } else if starts.is_empty() && names_copters(t) {
+            // `copter = [...]` or `copter.x = ...` in the head: one parse says what it means.
+            return None;
         } else if t.starts_with('[') {
             let copter_table = t.starts_with("[copter.") || t.starts_with("[[copter.");
             if starts.is_empty() == copter_table {
@@ -43,6 +47,13 @@ pub(super) fn copter_headers(text: &str) -> Option<Vec<usize>> {
         offset += line.len();
     }
     (!starts.is_empty()).then_some(starts)
+}
+
+/// Whether a line sets a key `copter` (bare or quoted), at the top or in any table.
+fn names_copters(line: &str) -> bool {
+    ["copter", "\"copter\"", "'copter'"]
+        .iter()
+        .any(|k| line.strip_prefix(k).is_some_and(|rest| rest.trim_start().starts_with(['=', '.'])))
 }
 
 /// Parses `text` whose `[[copter]]` headers start at `starts` (from [`copter_headers`]),
@@ -149,7 +160,10 @@ mod tests {
         let after = format!("{text}\n[arena]\nheight_m = 3.0\n");
         let before = text.replacen("[[copter]]", "[copter.start]\npos_m = [0.0, 0.0]\n\n[[copter]]", 1);
         let string = text.replacen("name = \"c7\"", "name = \"\"\"c7\"\"\"", 1);
-        for t in [after, before, string] {
+        // An empty array of copters first: one parse refuses the copter tables after it.
+        let key = format!("copter = []\n{text}");
+        assert!(whole("s.toml", &key).is_err());
+        for t in [after, before, string, key] {
             assert!(copter_headers(&t).is_none());
         }
         // And a header line that is not exactly `[[copter]]` (a comment after it).

@@ -263,8 +263,8 @@ pub struct CommandSpec {
 impl SceneSpec {
     /// Parses a scene from TOML text. `origin` names the text in errors (usually its path).
     /// A long text whose copters come last is parsed a chunk of copters at a time, with the
-    /// same result and errors (`chunked.rs`: the parser's tree of a 100,000-copter scene
-    /// took 890 MB at once).
+    /// same result, and an error in the same place (`chunked.rs`: the parser's tree of a
+    /// 100,000-copter scene took 890 MB at once).
     pub fn from_toml(origin: &str, text: &str) -> Result<Self, SceneError> {
         if text.len() >= chunked::CHUNKED_FROM_BYTES
             && let Some(starts) = chunked::copter_headers(text)
