@@ -167,13 +167,25 @@ int __wrap_pthread_setschedparam(pthread_t thread, int policy, const struct sche
   return __real_pthread_setschedparam(thread, policy, param);
 }
 
+static void refused(const uint8_t *got, size_t got_n);
+static void read_all(uint8_t *buf, size_t len);
+
 static void write_all(const uint8_t *buf, size_t len)
 {
   while (len > 0) {
     ssize_t n = send(sock, buf, len, MSG_NOSIGNAL);
     if (n < 0) {
       if (errno == EINTR) { continue; }
-      fprintf(stderr, "[twinswarm fdm] send failed: %s; the world is gone, stopping NPS\n", strerror(errno));
+      int err = errno;
+      /* Stopped (SIGSTOP) between check_dropped() and this send, this aircraft may have been
+       * dropped, and the world closed: its word why waits unread in the socket. */
+      uint8_t magic[4];
+      if (recv(sock, magic, sizeof(magic), MSG_PEEK | MSG_DONTWAIT) == (ssize_t)sizeof(magic)
+          && get_u32(magic) == TWFD_MAGIC_REFUSED) {
+        read_all(magic, sizeof(magic));
+        refused(NULL, 0);
+      }
+      fprintf(stderr, "[twinswarm fdm] send failed: %s; the world is gone, stopping NPS\n", strerror(err));
       exit(0);
     }
     buf += n;
