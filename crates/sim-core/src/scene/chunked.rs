@@ -13,7 +13,7 @@ use std::ops::Range;
 
 use serde::Deserialize;
 
-use super::{CopterSpec, FieldPath, PathSeg, SceneError, SceneSpec, line_col, path_at};
+use super::{CopterSpec, FieldPath, PathSeg, SceneError, SceneSpec, line_col, parse_whole, path_at};
 
 /// Texts from this size on are parsed in chunks where they can be.
 pub(super) const CHUNKED_FROM_BYTES: usize = 1 << 20;
@@ -57,19 +57,17 @@ fn names_copters(line: &str) -> bool {
 }
 
 /// Parses `text` whose `[[copter]]` headers start at `starts` (from [`copter_headers`]),
-/// `per_chunk` copters at a time. `whole` parses a text at once (the head, or the whole text
-/// where the head holds copters of its own).
+/// `per_chunk` copters at a time.
 pub(super) fn from_toml_chunked(
     origin: &str,
     text: &str,
     starts: &[usize],
     per_chunk: usize,
-    whole: impl Fn(&str, &str) -> Result<SceneSpec, SceneError>,
 ) -> Result<SceneSpec, SceneError> {
-    let mut spec = whole(origin, &text[..starts[0]])?;
+    let mut spec = parse_whole(origin, &text[..starts[0]])?;
     if !spec.copters.is_empty() {
         // `copter = [...]` in the head as well: one parse says what is wrong.
-        return whole(origin, text);
+        return parse_whole(origin, text);
     }
     #[derive(Deserialize)]
     #[serde(deny_unknown_fields)]
@@ -110,13 +108,9 @@ fn chunk_error(origin: &str, text: &str, begin: usize, chunk: &str, first: usize
 mod tests {
     use super::*;
 
-    fn whole(origin: &str, text: &str) -> Result<SceneSpec, SceneError> {
-        super::super::parse_whole(origin, text)
-    }
-
     fn chunked(text: &str, per_chunk: usize) -> Result<SceneSpec, SceneError> {
         let starts = copter_headers(text).expect("a generated scene parses in chunks");
-        from_toml_chunked("s.toml", text, &starts, per_chunk, whole)
+        from_toml_chunked("s.toml", text, &starts, per_chunk)
     }
 
     /// 2,500 copters of `scene dense` with its pillars, in TOML.
@@ -127,7 +121,7 @@ mod tests {
     #[test]
     fn chunks_give_the_scene_of_one_parse() {
         let text = dense_text();
-        let one = whole("s.toml", &text).unwrap();
+        let one = parse_whole("s.toml", &text).unwrap();
         assert_eq!(one.copters.len(), 2500);
         for per_chunk in [1, 7, 1024, 5000] {
             assert_eq!(chunked(&text, per_chunk).unwrap(), one, "{per_chunk} copters a chunk");
@@ -144,7 +138,7 @@ mod tests {
         let at = text.match_indices("[copter.command]\n").nth(1100).unwrap().0 + 17;
         let unknown = format!("{}speed = 3\n{}", &text[..at], &text[at..]);
         for (bad, field) in [(bad_pos, "copter[2345].start.pos_m"), (unknown, "copter[1100].command.speed")] {
-            let one = whole("s.toml", &bad).unwrap_err();
+            let one = parse_whole("s.toml", &bad).unwrap_err();
             assert_eq!(one.path().to_string(), field, "{one}");
             for per_chunk in [7, 1024] {
                 let got = chunked(&bad, per_chunk).unwrap_err();
@@ -162,7 +156,7 @@ mod tests {
         let string = text.replacen("name = \"c7\"", "name = \"\"\"c7\"\"\"", 1);
         // An empty array of copters first: one parse refuses the copter tables after it.
         let key = format!("copter = []\n{text}");
-        assert!(whole("s.toml", &key).is_err());
+        assert!(parse_whole("s.toml", &key).is_err());
         for t in [after, before, string, key] {
             assert!(copter_headers(&t).is_none());
         }

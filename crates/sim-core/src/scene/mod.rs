@@ -269,7 +269,7 @@ impl SceneSpec {
         if text.len() >= chunked::CHUNKED_FROM_BYTES
             && let Some(starts) = chunked::copter_headers(text)
         {
-            return chunked::from_toml_chunked(origin, text, &starts, chunked::COPTERS_PER_CHUNK, parse_whole);
+            return chunked::from_toml_chunked(origin, text, &starts, chunked::COPTERS_PER_CHUNK);
         }
         parse_whole(origin, text)
     }
