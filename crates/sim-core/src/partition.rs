@@ -165,7 +165,13 @@ impl Partition {
         let [x0, y0, x1, y1] = self.bounds(k);
         let dx = (x0 - p.x).max(p.x - x1).max(0.0);
         let dy = (y0 - p.y).max(p.y - y1).max(0.0);
-        dx.hypot(dy)
+        // Beside a region (one of the two is 0, always so in a split along one axis) without
+        // the libm call: `hypot` of a zero and a non-negative `d` is `d`.
+        match (dx == 0.0, dy == 0.0) {
+            (true, _) => dy,
+            (false, true) => dx,
+            (false, false) => dx.hypot(dy),
+        }
     }
 
     /// The shards that exchange ghosts with `k`: those whose regions lie within the halo plus

@@ -57,7 +57,9 @@ pub(crate) const ALERT_CHUNK: usize = 256;
 
 /// Checks tilt crashes and take-offs, in id order, and hands a free copter that left its
 /// reservation back to Rapier. A scan (in parallel chunks, with threads) first finds the
-/// chunks where something may have happened: in most substeps, none.
+/// chunks where something may have happened: in most substeps, none. On one thread, the
+/// substeps between the first and the last scan only the copters that did not run ahead to the
+/// step's end, listed in the first (a copter runs ahead in the first substep alone).
 pub(super) fn detect_tilt_and_takeoff(
     world: &World,
     state: &mut State,
@@ -76,13 +78,37 @@ pub(super) fn detect_tilt_and_takeoff(
         lanes.iter().enumerate().any(|jl| may(jl) && may_act(world, crash_cos_tilt, jl.1))
     };
     scratch.alerts.resize(scratch.lanes.len().div_ceil(ALERT_CHUNK), false);
-    if parallel && scratch.lanes.len() > 4 * ALERT_CHUNK {
+    let last = world.params.substeps.saturating_sub(1);
+    // With threads, every substep scans all the lanes, in parallel (a list would be made on
+    // one thread).
+    let listed = !parallel;
+    if listed && s > 0 && s < last {
+        // Between the first substep and the last, only a copter that did not run ahead to the
+        // step's end can be `at` its check: the others' `batched` is the substep count.
+        scratch.alerts.fill(false);
+        for &i in &scratch.between {
+            let i = i as usize;
+            let lane = &scratch.lanes[i];
+            let a = &mut scratch.alerts[i / ALERT_CHUNK];
+            *a = *a || (at(lane) && may_act(world, crash_cos_tilt, lane));
+        }
+    } else if parallel && scratch.lanes.len() > 4 * ALERT_CHUNK {
         use rayon::prelude::*;
         let chunks = scratch.lanes.par_chunks(ALERT_CHUNK).zip(scratch.alerts.par_iter_mut());
         chunks.enumerate().for_each(|(k, (lanes, a))| *a = alert(k, lanes));
     } else {
         for (k, (lanes, a)) in scratch.lanes.chunks(ALERT_CHUNK).zip(&mut scratch.alerts).enumerate() {
             *a = alert(k, lanes);
+        }
+    }
+    // The later substeps step these alone (see `Scratch::between`).
+    if listed && s == 0 && last > 0 {
+        let ids = 0..scratch.lanes.len() as u32;
+        let between = |&i: &u32| roles.owned(i as usize) && scratch.lanes[i as usize].batched <= last;
+        scratch.between.clear();
+        match roles.0 {
+            Some(_) => scratch.between.extend(scratch.present.iter().copied().filter(between)),
+            None => scratch.between.extend(ids.filter(between)),
         }
     }
     let n = world.copters.len();

@@ -483,13 +483,18 @@ fn step_copters(
 pub(super) const NOT_STEPPED: u32 = u32::MAX;
 
 /// Every copter's motion at the start of the step, into its lane (in a shard, of the copters
-/// it reads: an absent one's lane is read by nothing, and only marked [`NOT_STEPPED`]).
+/// it reads: an absent one's lane is read by nothing, and only marked [`NOT_STEPPED`] for
+/// the substeps' parallel passes).
 fn load_lanes(world: &World, copters: &[CopterState], lanes: &mut [Lane], parallel: bool, roles: Roles<'_>) {
     let load = |first: usize, ls: &mut [Lane]| {
         for (j, lane) in ls.iter_mut().enumerate() {
             let i = first + j;
             if !roles.present(i) {
-                lane.batched = NOT_STEPPED;
+                // Read only by the substeps' parallel passes: on one thread they visit the
+                // present copters alone, and the lane is not touched.
+                if parallel {
+                    lane.batched = NOT_STEPPED;
+                }
                 continue;
             }
             let (c, m) = (&copters[i], &copters[i].motion);
@@ -566,7 +571,16 @@ fn physics_substep(
     let scratch = &mut state.scratch;
     let parallel_rapier = parallel && !scratch.in_rapier.is_empty();
     let pass = SubstepPass { world, inner, alphas: &scratch.motor_alpha, cos_tilt: &scratch.crash_cos_tilt, roles, dt };
-    let first = pass.closure(s, parallel_rapier.then_some(true));
+    // On one thread, the copters this substep may step: a shard's present ones in the first
+    // (the others' lanes are not read), those that did not run ahead to the step's end in the
+    // later ones (listed by the first's checks).
+    let ids = match (parallel, s, roles.0) {
+        (true, ..) => None,
+        (false, 0, Some(_)) => Some(&scratch.present[..]),
+        (false, 0, None) => None,
+        (false, ..) => Some(&scratch.between[..]),
+    };
+    let first = pass.closure(s, parallel_rapier.then_some(true), ids);
     for_each_chunk(parallel, &mut state.copters, &mut scratch.lanes, first);
     probe(Stage::InRapierLanes);
     fall_wrecks(world, state, dt, parallel);
@@ -584,7 +598,7 @@ fn physics_substep(
     if parallel_rapier {
         let pass =
             SubstepPass { world, inner, alphas: &scratch.motor_alpha, cos_tilt: &scratch.crash_cos_tilt, roles, dt };
-        let free_lanes = pass.closure(s, Some(false));
+        let free_lanes = pass.closure(s, Some(false), None);
         let (physics, copters, lanes) = (&mut state.physics, &mut state.copters, &mut scratch.lanes);
         rayon::join(|| rapier(physics), || for_each_chunk(true, copters, lanes, free_lanes));
     } else {

@@ -118,10 +118,11 @@ pub(super) fn sort_free_and_watched(world: &World, state: &mut State, parallel: 
     // A shard's ownership joins the copters whose spheres meet: it looks only at those.
     let shard = roles.0.is_some();
     for_each_lane(parallel, &mut state.copters, &mut scratch.lanes, |i, c, lane| {
-        (lane.free, lane.watch, lane.touching) = (false, false, false);
+        // An absent copter's lane is not touched: nothing reads its flags.
         if !roles.present(i) {
             return;
         }
+        (lane.free, lane.watch, lane.touching) = (false, false, false);
         lane.floor_impact_m_s = 0.0;
         let (p, r) = (lane.pos_m, lane.reserved_m + FREE_GAP_M);
         // A wreck in closed form falls and lies outside Rapier's dynamics (`fall_wrecks`).

@@ -29,14 +29,24 @@ impl<'a> SubstepPass<'a> {
     ///
     /// Those that run ahead and have left the floor go four at a time ([`run_ahead_batch`]):
     /// their substeps on [`lanes`], the same bits.
+    ///
+    /// With `ids` (ascending), only those copters are looked at: a list that holds every copter
+    /// this substep steps, so that the others' lanes are not read at all.
     pub(super) fn closure(
         self,
         s: u32,
         in_rapier: Option<bool>,
+        ids: Option<&'a [u32]>,
     ) -> impl Fn(usize, &mut [CopterState], &mut [Lane]) + Sync + Send + 'a {
         move |first, cs, ls| {
             let (mut batch, mut filled) = ([0; LANES], 0);
-            for j in 0..cs.len() {
+            // This chunk's part of `ids`.
+            let listed = ids.map(|ids| {
+                let from = |i: usize| ids.partition_point(|&id| (id as usize) < i);
+                &ids[from(first)..from(first + cs.len())]
+            });
+            for k in 0..listed.map_or(cs.len(), <[u32]>::len) {
+                let j = listed.map_or(k, |l| l[k] as usize - first);
                 let (i, c, lane) = (first + j, &mut cs[j], &mut ls[j]);
                 if s < lane.batched || in_rapier.is_some_and(|r| r == lane.free) {
                     continue;
