@@ -534,9 +534,10 @@ pub(crate) struct Scratch {
     /// off or left its reservation in the last substep (see `step::detect_tilt_and_takeoff`).
     pub(crate) alerts: Vec<bool>,
     /// On one thread, the owned copters that did not run ahead to the step's end, in id order
-    /// (listed after the first substep): the only ones the later substeps step, and the only
-    /// ones the substeps between the first and the last check (see
-    /// `step::detect_tilt_and_takeoff`).
+    /// (listed after the first substep's pass, `step::list_between`): the only ones the later
+    /// substeps step, and the only ones the substeps between the first and the last check
+    /// (`step::detect_tilt_and_takeoff`). With threads, every substep scans all the lanes in
+    /// parallel (the list would be made on one thread).
     pub(crate) between: Vec<u32>,
     /// Per copter: whether its Rapier body is enabled, disabled or taken over this step (see
     /// `step::enable_rapier_bodies`), found in parallel, changed in id order.

@@ -80,15 +80,23 @@ pub(super) fn from_toml_chunked(
         let end = starts.get((k + 1) * per_chunk).copied().unwrap_or(text.len());
         let (begin, first) = (group[0], k * per_chunk);
         let chunk = &text[begin..end];
-        let parsed: Chunk = toml::from_str(chunk).map_err(|e| chunk_error(origin, text, begin, chunk, first, &e))?;
+        let parsed: Chunk = toml::from_str(chunk).map_err(|e| syntax_error(origin, text, begin, chunk, first, &e))?;
         spec.copters.extend(parsed.copters);
     }
     Ok(spec)
 }
 
-/// A chunk's error as the whole text's: its location in the text, its copter's index in the
-/// scene.
-fn chunk_error(origin: &str, text: &str, begin: usize, chunk: &str, first: usize, e: &toml::de::Error) -> SceneError {
+/// The parse error of `chunk`, the part of `text` from byte `begin` on whose first copter is
+/// the scene's `first`, as an error of the whole text: its location in the text, its copter's
+/// index in the scene (the whole text is the chunk from 0 with copter 0).
+pub(super) fn syntax_error(
+    origin: &str,
+    text: &str,
+    begin: usize,
+    chunk: &str,
+    first: usize,
+    e: &toml::de::Error,
+) -> SceneError {
     let (path, location) = match e.span() {
         Some(Range { start, end }) => {
             let mut path = path_at(chunk, &(start..end));

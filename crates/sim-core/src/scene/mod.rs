@@ -282,14 +282,7 @@ impl SceneSpec {
 
 /// [`SceneSpec::from_toml`] in one parse of the whole text.
 fn parse_whole(origin: &str, text: &str) -> Result<SceneSpec, SceneError> {
-    toml::from_str::<SceneSpec>(text).map_err(|e| {
-        let span = e.span();
-        let (path, location) = match &span {
-            Some(span) => (path_at(text, span), Some(line_col(text, span.start))),
-            None => (FieldPath::default(), None),
-        };
-        SceneError::Syntax { origin: origin.into(), location, path, message: e.message().trim().to_owned() }
-    })
+    toml::from_str::<SceneSpec>(text).map_err(|e| chunked::syntax_error(origin, text, 0, text, 0, &e))
 }
 
 /// Converts a byte offset into a 1-based line and column (in characters).

@@ -59,7 +59,7 @@ pub(crate) const ALERT_CHUNK: usize = 256;
 /// reservation back to Rapier. A scan (in parallel chunks, with threads) first finds the
 /// chunks where something may have happened: in most substeps, none. On one thread, the
 /// substeps between the first and the last scan only the copters that did not run ahead to the
-/// step's end, listed in the first (a copter runs ahead in the first substep alone).
+/// step's end ([`list_between`]).
 pub(super) fn detect_tilt_and_takeoff(
     world: &World,
     state: &mut State,
@@ -79,10 +79,8 @@ pub(super) fn detect_tilt_and_takeoff(
     };
     scratch.alerts.resize(scratch.lanes.len().div_ceil(ALERT_CHUNK), false);
     let last = world.params.substeps.saturating_sub(1);
-    // With threads, every substep scans all the lanes, in parallel (a list would be made on
-    // one thread).
-    let listed = !parallel;
-    if listed && s > 0 && s < last {
+    // With threads, every substep scans all the lanes, in parallel (see `Scratch::between`).
+    if !parallel && s > 0 && s < last {
         // Between the first substep and the last, only a copter that did not run ahead to the
         // step's end can be `at` its check: the others' `batched` is the substep count.
         scratch.alerts.fill(false);
@@ -99,16 +97,6 @@ pub(super) fn detect_tilt_and_takeoff(
     } else {
         for (k, (lanes, a)) in scratch.lanes.chunks(ALERT_CHUNK).zip(&mut scratch.alerts).enumerate() {
             *a = alert(k, lanes);
-        }
-    }
-    // The later substeps step these alone (see `Scratch::between`).
-    if listed && s == 0 && last > 0 {
-        let ids = 0..scratch.lanes.len() as u32;
-        let between = |&i: &u32| roles.owned(i as usize) && scratch.lanes[i as usize].batched <= last;
-        scratch.between.clear();
-        match roles.0 {
-            Some(_) => scratch.between.extend(scratch.present.iter().copied().filter(between)),
-            None => scratch.between.extend(ids.filter(between)),
         }
     }
     let n = world.copters.len();

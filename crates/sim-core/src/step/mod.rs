@@ -573,7 +573,7 @@ fn physics_substep(
     let pass = SubstepPass { world, inner, alphas: &scratch.motor_alpha, cos_tilt: &scratch.crash_cos_tilt, roles, dt };
     // On one thread, the copters this substep may step: a shard's present ones in the first
     // (the others' lanes are not read), those that did not run ahead to the step's end in the
-    // later ones (listed by the first's checks).
+    // later ones (listed after the first).
     let ids = match (parallel, s, roles.0) {
         (true, ..) => None,
         (false, 0, Some(_)) => Some(&scratch.present[..]),
@@ -582,6 +582,9 @@ fn physics_substep(
     };
     let first = pass.closure(s, parallel_rapier.then_some(true), ids);
     for_each_chunk(parallel, &mut state.copters, &mut scratch.lanes, first);
+    if !parallel && s == 0 {
+        list_between(world, &mut state.scratch, roles);
+    }
     probe(Stage::InRapierLanes);
     fall_wrecks(world, state, dt, parallel);
     let (copters, falling) = (&state.copters, &mut state.scratch.falling);
@@ -613,6 +616,20 @@ fn physics_substep(
     probe(Stage::RapierResults);
     detect_tilt_and_takeoff(world, state, report, roles, parallel, s);
     probe(Stage::TiltAndTakeOff);
+}
+
+/// `Scratch::between`, after the first substep's pass on one thread: the owned copters that
+/// did not run ahead to the step's end. A copter runs ahead in the first substep alone, so the
+/// others' `Lane::batched` is the substep count from here on: the later substeps neither step
+/// nor check them before the last.
+fn list_between(world: &World, scratch: &mut crate::state::Scratch, roles: Roles<'_>) {
+    let last = world.params.substeps.saturating_sub(1);
+    let between = |&i: &u32| roles.owned(i as usize) && scratch.lanes[i as usize].batched <= last;
+    scratch.between.clear();
+    match roles.0 {
+        Some(_) => scratch.between.extend(scratch.present.iter().copied().filter(between)),
+        None => scratch.between.extend((0..scratch.lanes.len() as u32).filter(between)),
+    }
 }
 
 /// The forces and torques of the awake copters in Rapier onto their bodies; whether any is.
